@@ -1,0 +1,52 @@
+//! The crate's one error type. Every variant names what was wrong so that hosts
+//! (CLI, Python, Blender) can show it to the user unchanged.
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A value the caller gave is unusable; `field` is its path in the scene description.
+    #[error("invalid {field}: {reason}")]
+    InvalidInput { field: String, reason: String },
+
+    /// The scene description could not be parsed (syntax, unknown key, wrong type).
+    #[error("scene description: {0}")]
+    SceneFormat(String),
+
+    #[error("unknown built-in scene '{name}' (available: {available})")]
+    UnknownScene { name: String, available: String },
+
+    #[error("EXR file {path}: {reason}")]
+    Exr { path: PathBuf, reason: String },
+
+    #[error("PNG file {path}: {reason}")]
+    Png { path: PathBuf, reason: String },
+
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("render cancelled")]
+    Cancelled,
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Error::InvalidInput {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

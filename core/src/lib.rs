@@ -1,0 +1,16 @@
+//! crepuscular: art-directable volumetric light shafts.
+//!
+//! The core turns a [`Scene`] into per-pixel [`Layers`]: it rasterizes the light's shadow
+//! map and the camera depth, then integrates single scattering along every view ray.
+
+pub mod control;
+pub mod error;
+pub mod layers;
+pub mod render;
+pub mod scene;
+
+pub use control::RenderControl;
+pub use error::{Error, Result};
+pub use layers::Layers;
+pub use render::{render, render_scene, CameraDepth, DepthKind, Frame, Geometry};
+pub use scene::Scene;

@@ -1,0 +1,507 @@
+//! The scene description: camera, sun, medium, meshes and render settings.
+//!
+//! It is what crosses every boundary (JSON files, Python dicts, the Blender and USD
+//! exporters). Parsing rejects unknown keys by their path, and [`Scene::validate`] names
+//! the offending field of any value the renderer cannot use.
+
+use glam::{Mat4, Vec3};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+
+/// The scene-description version this build reads and writes.
+pub const SCENE_VERSION: u32 = 1;
+/// Largest accepted image side, in pixels.
+pub const MAX_IMAGE_SIZE: u32 = 16384;
+/// Largest accepted shadow-map side, in texels (a 16384² f32 map plus ids is 2 GiB).
+pub const MAX_SHADOW_MAP_SIZE: u32 = 16384;
+/// Smallest accepted shadow-map side, in texels.
+pub const MIN_SHADOW_MAP_SIZE: u32 = 16;
+/// Largest accepted ray-march step count.
+pub const MAX_STEPS: u32 = 1 << 20;
+/// Largest accepted supersampling factor per axis.
+pub const MAX_SUPERSAMPLING: u32 = 8;
+
+/// A complete, self-contained frame description.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    pub version: u32,
+    pub camera: Camera,
+    pub sun: Sun,
+    pub medium: Medium,
+    #[serde(default)]
+    pub meshes: Vec<Mesh>,
+    #[serde(default)]
+    pub render: RenderSettings,
+}
+
+/// A camera looking down its local −Z axis with +Y up, as in Blender and USD.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Camera {
+    /// Camera-to-world transform, 16 floats in column-major order.
+    pub world_from_camera: Mat4,
+    pub projection: Projection,
+    /// Near clip distance, measured along the view axis as Blender and USD do.
+    pub clip_start: f32,
+    /// Far clip distance along the view axis; surfaces beyond it count as background.
+    pub clip_end: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// Which sensor dimension the sensor size (or ortho scale) applies to, as in Blender.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SensorFit {
+    /// The larger image dimension gets `sensor_width`.
+    #[default]
+    Auto,
+    /// The image width gets `sensor_width`.
+    Horizontal,
+    /// The image height gets `sensor_height`.
+    Vertical,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Projection {
+    /// A pinhole camera. Lengths are in millimetres, shifts in units of the fitted
+    /// sensor dimension (Blender's `shift_x`/`shift_y`).
+    Perspective {
+        focal_length: f32,
+        #[serde(default = "default_sensor_width")]
+        sensor_width: f32,
+        #[serde(default = "default_sensor_height")]
+        sensor_height: f32,
+        #[serde(default)]
+        sensor_fit: SensorFit,
+        #[serde(default)]
+        shift_x: f32,
+        #[serde(default)]
+        shift_y: f32,
+    },
+    /// A parallel projection; `ortho_scale` is the fitted image side in scene units.
+    Orthographic {
+        ortho_scale: f32,
+        #[serde(default)]
+        sensor_fit: SensorFit,
+        #[serde(default)]
+        shift_x: f32,
+        #[serde(default)]
+        shift_y: f32,
+    },
+}
+
+fn default_sensor_width() -> f32 {
+    36.0
+}
+
+fn default_sensor_height() -> f32 {
+    24.0
+}
+
+/// A directional light.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sun {
+    /// The direction the light travels, from the sun into the scene (a sun lamp's −Z axis).
+    /// Need not be normalized.
+    pub direction: Vec3,
+    /// Linear RGB colour.
+    #[serde(default = "white")]
+    pub color: Vec3,
+    /// Irradiance on a surface facing the sun, in W/m² as Blender's sun strength.
+    #[serde(default = "one")]
+    pub strength: f32,
+    /// Apparent diameter of the sun disk in radians (stored; soft shadows come later).
+    #[serde(default = "default_sun_angle")]
+    pub angular_diameter: f32,
+}
+
+fn white() -> Vec3 {
+    Vec3::ONE
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+fn default_sun_angle() -> f32 {
+    0.526_f32.to_radians()
+}
+
+impl Sun {
+    /// Unit vector of light travel. Only valid after [`Scene::validate`].
+    pub fn travel_direction(&self) -> Vec3 {
+        self.direction.normalize()
+    }
+
+    /// Colour × strength: the E of the scattering integral.
+    pub fn irradiance(&self) -> Vec3 {
+        self.color * self.strength
+    }
+}
+
+/// A homogeneous participating medium.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Medium {
+    /// Extinction coefficient σt, per scene unit.
+    pub extinction: f32,
+    /// Single-scattering albedo ρ per channel, so that σs = ρ·σt.
+    #[serde(default = "white")]
+    pub albedo: Vec3,
+    /// Henyey–Greenstein mean cosine g (positive scatters forward).
+    #[serde(default)]
+    pub anisotropy: f32,
+    #[serde(default)]
+    pub phase: PhaseModel,
+    #[serde(default)]
+    pub extent: Extent,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PhaseModel {
+    #[default]
+    HenyeyGreenstein,
+    /// The constant 1/(4π), ignoring `anisotropy`.
+    Isotropic,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Extent {
+    /// The medium fills all space and sunlight reaches every point unattenuated.
+    #[default]
+    Unbounded,
+    /// The medium fills an oriented box: the image of the cube [−1, 1]³ (Blender's default
+    /// cube, USD's default `Cube`) under `world_from_cube`. Sunlight is attenuated inside.
+    Box { world_from_cube: Mat4 },
+}
+
+/// Triangles of one object. Positions are in object space, placed by `world_from_object`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Mesh {
+    #[serde(default)]
+    pub name: String,
+    /// Written into the shadow map's id channel; stylization selects objects by it.
+    pub object_id: u32,
+    #[serde(default = "identity")]
+    pub world_from_object: Mat4,
+    pub positions: Vec<[f32; 3]>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+fn identity() -> Mat4 {
+    Mat4::IDENTITY
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Brute-force ray marching: the reference every faster method is measured against.
+    #[default]
+    Reference,
+}
+
+impl Method {
+    pub const ALL: [Method; 1] = [Method::Reference];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Reference => "reference",
+        }
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = Error;
+
+    fn from_str(text: &str) -> Result<Self> {
+        Method::ALL
+            .into_iter()
+            .find(|method| method.name() == text)
+            .ok_or_else(|| {
+                let known: Vec<_> = Method::ALL.iter().map(|m| m.name()).collect();
+                Error::invalid(
+                    "render.method",
+                    format!("unknown method '{text}' (known: {})", known.join(", ")),
+                )
+            })
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RenderSettings {
+    /// Side of the square light shadow map, in texels.
+    pub shadow_map_size: u32,
+    pub method: Method,
+    /// Distance along the view ray integrated for background pixels, in scene units.
+    pub max_distance: f32,
+    /// Ray-march steps per view ray for the reference method.
+    pub steps: u32,
+    /// Camera-depth samples per pixel along each axis (1 = one sample at the pixel centre).
+    pub supersampling: u32,
+    /// Shadow-map depth bias in scene units; `None` picks 1.5 texel widths.
+    pub shadow_bias: Option<f32>,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        Self {
+            shadow_map_size: 1024,
+            method: Method::Reference,
+            max_distance: 100.0,
+            steps: 2048,
+            supersampling: 1,
+            shadow_bias: None,
+        }
+    }
+}
+
+impl Scene {
+    /// Parses a JSON scene description; unknown keys and type errors name their path.
+    pub fn from_json(text: &str) -> Result<Self> {
+        let deserializer = &mut serde_json::Deserializer::from_str(text);
+        let scene: Scene = serde_path_to_error::deserialize(deserializer).map_err(|err| {
+            let path = err.path().to_string();
+            let inner = err.into_inner();
+            if path == "." {
+                Error::SceneFormat(inner.to_string())
+            } else {
+                Error::SceneFormat(format!("at '{path}': {inner}"))
+            }
+        })?;
+        scene.validate()?;
+        Ok(scene)
+    }
+
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("a scene always serializes to JSON")
+    }
+
+    pub fn triangle_count(&self) -> usize {
+        self.meshes.iter().map(|mesh| mesh.triangles.len()).sum()
+    }
+
+    /// Checks every value the renderer relies on and names the first offending field.
+    pub fn validate(&self) -> Result<()> {
+        if self.version != SCENE_VERSION {
+            return Err(Error::invalid(
+                "version",
+                format!(
+                    "scene version {} is not supported (this build reads version {SCENE_VERSION})",
+                    self.version
+                ),
+            ));
+        }
+        self.camera.validate()?;
+        self.sun.validate()?;
+        self.medium.validate()?;
+        self.render.validate()?;
+        for (index, mesh) in self.meshes.iter().enumerate() {
+            mesh.validate(&format!("meshes[{index}]"))?;
+        }
+        if self.triangle_count() == 0 {
+            return Err(Error::invalid(
+                "meshes",
+                "the scene is empty: it has no triangles (add at least a ground plane)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl Camera {
+    pub fn validate(&self) -> Result<()> {
+        check_size("camera.width", self.width, 1, MAX_IMAGE_SIZE)?;
+        check_size("camera.height", self.height, 1, MAX_IMAGE_SIZE)?;
+        check_matrix("camera.world_from_camera", &self.world_from_camera)?;
+        check_positive("camera.clip_start", self.clip_start)?;
+        check_positive("camera.clip_end", self.clip_end)?;
+        if self.clip_end <= self.clip_start {
+            return Err(Error::invalid(
+                "camera.clip_end",
+                format!(
+                    "{} must be greater than clip_start {}",
+                    self.clip_end, self.clip_start
+                ),
+            ));
+        }
+        match self.projection {
+            Projection::Perspective {
+                focal_length,
+                sensor_width,
+                sensor_height,
+                shift_x,
+                shift_y,
+                ..
+            } => {
+                check_positive("camera.projection.focal_length", focal_length)?;
+                check_positive("camera.projection.sensor_width", sensor_width)?;
+                check_positive("camera.projection.sensor_height", sensor_height)?;
+                check_finite("camera.projection.shift_x", shift_x)?;
+                check_finite("camera.projection.shift_y", shift_y)?;
+            }
+            Projection::Orthographic {
+                ortho_scale,
+                shift_x,
+                shift_y,
+                ..
+            } => {
+                check_positive("camera.projection.ortho_scale", ortho_scale)?;
+                check_finite("camera.projection.shift_x", shift_x)?;
+                check_finite("camera.projection.shift_y", shift_y)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Sun {
+    pub fn validate(&self) -> Result<()> {
+        check_vec("sun.direction", self.direction)?;
+        if self.direction.length() < 1e-12 {
+            return Err(Error::invalid(
+                "sun.direction",
+                "has zero length; give the direction the light travels",
+            ));
+        }
+        check_color("sun.color", self.color)?;
+        check_non_negative("sun.strength", self.strength)?;
+        check_non_negative("sun.angular_diameter", self.angular_diameter)?;
+        Ok(())
+    }
+}
+
+impl Medium {
+    pub fn validate(&self) -> Result<()> {
+        check_non_negative("medium.extinction", self.extinction)?;
+        check_color("medium.albedo", self.albedo)?;
+        check_finite("medium.anisotropy", self.anisotropy)?;
+        if self.anisotropy.abs() >= 1.0 {
+            return Err(Error::invalid(
+                "medium.anisotropy",
+                format!("{} is outside (−1, 1)", self.anisotropy),
+            ));
+        }
+        if let Extent::Box { world_from_cube } = &self.extent {
+            check_matrix("medium.extent.world_from_cube", world_from_cube)?;
+        }
+        Ok(())
+    }
+}
+
+impl Mesh {
+    pub fn validate(&self, field: &str) -> Result<()> {
+        check_matrix(&format!("{field}.world_from_object"), &self.world_from_object)?;
+        if let Some(index) = self
+            .positions
+            .iter()
+            .position(|p| !p.iter().all(|c| c.is_finite()))
+        {
+            return Err(Error::invalid(
+                format!("{field}.positions[{index}]"),
+                format!("{:?} is not finite", self.positions[index]),
+            ));
+        }
+        let count = self.positions.len();
+        if let Some(index) = self
+            .triangles
+            .iter()
+            .position(|t| t.iter().any(|&v| v as usize >= count))
+        {
+            return Err(Error::invalid(
+                format!("{field}.triangles[{index}]"),
+                format!(
+                    "{:?} indexes past the {count} positions",
+                    self.triangles[index]
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl RenderSettings {
+    pub fn validate(&self) -> Result<()> {
+        check_size(
+            "render.shadow_map_size",
+            self.shadow_map_size,
+            MIN_SHADOW_MAP_SIZE,
+            MAX_SHADOW_MAP_SIZE,
+        )?;
+        check_positive("render.max_distance", self.max_distance)?;
+        check_size("render.steps", self.steps, 1, MAX_STEPS)?;
+        check_size("render.supersampling", self.supersampling, 1, MAX_SUPERSAMPLING)?;
+        if let Some(bias) = self.shadow_bias {
+            check_non_negative("render.shadow_bias", bias)?;
+        }
+        Ok(())
+    }
+}
+
+pub(crate) fn check_size(field: &str, value: u32, min: u32, max: u32) -> Result<()> {
+    if value < min || value > max {
+        return Err(Error::invalid(
+            field,
+            format!("{value} is outside the supported range {min}..={max}"),
+        ));
+    }
+    Ok(())
+}
+
+pub(crate) fn check_finite(field: &str, value: f32) -> Result<()> {
+    if !value.is_finite() {
+        return Err(Error::invalid(field, format!("{value} is not finite")));
+    }
+    Ok(())
+}
+
+pub(crate) fn check_positive(field: &str, value: f32) -> Result<()> {
+    check_finite(field, value)?;
+    if value <= 0.0 {
+        return Err(Error::invalid(field, format!("{value} must be positive")));
+    }
+    Ok(())
+}
+
+pub(crate) fn check_non_negative(field: &str, value: f32) -> Result<()> {
+    check_finite(field, value)?;
+    if value < 0.0 {
+        return Err(Error::invalid(field, format!("{value} must not be negative")));
+    }
+    Ok(())
+}
+
+fn check_vec(field: &str, value: Vec3) -> Result<()> {
+    if !value.is_finite() {
+        return Err(Error::invalid(field, format!("{value:?} is not finite")));
+    }
+    Ok(())
+}
+
+fn check_color(field: &str, value: Vec3) -> Result<()> {
+    check_vec(field, value)?;
+    if value.min_element() < 0.0 {
+        return Err(Error::invalid(field, format!("{value:?} has a negative channel")));
+    }
+    Ok(())
+}
+
+/// A matrix must be finite and invertible to place anything in the world.
+pub(crate) fn check_matrix(field: &str, matrix: &Mat4) -> Result<()> {
+    if !matrix.is_finite() {
+        return Err(Error::invalid(field, "contains NaN or infinity"));
+    }
+    let det = matrix.determinant();
+    if !det.is_finite() || det.abs() < 1e-20 {
+        return Err(Error::invalid(field, "is singular (determinant is zero)"));
+    }
+    Ok(())
+}
