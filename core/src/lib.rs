@@ -3,9 +3,11 @@
 //! The core turns a [`Scene`] into per-pixel [`Layers`]: it rasterizes the light's shadow
 //! map and the camera depth, then integrates single scattering along every view ray.
 
+pub mod camera;
 pub mod control;
 pub mod error;
 pub mod layers;
+pub mod raster;
 pub mod render;
 pub mod scene;
 

@@ -399,7 +399,10 @@ impl Medium {
 
 impl Mesh {
     pub fn validate(&self, field: &str) -> Result<()> {
-        check_matrix(&format!("{field}.world_from_object"), &self.world_from_object)?;
+        check_matrix(
+            &format!("{field}.world_from_object"),
+            &self.world_from_object,
+        )?;
         if let Some(index) = self
             .positions
             .iter()
@@ -438,7 +441,12 @@ impl RenderSettings {
         )?;
         check_positive("render.max_distance", self.max_distance)?;
         check_size("render.steps", self.steps, 1, MAX_STEPS)?;
-        check_size("render.supersampling", self.supersampling, 1, MAX_SUPERSAMPLING)?;
+        check_size(
+            "render.supersampling",
+            self.supersampling,
+            1,
+            MAX_SUPERSAMPLING,
+        )?;
         if let Some(bias) = self.shadow_bias {
             check_non_negative("render.shadow_bias", bias)?;
         }
@@ -474,7 +482,10 @@ pub(crate) fn check_positive(field: &str, value: f32) -> Result<()> {
 pub(crate) fn check_non_negative(field: &str, value: f32) -> Result<()> {
     check_finite(field, value)?;
     if value < 0.0 {
-        return Err(Error::invalid(field, format!("{value} must not be negative")));
+        return Err(Error::invalid(
+            field,
+            format!("{value} must not be negative"),
+        ));
     }
     Ok(())
 }
@@ -489,7 +500,10 @@ fn check_vec(field: &str, value: Vec3) -> Result<()> {
 fn check_color(field: &str, value: Vec3) -> Result<()> {
     check_vec(field, value)?;
     if value.min_element() < 0.0 {
-        return Err(Error::invalid(field, format!("{value:?} has a negative channel")));
+        return Err(Error::invalid(
+            field,
+            format!("{value:?} has a negative channel"),
+        ));
     }
     Ok(())
 }

@@ -1,0 +1,256 @@
+//! Camera rays and the camera's raster projection, following Blender's view-plane rules
+//! (sensor fit, lens shift in units of the fitted sensor dimension).
+//!
+//! Pixel coordinates are continuous: (0, 0) is the top-left corner of the image and
+//! (width, height) the bottom-right one, so pixel (x, y) has its centre at (x + ½, y + ½).
+
+use glam::{DMat4, DVec3, DVec4};
+
+use crate::scene::{Camera, Projection, SensorFit};
+
+/// A view ray in world space. `direction` has unit length.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ray {
+    pub origin: DVec3,
+    pub direction: DVec3,
+    /// Ray length per unit of planar depth (distance along the view axis).
+    pub distance_per_depth: f64,
+}
+
+impl Ray {
+    pub fn at(&self, t: f64) -> DVec3 {
+        self.origin + self.direction * t
+    }
+}
+
+/// A camera prepared for ray generation and rasterization.
+#[derive(Clone, Debug)]
+pub struct CameraModel {
+    pub world_from_camera: DMat4,
+    pub camera_from_world: DMat4,
+    pub width: u32,
+    pub height: u32,
+    pub clip_start: f64,
+    pub clip_end: f64,
+    perspective: bool,
+    /// View-plane units per pixel (at unit depth for perspective, scene units for ortho).
+    plane_per_pixel: f64,
+    /// View-plane coordinates of the image's top-left corner.
+    plane_origin: [f64; 2],
+}
+
+impl CameraModel {
+    pub fn new(camera: &Camera) -> Self {
+        let width = camera.width as f64;
+        let height = camera.height as f64;
+        let (perspective, plane_size, fit, shift_x, shift_y) = match camera.projection {
+            Projection::Perspective {
+                focal_length,
+                sensor_width,
+                sensor_height,
+                sensor_fit,
+                shift_x,
+                shift_y,
+            } => {
+                // Blender applies sensor_width unless the fit is explicitly vertical.
+                let sensor = if sensor_fit == SensorFit::Vertical {
+                    sensor_height
+                } else {
+                    sensor_width
+                };
+                (
+                    true,
+                    sensor as f64 / focal_length as f64,
+                    sensor_fit,
+                    shift_x,
+                    shift_y,
+                )
+            }
+            Projection::Orthographic {
+                ortho_scale,
+                sensor_fit,
+                shift_x,
+                shift_y,
+            } => (false, ortho_scale as f64, sensor_fit, shift_x, shift_y),
+        };
+        let fitted_pixels = match fit {
+            SensorFit::Horizontal => width,
+            SensorFit::Vertical => height,
+            SensorFit::Auto => width.max(height),
+        };
+        let plane_per_pixel = plane_size / fitted_pixels;
+        let shift = [
+            shift_x as f64 * fitted_pixels,
+            shift_y as f64 * fitted_pixels,
+        ];
+        let plane_origin = [
+            (-0.5 * width + shift[0]) * plane_per_pixel,
+            (0.5 * height + shift[1]) * plane_per_pixel,
+        ];
+        let world_from_camera = camera.world_from_camera.as_dmat4();
+        Self {
+            world_from_camera,
+            camera_from_world: world_from_camera.inverse(),
+            width: camera.width,
+            height: camera.height,
+            clip_start: camera.clip_start as f64,
+            clip_end: camera.clip_end as f64,
+            perspective,
+            plane_per_pixel,
+            plane_origin,
+        }
+    }
+
+    pub fn is_perspective(&self) -> bool {
+        self.perspective
+    }
+
+    /// Camera-space point on the view plane for continuous pixel coordinates.
+    fn plane_point(&self, px: f64, py: f64) -> [f64; 2] {
+        [
+            self.plane_origin[0] + px * self.plane_per_pixel,
+            self.plane_origin[1] - py * self.plane_per_pixel,
+        ]
+    }
+
+    /// The world-space ray through continuous pixel coordinates.
+    pub fn ray(&self, px: f64, py: f64) -> Ray {
+        let [x, y] = self.plane_point(px, py);
+        let (origin_cam, dir_cam) = if self.perspective {
+            (DVec3::ZERO, DVec3::new(x, y, -1.0))
+        } else {
+            (DVec3::new(x, y, 0.0), DVec3::NEG_Z)
+        };
+        let distance_per_depth = dir_cam.length();
+        Ray {
+            origin: self.world_from_camera.transform_point3(origin_cam),
+            direction: self
+                .world_from_camera
+                .transform_vector3(dir_cam)
+                .normalize(),
+            distance_per_depth,
+        }
+    }
+
+    /// World position of the camera (for orthographic cameras, the view-plane centre).
+    pub fn position(&self) -> DVec3 {
+        self.world_from_camera.transform_point3(DVec3::ZERO)
+    }
+
+    /// Maps a world point to (pixel x · w, pixel y · w, planar depth, w), where w is the
+    /// planar depth for perspective cameras and 1 for orthographic ones. Linear, so that
+    /// triangles can be clipped in this space before the division.
+    pub fn pixel_from_world(&self) -> DMat4 {
+        let inv = 1.0 / self.plane_per_pixel;
+        let [x0, y0] = self.plane_origin;
+        // Camera space has the view direction along −Z, so planar depth is −z.
+        let pixel_from_camera = if self.perspective {
+            // px = (x/(−z) − x0)/ppp, py = (y0 − y/(−z))/ppp; multiplied through by w = −z.
+            DMat4::from_cols(
+                DVec4::new(inv, 0.0, 0.0, 0.0),
+                DVec4::new(0.0, -inv, 0.0, 0.0),
+                DVec4::new(x0 * inv, -y0 * inv, -1.0, -1.0),
+                DVec4::new(0.0, 0.0, 0.0, 0.0),
+            )
+        } else {
+            DMat4::from_cols(
+                DVec4::new(inv, 0.0, 0.0, 0.0),
+                DVec4::new(0.0, -inv, 0.0, 0.0),
+                DVec4::new(0.0, 0.0, -1.0, 0.0),
+                DVec4::new(-x0 * inv, y0 * inv, 0.0, 1.0),
+            )
+        };
+        pixel_from_camera * self.camera_from_world
+    }
+
+    /// World-space corners of the region view rays can reach before planar depth `depth`:
+    /// four on the near plane and four at `depth`.
+    pub fn frustum_corners(&self, depth: f64) -> [DVec3; 8] {
+        let mut corners = [DVec3::ZERO; 8];
+        let (w, h) = (self.width as f64, self.height as f64);
+        for (i, (px, py)) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+            .into_iter()
+            .enumerate()
+        {
+            for (j, z) in [self.clip_start, depth].into_iter().enumerate() {
+                let [x, y] = self.plane_point(px, py);
+                let cam = if self.perspective {
+                    DVec3::new(x * z, y * z, -z)
+                } else {
+                    DVec3::new(x, y, -z)
+                };
+                corners[i * 2 + j] = self.world_from_camera.transform_point3(cam);
+            }
+        }
+        corners
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::{Mat4, Vec3};
+
+    fn camera(projection: Projection, width: u32, height: u32) -> Camera {
+        Camera {
+            world_from_camera: Mat4::from_translation(Vec3::new(1.0, 2.0, 3.0)),
+            projection,
+            clip_start: 0.1,
+            clip_end: 100.0,
+            width,
+            height,
+        }
+    }
+
+    fn perspective(fit: SensorFit, shift_x: f32) -> Projection {
+        Projection::Perspective {
+            focal_length: 50.0,
+            sensor_width: 36.0,
+            sensor_height: 24.0,
+            sensor_fit: fit,
+            shift_x,
+            shift_y: 0.0,
+        }
+    }
+
+    #[test]
+    fn auto_fit_puts_sensor_width_on_the_larger_side() {
+        // Portrait: the 36 mm sensor spans the height.
+        let model = CameraModel::new(&camera(perspective(SensorFit::Auto, 0.0), 100, 200));
+        let top = model.ray(50.0, 0.0).direction;
+        let expected = (18.0f64 / 50.0).atan();
+        assert!((top.y.atan2(-top.z) - expected).abs() < 1e-9);
+    }
+
+    #[test]
+    fn horizontal_shift_moves_the_centre_by_the_fitted_width() {
+        let model = CameraModel::new(&camera(perspective(SensorFit::Auto, 0.5), 200, 100));
+        let centre = model.ray(100.0, 50.0).direction;
+        // Shift 0.5 moves the centre by half the sensor width: x = 18/50 at unit depth.
+        assert!((centre.x / -centre.z - 18.0 / 50.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn projection_matrix_maps_rays_back_to_their_pixels() {
+        for projection in [
+            perspective(SensorFit::Vertical, 0.2),
+            Projection::Orthographic {
+                ortho_scale: 7.0,
+                sensor_fit: SensorFit::Auto,
+                shift_x: -0.1,
+                shift_y: 0.3,
+            },
+        ] {
+            let model = CameraModel::new(&camera(projection, 320, 240));
+            let m = model.pixel_from_world();
+            for (px, py) in [(0.0, 0.0), (10.5, 200.25), (319.0, 1.0)] {
+                let ray = model.ray(px, py);
+                let t = 7.5;
+                let clip = m * ray.at(t).extend(1.0);
+                assert!((clip.x / clip.w - px).abs() < 1e-6, "{clip:?}");
+                assert!((clip.y / clip.w - py).abs() < 1e-6);
+                assert!((clip.z - t / ray.distance_per_depth).abs() < 1e-9);
+            }
+        }
+    }
+}

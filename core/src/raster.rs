@@ -1,0 +1,577 @@
+//! A tiled, watertight depth rasterizer for shadow maps and camera depth.
+//!
+//! Triangles are clipped in homogeneous space (near plane and a guard band), snapped to a
+//! fixed-point grid and filled with integer edge functions and a top-left rule, so that
+//! every sample on a shared edge belongs to exactly one of the two triangles. Tiles are
+//! filled in parallel, each in triangle order with a strict depth test, which makes the
+//! output independent of the thread count.
+
+use glam::{DMat4, DVec4};
+use rayon::prelude::*;
+
+use crate::render::Geometry;
+
+/// Id written where no triangle covers a sample.
+pub const NO_OBJECT: u32 = u32::MAX;
+
+const SUBPIXEL_BITS: u32 = 8;
+const SUBPIXEL: f64 = (1u32 << SUBPIXEL_BITS) as f64;
+const TILE: u32 = 64;
+
+/// What to rasterize into.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterDesc {
+    pub width: u32,
+    pub height: u32,
+    /// True when the projection divides by w (a pinhole camera); depth is then w itself.
+    pub perspective: bool,
+    /// Smallest w kept by the near-plane clip (perspective only).
+    pub near_w: f64,
+    /// Samples whose depth falls outside this range are left empty (clip planes).
+    pub depth_range: (f64, f64),
+}
+
+impl RasterDesc {
+    pub fn orthographic(width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            perspective: false,
+            near_w: 0.0,
+            depth_range: (f64::NEG_INFINITY, f64::INFINITY),
+        }
+    }
+
+    pub fn perspective(width: u32, height: u32, near: f64, far: f64) -> Self {
+        Self {
+            width,
+            height,
+            perspective: true,
+            near_w: near,
+            depth_range: (near, far),
+        }
+    }
+}
+
+/// Nearest depth and its object id per sample, rows top to bottom.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthTarget {
+    pub width: u32,
+    pub height: u32,
+    /// +∞ where nothing was drawn.
+    pub depth: Vec<f32>,
+    pub ids: Vec<u32>,
+}
+
+/// A triangle after clipping and snapping, ready for edge-function traversal.
+#[derive(Clone, Copy, Debug)]
+struct ScreenTriangle {
+    /// Fixed-point vertex positions, counter-clockwise in the sense of positive area.
+    vertices: [[i64; 2]; 3],
+    /// Per-vertex depth, or 1/w for perspective projections.
+    attributes: [f64; 3],
+    object_id: u32,
+    /// Inclusive pixel bounds, already clamped to the target.
+    bounds: [u32; 4],
+}
+
+/// Rasterizes world-space triangles through `pixel_from_world`, which maps a point to
+/// (pixel x · w, pixel y · w, depth, w).
+pub fn rasterize(geometry: &Geometry, pixel_from_world: &DMat4, desc: &RasterDesc) -> DepthTarget {
+    let triangles = setup_triangles(geometry, pixel_from_world, desc);
+    let tiles_x = desc.width.div_ceil(TILE);
+    let tiles_y = desc.height.div_ceil(TILE);
+    let bins = bin_triangles(&triangles, tiles_x, tiles_y);
+
+    let tiles: Vec<(Vec<f32>, Vec<u32>)> = bins
+        .par_iter()
+        .enumerate()
+        .map(|(index, bin)| {
+            let rect = tile_rect(index as u32, tiles_x, desc);
+            fill_tile(&triangles, bin, rect, desc)
+        })
+        .collect();
+
+    let width = desc.width as usize;
+    let mut depth = vec![f32::INFINITY; width * desc.height as usize];
+    let mut ids = vec![NO_OBJECT; depth.len()];
+    let rows = TILE as usize * width;
+    depth
+        .par_chunks_mut(rows)
+        .zip(ids.par_chunks_mut(rows))
+        .enumerate()
+        .for_each(|(tile_y, (depth_rows, id_rows))| {
+            for tile_x in 0..tiles_x {
+                let index = tile_y as u32 * tiles_x + tile_x;
+                let rect = tile_rect(index, tiles_x, desc);
+                let (tile_depth, tile_ids) = &tiles[index as usize];
+                let tile_width = (rect[2] - rect[0]) as usize;
+                for (row, y) in (rect[1]..rect[3]).enumerate() {
+                    let local = (y - rect[1]) as usize * width + rect[0] as usize;
+                    let src = row * tile_width;
+                    depth_rows[local..local + tile_width]
+                        .copy_from_slice(&tile_depth[src..src + tile_width]);
+                    id_rows[local..local + tile_width]
+                        .copy_from_slice(&tile_ids[src..src + tile_width]);
+                }
+            }
+        });
+    DepthTarget {
+        width: desc.width,
+        height: desc.height,
+        depth,
+        ids,
+    }
+}
+
+/// [x0, y0, x1, y1) of a tile, clamped to the target.
+fn tile_rect(index: u32, tiles_x: u32, desc: &RasterDesc) -> [u32; 4] {
+    let x0 = (index % tiles_x) * TILE;
+    let y0 = (index / tiles_x) * TILE;
+    [
+        x0,
+        y0,
+        (x0 + TILE).min(desc.width),
+        (y0 + TILE).min(desc.height),
+    ]
+}
+
+fn bin_triangles(triangles: &[ScreenTriangle], tiles_x: u32, tiles_y: u32) -> Vec<Vec<u32>> {
+    let mut bins = vec![Vec::new(); (tiles_x * tiles_y) as usize];
+    for (index, triangle) in triangles.iter().enumerate() {
+        let [x0, y0, x1, y1] = triangle.bounds;
+        for ty in y0 / TILE..=y1 / TILE {
+            for tx in x0 / TILE..=x1 / TILE {
+                bins[(ty * tiles_x + tx) as usize].push(index as u32);
+            }
+        }
+    }
+    bins
+}
+
+fn fill_tile(
+    triangles: &[ScreenTriangle],
+    bin: &[u32],
+    rect: [u32; 4],
+    desc: &RasterDesc,
+) -> (Vec<f32>, Vec<u32>) {
+    let tile_width = (rect[2] - rect[0]) as usize;
+    let pixels = tile_width * (rect[3] - rect[1]) as usize;
+    let mut depth = vec![f32::INFINITY; pixels];
+    let mut ids = vec![NO_OBJECT; pixels];
+    let (near, far) = desc.depth_range;
+    for &index in bin {
+        let triangle = &triangles[index as usize];
+        for_each_covered_sample(triangle, rect, desc.perspective, |x, y, z| {
+            if z < near || z > far {
+                return;
+            }
+            let i = (y - rect[1]) as usize * tile_width + (x - rect[0]) as usize;
+            let z = z as f32;
+            if z < depth[i] {
+                depth[i] = z;
+                ids[i] = triangle.object_id;
+            }
+        });
+    }
+    (depth, ids)
+}
+
+/// Calls `visit(x, y, depth)` for every pixel centre of `rect` the triangle covers.
+fn for_each_covered_sample(
+    triangle: &ScreenTriangle,
+    rect: [u32; 4],
+    perspective: bool,
+    mut visit: impl FnMut(u32, u32, f64),
+) {
+    let [bx0, by0, bx1, by1] = triangle.bounds;
+    let (x0, y0) = (bx0.max(rect[0]), by0.max(rect[1]));
+    let (x1, y1) = ((bx1 + 1).min(rect[2]), (by1 + 1).min(rect[3]));
+    if x0 >= x1 || y0 >= y1 {
+        return;
+    }
+    let v = triangle.vertices;
+    // Edge i runs opposite vertex i, so its function is that vertex's barycentric weight.
+    let edges = [(v[1], v[2]), (v[2], v[0]), (v[0], v[1])];
+    let half = (SUBPIXEL as i64) / 2;
+    let px0 = x0 as i64 * SUBPIXEL as i64 + half;
+    let py0 = y0 as i64 * SUBPIXEL as i64 + half;
+    let mut row_values = [0i64; 3];
+    let mut step_x = [0i64; 3];
+    let mut step_y = [0i64; 3];
+    let mut bias = [0i64; 3];
+    for (i, &(a, b)) in edges.iter().enumerate() {
+        let ea = -(b[1] - a[1]);
+        let eb = b[0] - a[0];
+        row_values[i] = ea * (px0 - a[0]) + eb * (py0 - a[1]);
+        step_x[i] = ea * SUBPIXEL as i64;
+        step_y[i] = eb * SUBPIXEL as i64;
+        // Top-left rule: of the two triangles sharing an edge, exactly one owns samples
+        // lying on it, because reversing the edge negates both coefficients.
+        let owned = ea > 0 || (ea == 0 && eb < 0);
+        bias[i] = if owned { 0 } else { -1 };
+    }
+    let area = (row_values[0] + row_values[1] + row_values[2]) as f64;
+    let attributes = triangle.attributes;
+    for y in y0..y1 {
+        let mut values = row_values;
+        for x in x0..x1 {
+            if values[0] + bias[0] >= 0 && values[1] + bias[1] >= 0 && values[2] + bias[2] >= 0 {
+                let interpolated = (values[0] as f64 * attributes[0]
+                    + values[1] as f64 * attributes[1]
+                    + values[2] as f64 * attributes[2])
+                    / area;
+                let depth = if perspective {
+                    1.0 / interpolated
+                } else {
+                    interpolated
+                };
+                visit(x, y, depth);
+            }
+            for i in 0..3 {
+                values[i] += step_x[i];
+            }
+        }
+        for i in 0..3 {
+            row_values[i] += step_y[i];
+        }
+    }
+}
+
+/// Transforms, clips and snaps all triangles, in input order.
+fn setup_triangles(
+    geometry: &Geometry,
+    pixel_from_world: &DMat4,
+    desc: &RasterDesc,
+) -> Vec<ScreenTriangle> {
+    let clip_positions: Vec<DVec4> = geometry
+        .positions
+        .par_iter()
+        .map(|p| *pixel_from_world * DVec4::new(p[0] as f64, p[1] as f64, p[2] as f64, 1.0))
+        .collect();
+    let planes = clip_planes(desc);
+    geometry
+        .triangles
+        .par_iter()
+        .zip(geometry.object_ids.par_iter())
+        .flat_map_iter(|(triangle, &object_id)| {
+            let corners = triangle.map(|v| clip_positions[v as usize]);
+            let polygon = clip_polygon(&corners, &planes);
+            let mut out = Vec::new();
+            for i in 1..polygon.len().saturating_sub(1) {
+                if let Some(screen) =
+                    snap_triangle([polygon[0], polygon[i], polygon[i + 1]], object_id, desc)
+                {
+                    out.push(screen);
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// An affine half-space n·v + c ≥ 0 in clip coordinates. The constant term works because
+/// every clipped vertex is an affine combination of world points of weight one.
+#[derive(Clone, Copy, Debug)]
+struct Plane {
+    normal: DVec4,
+    offset: f64,
+}
+
+impl Plane {
+    fn distance(&self, v: DVec4) -> f64 {
+        self.normal.dot(v) + self.offset
+    }
+}
+
+/// Keeps w positive (perspective) and the snapped coordinates within the fixed-point range.
+fn clip_planes(desc: &RasterDesc) -> Vec<Plane> {
+    let guard = 2.0 * desc.width.max(desc.height) as f64 + 64.0;
+    let (w, h) = (desc.width as f64, desc.height as f64);
+    let homogeneous = |x, y, w| Plane {
+        normal: DVec4::new(x, y, 0.0, w),
+        offset: 0.0,
+    };
+    let mut planes = vec![
+        homogeneous(1.0, 0.0, guard),
+        homogeneous(-1.0, 0.0, w + guard),
+        homogeneous(0.0, 1.0, guard),
+        homogeneous(0.0, -1.0, h + guard),
+    ];
+    if desc.perspective {
+        planes.push(Plane {
+            normal: DVec4::W,
+            offset: -desc.near_w,
+        });
+    }
+    planes
+}
+
+/// Sutherland–Hodgman clipping. Edge intersections are computed from the endpoints in
+/// a canonical order, so an edge shared by two triangles is cut at the identical point.
+fn clip_polygon(corners: &[DVec4; 3], planes: &[Plane]) -> Vec<DVec4> {
+    let inside_all = |v: &DVec4| planes.iter().all(|p| p.distance(*v) >= 0.0);
+    if corners.iter().all(inside_all) {
+        return corners.to_vec();
+    }
+    let mut polygon: Vec<DVec4> = corners.to_vec();
+    for plane in planes {
+        if polygon.is_empty() {
+            break;
+        }
+        let mut clipped = Vec::with_capacity(polygon.len() + 1);
+        for i in 0..polygon.len() {
+            let a = polygon[i];
+            let b = polygon[(i + 1) % polygon.len()];
+            let (da, db) = (plane.distance(a), plane.distance(b));
+            if da >= 0.0 {
+                clipped.push(a);
+            }
+            if (da >= 0.0) != (db >= 0.0) {
+                clipped.push(intersect(a, b, plane));
+            }
+        }
+        polygon = clipped;
+    }
+    polygon
+}
+
+fn intersect(a: DVec4, b: DVec4, plane: &Plane) -> DVec4 {
+    let (first, second) = if a.to_array() <= b.to_array() {
+        (a, b)
+    } else {
+        (b, a)
+    };
+    let (d0, d1) = (plane.distance(first), plane.distance(second));
+    first + (second - first) * (d0 / (d0 - d1))
+}
+
+fn snap_triangle(corners: [DVec4; 3], object_id: u32, desc: &RasterDesc) -> Option<ScreenTriangle> {
+    let mut vertices = [[0i64; 2]; 3];
+    let mut attributes = [0f64; 3];
+    for (i, c) in corners.iter().enumerate() {
+        let (x, y) = (c.x / c.w, c.y / c.w);
+        vertices[i] = [(x * SUBPIXEL).round() as i64, (y * SUBPIXEL).round() as i64];
+        attributes[i] = if desc.perspective { 1.0 / c.w } else { c.z };
+    }
+    let area = (vertices[1][0] - vertices[0][0]) * (vertices[2][1] - vertices[0][1])
+        - (vertices[1][1] - vertices[0][1]) * (vertices[2][0] - vertices[0][0]);
+    if area == 0 || !attributes.iter().all(|a| a.is_finite()) {
+        return None;
+    }
+    if area < 0 {
+        vertices.swap(1, 2);
+        attributes.swap(1, 2);
+    }
+    // Pixel x is covered when its centre x + ½ lies inside; bound by the centres.
+    let to_pixel = |v: i64, up: bool| -> i64 {
+        let shifted = v - (SUBPIXEL as i64) / 2;
+        if up {
+            shifted.div_euclid(SUBPIXEL as i64) + 1
+        } else {
+            shifted.div_euclid(SUBPIXEL as i64)
+        }
+    };
+    let min_x = vertices.iter().map(|v| v[0]).min()?;
+    let max_x = vertices.iter().map(|v| v[0]).max()?;
+    let min_y = vertices.iter().map(|v| v[1]).min()?;
+    let max_y = vertices.iter().map(|v| v[1]).max()?;
+    let x0 = to_pixel(min_x, false).max(0);
+    let y0 = to_pixel(min_y, false).max(0);
+    let x1 = to_pixel(max_x, true).min(desc.width as i64 - 1);
+    let y1 = to_pixel(max_y, true).min(desc.height as i64 - 1);
+    if x0 > x1 || y0 > y1 {
+        return None;
+    }
+    Some(ScreenTriangle {
+        vertices,
+        attributes,
+        object_id,
+        bounds: [x0 as u32, y0 as u32, x1 as u32, y1 as u32],
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// A tilted plane z = 0.25 x + 0.5 y + 3 over [x0, x1]², split into `n`² quads whose
+    /// interior vertices are jittered (little enough that no triangle folds over), so that
+    /// edges run at arbitrary angles.
+    fn jittered_grid(n: usize, x0: f32, x1: f32, seed: u64) -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let step = (x1 - x0) / n as f32;
+        let mut positions = Vec::new();
+        for j in 0..=n {
+            for i in 0..=n {
+                let interior = i > 0 && i < n && j > 0 && j < n;
+                let jitter = |rng: &mut rand_pcg::Pcg64| {
+                    if interior {
+                        rng.random_range(-0.15..0.15) * step
+                    } else {
+                        0.0
+                    }
+                };
+                let x = x0 + i as f32 * step + jitter(&mut rng);
+                let y = x0 + j as f32 * step + jitter(&mut rng);
+                positions.push([x, y, 0.25 * x + 0.5 * y + 3.0]);
+            }
+        }
+        let mut triangles = Vec::new();
+        let index = |i: usize, j: usize| (j * (n + 1) + i) as u32;
+        for j in 0..n {
+            for i in 0..n {
+                let (a, b, c, d) = (
+                    index(i, j),
+                    index(i + 1, j),
+                    index(i, j + 1),
+                    index(i + 1, j + 1),
+                );
+                if (i + j) % 2 == 0 {
+                    triangles.push([a, b, d]);
+                    triangles.push([a, d, c]);
+                } else {
+                    triangles.push([a, b, c]);
+                    triangles.push([b, d, c]);
+                }
+            }
+        }
+        (positions, triangles)
+    }
+
+    /// Pixels equal world x/y, depth = world z.
+    fn identity_projection() -> DMat4 {
+        DMat4::IDENTITY
+    }
+
+    #[test]
+    fn shared_edges_cover_each_sample_exactly_once() {
+        let (positions, triangles) = jittered_grid(40, 0.0, 200.0, 7);
+        let ids = vec![5; triangles.len()];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let desc = RasterDesc::orthographic(256, 256);
+        let screen = setup_triangles(&geometry, &identity_projection(), &desc);
+        let mut counts = vec![0u32; 256 * 256];
+        for triangle in &screen {
+            for_each_covered_sample(triangle, [0, 0, 256, 256], false, |x, y, _| {
+                counts[(y * 256 + x) as usize] += 1;
+            });
+        }
+        for y in 0..256u32 {
+            for x in 0..256u32 {
+                let expected = u32::from(x < 200 && y < 200);
+                assert_eq!(counts[(y * 256 + x) as usize], expected, "pixel ({x}, {y})");
+            }
+        }
+    }
+
+    #[test]
+    fn depth_matches_the_analytic_plane() {
+        let (positions, triangles) = jittered_grid(33, 0.0, 120.0, 11);
+        let ids = vec![9; triangles.len()];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let target = rasterize(
+            &geometry,
+            &identity_projection(),
+            &RasterDesc::orthographic(128, 100),
+        );
+        for y in 0..100 {
+            for x in 0..128 {
+                let i = y * 128 + x;
+                let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
+                if x < 120 {
+                    let expected = 0.25 * cx + 0.5 * cy + 3.0;
+                    // Vertices snap by up to 1/512 pixel; the plane's slope is 0.75 per pixel.
+                    let error = (target.depth[i] as f64 - expected).abs();
+                    assert!(error < 0.75 / 256.0, "({x}, {y}) off by {error}");
+                    assert_eq!(target.ids[i], 9);
+                } else {
+                    assert_eq!(target.depth[i], f32::INFINITY);
+                    assert_eq!(target.ids[i], NO_OBJECT);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn nearer_triangle_wins_and_ties_keep_the_first() {
+        let positions = [
+            [0.0, 0.0, 5.0],
+            [64.0, 0.0, 5.0],
+            [0.0, 64.0, 5.0],
+            [0.0, 0.0, 2.0],
+            [64.0, 0.0, 2.0],
+            [0.0, 64.0, 2.0],
+        ];
+        let triangles = [[0, 1, 2], [3, 4, 5], [0, 1, 2]];
+        let ids = [1, 2, 3];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let target = rasterize(
+            &geometry,
+            &identity_projection(),
+            &RasterDesc::orthographic(64, 64),
+        );
+        assert_eq!(target.ids[0], 2);
+        assert_eq!(target.depth[0], 2.0);
+    }
+
+    #[test]
+    fn triangles_crossing_the_near_plane_are_clipped() {
+        // A perspective projection looking down −Z with a 90° field of view on 64×64.
+        let m = DMat4::from_cols(
+            DVec4::new(32.0, 0.0, 0.0, 0.0),
+            DVec4::new(0.0, -32.0, 0.0, 0.0),
+            DVec4::new(-32.0, -32.0, -1.0, -1.0),
+            DVec4::ZERO,
+        );
+        // A floor at y = −1 running from behind the camera to far away.
+        let positions = [
+            [-50.0, -1.0, 10.0],
+            [50.0, -1.0, 10.0],
+            [50.0, -1.0, -500.0],
+            [-50.0, -1.0, -500.0],
+        ];
+        let triangles = [[0, 1, 2], [0, 2, 3]];
+        let ids = [4, 4];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let target = rasterize(&geometry, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0));
+        for y in 33..64 {
+            for x in 0..64 {
+                let i = y * 64 + x;
+                // Planar depth of the floor seen at row centre y: 1 / tan = 32 / (y + ½ − 32).
+                let offset = y as f64 + 0.5 - 32.0;
+                let expected = 32.0 / offset;
+                // Snapping vertices to 1/256 pixel moves the grazing floor's depth by up to
+                // |∂depth/∂y| / 256.
+                let tolerance = 1e-5 * expected + 2.0 * expected / offset / 256.0;
+                if expected < 500.0 {
+                    let got = target.depth[i] as f64;
+                    assert!(
+                        (got - expected).abs() < tolerance,
+                        "({x}, {y}) {got} vs {expected}"
+                    );
+                }
+            }
+        }
+        for i in 0..64 * 32 {
+            assert_eq!(target.depth[i], f32::INFINITY);
+        }
+    }
+}
