@@ -7,9 +7,12 @@ pub mod camera;
 pub mod control;
 pub mod error;
 pub mod layers;
+pub mod phase;
 pub mod raster;
+pub mod reference;
 pub mod render;
 pub mod scene;
+pub mod shadow_map;
 
 pub use control::RenderControl;
 pub use error::{Error, Result};

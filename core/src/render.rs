@@ -1,9 +1,16 @@
 //! The per-frame pipeline: geometry → depth maps → scattering → layers.
 
+use glam::{DMat4, DVec3};
+use rayon::prelude::*;
+
+use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
 use crate::error::{Error, Result};
 use crate::layers::Layers;
-use crate::scene::{Camera, Medium, RenderSettings, Scene, Sun};
+use crate::raster::{rasterize, RasterDesc};
+use crate::reference::Marcher;
+use crate::scene::{Camera, Medium, Method, RenderSettings, Scene, Sun};
+use crate::shadow_map::ShadowMap;
 
 /// World-space triangles, borrowed so that hosts can pass their buffers without copies.
 #[derive(Clone, Copy, Debug)]
@@ -101,16 +108,274 @@ pub fn render_scene(scene: &Scene, control: &RenderControl) -> Result<Layers> {
 /// Renders one frame from borrowed inputs, validating them first.
 pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     frame.validate()?;
+    control.begin(frame.camera.height as u64);
     control.check()?;
-    Err(Error::invalid("render.method", "not implemented yet"))
+    let camera = CameraModel::new(frame.camera);
+    let shadow = ShadowMap::build(
+        &camera,
+        frame.sun,
+        frame.medium,
+        frame.settings,
+        &frame.geometry,
+    );
+    control.check()?;
+    let surfaces = SurfaceDistances::new(&camera, frame);
+    match frame.settings.method {
+        Method::Reference => {
+            let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
+            let tint = frame.medium.albedo.as_dvec3()
+                * frame.medium.extinction as f64
+                * frame.sun.irradiance().as_dvec3();
+            shade_pixels(
+                &camera,
+                &surfaces,
+                frame.settings,
+                control,
+                |ray, t_start, t_end| {
+                    let sample = marcher.march(ray, t_start, t_end);
+                    PixelSample {
+                        radiance: tint * (sample.scattering * marcher.phase(ray.direction)),
+                        alpha: sample.alpha,
+                        visibility: sample.visibility,
+                    }
+                },
+            )
+        }
+    }
+}
+
+/// One sample's result, before averaging into its pixel.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct PixelSample {
+    pub radiance: DVec3,
+    pub alpha: f64,
+    pub visibility: f64,
+}
+
+/// Ray distance to the first surface for every depth sample, +∞ for background.
+pub(crate) struct SurfaceDistances {
+    /// Samples per pixel along each axis.
+    pub supersampling: u32,
+    pub distances: Vec<f32>,
+}
+
+impl SurfaceDistances {
+    fn new(camera: &CameraModel, frame: &Frame) -> Self {
+        match frame.camera_depth {
+            Some(given) => Self::from_given(camera, given),
+            None => Self::rasterized(camera, frame),
+        }
+    }
+
+    fn rasterized(camera: &CameraModel, frame: &Frame) -> Self {
+        let ss = frame.settings.supersampling;
+        let (width, height) = (camera.width * ss, camera.height * ss);
+        let scale = DMat4::from_scale(DVec3::new(ss as f64, ss as f64, 1.0));
+        let pixel_from_world = scale * camera.pixel_from_world();
+        let desc = if camera.is_perspective() {
+            RasterDesc::perspective(width, height, camera.clip_start, camera.clip_end)
+        } else {
+            RasterDesc {
+                depth_range: (camera.clip_start, camera.clip_end),
+                ..RasterDesc::orthographic(width, height)
+            }
+        };
+        let planar = rasterize(&frame.geometry, &pixel_from_world, &desc).depth;
+        let distances = planar
+            .par_iter()
+            .enumerate()
+            .map(|(i, &depth)| {
+                let (x, y) = ((i as u32 % width) as f64, (i as u32 / width) as f64);
+                let ray = camera.ray((x + 0.5) / ss as f64, (y + 0.5) / ss as f64);
+                (depth as f64 * ray.distance_per_depth) as f32
+            })
+            .collect();
+        Self {
+            supersampling: ss,
+            distances,
+        }
+    }
+
+    fn from_given(camera: &CameraModel, given: CameraDepth) -> Self {
+        let width = camera.width;
+        let distances = given
+            .values
+            .par_iter()
+            .enumerate()
+            .map(|(i, &value)| {
+                let (x, y) = ((i as u32 % width) as f64, (i as u32 / width) as f64);
+                let ray = camera.ray(x + 0.5, y + 0.5);
+                let (planar, distance) = match given.kind {
+                    DepthKind::Planar => (value as f64, value as f64 * ray.distance_per_depth),
+                    DepthKind::RayDistance => (value as f64 / ray.distance_per_depth, value as f64),
+                };
+                if planar > camera.clip_end {
+                    f32::INFINITY
+                } else {
+                    distance as f32
+                }
+            })
+            .collect();
+        Self {
+            supersampling: 1,
+            distances,
+        }
+    }
+}
+
+/// Runs `shade(ray, t_start, t_end)` for every depth sample, averaging samples into
+/// pixels, in parallel over rows. Each pixel depends only on its own inputs, so the
+/// output is bit-identical for any thread count.
+pub(crate) fn shade_pixels(
+    camera: &CameraModel,
+    surfaces: &SurfaceDistances,
+    settings: &RenderSettings,
+    control: &RenderControl,
+    shade: impl Fn(&Ray, f64, f64) -> PixelSample + Sync,
+) -> Result<Layers> {
+    let mut layers = Layers::new(camera.width, camera.height);
+    let width = camera.width as usize;
+    let ss = surfaces.supersampling;
+    let samples_per_pixel = (ss * ss) as f64;
+    let sample_width = width * ss as usize;
+    let max_distance = settings.max_distance as f64;
+    layers
+        .volume
+        .par_chunks_mut(width * 4)
+        .zip(layers.visibility.par_chunks_mut(width))
+        .zip(layers.depth.par_chunks_mut(width))
+        .enumerate()
+        .for_each(|(y, ((volume, visibility), depth))| {
+            if control.is_cancelled() {
+                return;
+            }
+            for x in 0..width {
+                let mut sum = PixelSample::default();
+                let mut depth_sum = 0.0;
+                for sy in 0..ss as usize {
+                    for sx in 0..ss as usize {
+                        let row = y * ss as usize + sy;
+                        let column = x * ss as usize + sx;
+                        let surface = surfaces.distances[row * sample_width + column] as f64;
+                        let ray = camera.ray(
+                            x as f64 + (sx as f64 + 0.5) / ss as f64,
+                            y as f64 + (sy as f64 + 0.5) / ss as f64,
+                        );
+                        let t_start = camera.clip_start * ray.distance_per_depth;
+                        let sample = shade(&ray, t_start, surface.min(max_distance));
+                        sum.radiance += sample.radiance;
+                        sum.alpha += sample.alpha;
+                        sum.visibility += sample.visibility;
+                        depth_sum += if surface.is_finite() {
+                            surface
+                        } else {
+                            max_distance
+                        };
+                    }
+                }
+                let radiance = sum.radiance / samples_per_pixel;
+                volume[x * 4..x * 4 + 4].copy_from_slice(&[
+                    radiance.x as f32,
+                    radiance.y as f32,
+                    radiance.z as f32,
+                    (sum.alpha / samples_per_pixel) as f32,
+                ]);
+                visibility[x] = (sum.visibility / samples_per_pixel) as f32;
+                depth[x] = (depth_sum / samples_per_pixel) as f32;
+            }
+            control.advance(1);
+        });
+    control.check()?;
+    Ok(layers)
 }
 
 impl Frame<'_> {
+    /// Checks every input, naming the first offending field.
     pub fn validate(&self) -> Result<()> {
         self.camera.validate()?;
         self.sun.validate()?;
         self.medium.validate()?;
         self.settings.validate()?;
+        self.geometry.validate()?;
+        if let Some(depth) = &self.camera_depth {
+            depth.validate(self.camera.width, self.camera.height)?;
+        }
+        Ok(())
+    }
+}
+
+impl Geometry<'_> {
+    pub fn validate(&self) -> Result<()> {
+        if self.triangles.is_empty() {
+            return Err(Error::invalid(
+                "triangles",
+                "the scene is empty: it has no triangles (add at least a ground plane)",
+            ));
+        }
+        if self.object_ids.len() != self.triangles.len() {
+            return Err(Error::invalid(
+                "object_ids",
+                format!(
+                    "has {} entries for {} triangles",
+                    self.object_ids.len(),
+                    self.triangles.len()
+                ),
+            ));
+        }
+        if let Some(index) = self
+            .positions
+            .par_iter()
+            .position_first(|p| !p.iter().all(|c| c.is_finite()))
+        {
+            return Err(Error::invalid(
+                format!("positions[{index}]"),
+                format!("{:?} is not finite", self.positions[index]),
+            ));
+        }
+        let count = self.positions.len();
+        if let Some(index) = self
+            .triangles
+            .par_iter()
+            .position_first(|t| t.iter().any(|&v| v as usize >= count))
+        {
+            return Err(Error::invalid(
+                format!("triangles[{index}]"),
+                format!(
+                    "{:?} indexes past the {count} positions",
+                    self.triangles[index]
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl CameraDepth<'_> {
+    pub fn validate(&self, width: u32, height: u32) -> Result<()> {
+        let expected = width as usize * height as usize;
+        if self.values.len() != expected {
+            return Err(Error::invalid(
+                "camera_depth",
+                format!(
+                    "has {} values, expected {width}×{height} = {expected}",
+                    self.values.len()
+                ),
+            ));
+        }
+        if let Some(index) = self
+            .values
+            .par_iter()
+            .position_first(|v| v.is_nan() || *v < 0.0)
+        {
+            let (x, y) = (index as u32 % width, index as u32 / width);
+            return Err(Error::invalid(
+                "camera_depth",
+                format!(
+                    "value {} at pixel ({x}, {y}) is NaN or negative",
+                    self.values[index]
+                ),
+            ));
+        }
         Ok(())
     }
 }

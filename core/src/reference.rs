@@ -1,0 +1,234 @@
+//! Brute-force single scattering: the reference every faster method is measured against.
+//!
+//! Each view ray is marched in uniform steps. Visibility is sampled once per step (it is
+//! piecewise constant), and the transmittance inside a step is integrated in closed form,
+//! so that with no occluders the result is exact for any step count.
+
+use glam::{DMat4, DVec3};
+
+use crate::camera::Ray;
+use crate::phase;
+use crate::scene::{Extent, Medium, Sun};
+use crate::shadow_map::ShadowMap;
+
+/// What one view ray contributes.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RaySample {
+    /// In-scattered radiance per unit of σs·E: multiply by albedo · σt · E for RGB.
+    pub scattering: f64,
+    /// 1 − transmittance through the medium along the ray.
+    pub alpha: f64,
+    /// Average sun visibility along the ray segment.
+    pub visibility: f64,
+}
+
+/// ∫₀ᵈ e^(−k·u) du, also for k near zero or negative.
+pub fn integral_exp(k: f64, d: f64) -> f64 {
+    let kd = k * d;
+    if kd.abs() < 1e-8 {
+        d * (1.0 - 0.5 * kd)
+    } else {
+        -(-kd).exp_m1() / k
+    }
+}
+
+/// The medium's box in the form ray marching needs.
+#[derive(Clone, Copy, Debug)]
+struct BoxMedium {
+    cube_from_world: DMat4,
+    /// Direction towards the sun, in cube coordinates but per world unit.
+    towards_sun: DVec3,
+}
+
+impl BoxMedium {
+    /// Parameter range where the ray is inside the box, if any.
+    fn clip(&self, ray: &Ray) -> Option<(f64, f64)> {
+        let origin = self.cube_from_world.transform_point3(ray.origin);
+        let direction = self.cube_from_world.transform_vector3(ray.direction);
+        let mut near = f64::NEG_INFINITY;
+        let mut far = f64::INFINITY;
+        for axis in 0..3 {
+            let (o, d) = (origin[axis], direction[axis]);
+            if d.abs() < 1e-300 {
+                if o.abs() > 1.0 {
+                    return None;
+                }
+                continue;
+            }
+            let (t0, t1) = ((-1.0 - o) / d, (1.0 - o) / d);
+            near = near.max(t0.min(t1));
+            far = far.min(t0.max(t1));
+        }
+        (near < far).then_some((near, far))
+    }
+
+    /// Distance from a cube-space point to the box boundary, towards the sun.
+    #[inline]
+    fn sunward_depth(&self, cube_point: DVec3) -> f64 {
+        let mut depth = f64::INFINITY;
+        for axis in 0..3 {
+            let s = self.towards_sun[axis];
+            if s != 0.0 {
+                let wall = if s > 0.0 { 1.0 } else { -1.0 };
+                depth = depth.min((wall - cube_point[axis]) / s);
+            }
+        }
+        depth.max(0.0)
+    }
+}
+
+/// Per-frame constants of the march.
+#[derive(Clone, Debug)]
+pub struct Marcher<'a> {
+    shadow: &'a ShadowMap,
+    light_travel: DVec3,
+    extinction: f64,
+    steps: u32,
+    medium: &'a Medium,
+    box_medium: Option<BoxMedium>,
+}
+
+impl<'a> Marcher<'a> {
+    pub fn new(shadow: &'a ShadowMap, sun: &Sun, medium: &'a Medium, steps: u32) -> Self {
+        let light_travel = sun.direction.as_dvec3().normalize();
+        let box_medium = match &medium.extent {
+            Extent::Unbounded => None,
+            Extent::Box { world_from_cube } => {
+                let cube_from_world = world_from_cube.as_dmat4().inverse();
+                Some(BoxMedium {
+                    cube_from_world,
+                    towards_sun: cube_from_world.transform_vector3(-light_travel),
+                })
+            }
+        };
+        Self {
+            shadow,
+            light_travel,
+            extinction: medium.extinction as f64,
+            steps,
+            medium,
+            box_medium,
+        }
+    }
+
+    /// The phase function value for a view ray direction.
+    pub fn phase(&self, direction: DVec3) -> f64 {
+        phase::evaluate(self.medium, self.light_travel, direction)
+    }
+
+    /// Integrates one ray over [t_start, t_end].
+    pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
+        if t_end <= t_start {
+            return RaySample {
+                visibility: 1.0,
+                ..RaySample::default()
+            };
+        }
+        let texel_origin = self.shadow.texel_from_world.transform_point3(ray.origin);
+        let texel_step = self
+            .shadow
+            .texel_from_world
+            .transform_vector3(ray.direction);
+        let lit = |t: f64| self.shadow.is_lit(texel_origin + texel_step * t);
+        match &self.box_medium {
+            None => self.march_unbounded(&lit, t_start, t_end),
+            Some(box_medium) => {
+                let visibility = self.average_visibility(&lit, t_start, t_end);
+                let Some((a, b)) = box_medium.clip(ray) else {
+                    return RaySample {
+                        visibility,
+                        ..RaySample::default()
+                    };
+                };
+                let (a, b) = (a.max(t_start), b.min(t_end));
+                if b <= a {
+                    return RaySample {
+                        visibility,
+                        ..RaySample::default()
+                    };
+                }
+                RaySample {
+                    scattering: self.scatter_in_box(box_medium, ray, &lit, a, b),
+                    alpha: -(-self.extinction * (b - a)).exp_m1(),
+                    visibility,
+                }
+            }
+        }
+    }
+
+    fn march_unbounded(&self, lit: &impl Fn(f64) -> bool, t_start: f64, t_end: f64) -> RaySample {
+        let n = self.steps;
+        let dt = (t_end - t_start) / n as f64;
+        let sigma = self.extinction;
+        let decay = (-sigma * dt).exp();
+        let per_step = integral_exp(sigma, dt);
+        let mut transmittance = 1.0;
+        let mut scattering = 0.0;
+        let mut lit_steps = 0u32;
+        for i in 0..n {
+            if lit(t_start + (i as f64 + 0.5) * dt) {
+                scattering += transmittance;
+                lit_steps += 1;
+            }
+            transmittance *= decay;
+        }
+        RaySample {
+            scattering: scattering * per_step,
+            alpha: -(-sigma * (t_end - t_start)).exp_m1(),
+            visibility: lit_steps as f64 / n as f64,
+        }
+    }
+
+    fn average_visibility(&self, lit: &impl Fn(f64) -> bool, t_start: f64, t_end: f64) -> f64 {
+        let n = self.steps;
+        let dt = (t_end - t_start) / n as f64;
+        let lit_steps = (0..n)
+            .filter(|&i| lit(t_start + (i as f64 + 0.5) * dt))
+            .count();
+        lit_steps as f64 / n as f64
+    }
+
+    /// ∫ₐᵇ V(t) · e^(−σt·ℓ(t)) · e^(−σt·(t−a)) dt, with ℓ the sunward depth into the box,
+    /// taken as linear within each step.
+    fn scatter_in_box(
+        &self,
+        box_medium: &BoxMedium,
+        ray: &Ray,
+        lit: &impl Fn(f64) -> bool,
+        a: f64,
+        b: f64,
+    ) -> f64 {
+        let n = self.steps;
+        let dt = (b - a) / n as f64;
+        let sigma = self.extinction;
+        let cube_origin = box_medium.cube_from_world.transform_point3(ray.origin);
+        let cube_step = box_medium.cube_from_world.transform_vector3(ray.direction);
+        let depth_at = |t: f64| box_medium.sunward_depth(cube_origin + cube_step * t);
+        let mut depth_before = depth_at(a);
+        let mut scattering = 0.0;
+        for i in 0..n {
+            let t0 = a + i as f64 * dt;
+            let depth_after = depth_at(t0 + dt);
+            if lit(t0 + 0.5 * dt) {
+                let slope = (depth_after - depth_before) / dt;
+                scattering += (-sigma * (depth_before + t0 - a)).exp()
+                    * integral_exp(sigma * (1.0 + slope), dt);
+            }
+            depth_before = depth_after;
+        }
+        scattering
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn integral_exp_matches_closed_form_and_limits() {
+        assert!((integral_exp(2.0, 0.5) - (1.0 - (-1.0f64).exp()) / 2.0).abs() < 1e-15);
+        assert!((integral_exp(0.0, 0.5) - 0.5).abs() < 1e-15);
+        assert!((integral_exp(-1.0, 1.0) - (1.0f64.exp() - 1.0)).abs() < 1e-12);
+        assert!((integral_exp(1e-12, 3.0) - 3.0).abs() < 1e-10);
+    }
+}

@@ -1,0 +1,234 @@
+//! The reference ray march against closed-form and independently integrated cases.
+
+mod common;
+
+use common::*;
+use crepuscular::camera::CameraModel;
+use crepuscular::phase::henyey_greenstein;
+use crepuscular::scene::{Extent, Scene};
+use crepuscular::{render_scene, Layers, RenderControl};
+use glam::{DVec3, Mat4, Vec3};
+
+fn render(scene: &Scene) -> Layers {
+    render_scene(scene, &RenderControl::new()).expect("render succeeds")
+}
+
+/// σs · p · E for one ray of `scene`, per RGB channel.
+fn source_term(scene: &Scene, direction: DVec3) -> DVec3 {
+    let g = scene.medium.anisotropy as f64;
+    let travel = scene.sun.direction.as_dvec3().normalize();
+    let phase = henyey_greenstein(g, travel.dot(-direction));
+    scene.medium.albedo.as_dvec3()
+        * scene.medium.extinction as f64
+        * phase
+        * scene.sun.irradiance().as_dvec3()
+}
+
+fn pixel_ray(scene: &Scene, x: u32, y: u32) -> crepuscular::camera::Ray {
+    CameraModel::new(&scene.camera).ray(x as f64 + 0.5, y as f64 + 0.5)
+}
+
+#[test]
+fn without_occluders_radiance_is_the_closed_form() {
+    let camera = pinhole(
+        look_along(Vec3::new(0.0, 0.0, 2.0), Vec3::new(1.0, 0.2, -0.15)),
+        30.0,
+        48,
+        32,
+    );
+    let ground = horizontal_quad(1, -500.0, 500.0, -500.0, 500.0, 0.0);
+    for extinction in [1e-4, 0.08, 2.0, 60.0] {
+        let scene = scene(
+            camera.clone(),
+            Vec3::new(0.1, 0.05, -1.0),
+            medium(extinction, 0.6),
+            vec![ground.clone()],
+            settings(512, 64, 40.0),
+        );
+        let layers = render(&scene);
+        let mut background = 0;
+        for y in 0..32 {
+            for x in 0..48 {
+                let ray = pixel_ray(&scene, x, y);
+                let i = (y * 48 + x) as usize;
+                let surface = layers.depth[i] as f64;
+                // The depth layer against the analytic ground hit (raster snapping allows 1e-3).
+                let ground_hit = if ray.direction.z < 0.0 {
+                    -ray.origin.z / ray.direction.z
+                } else {
+                    f64::INFINITY
+                };
+                if ground_hit < 100.0 {
+                    // Vertices snap to 1/256 pixel (0.025 rad per pixel here), which moves a
+                    // grazing ground hit by t·δθ / sin(grazing angle).
+                    let snap = ground_hit * (0.025 / 512.0) / -ray.direction.z;
+                    let error = (surface - ground_hit).abs();
+                    assert!(
+                        error < 1e-5 * ground_hit + snap,
+                        "depth ({x}, {y}): {surface} vs {ground_hit}"
+                    );
+                } else if !ground_hit.is_finite() {
+                    background += 1;
+                    assert_eq!(surface, 40.0);
+                }
+                let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
+                let s = surface.min(40.0) - t_start;
+                let sigma = extinction as f64;
+                let expected =
+                    source_term(&scene, ray.direction) * (-(-sigma * s).exp_m1() / sigma);
+                let got = layers.volume_rgba(x, y);
+                for c in 0..3 {
+                    let error = relative_error(got[c] as f64, expected[c]);
+                    assert!(
+                        error < 1e-4,
+                        "σt={extinction} ({x}, {y}) channel {c}: {} vs {} ({error:e})",
+                        got[c],
+                        expected[c]
+                    );
+                }
+                let alpha = -(-sigma * s).exp_m1();
+                assert!((got[3] as f64 - alpha).abs() < 1e-6);
+                assert_eq!(layers.visibility[i], 1.0);
+            }
+        }
+        assert!(
+            background > 0 && background < 48 * 32,
+            "the view mixes sky and ground"
+        );
+    }
+}
+
+#[test]
+fn a_half_space_occluder_cuts_rays_where_its_shadow_begins() {
+    // A roof over x > 0 shadows the half-space below it; rays from x = −5 cross into it.
+    let camera = pinhole(
+        look_along(Vec3::new(-5.0, 0.0, 2.0), Vec3::new(1.0, 0.0, 0.0)),
+        100.0,
+        64,
+        16,
+    );
+    let roof = horizontal_quad(2, 0.0, 1000.0, -1000.0, 1000.0, 10.0);
+    let scene = scene(
+        camera,
+        Vec3::new(0.0, 0.0, -1.0),
+        medium(0.1, 0.3),
+        vec![roof],
+        settings(4096, 16384, 20.0),
+    );
+    let layers = render(&scene);
+    for y in 0..16 {
+        for x in 0..64 {
+            let ray = pixel_ray(&scene, x, y);
+            let i = (y * 64 + x) as usize;
+            let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
+            let t_cut = 5.0 / ray.direction.x;
+            let visible = (t_cut - t_start) / (20.0 - t_start);
+            assert!(
+                (layers.visibility[i] as f64 - visible).abs() < 1e-3,
+                "V̄ ({x}, {y}): {} vs {visible}",
+                layers.visibility[i]
+            );
+            let sigma = 0.1;
+            let expected = source_term(&scene, ray.direction)
+                * (-(-sigma * (t_cut - t_start)).exp_m1() / sigma);
+            let got = layers.volume_rgba(x, y);
+            for c in 0..3 {
+                let error = relative_error(got[c] as f64, expected[c]);
+                assert!(error < 1e-3, "({x}, {y}) channel {c}: {error:e}");
+            }
+        }
+    }
+}
+
+/// Independent slab test: the parameter range of a ray inside the box [lo, hi].
+fn slab(origin: DVec3, direction: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, f64)> {
+    let mut near = f64::NEG_INFINITY;
+    let mut far = f64::INFINITY;
+    for axis in 0..3 {
+        let t0 = (lo[axis] - origin[axis]) / direction[axis];
+        let t1 = (hi[axis] - origin[axis]) / direction[axis];
+        near = near.max(t0.min(t1));
+        far = far.min(t0.max(t1));
+    }
+    (near < far).then_some((near, far))
+}
+
+#[test]
+fn box_medium_matches_the_integral_with_attenuated_sunlight() {
+    let (lo, hi) = (DVec3::new(-4.0, -3.0, 1.0), DVec3::new(4.0, 3.0, 5.0));
+    let world_from_cube = Mat4::from_translation(Vec3::new(0.0, 0.0, 3.0))
+        * Mat4::from_scale(Vec3::new(4.0, 3.0, 2.0));
+    let sun = Vec3::new(0.4, -0.3, -1.0);
+    let towards_sun = -sun.as_dvec3().normalize();
+    let ground = horizontal_quad(1, -300.0, 300.0, -300.0, 300.0, 0.0);
+    let outside = look_along(Vec3::new(-12.0, 1.0, 3.5), Vec3::new(1.0, -0.05, -0.05));
+    let inside = look_along(Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1));
+    for (name, eye, focal_length) in [("outside", outside, 50.0), ("inside", inside, 24.0)] {
+        let mut medium = medium(0.35, 0.4);
+        medium.extent = Extent::Box { world_from_cube };
+        let scene = scene(
+            pinhole(eye, focal_length, 24, 16),
+            sun,
+            medium,
+            vec![ground.clone()],
+            settings(1024, 4096, 60.0),
+        );
+        let layers = render(&scene);
+        let sigma = 0.35;
+        let mut inside_box = 0;
+        for y in 0..16 {
+            for x in 0..24 {
+                let ray = pixel_ray(&scene, x, y);
+                let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
+                let t_end = (layers.depth[(y * 24 + x) as usize] as f64).min(60.0);
+                let got = layers.volume_rgba(x, y);
+                let Some((a, b)) = slab(ray.origin, ray.direction, lo, hi)
+                    .map(|(a, b)| (a.max(t_start), b.min(t_end)))
+                    .filter(|(a, b)| b > a)
+                else {
+                    assert_eq!(got, [0.0; 4], "{name} ({x}, {y}) misses the box");
+                    continue;
+                };
+                inside_box += 1;
+                let integrand = |t: f64| {
+                    let p = ray.origin + ray.direction * t;
+                    let (_, exit) = slab(p, towards_sun, lo, hi).expect("inside the box");
+                    (-sigma * exit.max(0.0)).exp() * (-sigma * (t - a)).exp()
+                };
+                let n = 20_000;
+                let h = (b - a) / n as f64;
+                let mut sum = integrand(a) + integrand(b);
+                for k in 1..n {
+                    sum += integrand(a + k as f64 * h) * if k % 2 == 1 { 4.0 } else { 2.0 };
+                }
+                let expected = source_term(&scene, ray.direction) * (sum * h / 3.0);
+                for c in 0..3 {
+                    let error = relative_error(got[c] as f64, expected[c]);
+                    assert!(
+                        error < 1e-3,
+                        "{name} ({x}, {y}) channel {c}: {} vs {} ({error:e})",
+                        got[c],
+                        expected[c]
+                    );
+                }
+                assert!((got[3] as f64 - (1.0 - (-sigma * (b - a)).exp())).abs() < 1e-6);
+            }
+        }
+        assert!(inside_box > 24 * 16 / 2, "{name}: most rays cross the box");
+    }
+}
+
+#[test]
+fn henyey_greenstein_integrates_to_one_over_the_sphere() {
+    for g in [-0.9, 0.0, 0.5, 0.95] {
+        let n = 200_000;
+        let h = 2.0 / n as f64;
+        let f = |k: usize| henyey_greenstein(g, -1.0 + k as f64 * h);
+        let mut sum = f(0) + f(n);
+        for k in 1..n {
+            sum += f(k) * if k % 2 == 1 { 4.0 } else { 2.0 };
+        }
+        let integral = 2.0 * std::f64::consts::PI * sum * h / 3.0;
+        assert!((integral - 1.0).abs() < 1e-6, "g = {g}: {integral}");
+    }
+}
