@@ -1,0 +1,57 @@
+# Two entry points for a fresh machine: `make demo` and `make test`. Both install what
+# they need (Debian packages, a Python venv) before building.
+
+VENV        := .venv
+PYTHON      := $(VENV)/bin/python
+CARGO       ?= cargo
+WHEEL_DIR   := dist
+CLI         := target/release/crepuscular
+export VIRTUAL_ENV := $(abspath $(VENV))
+export PATH := $(VIRTUAL_ENV)/bin:$(PATH)
+
+.PHONY: demo test system-deps build wheel rust-test python-test lint bench clean
+
+demo: build
+	$(CLI) demo --out-dir out/demo
+
+test: system-deps $(VENV)/.test-deps lint rust-test wheel python-test
+
+system-deps:
+	@.ci/system-deps
+
+$(VENV)/.build-deps: tests/requirements-build.txt
+	python3 -m venv $(VENV)
+	$(PYTHON) -m pip install --quiet --upgrade pip
+	$(PYTHON) -m pip install --quiet -r tests/requirements-build.txt
+	touch $@
+
+$(VENV)/.test-deps: $(VENV)/.build-deps tests/requirements-test.txt
+	$(PYTHON) -m pip install --quiet -r tests/requirements-test.txt
+	touch $@
+
+build: $(VENV)/.build-deps
+	$(CARGO) build --release -p crepuscular
+	$(MAKE) wheel
+
+wheel: $(VENV)/.build-deps
+	rm -rf $(WHEEL_DIR)
+	maturin build --release --quiet -m core/python/Cargo.toml -o $(WHEEL_DIR)
+	$(PYTHON) -m pip install --quiet --force-reinstall --no-deps $(WHEEL_DIR)/crepuscular-*.whl
+
+lint: $(VENV)/.test-deps
+	$(CARGO) fmt --all --check
+	$(CARGO) clippy --workspace --all-targets --release -- -D warnings
+	ruff check core/python tests
+	ruff format --check core/python tests
+
+rust-test:
+	$(CARGO) test -p crepuscular --release
+
+python-test: $(VENV)/.test-deps
+	$(PYTHON) -m pytest tests -q
+
+bench: build
+	$(CLI) bench
+
+clean:
+	rm -rf target $(WHEEL_DIR) out
