@@ -1,0 +1,151 @@
+"""crepuscular: stylized volumetric light shafts.
+
+Render a scene description (a dict, JSON text or a .json file) with `render`, or render
+geometry you already hold in numpy arrays with `render_arrays`. Both return `Layers`.
+
+The scene description is the JSON schema of the Rust core: the keys `version`, `camera`,
+`sun`, `medium`, `meshes` and `render`. Unknown keys are errors that name the key, and every
+unusable value raises `InvalidInputError` whose `field` names it (e.g. "camera.width").
+
+Renders release the GIL. While one runs, the calling thread wakes every 50 ms to call
+`progress(fraction)` and to handle Ctrl-C; an exception from either cancels the render and
+propagates. Do not modify the input arrays from the progress callback: the renderer reads
+them in place.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal, TypeAlias
+
+import numpy as np
+import numpy.typing as npt
+
+from crepuscular import _convert, _core
+from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
+
+__all__ = [
+    "SCENE_VERSION",
+    "CancelledError",
+    "CrepuscularError",
+    "DepthKind",
+    "ExrError",
+    "InvalidInputError",
+    "Layers",
+    "ProgressCallback",
+    "SceneLike",
+    "__version__",
+    "render",
+    "render_arrays",
+    "scene_from_json",
+    "validate_scene",
+]
+
+__version__: str = _core.__version__
+#: The scene-description version this build reads and writes.
+SCENE_VERSION: int = _core.SCENE_VERSION
+
+#: A scene description: a mapping, JSON text (starting with "{") or a path to a .json file.
+SceneLike: TypeAlias = Mapping[str, Any] | str | os.PathLike[str]
+#: How a supplied camera depth measures distance: along the view axis (Blender's Z pass)
+#: or along each pixel's ray.
+DepthKind: TypeAlias = Literal["planar", "ray_distance"]
+#: Called on the calling thread with the fraction done, in [0, 1], ending with 1.0.
+ProgressCallback: TypeAlias = Callable[[float], object]
+
+
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Layers:
+    """Linear float layers at the camera's resolution, rows top to bottom."""
+
+    width: int
+    height: int
+    #: (height, width, 4) premultiplied RGBA: RGB in-scattered light, A = 1 - transmittance.
+    volume: npt.NDArray[np.float32]
+    #: (height, width) average light visibility along each view ray.
+    visibility: npt.NDArray[np.float32]
+    #: (height, width) distance along the view ray to the first surface (or the max distance).
+    depth: npt.NDArray[np.float32]
+
+    def __repr__(self) -> str:
+        return f"Layers(width={self.width}, height={self.height})"
+
+
+def render(
+    scene: SceneLike,
+    *,
+    camera_depth: npt.ArrayLike | None = None,
+    depth_kind: DepthKind = "planar",
+    progress: ProgressCallback | None = None,
+) -> Layers:
+    """Renders a scene description.
+
+    `camera_depth`, when given, is a renderer's depth pass of shape (height, width) that
+    replaces the depth rasterized from the scene's meshes; `depth_kind` says how it measures
+    distance. Values at or beyond the camera's `clip_end`, and +inf, are background.
+    """
+    _check_progress(progress)
+    raw = _core.render_json(
+        _convert.scene_json(scene),
+        camera_depth=_convert.depth_map(camera_depth),
+        depth_kind=depth_kind,
+        progress=progress,
+    )
+    return Layers(*raw)
+
+
+def render_arrays(
+    *,
+    positions: npt.ArrayLike,
+    triangles: npt.ArrayLike,
+    object_ids: npt.ArrayLike | None = None,
+    camera: Mapping[str, Any],
+    sun: Mapping[str, Any],
+    medium: Mapping[str, Any],
+    settings: Mapping[str, Any] | None = None,
+    camera_depth: npt.ArrayLike | None = None,
+    depth_kind: DepthKind = "planar",
+    progress: ProgressCallback | None = None,
+) -> Layers:
+    """Renders world-space triangles held in arrays.
+
+    `positions` is (N, 3) float32, `triangles` (M, 3) vertex indices and `object_ids` (M,)
+    one id per triangle (all 0 when omitted). Arrays that are already C-contiguous with
+    those dtypes (uint32 for indices and ids) are read in place without a copy; others are
+    converted once. `camera`, `sun`, `medium` and `settings` are the members `camera`,
+    `sun`, `medium` and `render` of a scene description.
+    """
+    _check_progress(progress)
+    triangle_rows = _convert.index_rows(triangles, "triangles")
+    raw = _core.render_arrays(
+        _convert.float_rows(positions, "positions"),
+        triangle_rows,
+        _convert.object_ids(object_ids, len(triangle_rows)),
+        _convert.to_json(camera, "camera"),
+        _convert.to_json(sun, "sun"),
+        _convert.to_json(medium, "medium"),
+        _convert.to_json({} if settings is None else settings, "render"),
+        camera_depth=_convert.depth_map(camera_depth),
+        depth_kind=depth_kind,
+        progress=progress,
+    )
+    return Layers(*raw)
+
+
+def scene_from_json(text: str) -> dict[str, Any]:
+    """Parses and validates JSON text; returns the scene with every default filled in."""
+    result: dict[str, Any] = json.loads(_core.normalize_scene_json(text))
+    return result
+
+
+def validate_scene(scene: SceneLike) -> None:
+    """Raises `InvalidInputError` naming the first unusable field of a scene description."""
+    _core.normalize_scene_json(_convert.scene_json(scene))
+
+
+def _check_progress(progress: object) -> None:
+    if progress is not None and not callable(progress):
+        raise TypeError(f"progress must be callable, got {type(progress).__name__}")

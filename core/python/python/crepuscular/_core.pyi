@@ -1,0 +1,52 @@
+# Stubs for the native module crepuscular._core (core/python/src/lib.rs). Keep them in step:
+# tests/test_core_api.py checks that the names, parameters and exception bases match.
+# The render functions return (width, height, volume, visibility, depth) with arrays shaped
+# (H, W, 4), (H, W) and (H, W); `crepuscular.Layers(*raw)` wraps them.
+
+from collections.abc import Callable
+from typing import Final, Literal, TypeAlias
+
+import numpy as np
+import numpy.typing as npt
+
+__version__: Final[str]
+SCENE_VERSION: Final[int]
+
+_Float32Array: TypeAlias = npt.NDArray[np.float32]
+_UInt32Array: TypeAlias = npt.NDArray[np.uint32]
+_DepthKind: TypeAlias = Literal["planar", "ray_distance"]
+_Progress: TypeAlias = Callable[[float], object]
+#: (width, height, volume (H, W, 4), visibility (H, W), depth (H, W)).
+_RawLayers: TypeAlias = tuple[int, int, _Float32Array, _Float32Array, _Float32Array]
+
+class CrepuscularError(Exception): ...
+
+class InvalidInputError(CrepuscularError, ValueError):
+    field: str | None
+
+class ExrError(CrepuscularError, OSError): ...
+class CancelledError(CrepuscularError): ...
+
+def render_json(
+    scene_json: str,
+    /,
+    *,
+    camera_depth: _Float32Array | None = None,
+    depth_kind: _DepthKind = "planar",
+    progress: _Progress | None = None,
+) -> _RawLayers: ...
+def render_arrays(
+    positions: _Float32Array,
+    triangles: _UInt32Array,
+    object_ids: _UInt32Array,
+    camera_json: str,
+    sun_json: str,
+    medium_json: str,
+    settings_json: str,
+    /,
+    *,
+    camera_depth: _Float32Array | None = None,
+    depth_kind: _DepthKind = "planar",
+    progress: _Progress | None = None,
+) -> _RawLayers: ...
+def normalize_scene_json(scene_json: str, /) -> str: ...

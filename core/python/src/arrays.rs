@@ -1,0 +1,151 @@
+//! numpy ↔ core data, without copies in either direction.
+//!
+//! Inputs are borrowed from C-contiguous, aligned arrays of the right dtype (the Python layer
+//! converts anything else with `np.ascontiguousarray`, which copies only when it must).
+//! Outputs are the core's `Vec`s handed to numpy as they are and reshaped into views.
+
+use bytemuck::Pod;
+use crepuscular::scene::Camera;
+use crepuscular::{Error, Geometry, Layers, Result};
+use numpy::{
+    Element, PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods,
+};
+use pyo3::prelude::*;
+use pyo3::types::PyTuple;
+
+/// Borrows an `(N, 3)` array as `N` rows.
+pub fn rows<'a, T: Element + Pod>(
+    name: &str,
+    array: &'a PyReadonlyArray2<'_, T>,
+) -> Result<&'a [[T; 3]]> {
+    let shape = array.shape();
+    if shape[1] != 3 {
+        return Err(Error::invalid(
+            name,
+            format!("must have shape (N, 3), got ({}, {})", shape[0], shape[1]),
+        ));
+    }
+    Ok(bytemuck::cast_slice(flat(name, array.as_slice())?))
+}
+
+/// Borrows a one-dimensional array.
+pub fn values<'a, T: Element>(name: &str, array: &'a PyReadonlyArray1<'_, T>) -> Result<&'a [T]> {
+    flat(name, array.as_slice())
+}
+
+fn flat<'a, T, E>(name: &str, slice: std::result::Result<&'a [T], E>) -> Result<&'a [T]> {
+    slice.map_err(|_| Error::invalid(name, "must be a C-contiguous, aligned array"))
+}
+
+/// A camera depth map borrowed with its `(rows, columns)` shape.
+#[derive(Clone, Copy, Debug)]
+pub struct DepthMap<'a> {
+    pub values: &'a [f32],
+    pub shape: [usize; 2],
+}
+
+impl<'a> DepthMap<'a> {
+    pub fn borrow(array: &'a PyReadonlyArray2<'_, f32>) -> Result<Self> {
+        let shape = array.shape();
+        Ok(DepthMap {
+            values: flat("camera_depth", array.as_slice())?,
+            shape: [shape[0], shape[1]],
+        })
+    }
+
+    /// The map must cover the camera's image, one finite or +∞ distance per pixel.
+    pub fn check(&self, camera: &Camera) -> Result<()> {
+        let (width, height) = (camera.width as usize, camera.height as usize);
+        if self.shape != [height, width] {
+            return Err(Error::invalid(
+                "camera_depth",
+                format!(
+                    "must have shape (height, width) = ({height}, {width}), got ({}, {})",
+                    self.shape[0], self.shape[1]
+                ),
+            ));
+        }
+        let pixel = |index: usize| (index % width, index / width);
+        if let Some(index) = self.values.iter().position(|v| v.is_nan()) {
+            let (x, y) = pixel(index);
+            return Err(Error::invalid(
+                "camera_depth",
+                format!("contains NaN at pixel ({x}, {y})"),
+            ));
+        }
+        if let Some(index) = self.values.iter().position(|&v| v < 0.0) {
+            let (x, y) = pixel(index);
+            return Err(Error::invalid(
+                "camera_depth",
+                format!(
+                    "contains the negative distance {} at pixel ({x}, {y})",
+                    self.values[index]
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Checks host-supplied geometry the way [`crepuscular::Scene::validate`] checks meshes.
+pub fn check_geometry(geometry: &Geometry) -> Result<()> {
+    if let Some(index) = geometry
+        .positions
+        .iter()
+        .position(|p| !p.iter().all(|c| c.is_finite()))
+    {
+        return Err(Error::invalid(
+            format!("positions[{index}]"),
+            format!("{:?} is not finite", geometry.positions[index]),
+        ));
+    }
+    let count = geometry.positions.len();
+    if let Some(index) = geometry
+        .triangles
+        .iter()
+        .position(|t| t.iter().any(|&v| v as usize >= count))
+    {
+        return Err(Error::invalid(
+            format!("triangles[{index}]"),
+            format!(
+                "{:?} indexes past the {count} positions",
+                geometry.triangles[index]
+            ),
+        ));
+    }
+    if geometry.object_ids.len() != geometry.triangles.len() {
+        return Err(Error::invalid(
+            "object_ids",
+            format!(
+                "has {} entries but there are {} triangles (give one id per triangle)",
+                geometry.object_ids.len(),
+                geometry.triangles.len()
+            ),
+        ));
+    }
+    if geometry.triangles.is_empty() {
+        return Err(Error::invalid(
+            "triangles",
+            "the scene is empty: it has no triangles (add at least a ground plane)",
+        ));
+    }
+    Ok(())
+}
+
+/// `(width, height, volume, visibility, depth)`: the layers' buffers become numpy arrays
+/// without a copy, shaped `(H, W, 4)`, `(H, W)` and `(H, W)`.
+pub fn layers_to_py(py: Python<'_>, layers: Layers) -> PyResult<Bound<'_, PyTuple>> {
+    let Layers {
+        width,
+        height,
+        volume,
+        visibility,
+        depth,
+        ..
+    } = layers;
+    let (w, h) = (width as usize, height as usize);
+    let volume = PyArray1::from_vec(py, volume).reshape([h, w, 4])?;
+    let visibility = PyArray1::from_vec(py, visibility).reshape([h, w])?;
+    let depth = PyArray1::from_vec(py, depth).reshape([h, w])?;
+    (width, height, volume, visibility, depth).into_pyobject(py)
+}

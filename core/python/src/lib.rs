@@ -1,0 +1,197 @@
+//! `crepuscular._core`: the thin native layer under the `crepuscular` Python package.
+//!
+//! Every function here parses its arguments into core types, runs the core with the GIL
+//! released where the work can be long, and converts the core's errors once, through
+//! [`errors::to_py_err`]. The friendly Python API (dicts, paths, dtype conversion, the
+//! `Layers` dataclass) lives in `python/crepuscular/__init__.py`; keep this layer one
+//! function per core entry point.
+
+mod arrays;
+mod errors;
+mod run;
+
+use crepuscular::render::FlatGeometry;
+use crepuscular::scene::{Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
+use crepuscular::{CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene};
+use numpy::{PyReadonlyArray1, PyReadonlyArray2};
+use pyo3::prelude::*;
+use pyo3::types::PyTuple;
+use serde::de::DeserializeOwned;
+
+use crate::arrays::{check_geometry, layers_to_py, rows, values, DepthMap};
+use crate::errors::to_py_err;
+use crate::run::run_detached;
+
+/// Renders a JSON scene description.
+///
+/// Returns `(width, height, volume, visibility, depth)` with arrays shaped `(H, W, 4)`,
+/// `(H, W)` and `(H, W)`.
+#[pyfunction]
+#[pyo3(signature = (scene_json, /, *, camera_depth=None, depth_kind="planar", progress=None))]
+fn render_json<'py>(
+    py: Python<'py>,
+    scene_json: &str,
+    camera_depth: Option<PyReadonlyArray2<'py, f32>>,
+    depth_kind: &str,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref()).map_err(to_py_err)?;
+    let layers = run_detached(py, progress.as_ref(), |control| {
+        let scene = Scene::from_json(scene_json)?;
+        let geometry = FlatGeometry::from_scene(&scene);
+        let parts = Parts {
+            camera: &scene.camera,
+            sun: &scene.sun,
+            medium: &scene.medium,
+            settings: &scene.render,
+        };
+        parts.render(geometry.view(), depth, kind, control)
+    })?;
+    layers_to_py(py, layers)
+}
+
+/// Renders borrowed geometry with the camera, sun, medium and render settings given as JSON
+/// objects (the `camera`, `sun`, `medium` and `render` members of a scene description).
+///
+/// `positions` (N, 3) float32, `triangles` (M, 3) uint32 and `object_ids` (M,) uint32 must
+/// be C-contiguous and aligned; they are read in place, never copied.
+#[pyfunction]
+#[pyo3(signature = (
+    positions, triangles, object_ids, camera_json, sun_json, medium_json, settings_json, /,
+    *, camera_depth=None, depth_kind="planar", progress=None,
+))]
+#[allow(clippy::too_many_arguments)]
+fn render_arrays<'py>(
+    py: Python<'py>,
+    positions: PyReadonlyArray2<'py, f32>,
+    triangles: PyReadonlyArray2<'py, u32>,
+    object_ids: PyReadonlyArray1<'py, u32>,
+    camera_json: &str,
+    sun_json: &str,
+    medium_json: &str,
+    settings_json: &str,
+    camera_depth: Option<PyReadonlyArray2<'py, f32>>,
+    depth_kind: &str,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let prepared = (|| {
+        let camera: Camera = parse_part("camera", camera_json)?;
+        let sun: Sun = parse_part("sun", sun_json)?;
+        let medium: Medium = parse_part("medium", medium_json)?;
+        let settings: RenderSettings = parse_part("render", settings_json)?;
+        let geometry = Geometry {
+            positions: rows("positions", &positions)?,
+            triangles: rows("triangles", &triangles)?,
+            object_ids: values("object_ids", &object_ids)?,
+        };
+        let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref())?;
+        Ok((camera, sun, medium, settings, geometry, kind, depth))
+    })();
+    let (camera, sun, medium, settings, geometry, kind, depth) = prepared.map_err(to_py_err)?;
+    let layers = run_detached(py, progress.as_ref(), |control| {
+        let parts = Parts {
+            camera: &camera,
+            sun: &sun,
+            medium: &medium,
+            settings: &settings,
+        };
+        parts.render(geometry, depth, kind, control)
+    })?;
+    layers_to_py(py, layers)
+}
+
+/// Parses and validates a JSON scene description and returns it re-serialized with every
+/// default filled in.
+#[pyfunction]
+#[pyo3(signature = (scene_json, /))]
+fn normalize_scene_json(py: Python<'_>, scene_json: &str) -> PyResult<String> {
+    py.detach(|| Scene::from_json(scene_json).map(|scene| scene.to_json()))
+        .map_err(to_py_err)
+}
+
+/// The frame-wide parts of a render, borrowed.
+struct Parts<'a> {
+    camera: &'a Camera,
+    sun: &'a Sun,
+    medium: &'a Medium,
+    settings: &'a RenderSettings,
+}
+
+impl Parts<'_> {
+    /// Validates in scene order (camera, sun, medium, settings, geometry), then the camera
+    /// depth against the camera, then renders.
+    fn render(
+        &self,
+        geometry: Geometry<'_>,
+        depth: Option<DepthMap<'_>>,
+        kind: DepthKind,
+        control: &RenderControl,
+    ) -> crepuscular::Result<Layers> {
+        let frame = Frame {
+            camera: self.camera,
+            sun: self.sun,
+            medium: self.medium,
+            settings: self.settings,
+            geometry,
+            camera_depth: depth.map(|map| CameraDepth {
+                values: map.values,
+                kind,
+            }),
+        };
+        frame.validate()?;
+        check_geometry(&geometry)?;
+        if let Some(map) = &depth {
+            map.check(self.camera)?;
+        }
+        crepuscular::render(&frame, control)
+    }
+}
+
+fn depth_input<'a>(
+    depth_kind: &str,
+    camera_depth: Option<&'a PyReadonlyArray2<'_, f32>>,
+) -> crepuscular::Result<(DepthKind, Option<DepthMap<'a>>)> {
+    let kind = match depth_kind {
+        "planar" => DepthKind::Planar,
+        "ray_distance" => DepthKind::RayDistance,
+        other => {
+            return Err(Error::invalid(
+                "depth_kind",
+                format!("unknown depth kind '{other}' (known: planar, ray_distance)"),
+            ))
+        }
+    };
+    let depth = camera_depth.map(DepthMap::borrow).transpose()?;
+    Ok((kind, depth))
+}
+
+/// Parses one member of a scene description; errors name their path under `prefix`.
+fn parse_part<T: DeserializeOwned>(prefix: &str, json: &str) -> crepuscular::Result<T> {
+    let deserializer = &mut serde_json::Deserializer::from_str(json);
+    let value = serde_path_to_error::deserialize(&mut *deserializer).map_err(|err| {
+        let path = err.path().to_string();
+        let inner = err.into_inner();
+        let path = if path == "." {
+            prefix.to_string()
+        } else {
+            format!("{prefix}.{path}")
+        };
+        Error::SceneFormat(format!("at '{path}': {inner}"))
+    })?;
+    deserializer
+        .end()
+        .map_err(|err| Error::SceneFormat(format!("at '{prefix}': {err}")))?;
+    Ok(value)
+}
+
+/// The native half of the `crepuscular` package.
+#[pymodule]
+fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
+    module.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    module.add("SCENE_VERSION", SCENE_VERSION)?;
+    errors::register(module)?;
+    module.add_function(wrap_pyfunction!(render_json, module)?)?;
+    module.add_function(wrap_pyfunction!(render_arrays, module)?)?;
+    module.add_function(wrap_pyfunction!(normalize_scene_json, module)?)?;
+    Ok(())
+}
