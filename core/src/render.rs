@@ -316,7 +316,7 @@ impl Geometry<'_> {
             return Err(Error::invalid(
                 "object_ids",
                 format!(
-                    "has {} entries for {} triangles",
+                    "has {} entries but there are {} triangles (give one id per triangle)",
                     self.object_ids.len(),
                     self.triangles.len()
                 ),

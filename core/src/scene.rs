@@ -267,16 +267,7 @@ impl Default for RenderSettings {
 impl Scene {
     /// Parses a JSON scene description; unknown keys and type errors name their path.
     pub fn from_json(text: &str) -> Result<Self> {
-        let deserializer = &mut serde_json::Deserializer::from_str(text);
-        let scene: Scene = serde_path_to_error::deserialize(deserializer).map_err(|err| {
-            let path = err.path().to_string();
-            let inner = err.into_inner();
-            if path == "." {
-                Error::SceneFormat(inner.to_string())
-            } else {
-                Error::SceneFormat(format!("at '{path}': {inner}"))
-            }
-        })?;
+        let scene: Scene = parse_json_at("", text)?;
         scene.validate()?;
         Ok(scene)
     }
@@ -452,6 +443,27 @@ impl RenderSettings {
         }
         Ok(())
     }
+}
+
+/// Parses JSON for the part of a scene description at `prefix` ("" for a whole scene);
+/// syntax errors, unknown keys and wrong types name their full path.
+pub fn parse_json_at<T: serde::de::DeserializeOwned>(prefix: &str, text: &str) -> Result<T> {
+    let deserializer = &mut serde_json::Deserializer::from_str(text);
+    let value = serde_path_to_error::deserialize(&mut *deserializer).map_err(|err| {
+        let found = err.path().to_string();
+        let inner = err.into_inner();
+        let path = match (prefix, found.as_str()) {
+            ("", ".") => return Error::SceneFormat(inner.to_string()),
+            (prefix, ".") => prefix.to_owned(),
+            ("", path) => path.to_owned(),
+            (prefix, path) => format!("{prefix}.{path}"),
+        };
+        Error::SceneFormat(format!("at '{path}': {inner}"))
+    })?;
+    deserializer
+        .end()
+        .map_err(|err| Error::SceneFormat(format!("trailing characters: {err}")))?;
+    Ok(value)
 }
 
 pub(crate) fn check_size(field: &str, value: u32, min: u32, max: u32) -> Result<()> {

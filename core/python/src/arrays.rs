@@ -6,7 +6,7 @@
 
 use bytemuck::Pod;
 use crepuscular::scene::Camera;
-use crepuscular::{Error, Geometry, Layers, Result};
+use crepuscular::{Error, Layers, Result};
 use numpy::{
     Element, PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods,
 };
@@ -53,7 +53,7 @@ impl<'a> DepthMap<'a> {
         })
     }
 
-    /// The map must cover the camera's image, one finite or +∞ distance per pixel.
+    /// The map must have the camera's image shape; the core checks the values.
     pub fn check(&self, camera: &Camera) -> Result<()> {
         let (width, height) = (camera.width as usize, camera.height as usize);
         if self.shape != [height, width] {
@@ -65,71 +65,8 @@ impl<'a> DepthMap<'a> {
                 ),
             ));
         }
-        let pixel = |index: usize| (index % width, index / width);
-        if let Some(index) = self.values.iter().position(|v| v.is_nan()) {
-            let (x, y) = pixel(index);
-            return Err(Error::invalid(
-                "camera_depth",
-                format!("contains NaN at pixel ({x}, {y})"),
-            ));
-        }
-        if let Some(index) = self.values.iter().position(|&v| v < 0.0) {
-            let (x, y) = pixel(index);
-            return Err(Error::invalid(
-                "camera_depth",
-                format!(
-                    "contains the negative distance {} at pixel ({x}, {y})",
-                    self.values[index]
-                ),
-            ));
-        }
         Ok(())
     }
-}
-
-/// Checks host-supplied geometry the way [`crepuscular::Scene::validate`] checks meshes.
-pub fn check_geometry(geometry: &Geometry) -> Result<()> {
-    if let Some(index) = geometry
-        .positions
-        .iter()
-        .position(|p| !p.iter().all(|c| c.is_finite()))
-    {
-        return Err(Error::invalid(
-            format!("positions[{index}]"),
-            format!("{:?} is not finite", geometry.positions[index]),
-        ));
-    }
-    let count = geometry.positions.len();
-    if let Some(index) = geometry
-        .triangles
-        .iter()
-        .position(|t| t.iter().any(|&v| v as usize >= count))
-    {
-        return Err(Error::invalid(
-            format!("triangles[{index}]"),
-            format!(
-                "{:?} indexes past the {count} positions",
-                geometry.triangles[index]
-            ),
-        ));
-    }
-    if geometry.object_ids.len() != geometry.triangles.len() {
-        return Err(Error::invalid(
-            "object_ids",
-            format!(
-                "has {} entries but there are {} triangles (give one id per triangle)",
-                geometry.object_ids.len(),
-                geometry.triangles.len()
-            ),
-        ));
-    }
-    if geometry.triangles.is_empty() {
-        return Err(Error::invalid(
-            "triangles",
-            "the scene is empty: it has no triangles (add at least a ground plane)",
-        ));
-    }
-    Ok(())
 }
 
 /// `(width, height, volume, visibility, depth)`: the layers' buffers become numpy arrays

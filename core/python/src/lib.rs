@@ -11,14 +11,13 @@ mod errors;
 mod run;
 
 use crepuscular::render::FlatGeometry;
-use crepuscular::scene::{Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
+use crepuscular::scene::{parse_json_at, Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
 use crepuscular::{CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene};
 use numpy::{PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use serde::de::DeserializeOwned;
 
-use crate::arrays::{check_geometry, layers_to_py, rows, values, DepthMap};
+use crate::arrays::{layers_to_py, rows, values, DepthMap};
 use crate::errors::to_py_err;
 use crate::run::run_detached;
 
@@ -75,10 +74,10 @@ fn render_arrays<'py>(
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let prepared = (|| {
-        let camera: Camera = parse_part("camera", camera_json)?;
-        let sun: Sun = parse_part("sun", sun_json)?;
-        let medium: Medium = parse_part("medium", medium_json)?;
-        let settings: RenderSettings = parse_part("render", settings_json)?;
+        let camera: Camera = parse_json_at("camera", camera_json)?;
+        let sun: Sun = parse_json_at("sun", sun_json)?;
+        let medium: Medium = parse_json_at("medium", medium_json)?;
+        let settings: RenderSettings = parse_json_at("render", settings_json)?;
         let geometry = Geometry {
             positions: rows("positions", &positions)?,
             triangles: rows("triangles", &triangles)?,
@@ -118,8 +117,7 @@ struct Parts<'a> {
 }
 
 impl Parts<'_> {
-    /// Validates in scene order (camera, sun, medium, settings, geometry), then the camera
-    /// depth against the camera, then renders.
+    /// Checks the depth map's shape, then renders (the core validates everything else).
     fn render(
         &self,
         geometry: Geometry<'_>,
@@ -138,8 +136,6 @@ impl Parts<'_> {
                 kind,
             }),
         };
-        frame.validate()?;
-        check_geometry(&geometry)?;
         if let Some(map) = &depth {
             map.check(self.camera)?;
         }
@@ -163,25 +159,6 @@ fn depth_input<'a>(
     };
     let depth = camera_depth.map(DepthMap::borrow).transpose()?;
     Ok((kind, depth))
-}
-
-/// Parses one member of a scene description; errors name their path under `prefix`.
-fn parse_part<T: DeserializeOwned>(prefix: &str, json: &str) -> crepuscular::Result<T> {
-    let deserializer = &mut serde_json::Deserializer::from_str(json);
-    let value = serde_path_to_error::deserialize(&mut *deserializer).map_err(|err| {
-        let path = err.path().to_string();
-        let inner = err.into_inner();
-        let path = if path == "." {
-            prefix.to_string()
-        } else {
-            format!("{prefix}.{path}")
-        };
-        Error::SceneFormat(format!("at '{path}': {inner}"))
-    })?;
-    deserializer
-        .end()
-        .map_err(|err| Error::SceneFormat(format!("at '{prefix}': {err}")))?;
-    Ok(value)
 }
 
 /// The native half of the `crepuscular` package.
