@@ -3,9 +3,12 @@
 //! The core turns a [`Scene`] into per-pixel [`Layers`]: it rasterizes the light's shadow
 //! map and the camera depth, then integrates single scattering along every view ray.
 
+pub mod composite;
 pub mod control;
 pub mod error;
+pub mod exr_file;
 pub mod layers;
+pub mod preview;
 pub mod render;
 pub mod scene;
 
