@@ -4,10 +4,13 @@
 //! map and the camera depth, then integrates single scattering along every view ray.
 
 pub mod camera;
+pub mod composite;
 pub mod control;
 pub mod error;
+pub mod exr_file;
 pub mod layers;
 pub mod phase;
+pub mod preview;
 pub mod raster;
 pub mod reference;
 pub mod render;
