@@ -3,12 +3,14 @@
 //! The core turns a [`Scene`] into per-pixel [`Layers`]: it rasterizes the light's shadow
 //! map and the camera depth, then integrates single scattering along every view ray.
 
+pub mod builtin;
 pub mod camera;
 pub mod composite;
 pub mod control;
 pub mod error;
 pub mod exr_file;
 pub mod layers;
+pub mod mesh_builder;
 pub mod phase;
 pub mod preview;
 pub mod raster;
@@ -17,6 +19,7 @@ pub mod render;
 pub mod scene;
 pub mod shadow_map;
 
+pub use builtin::{builtin_scene, BUILTIN_SCENES};
 pub use control::RenderControl;
 pub use error::{Error, Result};
 pub use layers::Layers;

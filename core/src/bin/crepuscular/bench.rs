@@ -69,7 +69,11 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 times_ms.push(started.elapsed().as_secs_f64() * 1e3);
             }
             times_ms.sort_by(f64::total_cmp);
-            eprintln!("{name} {}: median {:.1} ms", method.name(), median(&times_ms));
+            eprintln!(
+                "{name} {}: median {:.1} ms",
+                method.name(),
+                median(&times_ms)
+            );
             rows.push(Row {
                 scene: name.clone(),
                 method,

@@ -15,7 +15,11 @@ use crepuscular::{render_scene, Error, Layers, RenderControl, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Parser)]
-#[command(name = "crepuscular", version, about = "Stylized volumetric light shafts")]
+#[command(
+    name = "crepuscular",
+    version,
+    about = "Stylized volumetric light shafts"
+)]
 struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
@@ -185,9 +189,12 @@ pub fn render_with_progress(scene: &Scene, label: &str) -> Result<Layers> {
             bar.set_position((control.fraction() * 1000.0) as u64);
             std::thread::sleep(Duration::from_millis(50));
         }
-        worker
-            .join()
-            .unwrap_or_else(|_| Err(Error::invalid("render", "internal error: a worker panicked")))
+        worker.join().unwrap_or_else(|_| {
+            Err(Error::invalid(
+                "render",
+                "internal error: a worker panicked",
+            ))
+        })
     });
     bar.finish_and_clear();
     layers
