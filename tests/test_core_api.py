@@ -32,7 +32,6 @@ from crepuscular import (
 )
 
 # Rendering is implemented in parallel with these bindings; drop this marker after the merge.
-needs_render = pytest.mark.xfail(reason="render lands in the merge", strict=False)
 
 
 @contextlib.contextmanager
@@ -502,7 +501,6 @@ def _check_layers(layers: Layers, width: int, height: int) -> None:
     assert layers.depth.min() > 0.0
 
 
-@needs_render
 def test_render_layers(scene: dict[str, Any]) -> None:
     layers = render(scene)
     _check_layers(layers, 64, 36)
@@ -514,7 +512,6 @@ def test_render_layers(scene: dict[str, Any]) -> None:
     assert repr(layers) == "Layers(width=64, height=36)"
 
 
-@needs_render
 def test_render_outputs_are_not_copied(scene: dict[str, Any]) -> None:
     layers = render(scene)
     for array in (layers.volume, layers.visibility, layers.depth):
@@ -527,7 +524,6 @@ def test_render_outputs_are_not_copied(scene: dict[str, Any]) -> None:
         assert not isinstance(flat.base, np.ndarray)
 
 
-@needs_render
 def test_render_is_deterministic(scene: dict[str, Any]) -> None:
     first = render(scene)
     second = render(json.dumps(scene))
@@ -536,7 +532,6 @@ def test_render_is_deterministic(scene: dict[str, Any]) -> None:
         assert a.tobytes() == b.tobytes(), name
 
 
-@needs_render
 def test_render_arrays_equals_render(scene: dict[str, Any], to_arrays: Any) -> None:
     from_dict = render(scene)
     from_arrays = render_arrays(**to_arrays(scene))
@@ -544,7 +539,6 @@ def test_render_arrays_equals_render(scene: dict[str, Any], to_arrays: Any) -> N
         np.testing.assert_array_equal(getattr(from_arrays, name), getattr(from_dict, name))
 
 
-@needs_render
 def test_render_arrays_with_converted_inputs(scene: dict[str, Any], to_arrays: Any) -> None:
     reference = render_arrays(**to_arrays(scene))
     arrays = to_arrays(scene)
@@ -555,7 +549,6 @@ def test_render_arrays_with_converted_inputs(scene: dict[str, Any], to_arrays: A
     np.testing.assert_array_equal(converted.volume, reference.volume)
 
 
-@needs_render
 def test_progress_is_monotonic_and_ends_at_one(make_scene: Any) -> None:
     fractions: list[float] = []
     layers = render(make_scene(width=160, height=90, steps=256), progress=fractions.append)
@@ -566,7 +559,6 @@ def test_progress_is_monotonic_and_ends_at_one(make_scene: Any) -> None:
     assert fractions == sorted(fractions)
 
 
-@needs_render
 def test_progress_exception_propagates_and_cancels(make_scene: Any) -> None:
     class Stop(Exception):
         pass
@@ -586,7 +578,6 @@ def test_progress_exception_propagates_and_cancels(make_scene: Any) -> None:
     _check_layers(render(make_scene()), 64, 36)
 
 
-@needs_render
 def test_render_from_another_thread(scene: dict[str, Any]) -> None:
     results: list[Layers | BaseException] = []
 
@@ -605,7 +596,6 @@ def test_render_from_another_thread(scene: dict[str, Any]) -> None:
     _check_layers(results[0], 64, 36)
 
 
-@needs_render
 @pytest.mark.parametrize("depth_kind", ["planar", "ray_distance"])
 def test_background_camera_depth(scene: dict[str, Any], depth_kind: str) -> None:
     background = np.full((36, 64), np.inf, dtype=np.float32)

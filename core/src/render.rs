@@ -362,16 +362,20 @@ impl CameraDepth<'_> {
                 ),
             ));
         }
-        if let Some(index) = self
-            .values
-            .par_iter()
-            .position_first(|v| v.is_nan() || *v < 0.0)
-        {
-            let (x, y) = (index as u32 % width, index as u32 / width);
+        let pixel = |index: usize| (index as u32 % width, index as u32 / width);
+        if let Some(index) = self.values.par_iter().position_first(|v| v.is_nan()) {
+            let (x, y) = pixel(index);
+            return Err(Error::invalid(
+                "camera_depth",
+                format!("contains NaN at pixel ({x}, {y})"),
+            ));
+        }
+        if let Some(index) = self.values.par_iter().position_first(|&v| v < 0.0) {
+            let (x, y) = pixel(index);
             return Err(Error::invalid(
                 "camera_depth",
                 format!(
-                    "value {} at pixel ({x}, {y}) is NaN or negative",
+                    "contains the negative distance {} at pixel ({x}, {y})",
                     self.values[index]
                 ),
             ));

@@ -8,6 +8,7 @@
 
 mod arrays;
 mod errors;
+mod files;
 mod run;
 
 use crepuscular::render::FlatGeometry;
@@ -170,5 +171,11 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(render_json, module)?)?;
     module.add_function(wrap_pyfunction!(render_arrays, module)?)?;
     module.add_function(wrap_pyfunction!(normalize_scene_json, module)?)?;
+    module.add_function(wrap_pyfunction!(files::builtin_scene_json, module)?)?;
+    module.add_function(wrap_pyfunction!(files::builtin_scene_names, module)?)?;
+    module.add_function(wrap_pyfunction!(files::read_exr, module)?)?;
+    module.add_function(wrap_pyfunction!(files::write_layers_exr, module)?)?;
+    module.add_function(wrap_pyfunction!(files::composite, module)?)?;
+    module.add_function(wrap_pyfunction!(files::write_preview_png, module)?)?;
     Ok(())
 }

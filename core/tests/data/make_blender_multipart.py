@@ -1,14 +1,20 @@
 """Render the tiny multi-part EXR fixture `blender5_multipart.exr` with real Blender (bpy 5.0.x).
 
-Run from the repository root:  .venv/bin/python core/tests/data/make_blender_multipart.py
-The fixture is committed; rerun only to check a newer Blender's output.
+Run from the repository root:  .venv/bin/python core/tests/data/make_blender_multipart.py [OUT]
+The fixture is committed; the Python tests run this script again into a temporary file, so
+the reader is also checked against whatever the installed Blender writes.
 """
 
 import os
+import sys
 
 import bpy
 
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender5_multipart.exr")
+OUT = (
+    sys.argv[1]
+    if len(sys.argv) > 1
+    else os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender5_multipart.exr")
+)
 
 bpy.ops.wm.read_factory_settings(use_empty=True)
 scene = bpy.context.scene

@@ -38,10 +38,16 @@ __all__ = [
     "ProgressCallback",
     "SceneLike",
     "__version__",
+    "builtin_scene",
+    "builtin_scene_names",
+    "composite",
+    "read_exr",
     "render",
     "render_arrays",
     "scene_from_json",
     "validate_scene",
+    "write_exr",
+    "write_preview_png",
 ]
 
 __version__: str = _core.__version__
@@ -149,3 +155,59 @@ def validate_scene(scene: SceneLike) -> None:
 def _check_progress(progress: object) -> None:
     if progress is not None and not callable(progress):
         raise TypeError(f"progress must be callable, got {type(progress).__name__}")
+
+
+def builtin_scene(name: str) -> dict[str, Any]:
+    """The scene description of a built-in scene (torus, tree, plane, colonnade)."""
+    result: dict[str, Any] = json.loads(_core.builtin_scene_json(name))
+    return result
+
+
+def builtin_scene_names() -> list[str]:
+    """The names `builtin_scene` accepts."""
+    return _core.builtin_scene_names()
+
+
+def read_exr(path: str | os.PathLike[str]) -> dict[str, npt.NDArray[np.float32]]:
+    """Reads every channel of every part of an EXR file (Blender's multi-part files too).
+
+    Keys are full channel names such as "volume.R" or "ViewLayer.Depth.Z"; values are
+    (height, width) float32 arrays.
+    """
+    _, _, channels = _core.read_exr(os.fspath(path))
+    return channels
+
+
+def write_exr(path: str | os.PathLike[str], layers: Layers, *, half: bool = False) -> None:
+    """Writes `layers` as one multi-layer EXR (channels volume.R/G/B/A, visibility, depth)."""
+    _core.write_layers_exr(
+        os.fspath(path),
+        np.ascontiguousarray(layers.volume, dtype=np.float32),
+        np.ascontiguousarray(layers.visibility, dtype=np.float32),
+        np.ascontiguousarray(layers.depth, dtype=np.float32),
+        half=half,
+    )
+
+
+def composite(volume: npt.ArrayLike, beauty: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """Premultiplied over of the volume layer onto a beauty image, both (H, W, 4)."""
+    return _core.composite(
+        np.ascontiguousarray(volume, dtype=np.float32),
+        np.ascontiguousarray(beauty, dtype=np.float32),
+    )
+
+
+def write_preview_png(
+    path: str | os.PathLike[str],
+    rgba: npt.ArrayLike,
+    *,
+    exposure: float | None = None,
+    tone_map: bool = True,
+) -> None:
+    """Writes a quick-look sRGB PNG of premultiplied RGBA; exposure in stops (None: auto)."""
+    _core.write_preview_png(
+        os.fspath(path),
+        np.ascontiguousarray(rgba, dtype=np.float32),
+        exposure=exposure,
+        tone_map=tone_map,
+    )

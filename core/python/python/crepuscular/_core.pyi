@@ -3,6 +3,7 @@
 # The render functions return (width, height, volume, visibility, depth) with arrays shaped
 # (H, W, 4), (H, W) and (H, W); `crepuscular.Layers(*raw)` wraps them.
 
+import os
 from collections.abc import Callable
 from typing import Final, Literal, TypeAlias
 
@@ -50,3 +51,24 @@ def render_arrays(
     progress: _Progress | None = None,
 ) -> _RawLayers: ...
 def normalize_scene_json(scene_json: str, /) -> str: ...
+def builtin_scene_json(name: str, /) -> str: ...
+def builtin_scene_names() -> list[str]: ...
+def read_exr(path: str | os.PathLike[str], /) -> tuple[int, int, dict[str, _Float32Array]]: ...
+def write_layers_exr(
+    path: str | os.PathLike[str],
+    volume: _Float32Array,
+    visibility: _Float32Array,
+    depth: _Float32Array,
+    /,
+    *,
+    half: bool = False,
+) -> None: ...
+def composite(volume: _Float32Array, beauty: _Float32Array, /) -> _Float32Array: ...
+def write_preview_png(
+    path: str | os.PathLike[str],
+    rgba: _Float32Array,
+    /,
+    *,
+    exposure: float | None = None,
+    tone_map: bool = True,
+) -> None: ...

@@ -1,0 +1,94 @@
+"""Built-in scenes, EXR and PNG files, and compositing through the Python API."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import crepuscular
+
+
+def small(scene: dict) -> dict:
+    scene["camera"]["width"], scene["camera"]["height"] = 96, 54
+    scene["render"]["steps"] = 64
+    scene["render"]["shadow_map_size"] = 256
+    return scene
+
+
+@pytest.mark.parametrize("name", ["torus", "tree", "plane", "colonnade"])
+def test_builtin_scenes_render_with_shafts(name: str) -> None:
+    assert name in crepuscular.builtin_scene_names()
+    scene = crepuscular.builtin_scene(name)
+    assert (scene["camera"]["width"], scene["camera"]["height"]) == (1920, 1080)
+    layers = crepuscular.render(small(scene))
+    assert np.isfinite(layers.volume).all()
+    assert np.isfinite(layers.depth).all()
+    assert (layers.volume[..., 3] >= 0).all()
+    assert (layers.volume[..., 3] <= 1).all()
+    # Shafts: some rays are partly shadowed and some fully lit or nearly so.
+    assert ((layers.visibility > 0.05) & (layers.visibility < 0.95)).mean() > 0.05
+    assert layers.volume[..., :3].max() > 0
+
+
+def test_builtin_scenes_are_deterministic() -> None:
+    assert crepuscular.builtin_scene("tree") == crepuscular.builtin_scene("tree")
+
+
+def test_unknown_builtin_scene_names_the_choices() -> None:
+    with pytest.raises(crepuscular.InvalidInputError, match="torus"):
+        crepuscular.builtin_scene("teapot")
+
+
+def test_exr_round_trip_is_exact(tmp_path: Path) -> None:
+    layers = crepuscular.render(small(crepuscular.builtin_scene("plane")))
+    path = tmp_path / "plane.exr"
+    crepuscular.write_exr(path, layers)
+    channels = crepuscular.read_exr(path)
+    assert sorted(channels) == sorted(
+        ["volume.R", "volume.G", "volume.B", "volume.A", "visibility", "depth"]
+    )
+    for c, name in enumerate("RGBA"):
+        np.testing.assert_array_equal(channels[f"volume.{name}"], layers.volume[..., c])
+    np.testing.assert_array_equal(channels["visibility"], layers.visibility)
+    np.testing.assert_array_equal(channels["depth"], layers.depth)
+
+
+def test_half_float_exr_keeps_values_to_half_precision(tmp_path: Path) -> None:
+    layers = crepuscular.render(small(crepuscular.builtin_scene("torus")))
+    path = tmp_path / "torus_half.exr"
+    crepuscular.write_exr(path, layers, half=True)
+    channels = crepuscular.read_exr(path)
+    np.testing.assert_allclose(channels["volume.R"], layers.volume[..., 0], rtol=1e-3, atol=1e-6)
+
+
+def test_truncated_exr_is_a_named_error(tmp_path: Path) -> None:
+    layers = crepuscular.render(small(crepuscular.builtin_scene("torus")))
+    path = tmp_path / "cut.exr"
+    crepuscular.write_exr(path, layers)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(crepuscular.ExrError, match=r"cut\.exr"):
+        crepuscular.read_exr(path)
+    with pytest.raises(crepuscular.ExrError):
+        crepuscular.read_exr(tmp_path / "missing.exr")
+
+
+def test_composite_is_premultiplied_over() -> None:
+    volume = np.array([[[0.2, 0.1, 0.0, 0.25]]], dtype=np.float32)
+    beauty = np.array([[[0.8, 0.4, 1.0, 1.0]]], dtype=np.float32)
+    out = crepuscular.composite(volume, beauty)
+    np.testing.assert_allclose(out, [[[0.8, 0.4, 0.75, 1.0]]], rtol=1e-6)
+    with pytest.raises(crepuscular.InvalidInputError, match="beauty"):
+        crepuscular.composite(volume, np.zeros((2, 1, 4), dtype=np.float32))
+
+
+def test_preview_png_is_an_image_of_the_right_size(tmp_path: Path) -> None:
+    layers = crepuscular.render(small(crepuscular.builtin_scene("colonnade")))
+    path = tmp_path / "preview.png"
+    crepuscular.write_preview_png(path, layers.volume)
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = struct.unpack(">II", data[16:24])
+    assert (width, height) == (96, 54)
