@@ -18,8 +18,7 @@ use rand_pcg::Pcg64;
 use crate::error::{Error, Result};
 use crate::mesh_builder::{Arch, MeshBuilder};
 use crate::scene::{
-    Camera, Extent, Medium, Mesh, Method, PhaseModel, Projection, RenderSettings, Scene, SensorFit,
-    Sun, SCENE_VERSION,
+    Camera, Extent, Medium, Mesh, Method, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
 
 /// Names accepted by [`builtin_scene`].
@@ -61,7 +60,7 @@ fn torus() -> Scene {
     ring.torus(frame(centre, axis), 2.0, 0.6, 96, 32);
     Scene {
         version: SCENE_VERSION,
-        camera: camera(eye, Vec3::new(0.3, -0.8, 3.6), 28.0),
+        camera: Camera::pinhole_looking_at(eye, Vec3::new(0.3, -0.8, 3.6), 28.0, 1920, 1080),
         sun,
         medium: fog(0.04, 0.4),
         meshes: vec![
@@ -113,7 +112,13 @@ fn tree() -> Scene {
     trunk.cylinder(Mat4::IDENTITY, 0.22, 5.5, 24, true);
     Scene {
         version: SCENE_VERSION,
-        camera: camera(Vec3::new(1.0, -14.0, 1.7), Vec3::new(0.0, 0.0, 4.6), 35.0),
+        camera: Camera::pinhole_looking_at(
+            Vec3::new(1.0, -14.0, 1.7),
+            Vec3::new(0.0, 0.0, 4.6),
+            35.0,
+            1920,
+            1080,
+        ),
         sun: sun_at(50.0, 55.0, Vec3::ONE, SUN_STRENGTH),
         medium: fog(0.05, 0.45),
         meshes: vec![
@@ -159,7 +164,13 @@ fn plane() -> Scene {
     }
     Scene {
         version: SCENE_VERSION,
-        camera: camera(Vec3::new(0.35, -14.0, 1.6), Vec3::new(0.0, 0.0, 4.0), 50.0),
+        camera: Camera::pinhole_looking_at(
+            Vec3::new(0.35, -14.0, 1.6),
+            Vec3::new(0.0, 0.0, 4.0),
+            50.0,
+            1920,
+            1080,
+        ),
         sun: sun_at(100.0, 82.0, Vec3::ONE, SUN_STRENGTH),
         medium: fog(0.04, 0.35),
         meshes: vec![
@@ -236,7 +247,13 @@ fn colonnade() -> Scene {
 
     Scene {
         version: SCENE_VERSION,
-        camera: camera(Vec3::new(-0.5, -5.0, 1.7), Vec3::new(0.6, 10.0, 2.7), 35.0),
+        camera: Camera::pinhole_looking_at(
+            Vec3::new(-0.5, -5.0, 1.7),
+            Vec3::new(0.6, 10.0, 2.7),
+            35.0,
+            1920,
+            1080,
+        ),
         sun: sun_at(62.0, 15.0, Vec3::new(1.0, 0.85, 0.65), SUN_STRENGTH),
         medium: fog(0.04, 0.4),
         meshes: vec![
@@ -246,34 +263,6 @@ fn colonnade() -> Scene {
             roof.build("roof", 4),
         ],
         render: settings(60.0),
-    }
-}
-
-/// A 1920×1080 pinhole camera on a 36 mm sensor at `eye`, looking at `target` with the
-/// world's +Z up in the image.
-fn camera(eye: Vec3, target: Vec3, focal_length: f32) -> Camera {
-    let forward = (target - eye).normalize();
-    let right = forward.cross(Vec3::Z).normalize();
-    let up = right.cross(forward);
-    Camera {
-        world_from_camera: Mat4::from_cols(
-            right.extend(0.0),
-            up.extend(0.0),
-            (-forward).extend(0.0),
-            eye.extend(1.0),
-        ),
-        projection: Projection::Perspective {
-            focal_length,
-            sensor_width: 36.0,
-            sensor_height: 24.0,
-            sensor_fit: SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        },
-        clip_start: 0.1,
-        clip_end: 1000.0,
-        width: 1920,
-        height: 1080,
     }
 }
 
@@ -381,6 +370,7 @@ fn on_unit_sphere(rng: &mut Pcg64) -> Vec3 {
 mod tests {
     use super::*;
     use crate::mesh_builder::tests::is_closed;
+    use crate::scene::Projection;
 
     fn all() -> Vec<Scene> {
         BUILTIN_SCENES

@@ -31,6 +31,10 @@ pub enum Error {
 
     #[error("render cancelled")]
     Cancelled,
+
+    /// A bug: a worker panicked. The panic was caught so that the host keeps running.
+    #[error("internal error: {0}")]
+    Internal(String),
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;

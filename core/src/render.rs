@@ -9,7 +9,7 @@ use crate::error::{Error, Result};
 use crate::layers::Layers;
 use crate::raster::{rasterize, RasterDesc};
 use crate::reference::Marcher;
-use crate::scene::{Camera, Medium, Method, RenderSettings, Scene, Sun};
+use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
 use crate::shadow_map::ShadowMap;
 
 /// World-space triangles, borrowed so that hosts can pass their buffers without copies.
@@ -322,31 +322,7 @@ impl Geometry<'_> {
                 ),
             ));
         }
-        if let Some(index) = self
-            .positions
-            .par_iter()
-            .position_first(|p| !p.iter().all(|c| c.is_finite()))
-        {
-            return Err(Error::invalid(
-                format!("positions[{index}]"),
-                format!("{:?} is not finite", self.positions[index]),
-            ));
-        }
-        let count = self.positions.len();
-        if let Some(index) = self
-            .triangles
-            .par_iter()
-            .position_first(|t| t.iter().any(|&v| v as usize >= count))
-        {
-            return Err(Error::invalid(
-                format!("triangles[{index}]"),
-                format!(
-                    "{:?} indexes past the {count} positions",
-                    self.triangles[index]
-                ),
-            ));
-        }
-        Ok(())
+        check_triangles("", self.positions, self.triangles)
     }
 }
 

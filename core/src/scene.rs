@@ -309,6 +309,40 @@ impl Scene {
 }
 
 impl Camera {
+    /// A pinhole camera on a 36 × 24 mm sensor at `eye`, looking at `target`, with the
+    /// world's +Z up in the image and clip planes at 0.1 and 1000.
+    pub fn pinhole_looking_at(
+        eye: Vec3,
+        target: Vec3,
+        focal_length: f32,
+        width: u32,
+        height: u32,
+    ) -> Self {
+        let forward = (target - eye).normalize();
+        let right = forward.cross(Vec3::Z).normalize();
+        let up = right.cross(forward);
+        Camera {
+            world_from_camera: Mat4::from_cols(
+                right.extend(0.0),
+                up.extend(0.0),
+                (-forward).extend(0.0),
+                eye.extend(1.0),
+            ),
+            projection: Projection::Perspective {
+                focal_length,
+                sensor_width: default_sensor_width(),
+                sensor_height: default_sensor_height(),
+                sensor_fit: SensorFit::Auto,
+                shift_x: 0.0,
+                shift_y: 0.0,
+            },
+            clip_start: 0.1,
+            clip_end: 1000.0,
+            width,
+            height,
+        }
+    }
+
     pub fn validate(&self) -> Result<()> {
         check_size("camera.width", self.width, 1, MAX_IMAGE_SIZE)?;
         check_size("camera.height", self.height, 1, MAX_IMAGE_SIZE)?;
@@ -394,31 +428,7 @@ impl Mesh {
             &format!("{field}.world_from_object"),
             &self.world_from_object,
         )?;
-        if let Some(index) = self
-            .positions
-            .iter()
-            .position(|p| !p.iter().all(|c| c.is_finite()))
-        {
-            return Err(Error::invalid(
-                format!("{field}.positions[{index}]"),
-                format!("{:?} is not finite", self.positions[index]),
-            ));
-        }
-        let count = self.positions.len();
-        if let Some(index) = self
-            .triangles
-            .iter()
-            .position(|t| t.iter().any(|&v| v as usize >= count))
-        {
-            return Err(Error::invalid(
-                format!("{field}.triangles[{index}]"),
-                format!(
-                    "{:?} indexes past the {count} positions",
-                    self.triangles[index]
-                ),
-            ));
-        }
-        Ok(())
+        check_triangles(&format!("{field}."), &self.positions, &self.triangles)
     }
 }
 
@@ -464,6 +474,35 @@ pub fn parse_json_at<T: serde::de::DeserializeOwned>(prefix: &str, text: &str) -
         .end()
         .map_err(|err| Error::SceneFormat(format!("trailing characters: {err}")))?;
     Ok(value)
+}
+
+/// Positions must be finite and triangle indices in range; `prefix` leads the field names.
+pub(crate) fn check_triangles(
+    prefix: &str,
+    positions: &[[f32; 3]],
+    triangles: &[[u32; 3]],
+) -> Result<()> {
+    use rayon::prelude::*;
+    if let Some(index) = positions
+        .par_iter()
+        .position_first(|p| !p.iter().all(|c| c.is_finite()))
+    {
+        return Err(Error::invalid(
+            format!("{prefix}positions[{index}]"),
+            format!("{:?} is not finite", positions[index]),
+        ));
+    }
+    let count = positions.len();
+    if let Some(index) = triangles
+        .par_iter()
+        .position_first(|t| t.iter().any(|&v| v as usize >= count))
+    {
+        return Err(Error::invalid(
+            format!("{prefix}triangles[{index}]"),
+            format!("{:?} indexes past the {count} positions", triangles[index]),
+        ));
+    }
+    Ok(())
 }
 
 pub(crate) fn check_size(field: &str, value: u32, min: u32, max: u32) -> Result<()> {

@@ -9,7 +9,7 @@ use crepuscular::{render, render_scene, Error, RenderControl};
 use glam::{Mat4, Vec3};
 
 fn valid_scene() -> Scene {
-    let camera = pinhole(look_along(Vec3::new(0.0, 0.0, 2.0), Vec3::X), 35.0, 32, 18);
+    let camera = pinhole(Vec3::new(0.0, 0.0, 2.0), Vec3::X, 35.0, 32, 18);
     scene(
         camera,
         Vec3::new(0.2, 0.0, -1.0),

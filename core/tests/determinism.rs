@@ -21,7 +21,8 @@ fn scattered_quads_scene() -> Scene {
         meshes.push(horizontal_quad(id, x, x + size, y, y + size, z));
     }
     let camera = pinhole(
-        look_along(Vec3::new(-14.0, -3.0, 2.0), Vec3::new(1.0, 0.2, 0.15)),
+        Vec3::new(-14.0, -3.0, 2.0),
+        Vec3::new(1.0, 0.2, 0.15),
         28.0,
         96,
         54,

@@ -31,7 +31,8 @@ fn pixel_ray(scene: &Scene, x: u32, y: u32) -> crepuscular::camera::Ray {
 #[test]
 fn without_occluders_radiance_is_the_closed_form() {
     let camera = pinhole(
-        look_along(Vec3::new(0.0, 0.0, 2.0), Vec3::new(1.0, 0.2, -0.15)),
+        Vec3::new(0.0, 0.0, 2.0),
+        Vec3::new(1.0, 0.2, -0.15),
         30.0,
         48,
         32,
@@ -102,7 +103,8 @@ fn without_occluders_radiance_is_the_closed_form() {
 fn a_half_space_occluder_cuts_rays_where_its_shadow_begins() {
     // A roof over x > 0 shadows the half-space below it; rays from x = −5 cross into it.
     let camera = pinhole(
-        look_along(Vec3::new(-5.0, 0.0, 2.0), Vec3::new(1.0, 0.0, 0.0)),
+        Vec3::new(-5.0, 0.0, 2.0),
+        Vec3::new(1.0, 0.0, 0.0),
         100.0,
         64,
         16,
@@ -161,13 +163,13 @@ fn box_medium_matches_the_integral_with_attenuated_sunlight() {
     let sun = Vec3::new(0.4, -0.3, -1.0);
     let towards_sun = -sun.as_dvec3().normalize();
     let ground = horizontal_quad(1, -300.0, 300.0, -300.0, 300.0, 0.0);
-    let outside = look_along(Vec3::new(-12.0, 1.0, 3.5), Vec3::new(1.0, -0.05, -0.05));
-    let inside = look_along(Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1));
+    let outside = (Vec3::new(-12.0, 1.0, 3.5), Vec3::new(1.0, -0.05, -0.05));
+    let inside = (Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1));
     for (name, eye, focal_length) in [("outside", outside, 50.0), ("inside", inside, 24.0)] {
         let mut medium = medium(0.35, 0.4);
         medium.extent = Extent::Box { world_from_cube };
         let scene = scene(
-            pinhole(eye, focal_length, 24, 16),
+            pinhole(eye.0, eye.1, focal_length, 24, 16),
             sun,
             medium,
             vec![ground.clone()],

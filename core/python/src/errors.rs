@@ -121,6 +121,7 @@ pub fn to_py_err(err: Error) -> PyErr {
             }
             Error::Io { path, source } => file_error(py, &message, &path, source.raw_os_error()),
             Error::Cancelled => Ok(CancelledError::new_err(message)),
+            Error::Internal(_) => Ok(CrepuscularError::new_err(message)),
         };
         // Building the exception itself can only fail on interpreter trouble (out of memory);
         // the error from that attempt is then the more useful one to raise.
@@ -158,5 +159,5 @@ pub fn internal_error(payload: &(dyn Any + Send)) -> PyErr {
         .map(|text| text.to_string())
         .or_else(|| payload.downcast_ref::<String>().cloned())
         .unwrap_or_else(|| "the render thread panicked".to_string());
-    CrepuscularError::new_err(format!("internal error: {detail}"))
+    to_py_err(Error::Internal(detail))
 }

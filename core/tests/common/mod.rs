@@ -2,23 +2,9 @@
 #![allow(dead_code)]
 
 use crepuscular::scene::{
-    Camera, Extent, Medium, Mesh, PhaseModel, Projection, RenderSettings, Scene, SensorFit, Sun,
-    SCENE_VERSION,
+    Camera, Extent, Medium, Mesh, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
-use glam::{Mat4, Vec3, Vec4};
-
-/// Camera-to-world for a camera at `eye` looking along `forward` with world +Z up.
-pub fn look_along(eye: Vec3, forward: Vec3) -> Mat4 {
-    let back = -forward.normalize();
-    let right = Vec3::Z.cross(back).normalize();
-    let up = back.cross(right);
-    Mat4::from_cols(
-        right.extend(0.0),
-        up.extend(0.0),
-        back.extend(0.0),
-        Vec4::new(eye.x, eye.y, eye.z, 1.0),
-    )
-}
+use glam::{Mat4, Vec3};
 
 /// An axis-aligned rectangle at height `z` covering [x0, x1] × [y0, y1].
 pub fn horizontal_quad(object_id: u32, x0: f32, x1: f32, y0: f32, y1: f32, z: f32) -> Mesh {
@@ -53,22 +39,9 @@ pub fn scene(
     }
 }
 
-pub fn pinhole(world_from_camera: Mat4, focal_length: f32, width: u32, height: u32) -> Camera {
-    Camera {
-        world_from_camera,
-        projection: Projection::Perspective {
-            focal_length,
-            sensor_width: 36.0,
-            sensor_height: 24.0,
-            sensor_fit: SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        },
-        clip_start: 0.05,
-        clip_end: 1.0e4,
-        width,
-        height,
-    }
+/// A pinhole camera at `eye` looking along `forward` with the world's +Z up.
+pub fn pinhole(eye: Vec3, forward: Vec3, focal_length: f32, width: u32, height: u32) -> Camera {
+    Camera::pinhole_looking_at(eye, eye + forward, focal_length, width, height)
 }
 
 pub fn medium(extinction: f32, anisotropy: f32) -> Medium {
