@@ -92,3 +92,22 @@ def test_preview_png_is_an_image_of_the_right_size(tmp_path: Path) -> None:
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = struct.unpack(">II", data[16:24])
     assert (width, height) == (96, 54)
+
+
+def test_minmax_method_agrees_with_the_reference() -> None:
+    scene = small(crepuscular.builtin_scene("colonnade"))
+    scene["render"]["steps"] = 2048
+    scene["render"]["shadow_map_size"] = 1024
+    reference = crepuscular.render(scene)
+    scene["render"]["method"] = "minmax"
+    fast = crepuscular.render(scene)
+    error = np.abs(fast.volume[..., :3] - reference.volume[..., :3]).mean()
+    assert error / reference.volume[..., :3].mean() < 0.01
+    np.testing.assert_array_equal(fast.depth, reference.depth)
+
+
+def test_unknown_method_names_the_field() -> None:
+    scene = small(crepuscular.builtin_scene("torus"))
+    scene["render"]["method"] = "raytraced"
+    with pytest.raises(crepuscular.InvalidInputError, match=r"render\.method"):
+        crepuscular.render(scene)

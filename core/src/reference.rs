@@ -34,15 +34,78 @@ pub fn integral_exp(k: f64, d: f64) -> f64 {
 
 /// The medium's box in the form ray marching needs.
 #[derive(Clone, Copy, Debug)]
-struct BoxMedium {
+pub(crate) struct BoxMedium {
     cube_from_world: DMat4,
     /// Direction towards the sun, in cube coordinates but per world unit.
     towards_sun: DVec3,
 }
 
 impl BoxMedium {
+    pub(crate) fn new(extent: &Extent, light_travel: DVec3) -> Option<Self> {
+        match extent {
+            Extent::Unbounded => None,
+            Extent::Box { world_from_cube } => {
+                let cube_from_world = world_from_cube.as_dmat4().inverse();
+                Some(BoxMedium {
+                    cube_from_world,
+                    towards_sun: cube_from_world.transform_vector3(-light_travel),
+                })
+            }
+        }
+    }
+
+    /// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly: the
+    /// sunward depth ℓ is the minimum of three linear functions of t, so it is linear
+    /// between the points where the minimum switches.
+    pub(crate) fn integrate(&self, ray: &Ray, t0: f64, t1: f64, a: f64, sigma: f64) -> f64 {
+        let origin = self.cube_from_world.transform_point3(ray.origin);
+        let direction = self.cube_from_world.transform_vector3(ray.direction);
+        // ℓ along the ray as α_j + β_j·t for each wall the sun direction points at.
+        let mut lines = [(f64::INFINITY, 0.0); 3];
+        for (axis, line) in lines.iter_mut().enumerate() {
+            let s = self.towards_sun[axis];
+            if s != 0.0 {
+                let wall = if s > 0.0 { 1.0 } else { -1.0 };
+                *line = ((wall - origin[axis]) / s, -direction[axis] / s);
+            }
+        }
+        let depth = |t: f64| {
+            lines
+                .iter()
+                .map(|&(alpha, beta)| alpha + beta * t)
+                .fold(f64::INFINITY, f64::min)
+                .max(0.0)
+        };
+        let mut cuts = [t0, t1, t1, t1, t1];
+        let mut count = 1;
+        for i in 0..3 {
+            for j in i + 1..3 {
+                let ((ai, bi), (aj, bj)) = (lines[i], lines[j]);
+                if ai.is_finite() && aj.is_finite() && bi != bj {
+                    let t = (aj - ai) / (bi - bj);
+                    if t > t0 && t < t1 {
+                        cuts[count] = t;
+                        count += 1;
+                    }
+                }
+            }
+        }
+        cuts[count] = t1;
+        cuts[..=count].sort_by(f64::total_cmp);
+        cuts[..=count]
+            .windows(2)
+            .filter(|piece| piece[1] > piece[0])
+            .map(|piece| {
+                let (p, q) = (piece[0], piece[1]);
+                let (dp, dq) = (depth(p), depth(q));
+                let slope = (dq - dp) / (q - p);
+                (-sigma * (dp + p - a)).exp() * integral_exp(sigma * (1.0 + slope), q - p)
+            })
+            .sum()
+    }
+
     /// Parameter range where the ray is inside the box, if any.
-    fn clip(&self, ray: &Ray) -> Option<(f64, f64)> {
+    pub(crate) fn clip(&self, ray: &Ray) -> Option<(f64, f64)> {
         let origin = self.cube_from_world.transform_point3(ray.origin);
         let direction = self.cube_from_world.transform_vector3(ray.direction);
         let mut near = f64::NEG_INFINITY;
@@ -91,16 +154,7 @@ pub struct Marcher<'a> {
 impl<'a> Marcher<'a> {
     pub fn new(shadow: &'a ShadowMap, sun: &Sun, medium: &'a Medium, steps: u32) -> Self {
         let light_travel = sun.direction.as_dvec3().normalize();
-        let box_medium = match &medium.extent {
-            Extent::Unbounded => None,
-            Extent::Box { world_from_cube } => {
-                let cube_from_world = world_from_cube.as_dmat4().inverse();
-                Some(BoxMedium {
-                    cube_from_world,
-                    towards_sun: cube_from_world.transform_vector3(-light_travel),
-                })
-            }
-        };
+        let box_medium = BoxMedium::new(&medium.extent, light_travel);
         Self {
             shadow,
             light_travel,

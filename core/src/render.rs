@@ -5,10 +5,12 @@ use rayon::prelude::*;
 
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
+use crate::epipolar::{epipoles_in_image, EpipolarMap};
 use crate::error::{Error, Result};
 use crate::layers::Layers;
+use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::raster::{rasterize, RasterDesc};
-use crate::reference::Marcher;
+use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
 use crate::shadow_map::ShadowMap;
 
@@ -120,28 +122,62 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     );
     control.check()?;
     let surfaces = SurfaceDistances::new(&camera, frame);
-    match frame.settings.method {
-        Method::Reference => {
-            let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
-            let tint = frame.medium.albedo.as_dvec3()
-                * frame.medium.extinction as f64
-                * frame.sun.irradiance().as_dvec3();
-            shade_pixels(
-                &camera,
-                &surfaces,
-                frame.settings,
-                control,
-                |ray, t_start, t_end| {
-                    let sample = marcher.march(ray, t_start, t_end);
-                    PixelSample {
-                        radiance: tint * (sample.scattering * marcher.phase(ray.direction)),
-                        alpha: sample.alpha,
-                        visibility: sample.visibility,
-                    }
-                },
-            )
-        }
-    }
+    let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
+    let tint = frame.medium.albedo.as_dvec3()
+        * frame.medium.extinction as f64
+        * frame.sun.irradiance().as_dvec3();
+    let to_pixel = |sample: RaySample, phase: f64| PixelSample {
+        radiance: tint * (sample.scattering * phase),
+        alpha: sample.alpha,
+        visibility: sample.visibility,
+    };
+    let reference = |ray: &Ray, t_start: f64, t_end: f64| {
+        to_pixel(
+            marcher.march(ray, t_start, t_end),
+            marcher.phase(ray.direction),
+        )
+    };
+    let rectified = match frame.settings.method {
+        Method::Reference => None,
+        Method::MinMax => EpipolarMap::build(&camera, &shadow, frame.settings.epipolar_slices),
+    };
+    let Some(map) = rectified else {
+        // The reference, and any method where rectification is undefined (an
+        // orthographic camera looking straight along the light).
+        return shade_pixels(
+            &camera,
+            &surfaces,
+            frame.settings,
+            control,
+            |_, ray, t0, t1| reference(ray, t0, t1),
+        );
+    };
+    control.check()?;
+    let block = frame.settings.epipole_block as f64;
+    let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, block).collect();
+    let near_epipole = |pixel: [f64; 2]| {
+        epipoles
+            .iter()
+            .any(|e| (pixel[0] - e[0]).abs() <= block && (pixel[1] - e[1]).abs() <= block)
+    };
+    // Only the min-max method rectifies so far.
+    let mipmap = MinMaxMipmap::build(&map);
+    let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
+    shade_pixels(
+        &camera,
+        &surfaces,
+        frame.settings,
+        control,
+        |pixel, ray, t0, t1| {
+            if near_epipole(pixel) {
+                return reference(ray, t0, t1);
+            }
+            match method.march(ray, t0, t1) {
+                Some(sample) => to_pixel(sample, method.phase(ray.direction)),
+                None => reference(ray, t0, t1),
+            }
+        },
+    )
 }
 
 /// One sample's result, before averaging into its pixel.
@@ -223,7 +259,8 @@ impl SurfaceDistances {
     }
 }
 
-/// Runs `shade(ray, t_start, t_end)` for every depth sample, averaging samples into
+/// Runs `shade(pixel, ray, t_start, t_end)` for every depth sample (`pixel` is its
+/// continuous image position), averaging samples into
 /// pixels, in parallel over rows. Each pixel depends only on its own inputs, so the
 /// output is bit-identical for any thread count.
 pub(crate) fn shade_pixels(
@@ -231,7 +268,7 @@ pub(crate) fn shade_pixels(
     surfaces: &SurfaceDistances,
     settings: &RenderSettings,
     control: &RenderControl,
-    shade: impl Fn(&Ray, f64, f64) -> PixelSample + Sync,
+    shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
 ) -> Result<Layers> {
     let mut layers = Layers::new(camera.width, camera.height);
     let width = camera.width as usize;
@@ -257,12 +294,13 @@ pub(crate) fn shade_pixels(
                         let row = y * ss as usize + sy;
                         let column = x * ss as usize + sx;
                         let surface = surfaces.distances[row * sample_width + column] as f64;
-                        let ray = camera.ray(
+                        let pixel = [
                             x as f64 + (sx as f64 + 0.5) / ss as f64,
                             y as f64 + (sy as f64 + 0.5) / ss as f64,
-                        );
+                        ];
+                        let ray = camera.ray(pixel[0], pixel[1]);
                         let t_start = camera.clip_start * ray.distance_per_depth;
-                        let sample = shade(&ray, t_start, surface.min(max_distance));
+                        let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
                         sum.radiance += sample.radiance;
                         sum.alpha += sample.alpha;
                         sum.visibility += sample.visibility;

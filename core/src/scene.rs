@@ -19,6 +19,8 @@ pub const MAX_SHADOW_MAP_SIZE: u32 = 16384;
 pub const MIN_SHADOW_MAP_SIZE: u32 = 16;
 /// Largest accepted ray-march step count.
 pub const MAX_STEPS: u32 = 1 << 20;
+/// Largest accepted number of epipolar slices.
+pub const MAX_EPIPOLAR_SLICES: u32 = 65536;
 /// Largest accepted supersampling factor per axis.
 pub const MAX_SUPERSAMPLING: u32 = 8;
 
@@ -206,14 +208,18 @@ pub enum Method {
     /// Brute-force ray marching: the reference every faster method is measured against.
     #[default]
     Reference,
+    /// 1D min-max mipmaps on the epipolar-rectified shadow map (Chen et al. 2011).
+    #[serde(rename = "minmax")]
+    MinMax,
 }
 
 impl Method {
-    pub const ALL: [Method; 1] = [Method::Reference];
+    pub const ALL: [Method; 2] = [Method::Reference, Method::MinMax];
 
     pub fn name(self) -> &'static str {
         match self {
             Method::Reference => "reference",
+            Method::MinMax => "minmax",
         }
     }
 }
@@ -249,6 +255,11 @@ pub struct RenderSettings {
     pub supersampling: u32,
     /// Shadow-map depth bias in scene units; `None` picks 1.5 texel widths.
     pub shadow_bias: Option<f32>,
+    /// Epipolar slices of the rectified shadow map (0: about one per texel at its far end).
+    pub epipolar_slices: u32,
+    /// Half-size in pixels of the block around an on-screen sun or anti-sun point that the
+    /// fast methods ray-march instead, where rectification loses precision.
+    pub epipole_block: u32,
 }
 
 impl Default for RenderSettings {
@@ -260,6 +271,8 @@ impl Default for RenderSettings {
             steps: 2048,
             supersampling: 1,
             shadow_bias: None,
+            epipolar_slices: 0,
+            epipole_block: 16,
         }
     }
 }
@@ -451,6 +464,20 @@ impl RenderSettings {
         if let Some(bias) = self.shadow_bias {
             check_non_negative("render.shadow_bias", bias)?;
         }
+        if self.epipolar_slices != 0 {
+            check_size(
+                "render.epipolar_slices",
+                self.epipolar_slices,
+                2,
+                MAX_EPIPOLAR_SLICES,
+            )?;
+        }
+        check_size(
+            "render.epipole_block",
+            self.epipole_block,
+            0,
+            MAX_IMAGE_SIZE,
+        )?;
         Ok(())
     }
 }

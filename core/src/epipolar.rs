@@ -1,0 +1,456 @@
+//! Epipolar rectification of the shadow map (dissertation §4.4.1).
+//!
+//! View rays projected into the shadow-map plane are lines: through the epipole (the
+//! camera's position in the map) for a pinhole camera, parallel to each other for an
+//! orthographic one. Each such line is a *slice*, sampled at regular steps `s` along it.
+//! A ray with the light-space depth `w(s) = w₀ + k·(s − s₀)` is lit at `s` when
+//! `w(s) ≤ D(s) + bias`. The rectified map stores, per slice sample, a value `K(s)` with
+//! a ray-dependent `threshold`, such that the test becomes `threshold ≤ K(s)`: one
+//! constant per ray along the whole slice, which is what min-max mipmaps and prefiltering
+//! need.
+//! - Pinhole: `K(s) = (D(s) + bias − w_c)/s` and `threshold = k` (the ray's slope).
+//! - Orthographic: `K(s) = D(s) + bias − k·s` and `threshold = w₀ − k·s₀` (all rays share k).
+
+use std::f64::consts::TAU;
+
+use glam::{DVec2, DVec3};
+use rayon::prelude::*;
+
+use crate::camera::{CameraModel, Ray};
+use crate::shadow_map::ShadowMap;
+
+/// Samples along a slice per shadow-map texel: more than one keeps resampling from
+/// moving shadow edges by up to a texel.
+pub const SAMPLES_PER_TEXEL: f64 = 2.0;
+
+/// Largest number of slices chosen automatically.
+pub const MAX_AUTO_SLICES: u32 = 8192;
+
+/// How slices are laid out in the shadow-map plane (texel units).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Layout {
+    /// Slices radiate from `epipole` at angles `first_angle + j·angle_step`.
+    Radial {
+        epipole: DVec2,
+        camera_depth: f64,
+        first_angle: f64,
+        angle_step: f64,
+        full_circle: bool,
+    },
+    /// Slices are lines along `direction`, at offsets `first_offset + j·offset_step`
+    /// along `normal`; `slope` is the shared depth change per texel along a ray.
+    Parallel {
+        direction: DVec2,
+        normal: DVec2,
+        first_offset: f64,
+        offset_step: f64,
+        slope: f64,
+    },
+}
+
+/// Where one view ray lies in the rectified map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RaySlice {
+    /// Fractional slice coordinate: between slice `floor` and the next.
+    pub slice: f64,
+    /// Position along the slice at t = 0, and texels per unit of t.
+    pub s_origin: f64,
+    pub s_per_t: f64,
+    /// The ray is lit at `s` when `threshold ≤ K(s)`.
+    pub threshold: f64,
+}
+
+impl RaySlice {
+    pub fn t_at(&self, s: f64) -> f64 {
+        (s - self.s_origin) / self.s_per_t
+    }
+}
+
+/// The rectified shadow map: `slices` rows of `samples` values of K.
+#[derive(Clone, Debug)]
+pub struct EpipolarMap {
+    pub slices: u32,
+    pub samples: u32,
+    /// Sample i of a slice covers s ∈ [s_first + i·s_step, s_first + (i+1)·s_step).
+    pub s_first: f64,
+    pub s_step: f64,
+    pub values: Vec<f32>,
+    layout: Layout,
+    /// Light-space texel coordinates of the camera, and of its view direction.
+    texel_from_world: glam::DMat4,
+}
+
+/// Rays whose projection into the map is shorter than this (texels per scene unit) run
+/// parallel to the light: they belong to the epipole.
+const MIN_PROJECTED_LENGTH: f64 = 1e-9;
+
+impl EpipolarMap {
+    /// Rectifies `shadow` for `camera`. `slices` = 0 picks slices about two texels apart at
+    /// the far end of the map, at most [`MAX_AUTO_SLICES`]. Returns `None` when the
+    /// camera looks exactly along the light (an orthographic camera whose rays all
+    /// project to points), where rectification is undefined.
+    pub fn build(camera: &CameraModel, shadow: &ShadowMap, slices: u32) -> Option<Self> {
+        let texel_from_world = shadow.texel_from_world;
+        let size = shadow.size as f64;
+        let corners = [
+            DVec2::ZERO,
+            DVec2::new(size, 0.0),
+            DVec2::new(0.0, size),
+            DVec2::new(size, size),
+        ];
+        let (layout, s_first, s_last, span, texels_across) = if camera.is_perspective() {
+            let position = texel_from_world.transform_point3(camera.position());
+            let epipole = position.truncate();
+            let s_last = corners
+                .iter()
+                .map(|c| c.distance(epipole))
+                .fold(0.0, f64::max);
+            let (first_angle, span, full_circle) = angular_range(camera, shadow);
+            let layout = Layout::Radial {
+                epipole,
+                camera_depth: position.z,
+                first_angle,
+                angle_step: 0.0,
+                full_circle,
+            };
+            let s_last = s_last.max(1.0);
+            // Slices two texels apart at the far end of the map: blending neighbours keeps
+            // edges sharp, and denser slices measurably add nothing but memory.
+            (layout, 0.0, s_last, span, span * s_last)
+        } else {
+            let view = texel_from_world.transform_vector3(camera.ray(0.0, 0.0).direction);
+            let projected = view.truncate();
+            let length = projected.length();
+            if length < MIN_PROJECTED_LENGTH {
+                return None;
+            }
+            let direction = projected / length;
+            let normal = DVec2::new(-direction.y, direction.x);
+            let (s_min, s_max) = extent(&corners, direction);
+            let (o_min, o_max) = extent(&corners, normal);
+            let layout = Layout::Parallel {
+                direction,
+                normal,
+                first_offset: o_min,
+                offset_step: 0.0,
+                slope: view.z / length,
+            };
+            (layout, s_min, s_max, o_max - o_min, o_max - o_min)
+        };
+        let slices = if slices == 0 {
+            ((texels_across * 0.5).ceil() as u32).clamp(16, MAX_AUTO_SLICES)
+        } else {
+            slices
+        };
+        let samples = (((s_last - s_first) * SAMPLES_PER_TEXEL).ceil() as u32).max(1);
+        let s_step = (s_last - s_first) / samples as f64;
+        let layout = match layout {
+            Layout::Radial {
+                epipole,
+                camera_depth,
+                first_angle,
+                full_circle,
+                ..
+            } => Layout::Radial {
+                epipole,
+                camera_depth,
+                first_angle,
+                angle_step: if full_circle {
+                    TAU / slices as f64
+                } else {
+                    span / (slices.max(2) - 1) as f64
+                },
+                full_circle,
+            },
+            Layout::Parallel {
+                direction,
+                normal,
+                first_offset,
+                slope,
+                ..
+            } => Layout::Parallel {
+                direction,
+                normal,
+                first_offset,
+                offset_step: span / (slices.max(2) - 1) as f64,
+                slope,
+            },
+        };
+        let mut map = EpipolarMap {
+            slices,
+            samples,
+            s_first,
+            s_step,
+            values: vec![0.0; slices as usize * samples as usize],
+            layout,
+            texel_from_world,
+        };
+        map.resample(shadow);
+        Some(map)
+    }
+
+    /// Slice line: a point at s = 0 and the unit direction of growing s.
+    fn slice_line(&self, slice: u32) -> (DVec2, DVec2) {
+        match self.layout {
+            Layout::Radial {
+                epipole,
+                first_angle,
+                angle_step,
+                ..
+            } => {
+                let angle = first_angle + slice as f64 * angle_step;
+                (epipole, DVec2::new(angle.cos(), angle.sin()))
+            }
+            Layout::Parallel {
+                direction,
+                normal,
+                first_offset,
+                offset_step,
+                ..
+            } => (
+                normal * (first_offset + slice as f64 * offset_step),
+                direction,
+            ),
+        }
+    }
+
+    fn resample(&mut self, shadow: &ShadowMap) {
+        let samples = self.samples as usize;
+        let (s_first, s_step, layout) = (self.s_first, self.s_step, self.layout);
+        let lines: Vec<_> = (0..self.slices).map(|j| self.slice_line(j)).collect();
+        let size = shadow.size as f64;
+        self.values
+            .par_chunks_mut(samples)
+            .zip(lines.par_iter())
+            .for_each(|(row, &(base, direction))| {
+                for (i, value) in row.iter_mut().enumerate() {
+                    let s = s_first + (i as f64 + 0.5) * s_step;
+                    let p = base + direction * s;
+                    let occluder = if p.x >= 0.0 && p.y >= 0.0 && p.x < size && p.y < size {
+                        shadow.depth[p.y as usize * shadow.size as usize + p.x as usize] as f64
+                    } else {
+                        f64::INFINITY
+                    };
+                    let lit_below = occluder + shadow.bias;
+                    *value = match layout {
+                        Layout::Radial { camera_depth, .. } => (lit_below - camera_depth) / s,
+                        Layout::Parallel { slope, .. } => lit_below - slope * s,
+                    } as f32;
+                }
+            });
+    }
+
+    /// Locates a view ray, or `None` when it runs along the light (at the epipole).
+    pub fn locate(&self, ray: &Ray) -> Option<RaySlice> {
+        let origin = self.texel_from_world.transform_point3(ray.origin);
+        let direction = self.texel_from_world.transform_vector3(ray.direction);
+        let projected = direction.truncate();
+        let s_per_t = projected.length();
+        if s_per_t < MIN_PROJECTED_LENGTH {
+            return None;
+        }
+        let slope = direction.z / s_per_t;
+        match self.layout {
+            Layout::Radial {
+                first_angle,
+                angle_step,
+                full_circle,
+                ..
+            } => {
+                let angle = projected.y.atan2(projected.x);
+                let mut turns = angle - first_angle;
+                if full_circle {
+                    turns = turns.rem_euclid(TAU);
+                } else {
+                    turns = wrap_angle(turns);
+                }
+                Some(RaySlice {
+                    slice: turns / angle_step,
+                    s_origin: 0.0,
+                    s_per_t,
+                    threshold: slope,
+                })
+            }
+            Layout::Parallel {
+                direction: along,
+                normal,
+                first_offset,
+                offset_step,
+                slope: shared_slope,
+            } => {
+                let s_origin = along.dot(origin.truncate());
+                let offset = normal.dot(origin.truncate());
+                Some(RaySlice {
+                    slice: (offset - first_offset) / offset_step,
+                    s_origin,
+                    s_per_t,
+                    threshold: origin.z - shared_slope * s_origin,
+                })
+            }
+        }
+    }
+
+    /// The two slices to blend for a fractional slice coordinate, with their weights.
+    pub fn neighbours(&self, slice: f64) -> [(u32, f64); 2] {
+        let last = self.slices - 1;
+        let full_circle = matches!(
+            self.layout,
+            Layout::Radial {
+                full_circle: true,
+                ..
+            }
+        );
+        let clamped = if full_circle {
+            slice.rem_euclid(self.slices as f64)
+        } else {
+            slice.clamp(0.0, last as f64)
+        };
+        let lower = (clamped.floor() as u32).min(last);
+        let fraction = clamped - lower as f64;
+        let upper = if lower == last {
+            if full_circle {
+                0
+            } else {
+                last
+            }
+        } else {
+            lower + 1
+        };
+        [(lower, 1.0 - fraction), (upper, fraction)]
+    }
+
+    /// Sample i's interval along its slice.
+    pub fn sample_interval(&self, i: usize) -> (f64, f64) {
+        (
+            self.s_first + i as f64 * self.s_step,
+            self.s_first + (i + 1) as f64 * self.s_step,
+        )
+    }
+
+    /// K along sample i's interval is monotone in s, determined by its centre value:
+    /// returns (a, b) such that the ray with `threshold` is lit at s where a·s ≤ b.
+    fn lit_condition(&self, i: usize, centre: f32, threshold: f64) -> (f64, f64) {
+        let s_centre = self.s_first + (i as f64 + 0.5) * self.s_step;
+        match self.layout {
+            // K(s) = N/s with N = K(s_c)·s_c: lit where threshold·s ≤ N.
+            Layout::Radial { .. } => (threshold, centre as f64 * s_centre),
+            // K(s) = M − slope·s with M = K(s_c) + slope·s_c: lit where slope·s ≤ M − threshold.
+            Layout::Parallel { slope, .. } => (slope, centre as f64 + slope * s_centre - threshold),
+        }
+    }
+
+    /// The smallest and largest K over sample i's interval.
+    pub fn sample_bounds(&self, i: usize, centre: f32) -> (f32, f32) {
+        let (s0, s1) = self.sample_interval(i);
+        let s_centre = 0.5 * (s0 + s1);
+        let at = |s: f64| match self.layout {
+            Layout::Radial { .. } => {
+                let numerator = centre as f64 * s_centre;
+                if numerator == 0.0 {
+                    0.0
+                } else {
+                    numerator / s
+                }
+            }
+            Layout::Parallel { slope, .. } => centre as f64 + slope * (s_centre - s),
+        };
+        let (a, b) = (at(s0) as f32, at(s1) as f32);
+        if centre.is_infinite() {
+            (centre, centre)
+        } else {
+            (a.min(b), a.max(b))
+        }
+    }
+
+    /// The part of sample i's interval where a ray with `threshold` is lit.
+    pub fn lit_part(&self, i: usize, centre: f32, threshold: f64) -> Option<(f64, f64)> {
+        let (s0, s1) = self.sample_interval(i);
+        let (a, b) = self.lit_condition(i, centre, threshold);
+        let (lo, hi) = if a > 0.0 {
+            (s0, s1.min(b / a))
+        } else if a < 0.0 {
+            (s0.max(b / a), s1)
+        } else if b >= 0.0 {
+            (s0, s1)
+        } else {
+            return None;
+        };
+        (hi > lo).then_some((lo, hi))
+    }
+
+    pub fn row(&self, slice: u32) -> &[f32] {
+        let start = slice as usize * self.samples as usize;
+        &self.values[start..start + self.samples as usize]
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.values.len() * std::mem::size_of::<f32>()
+    }
+}
+
+/// First slice angle and angular span of the image's view rays around the epipole, and
+/// whether they cover the full circle (the sun or the anti-sun point is in the image).
+fn angular_range(camera: &CameraModel, shadow: &ShadowMap) -> (f64, f64, bool) {
+    if epipoles_in_image(camera, shadow, 1.0).next().is_some() {
+        return (0.0, TAU, true);
+    }
+    let (w, h) = (camera.width as f64, camera.height as f64);
+    let angle_of = |px: f64, py: f64| {
+        let d = shadow
+            .texel_from_world
+            .transform_vector3(camera.ray(px, py).direction);
+        d.y.atan2(d.x)
+    };
+    let centre = angle_of(0.5 * w, 0.5 * h);
+    let offsets: Vec<f64> = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+        .iter()
+        .map(|&(px, py)| wrap_angle(angle_of(px, py) - centre))
+        .collect();
+    let low = offsets.iter().copied().fold(f64::INFINITY, f64::min);
+    let high = offsets.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    (centre + low, (high - low).max(1e-9), false)
+}
+
+/// Image positions of the sun and the anti-sun point, for those within `margin` pixels
+/// of the image (pinhole cameras only; parallel projections have no epipole).
+pub fn epipoles_in_image<'a>(
+    camera: &'a CameraModel,
+    shadow: &'a ShadowMap,
+    margin: f64,
+) -> impl Iterator<Item = [f64; 2]> + 'a {
+    // The light's direction in world space: texel-space +z pulled back.
+    let travel = shadow
+        .texel_from_world
+        .inverse()
+        .transform_vector3(DVec3::Z)
+        .normalize();
+    [-travel, travel].into_iter().filter_map(move |direction| {
+        if !camera.is_perspective() {
+            return None;
+        }
+        // A point at infinity (w = 0) in front of the camera has a positive clip w.
+        let clip = camera.pixel_from_world() * direction.extend(0.0);
+        if clip.w <= 0.0 {
+            return None;
+        }
+        let (px, py) = (clip.x / clip.w, clip.y / clip.w);
+        let inside = px >= -margin
+            && py >= -margin
+            && px <= camera.width as f64 + margin
+            && py <= camera.height as f64 + margin;
+        inside.then_some([px, py])
+    })
+}
+
+fn wrap_angle(angle: f64) -> f64 {
+    (angle + std::f64::consts::PI).rem_euclid(TAU) - std::f64::consts::PI
+}
+
+fn extent(points: &[DVec2], axis: DVec2) -> (f64, f64) {
+    points
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            let d = p.dot(axis);
+            (lo.min(d), hi.max(d))
+        })
+}

@@ -1,0 +1,362 @@
+//! 1D min-max mipmaps on the rectified shadow map (Chen et al. 2011, as described in the
+//! dissertation §4.2–4.3): the peer method the prefiltered method is compared against.
+//!
+//! Per slice, each level stores the minimum and maximum of K over runs of 2^level samples.
+//! A ray (constant threshold per slice) walks its samples, climbing to the largest run
+//! that is entirely lit (min ≥ threshold) or entirely shadowed (max < threshold), so that
+//! it visits one node per change of visibility instead of one per sample. Lit spans are
+//! integrated in closed form, so the result equals ray marching the rectified map with
+//! infinitely many steps.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::camera::Ray;
+use crate::epipolar::{EpipolarMap, RaySlice};
+use crate::phase;
+use crate::reference::{integral_exp, BoxMedium, RaySample};
+use crate::scene::{Medium, Sun};
+
+/// Minimum and maximum of K over aligned runs of samples, for levels 1 and up.
+#[derive(Clone, Debug)]
+pub struct MinMaxMipmap {
+    /// Per level (index 0 is level 1): samples per slice, then min and max per node.
+    levels: Vec<(usize, Vec<f32>, Vec<f32>)>,
+}
+
+impl MinMaxMipmap {
+    pub fn build(map: &EpipolarMap) -> Self {
+        let mut levels: Vec<(usize, Vec<f32>, Vec<f32>)> = Vec::new();
+        let slices = map.slices as usize;
+        // Level 0 bounds K over each sample's whole interval, not just its centre.
+        let (leaf_min, leaf_max): (Vec<f32>, Vec<f32>) = map
+            .values
+            .par_iter()
+            .enumerate()
+            .map(|(index, &centre)| map.sample_bounds(index % map.samples as usize, centre))
+            .unzip();
+        let mut width = map.samples as usize;
+        while width > 1 {
+            let next = width.div_ceil(2);
+            let mut min = vec![0.0f32; slices * next];
+            let mut max = vec![0.0f32; slices * next];
+            let (below_min, below_max): (&[f32], &[f32]) = match levels.last() {
+                Some((_, min, max)) => (min, max),
+                None => (&leaf_min, &leaf_max),
+            };
+            min.par_chunks_mut(next)
+                .zip(max.par_chunks_mut(next))
+                .enumerate()
+                .for_each(|(slice, (min_row, max_row))| {
+                    let lo = &below_min[slice * width..(slice + 1) * width];
+                    let hi = &below_max[slice * width..(slice + 1) * width];
+                    for node in 0..next {
+                        let a = 2 * node;
+                        let b = (a + 1).min(width - 1);
+                        min_row[node] = lo[a].min(lo[b]);
+                        max_row[node] = hi[a].max(hi[b]);
+                    }
+                });
+            levels.push((next, min, max));
+            width = next;
+        }
+        Self { levels }
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.levels
+            .iter()
+            .map(|(_, min, max)| (min.len() + max.len()) * std::mem::size_of::<f32>())
+            .sum()
+    }
+
+    /// Calls `visit(s0, s1)` for each maximal lit interval of [s_a, s_b] along `slice`,
+    /// in order. Positions off the map are lit.
+    pub fn lit_spans(
+        &self,
+        map: &EpipolarMap,
+        slice: u32,
+        threshold: f64,
+        s_a: f64,
+        s_b: f64,
+        mut visit: impl FnMut(f64, f64),
+    ) {
+        let samples = map.samples as usize;
+        let s_end_of_map = map.s_first + samples as f64 * map.s_step;
+        let mut pending: Option<(f64, f64)> = None;
+        let mut emit = |s0: f64, s1: f64, visit: &mut dyn FnMut(f64, f64)| {
+            if s1 <= s0 {
+                return;
+            }
+            match pending {
+                Some((p0, p1)) if p1 >= s0 => pending = Some((p0, s1.max(p1))),
+                Some((p0, p1)) => {
+                    visit(p0, p1);
+                    pending = Some((s0, s1));
+                }
+                None => pending = Some((s0, s1)),
+            }
+        };
+        if s_a < map.s_first {
+            emit(s_a, s_b.min(map.s_first), &mut visit);
+        }
+        let (inside_a, inside_b) = (s_a.max(map.s_first), s_b.min(s_end_of_map));
+        if inside_b > inside_a {
+            let row = map.row(slice);
+            let leaf = |s: f64| (((s - map.s_first) / map.s_step) as usize).min(samples - 1);
+            let (first, last) = (leaf(inside_a), leaf(inside_b));
+            let exact_threshold = threshold;
+            let threshold = threshold as f32;
+            let mut i = first;
+            while i <= last {
+                let (low, high) = map.sample_bounds(i, row[i]);
+                if low < threshold && high >= threshold {
+                    // The ray crosses the occluder depth inside this sample: split it.
+                    if let Some((s0, s1)) = map.lit_part(i, row[i], exact_threshold) {
+                        emit(s0.max(inside_a), s1.min(inside_b), &mut visit);
+                    }
+                    i += 1;
+                    continue;
+                }
+                let lit = low >= threshold;
+                let mut level = 0usize;
+                while level < self.levels.len() {
+                    let run = 1usize << (level + 1);
+                    if i % run != 0 || i + run - 1 > last {
+                        break;
+                    }
+                    let (width, min, max) = &self.levels[level];
+                    let node = slice as usize * width + (i >> (level + 1));
+                    let uniform = if lit {
+                        min[node] >= threshold
+                    } else {
+                        max[node] < threshold
+                    };
+                    if !uniform {
+                        break;
+                    }
+                    level += 1;
+                }
+                let run = 1usize << level;
+                if lit {
+                    let s0 = map.s_first + i as f64 * map.s_step;
+                    let s1 = map.s_first + (i + run) as f64 * map.s_step;
+                    emit(s0.max(inside_a), s1.min(inside_b), &mut visit);
+                }
+                i += run;
+            }
+        }
+        if s_b > s_end_of_map {
+            emit(s_a.max(s_end_of_map), s_b, &mut visit);
+        }
+        if let Some((p0, p1)) = pending {
+            visit(p0, p1);
+        }
+    }
+}
+
+/// Per-frame constants of the min-max method.
+pub struct MinMaxMethod<'a> {
+    map: &'a EpipolarMap,
+    mipmap: &'a MinMaxMipmap,
+    medium: &'a Medium,
+    light_travel: DVec3,
+    box_medium: Option<BoxMedium>,
+}
+
+impl<'a> MinMaxMethod<'a> {
+    pub fn new(
+        map: &'a EpipolarMap,
+        mipmap: &'a MinMaxMipmap,
+        sun: &Sun,
+        medium: &'a Medium,
+    ) -> Self {
+        let light_travel = sun.direction.as_dvec3().normalize();
+        Self {
+            map,
+            mipmap,
+            medium,
+            light_travel,
+            box_medium: BoxMedium::new(&medium.extent, light_travel),
+        }
+    }
+
+    pub fn phase(&self, direction: DVec3) -> f64 {
+        phase::evaluate(self.medium, self.light_travel, direction)
+    }
+
+    /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
+    pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
+        let located = self.map.locate(ray)?;
+        if t_end <= t_start {
+            return Some(RaySample {
+                visibility: 1.0,
+                ..RaySample::default()
+            });
+        }
+        let sigma = self.medium.extinction as f64;
+        let medium_segment = match &self.box_medium {
+            None => Some((t_start, t_end)),
+            Some(box_medium) => box_medium
+                .clip(ray)
+                .map(|(a, b)| (a.max(t_start), b.min(t_end)))
+                .filter(|(a, b)| b > a),
+        };
+        let mut blended = RaySample::default();
+        for (slice, weight) in self.map.neighbours(located.slice) {
+            if weight == 0.0 {
+                continue;
+            }
+            let mut lit_length = 0.0;
+            let mut scattering = 0.0;
+            self.lit_t_spans(&located, slice, t_start, t_end, |t0, t1| {
+                lit_length += t1 - t0;
+                let Some((a, b)) = medium_segment else {
+                    return;
+                };
+                let (t0, t1) = (t0.max(a), t1.min(b));
+                if t1 <= t0 {
+                    return;
+                }
+                scattering += match &self.box_medium {
+                    None => (-sigma * (t0 - a)).exp() * integral_exp(sigma, t1 - t0),
+                    Some(box_medium) => box_medium.integrate(ray, t0, t1, a, sigma),
+                };
+            });
+            blended.scattering += weight * scattering;
+            blended.visibility += weight * lit_length / (t_end - t_start);
+        }
+        blended.alpha = medium_segment.map_or(0.0, |(a, b)| -(-sigma * (b - a)).exp_m1());
+        Some(blended)
+    }
+
+    fn lit_t_spans(
+        &self,
+        located: &RaySlice,
+        slice: u32,
+        t_start: f64,
+        t_end: f64,
+        mut visit: impl FnMut(f64, f64),
+    ) {
+        let s_a = located.s_origin + located.s_per_t * t_start;
+        let s_b = located.s_origin + located.s_per_t * t_end;
+        self.mipmap
+            .lit_spans(self.map, slice, located.threshold, s_a, s_b, |s0, s1| {
+                visit(located.t_at(s0).max(t_start), located.t_at(s1).min(t_end))
+            });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::CameraModel;
+    use crate::render::FlatGeometry;
+    use crate::scene::{Camera, Medium, Mesh, RenderSettings};
+    use crate::shadow_map::ShadowMap;
+    use glam::{Mat4, Vec3};
+    use rand::{RngExt, SeedableRng};
+
+    /// A rectified map of 200 random floating quads, seen by a pinhole camera.
+    fn rectified() -> EpipolarMap {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let mut positions = Vec::new();
+        let mut triangles = Vec::new();
+        for i in 0..200u32 {
+            let (x, y, z) = (
+                rng.random_range(-10.0..10.0f32),
+                rng.random_range(-10.0..10.0f32),
+                rng.random_range(1.0..6.0f32),
+            );
+            let size = rng.random_range(0.2..1.5f32);
+            positions.extend([
+                [x, y, z],
+                [x + size, y, z],
+                [x + size, y + size, z],
+                [x, y + size, z],
+            ]);
+            triangles.extend([[4 * i, 4 * i + 1, 4 * i + 2], [4 * i, 4 * i + 2, 4 * i + 3]]);
+        }
+        let mesh = Mesh {
+            name: "quads".into(),
+            object_id: 2,
+            world_from_object: Mat4::IDENTITY,
+            positions,
+            triangles,
+        };
+        let scene_camera = Camera::pinhole_looking_at(
+            Vec3::new(-12.0, -4.0, 2.0),
+            Vec3::new(0.0, 0.0, 3.0),
+            30.0,
+            64,
+            36,
+        );
+        let camera = CameraModel::new(&scene_camera);
+        let sun = crate::scene::Sun {
+            direction: Vec3::new(0.3, 0.4, -1.0),
+            color: Vec3::ONE,
+            strength: 1.0,
+            angular_diameter: 0.0,
+        };
+        let medium = Medium {
+            extinction: 0.1,
+            albedo: Vec3::ONE,
+            anisotropy: 0.0,
+            phase: Default::default(),
+            extent: Default::default(),
+        };
+        let settings = RenderSettings {
+            shadow_map_size: 128,
+            max_distance: 40.0,
+            ..RenderSettings::default()
+        };
+        let flat = FlatGeometry {
+            object_ids: vec![2; mesh.triangles.len()],
+            positions: mesh.positions,
+            triangles: mesh.triangles,
+        };
+        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view());
+        EpipolarMap::build(&camera, &shadow, 0).expect("a pinhole camera rectifies")
+    }
+
+    #[test]
+    fn the_mipmap_walk_equals_testing_every_sample() {
+        let map = rectified();
+        let mipmap = MinMaxMipmap::build(&map);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        let s_end = map.s_first + map.samples as f64 * map.s_step;
+        for _ in 0..2000 {
+            let slice = rng.random_range(0..map.slices);
+            let threshold = rng.random_range(-1.5..1.5);
+            let s_a = rng.random_range(map.s_first..s_end);
+            let s_b = rng.random_range(s_a..s_end + 5.0);
+            let mut walked = Vec::new();
+            mipmap.lit_spans(&map, slice, threshold, s_a, s_b, |a, b| walked.push((a, b)));
+            let mut brute: Vec<(f64, f64)> = Vec::new();
+            let row = map.row(slice);
+            for (i, &value) in row.iter().enumerate() {
+                if let Some((a, b)) = map.lit_part(i, value, threshold) {
+                    let (a, b) = (a.max(s_a), b.min(s_b));
+                    if b > a {
+                        match brute.last_mut() {
+                            Some(last) if last.1 >= a => last.1 = b,
+                            _ => brute.push((a, b)),
+                        }
+                    }
+                }
+            }
+            if s_b > s_end {
+                match brute.last_mut() {
+                    Some(last) if last.1 >= s_end.max(s_a) => last.1 = s_b,
+                    _ => brute.push((s_end.max(s_a), s_b)),
+                }
+            }
+            let total = |spans: &[(f64, f64)]| spans.iter().map(|(a, b)| b - a).sum::<f64>();
+            assert!(
+                (total(&walked) - total(&brute)).abs() < 1e-9 * (s_b - s_a).max(1.0),
+                "slice {slice} threshold {threshold}: {walked:?} vs {brute:?}"
+            );
+            assert_eq!(walked.len(), brute.len());
+        }
+    }
+}
