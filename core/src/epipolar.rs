@@ -76,8 +76,10 @@ pub struct EpipolarMap {
     pub s_step: f64,
     pub values: Vec<f32>,
     layout: Layout,
-    /// Light-space texel coordinates of the camera, and of its view direction.
     texel_from_world: glam::DMat4,
+    /// Per sample index, what turns K at a sample's centre into K at its ends (see
+    /// [`EpipolarMap::sample_bounds`]); shared by all slices.
+    bound_factors: Vec<[f32; 2]>,
 }
 
 /// Rays whose projection into the map is shorter than this (texels per scene unit) run
@@ -176,6 +178,21 @@ impl EpipolarMap {
                 slope,
             },
         };
+        let bound_factors = (0..samples as usize)
+            .map(|i| {
+                let s0 = s_first + i as f64 * s_step;
+                let centre = s0 + 0.5 * s_step;
+                match layout {
+                    Layout::Radial { .. } => {
+                        [(centre / s0) as f32, (centre / (s0 + s_step)) as f32]
+                    }
+                    Layout::Parallel { slope, .. } => {
+                        let half = (slope.abs() * 0.5 * s_step) as f32;
+                        [half, half]
+                    }
+                }
+            })
+            .collect();
         let mut map = EpipolarMap {
             slices,
             samples,
@@ -184,6 +201,7 @@ impl EpipolarMap {
             values: vec![0.0; slices as usize * samples as usize],
             layout,
             texel_from_world,
+            bound_factors,
         };
         map.resample(shadow);
         Some(map)
@@ -340,25 +358,22 @@ impl EpipolarMap {
     }
 
     /// The smallest and largest K over sample i's interval.
+    #[inline]
     pub fn sample_bounds(&self, i: usize, centre: f32) -> (f32, f32) {
-        let (s0, s1) = self.sample_interval(i);
-        let s_centre = 0.5 * (s0 + s1);
-        let at = |s: f64| match self.layout {
+        let [near, far] = self.bound_factors[i];
+        match self.layout {
+            // K(s) = K(s_c)·s_c/s: scale the centre value by s_c/s at both ends.
             Layout::Radial { .. } => {
-                let numerator = centre as f64 * s_centre;
-                if numerator == 0.0 {
-                    0.0
+                if centre == 0.0 || centre.is_infinite() {
+                    (centre, centre)
+                } else if centre > 0.0 {
+                    (centre * far, centre * near)
                 } else {
-                    numerator / s
+                    (centre * near, centre * far)
                 }
             }
-            Layout::Parallel { slope, .. } => centre as f64 + slope * (s_centre - s),
-        };
-        let (a, b) = (at(s0) as f32, at(s1) as f32);
-        if centre.is_infinite() {
-            (centre, centre)
-        } else {
-            (a.min(b), a.max(b))
+            // K(s) = K(s_c) + slope·(s_c − s): the ends differ by ±|slope|·step/2.
+            Layout::Parallel { .. } => (centre - near, centre + near),
         }
     }
 

@@ -17,57 +17,74 @@ use crate::phase;
 use crate::reference::{integral_exp, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 
-/// Minimum and maximum of K over aligned runs of samples, for levels 1 and up.
+/// Minimum and maximum of K over aligned runs of samples, for levels 1 and up. Each
+/// slice's pyramid is contiguous, so that a ray's walk stays within a few cache lines.
 #[derive(Clone, Debug)]
 pub struct MinMaxMipmap {
-    /// Per level (index 0 is level 1): samples per slice, then min and max per node.
-    levels: Vec<(usize, Vec<f32>, Vec<f32>)>,
+    /// Start of each level (index 0 is level 1) within a slice's pyramid.
+    level_offsets: Vec<usize>,
+    /// Nodes per slice over all levels.
+    stride: usize,
+    nodes: Vec<[f32; 2]>,
 }
 
 impl MinMaxMipmap {
     pub fn build(map: &EpipolarMap) -> Self {
-        let mut levels: Vec<(usize, Vec<f32>, Vec<f32>)> = Vec::new();
-        let slices = map.slices as usize;
-        // Level 0 bounds K over each sample's whole interval, not just its centre.
-        let (leaf_min, leaf_max): (Vec<f32>, Vec<f32>) = map
-            .values
-            .par_iter()
-            .enumerate()
-            .map(|(index, &centre)| map.sample_bounds(index % map.samples as usize, centre))
-            .unzip();
-        let mut width = map.samples as usize;
+        let samples = map.samples as usize;
+        let mut level_offsets = Vec::new();
+        let mut stride = 0;
+        let mut width = samples;
         while width > 1 {
-            let next = width.div_ceil(2);
-            let mut min = vec![0.0f32; slices * next];
-            let mut max = vec![0.0f32; slices * next];
-            let (below_min, below_max): (&[f32], &[f32]) = match levels.last() {
-                Some((_, min, max)) => (min, max),
-                None => (&leaf_min, &leaf_max),
-            };
-            min.par_chunks_mut(next)
-                .zip(max.par_chunks_mut(next))
+            level_offsets.push(stride);
+            width = width.div_ceil(2);
+            stride += width;
+        }
+        let mut nodes = vec![[0.0f32; 2]; map.slices as usize * stride];
+        if stride > 0 {
+            nodes
+                .par_chunks_mut(stride)
                 .enumerate()
-                .for_each(|(slice, (min_row, max_row))| {
-                    let lo = &below_min[slice * width..(slice + 1) * width];
-                    let hi = &below_max[slice * width..(slice + 1) * width];
-                    for node in 0..next {
-                        let a = 2 * node;
-                        let b = (a + 1).min(width - 1);
-                        min_row[node] = lo[a].min(lo[b]);
-                        max_row[node] = hi[a].max(hi[b]);
+                .for_each(|(slice, pyramid)| {
+                    let row = map.row(slice as u32);
+                    // Level 0 bounds K over each sample's whole interval, not just its centre.
+                    let leaves: Vec<[f32; 2]> = row
+                        .iter()
+                        .enumerate()
+                        .map(|(i, &centre)| {
+                            let (low, high) = map.sample_bounds(i, centre);
+                            [low, high]
+                        })
+                        .collect();
+                    let mut below: &[[f32; 2]] = &leaves;
+                    let mut width = samples;
+                    for &offset in &level_offsets {
+                        let next = width.div_ceil(2);
+                        let (done, rest) = pyramid.split_at_mut(offset);
+                        let level = &mut rest[..next];
+                        let source = if offset == 0 {
+                            below
+                        } else {
+                            &done[offset - width..offset]
+                        };
+                        for (node, out) in level.iter_mut().enumerate() {
+                            let a = source[2 * node];
+                            let b = source[(2 * node + 1).min(width - 1)];
+                            *out = [a[0].min(b[0]), a[1].max(b[1])];
+                        }
+                        below = &[];
+                        width = next;
                     }
                 });
-            levels.push((next, min, max));
-            width = next;
         }
-        Self { levels }
+        Self {
+            level_offsets,
+            stride,
+            nodes,
+        }
     }
 
     pub fn memory_bytes(&self) -> usize {
-        self.levels
-            .iter()
-            .map(|(_, min, max)| (min.len() + max.len()) * std::mem::size_of::<f32>())
-            .sum()
+        self.nodes.len() * std::mem::size_of::<[f32; 2]>()
     }
 
     /// Calls `visit(s0, s1)` for each maximal lit interval of [s_a, s_b] along `slice`,
@@ -119,18 +136,18 @@ impl MinMaxMipmap {
                     continue;
                 }
                 let lit = low >= threshold;
+                let pyramid = &self.nodes[slice as usize * self.stride..][..self.stride];
                 let mut level = 0usize;
-                while level < self.levels.len() {
+                while level < self.level_offsets.len() {
                     let run = 1usize << (level + 1);
                     if i % run != 0 || i + run - 1 > last {
                         break;
                     }
-                    let (width, min, max) = &self.levels[level];
-                    let node = slice as usize * width + (i >> (level + 1));
+                    let [min, max] = pyramid[self.level_offsets[level] + (i >> (level + 1))];
                     let uniform = if lit {
-                        min[node] >= threshold
+                        min >= threshold
                     } else {
-                        max[node] < threshold
+                        max < threshold
                     };
                     if !uniform {
                         break;

@@ -276,52 +276,63 @@ pub(crate) fn shade_pixels(
     let samples_per_pixel = (ss * ss) as f64;
     let sample_width = width * ss as usize;
     let max_distance = settings.max_distance as f64;
+    // Bands of TILE rows shaded tile by tile: neighbouring pixels share epipolar slices,
+    // so a tile's rectified data stays in cache, where a whole image row would not.
+    const TILE: usize = 16;
     layers
         .volume
-        .par_chunks_mut(width * 4)
-        .zip(layers.visibility.par_chunks_mut(width))
-        .zip(layers.depth.par_chunks_mut(width))
+        .par_chunks_mut(TILE * width * 4)
+        .zip(layers.visibility.par_chunks_mut(TILE * width))
+        .zip(layers.depth.par_chunks_mut(TILE * width))
         .enumerate()
-        .for_each(|(y, ((volume, visibility), depth))| {
+        .for_each(|(band, ((volume, visibility), depth))| {
             if control.is_cancelled() {
                 return;
             }
-            for x in 0..width {
-                let mut sum = PixelSample::default();
-                let mut depth_sum = 0.0;
-                for sy in 0..ss as usize {
-                    for sx in 0..ss as usize {
-                        let row = y * ss as usize + sy;
-                        let column = x * ss as usize + sx;
-                        let surface = surfaces.distances[row * sample_width + column] as f64;
-                        let pixel = [
-                            x as f64 + (sx as f64 + 0.5) / ss as f64,
-                            y as f64 + (sy as f64 + 0.5) / ss as f64,
-                        ];
-                        let ray = camera.ray(pixel[0], pixel[1]);
-                        let t_start = camera.clip_start * ray.distance_per_depth;
-                        let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
-                        sum.radiance += sample.radiance;
-                        sum.alpha += sample.alpha;
-                        sum.visibility += sample.visibility;
-                        depth_sum += if surface.is_finite() {
-                            surface
-                        } else {
-                            max_distance
-                        };
+            let rows = visibility.len() / width;
+            for tile_x in (0..width).step_by(TILE) {
+                for row in 0..rows {
+                    let y = band * TILE + row;
+                    for x in tile_x..(tile_x + TILE).min(width) {
+                        let mut sum = PixelSample::default();
+                        let mut depth_sum = 0.0;
+                        for sy in 0..ss as usize {
+                            for sx in 0..ss as usize {
+                                let sample_row = y * ss as usize + sy;
+                                let column = x * ss as usize + sx;
+                                let surface =
+                                    surfaces.distances[sample_row * sample_width + column] as f64;
+                                let pixel = [
+                                    x as f64 + (sx as f64 + 0.5) / ss as f64,
+                                    y as f64 + (sy as f64 + 0.5) / ss as f64,
+                                ];
+                                let ray = camera.ray(pixel[0], pixel[1]);
+                                let t_start = camera.clip_start * ray.distance_per_depth;
+                                let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
+                                sum.radiance += sample.radiance;
+                                sum.alpha += sample.alpha;
+                                sum.visibility += sample.visibility;
+                                depth_sum += if surface.is_finite() {
+                                    surface
+                                } else {
+                                    max_distance
+                                };
+                            }
+                        }
+                        let radiance = sum.radiance / samples_per_pixel;
+                        let i = row * width + x;
+                        volume[i * 4..i * 4 + 4].copy_from_slice(&[
+                            radiance.x as f32,
+                            radiance.y as f32,
+                            radiance.z as f32,
+                            (sum.alpha / samples_per_pixel) as f32,
+                        ]);
+                        visibility[i] = (sum.visibility / samples_per_pixel) as f32;
+                        depth[i] = (depth_sum / samples_per_pixel) as f32;
                     }
                 }
-                let radiance = sum.radiance / samples_per_pixel;
-                volume[x * 4..x * 4 + 4].copy_from_slice(&[
-                    radiance.x as f32,
-                    radiance.y as f32,
-                    radiance.z as f32,
-                    (sum.alpha / samples_per_pixel) as f32,
-                ]);
-                visibility[x] = (sum.visibility / samples_per_pixel) as f32;
-                depth[x] = (depth_sum / samples_per_pixel) as f32;
             }
-            control.advance(1);
+            control.advance(rows as u64);
         });
     control.check()?;
     Ok(layers)
