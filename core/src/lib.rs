@@ -20,6 +20,7 @@ pub mod reference;
 pub mod render;
 pub mod scene;
 pub mod shadow_map;
+pub mod upsample;
 
 pub use builtin::{builtin_scene, BUILTIN_SCENES};
 pub use control::RenderControl;

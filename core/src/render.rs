@@ -13,6 +13,7 @@ use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
 use crate::shadow_map::ShadowMap;
+use crate::upsample::{joint_bilateral, reduced_size, sample_pixel};
 
 /// World-space triangles, borrowed so that hosts can pass their buffers without copies.
 #[derive(Clone, Copy, Debug)]
@@ -110,7 +111,7 @@ pub fn render_scene(scene: &Scene, control: &RenderControl) -> Result<Layers> {
 /// Renders one frame from borrowed inputs, validating them first.
 pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     frame.validate()?;
-    control.begin(frame.camera.height as u64);
+    control.begin(reduced_size(frame.camera.height, frame.settings.downsample) as u64);
     control.check()?;
     let camera = CameraModel::new(frame.camera);
     let shadow = ShadowMap::build(
@@ -270,11 +271,16 @@ pub(crate) fn shade_pixels(
     control: &RenderControl,
     shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
 ) -> Result<Layers> {
-    let mut layers = Layers::new(camera.width, camera.height);
-    let width = camera.width as usize;
+    let stride = settings.downsample;
+    let mut layers = Layers::new(
+        reduced_size(camera.width, stride),
+        reduced_size(camera.height, stride),
+    );
+    let width = layers.width as usize;
+    let full_width = camera.width as usize;
     let ss = surfaces.supersampling;
     let samples_per_pixel = (ss * ss) as f64;
-    let sample_width = width * ss as usize;
+    let sample_width = full_width * ss as usize;
     let max_distance = settings.max_distance as f64;
     // Bands of TILE rows shaded tile by tile: neighbouring pixels share epipolar slices,
     // so a tile's rectified data stays in cache, where a whole image row would not.
@@ -293,18 +299,21 @@ pub(crate) fn shade_pixels(
             for tile_x in (0..width).step_by(TILE) {
                 for row in 0..rows {
                     let y = band * TILE + row;
+                    // With downsampling, output sample (x, y) is one exact full-size pixel.
+                    let full_y = sample_pixel(y as u32, stride, camera.height) as usize;
                     for x in tile_x..(tile_x + TILE).min(width) {
+                        let full_x = sample_pixel(x as u32, stride, camera.width) as usize;
                         let mut sum = PixelSample::default();
                         let mut depth_sum = 0.0;
                         for sy in 0..ss as usize {
                             for sx in 0..ss as usize {
-                                let sample_row = y * ss as usize + sy;
-                                let column = x * ss as usize + sx;
+                                let sample_row = full_y * ss as usize + sy;
+                                let column = full_x * ss as usize + sx;
                                 let surface =
                                     surfaces.distances[sample_row * sample_width + column] as f64;
                                 let pixel = [
-                                    x as f64 + (sx as f64 + 0.5) / ss as f64,
-                                    y as f64 + (sy as f64 + 0.5) / ss as f64,
+                                    full_x as f64 + (sx as f64 + 0.5) / ss as f64,
+                                    full_y as f64 + (sy as f64 + 0.5) / ss as f64,
                                 ];
                                 let ray = camera.ray(pixel[0], pixel[1]);
                                 let t_start = camera.clip_start * ray.distance_per_depth;
@@ -335,7 +344,27 @@ pub(crate) fn shade_pixels(
             control.advance(rows as u64);
         });
     control.check()?;
-    Ok(layers)
+    if stride == 1 {
+        return Ok(layers);
+    }
+    let depth: Vec<f32> = surfaces
+        .distances
+        .iter()
+        .map(|&d| {
+            if d.is_finite() {
+                d
+            } else {
+                settings.max_distance
+            }
+        })
+        .collect();
+    Ok(joint_bilateral(
+        &layers,
+        &depth,
+        camera.width,
+        camera.height,
+        stride,
+    ))
 }
 
 impl Frame<'_> {
@@ -346,6 +375,15 @@ impl Frame<'_> {
         self.medium.validate()?;
         self.settings.validate()?;
         self.geometry.validate()?;
+        if self.settings.downsample > 1
+            && self.camera_depth.is_none()
+            && self.settings.supersampling > 1
+        {
+            return Err(Error::invalid(
+                "render.downsample",
+                "cannot be combined with supersampling: evaluate at reduced size or supersample, not both",
+            ));
+        }
         if let Some(depth) = &self.camera_depth {
             depth.validate(self.camera.width, self.camera.height)?;
         }

@@ -260,6 +260,9 @@ pub struct RenderSettings {
     /// Half-size in pixels of the block around an on-screen sun or anti-sun point that the
     /// fast methods ray-march instead, where rectification loses precision.
     pub epipole_block: u32,
+    /// Evaluate scattering at 1/1, 1/2 or 1/4 of the resolution per axis, then upsample
+    /// with the full-resolution depth as guide.
+    pub downsample: u32,
 }
 
 impl Default for RenderSettings {
@@ -273,6 +276,7 @@ impl Default for RenderSettings {
             shadow_bias: None,
             epipolar_slices: 0,
             epipole_block: 16,
+            downsample: 1,
         }
     }
 }

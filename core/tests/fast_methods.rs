@@ -180,3 +180,89 @@ fn minmax_matches_the_reference_in_a_box_medium() {
         assert!(relative <= 0.01, "{view}: {:.3}%", relative * 100.0);
     }
 }
+
+/// Plain bilinear upsampling of samples taken at the same pixels, ignoring depth.
+fn bilinear(low: &Layers, width: u32, height: u32, factor: u32) -> Vec<f32> {
+    let mut out = vec![0.0f32; (width * height * 4) as usize];
+    let half = (factor / 2) as f32;
+    let axis = |p: u32, count: u32| {
+        let u = ((p as f32 - half) / factor as f32).max(0.0);
+        let a = (u.floor() as u32).min(count - 1);
+        (a, (a + 1).min(count - 1), u - a as f32)
+    };
+    for y in 0..height {
+        let (y0, y1, fy) = axis(y, low.height);
+        for x in 0..width {
+            let (x0, x1, fx) = axis(x, low.width);
+            for c in 0..4 {
+                let at = |i: u32, j: u32| low.volume[((j * low.width + i) * 4 + c) as usize];
+                out[((y * width + x) * 4 + c) as usize] = (1.0 - fy)
+                    * ((1.0 - fx) * at(x0, y0) + fx * at(x1, y0))
+                    + fy * ((1.0 - fx) * at(x0, y1) + fx * at(x1, y1));
+            }
+        }
+    }
+    out
+}
+
+fn mean_abs_difference(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() as f64)
+        .sum::<f64>()
+        / a.len() as f64
+}
+
+#[test]
+fn depth_aware_upsampling_beats_bilinear_at_edges() {
+    use crepuscular::upsample::{joint_bilateral, reduced_size, sample_pixel};
+    for name in ["tree", "colonnade"] {
+        let (_, scene) = views(name).remove(0);
+        let full = render_with(&scene, Method::MinMax, 1024);
+        let factor = 4;
+        let (lw, lh) = (reduced_size(WIDTH, factor), reduced_size(HEIGHT, factor));
+        let mut low = Layers::new(lw, lh);
+        for j in 0..lh {
+            for i in 0..lw {
+                let (x, y) = (
+                    sample_pixel(i, factor, WIDTH),
+                    sample_pixel(j, factor, HEIGHT),
+                );
+                let (k, f) = ((j * lw + i) as usize, (y * WIDTH + x) as usize);
+                low.volume[k * 4..k * 4 + 4].copy_from_slice(&full.volume[f * 4..f * 4 + 4]);
+                low.visibility[k] = full.visibility[f];
+                low.depth[k] = full.depth[f];
+            }
+        }
+        let joint = joint_bilateral(&low, &full.depth, WIDTH, HEIGHT, factor);
+        let joint_error = mean_abs_difference(&joint.volume, &full.volume);
+        let bilinear_error =
+            mean_abs_difference(&bilinear(&low, WIDTH, HEIGHT, factor), &full.volume);
+        println!("{name}: joint-bilateral {joint_error:.5}, bilinear {bilinear_error:.5}");
+        assert!(
+            joint_error < 0.8 * bilinear_error,
+            "{name}: {joint_error} vs {bilinear_error}"
+        );
+    }
+}
+
+#[test]
+fn downsampled_evaluation_stays_close_to_full_resolution() {
+    for name in BUILTIN_SCENES {
+        let (_, scene) = views(name).remove(0);
+        let full = render_with(&scene, Method::MinMax, 1024);
+        for factor in [2, 4] {
+            let mut reduced = scene.clone();
+            reduced.render.downsample = factor;
+            let up = render_with(&reduced, Method::MinMax, 1024);
+            assert_finite(&up);
+            assert_eq!(up.depth, full.depth, "the depth layer stays exact");
+            let (relative, _) = error(&up, &full);
+            println!("{name} 1/{factor}: error {:.3}%", relative * 100.0);
+            assert!(
+                relative < if factor == 2 { 0.03 } else { 0.06 },
+                "{name} 1/{factor}: {relative}"
+            );
+        }
+    }
+}
