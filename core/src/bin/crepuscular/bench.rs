@@ -25,8 +25,25 @@ pub struct BenchArgs {
 struct Row {
     scene: String,
     method: Method,
+    downsample: u32,
     detail: String,
     times_ms: Vec<f64>,
+}
+
+impl Row {
+    fn label(&self) -> String {
+        match self.downsample {
+            1 => self.method.name().to_owned(),
+            factor => format!("{} 1/{factor}", self.method.name()),
+        }
+    }
+}
+
+/// The methods timed by default: each at full resolution, plus the fast one at half.
+fn default_variants() -> Vec<(Method, u32)> {
+    let mut variants: Vec<(Method, u32)> = Method::ALL.iter().map(|&m| (m, 1)).collect();
+    variants.push((Method::MinMax, 2));
+    variants
 }
 
 fn median(sorted: &[f64]) -> f64 {
@@ -55,12 +72,13 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     for name in &names {
         let mut scene = builtin_scene(name)?;
         overrides.apply(&mut scene);
-        let methods = match overrides.method {
-            Some(method) => vec![method],
-            None => Method::ALL.to_vec(),
+        let variants = match overrides.method {
+            Some(method) => vec![(method, overrides.downsample.unwrap_or(1))],
+            None => default_variants(),
         };
-        for method in methods {
+        for (method, downsample) in variants {
             scene.render.method = method;
+            scene.render.downsample = downsample;
             render_scene(&scene, &RenderControl::new())?;
             let mut times_ms = Vec::with_capacity(runs);
             for _ in 0..runs {
@@ -69,14 +87,10 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 times_ms.push(started.elapsed().as_secs_f64() * 1e3);
             }
             times_ms.sort_by(f64::total_cmp);
-            eprintln!(
-                "{name} {}: median {:.1} ms",
-                method.name(),
-                median(&times_ms)
-            );
-            rows.push(Row {
+            let row = Row {
                 scene: name.clone(),
                 method,
+                downsample,
                 detail: format!(
                     "{}×{} sm {}² steps {}",
                     scene.camera.width,
@@ -85,17 +99,23 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                     scene.render.steps
                 ),
                 times_ms,
-            });
+            };
+            eprintln!(
+                "{name} {}: median {:.1} ms",
+                row.label(),
+                median(&row.times_ms)
+            );
+            rows.push(row);
         }
     }
     println!(
-        "\n{:<10} {:<10} {:<32} {:>11} {:>21} {:>9}",
+        "\n{:<10} {:<12} {:<32} {:>11} {:>21} {:>9}",
         "scene", "method", "frame", "median ms", "min–max ms", "speed-up"
     );
     for row in &rows {
         let reference = rows
             .iter()
-            .find(|r| r.scene == row.scene && r.method == Method::Reference)
+            .find(|r| r.scene == row.scene && r.method == Method::Reference && r.downsample == 1)
             .map(|r| median(&r.times_ms));
         let med = median(&row.times_ms);
         let speedup = reference.map_or("-".to_owned(), |r| format!("{:.2}×", r / med));
@@ -105,9 +125,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             row.times_ms[row.times_ms.len() - 1]
         );
         println!(
-            "{:<10} {:<10} {:<32} {:>11.1} {:>21} {:>9}",
+            "{:<10} {:<12} {:<32} {:>11.1} {:>21} {:>9}",
             row.scene,
-            row.method.name(),
+            row.label(),
             row.detail,
             med,
             range,

@@ -72,6 +72,9 @@ pub struct Overrides {
     /// Camera-depth samples per pixel along each axis.
     #[arg(long)]
     supersampling: Option<u32>,
+    /// Evaluate at 1/1, 1/2 or 1/4 resolution and upsample.
+    #[arg(long)]
+    downsample: Option<u32>,
 }
 
 impl Overrides {
@@ -93,6 +96,9 @@ impl Overrides {
         }
         if let Some(ss) = self.supersampling {
             scene.render.supersampling = ss;
+        }
+        if let Some(factor) = self.downsample {
+            scene.render.downsample = factor;
         }
     }
 }
