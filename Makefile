@@ -41,8 +41,8 @@ wheel: $(VENV)/.build-deps
 lint: $(VENV)/.test-deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets --release -- -D warnings
-	ruff check core/python tests
-	ruff format --check core/python tests
+	ruff check core/python tests examples
+	ruff format --check core/python tests examples
 
 rust-test:
 	$(CARGO) test -p crepuscular --release
