@@ -482,6 +482,12 @@ impl RenderSettings {
             0,
             MAX_IMAGE_SIZE,
         )?;
+        if ![1, 2, 4].contains(&self.downsample) {
+            return Err(Error::invalid(
+                "render.downsample",
+                format!("{} is not one of 1, 2 or 4", self.downsample),
+            ));
+        }
         Ok(())
     }
 }

@@ -80,6 +80,15 @@ fn sizes_out_of_range_are_named() {
         |s| s.camera.clip_end = s.camera.clip_start,
         "camera.clip_end",
     );
+    check(|s| s.render.downsample = 3, "render.downsample");
+    check(|s| s.render.epipolar_slices = 1, "render.epipolar_slices");
+    let mut both = valid_scene();
+    both.render.downsample = 2;
+    both.render.supersampling = 2;
+    assert_eq!(
+        field_of(render_scene(&both, &RenderControl::new())),
+        "render.downsample"
+    );
 }
 
 #[test]

@@ -195,12 +195,9 @@ pub fn render_with_progress(scene: &Scene, label: &str) -> Result<Layers> {
             bar.set_position((control.fraction() * 1000.0) as u64);
             std::thread::sleep(Duration::from_millis(50));
         }
-        worker.join().unwrap_or_else(|_| {
-            Err(Error::invalid(
-                "render",
-                "internal error: a worker panicked",
-            ))
-        })
+        worker
+            .join()
+            .unwrap_or_else(|_| Err(Error::Internal("a render worker panicked".to_owned())))
     });
     bar.finish_and_clear();
     layers
