@@ -8,7 +8,6 @@ import json
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -116,7 +115,7 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def sun_matrix(travel: np.ndarray) -> np.ndarray:
-    """A sun lamp whose −Z axis is the travel direction."""
+    """A sun lamp whose -Z axis is the travel direction."""
     back = -travel / np.linalg.norm(travel)
     right = np.cross([0.0, 1.0, 0.0], back)
     right /= np.linalg.norm(right)
