@@ -19,12 +19,43 @@ use rayon::prelude::*;
 use crate::camera::{CameraModel, Ray};
 use crate::shadow_map::ShadowMap;
 
-/// Samples along a slice per shadow-map texel: more than one keeps resampling from
-/// moving shadow edges by up to a texel.
-pub const SAMPLES_PER_TEXEL: f64 = 2.0;
+/// How densely to rectify.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RectifyDesc {
+    /// Number of slices; 0 chooses `slices_per_texel` at the far end of the map, up to
+    /// `max_auto_slices`.
+    pub slices: u32,
+    pub slices_per_texel: f64,
+    pub max_auto_slices: u32,
+    /// Samples along a slice per shadow-map texel.
+    pub samples_per_texel: f64,
+}
 
-/// Largest number of slices chosen automatically.
-pub const MAX_AUTO_SLICES: u32 = 8192;
+impl RectifyDesc {
+    /// Min-max walks exact lit spans, so it affords dense samples: two per texel keep
+    /// resampling from moving shadow edges by up to a texel. Slices two texels apart at
+    /// the far end: blending neighbours keeps edges sharp, and denser slices measurably
+    /// add nothing but memory.
+    pub fn min_max(slices: u32) -> Self {
+        Self {
+            slices,
+            slices_per_texel: 0.5,
+            max_auto_slices: 8192,
+            samples_per_texel: 2.0,
+        }
+    }
+
+    /// Prefiltering stores 2M + 1 prefix sums per sample, so it samples once per texel
+    /// and keeps at most 1024 slices.
+    pub fn prefiltered(slices: u32) -> Self {
+        Self {
+            slices,
+            slices_per_texel: 0.25,
+            max_auto_slices: 1024,
+            samples_per_texel: 1.0,
+        }
+    }
+}
 
 /// How slices are laid out in the shadow-map plane (texel units).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -87,11 +118,10 @@ pub struct EpipolarMap {
 const MIN_PROJECTED_LENGTH: f64 = 1e-9;
 
 impl EpipolarMap {
-    /// Rectifies `shadow` for `camera`. `slices` = 0 picks slices about two texels apart at
-    /// the far end of the map, at most [`MAX_AUTO_SLICES`]. Returns `None` when the
+    /// Rectifies `shadow` for `camera` as `desc` says. Returns `None` when the
     /// camera looks exactly along the light (an orthographic camera whose rays all
     /// project to points), where rectification is undefined.
-    pub fn build(camera: &CameraModel, shadow: &ShadowMap, slices: u32) -> Option<Self> {
+    pub fn build(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
         let texel_from_world = shadow.texel_from_world;
         let size = shadow.size as f64;
         let corners = [
@@ -116,8 +146,6 @@ impl EpipolarMap {
                 full_circle,
             };
             let s_last = s_last.max(1.0);
-            // Slices two texels apart at the far end of the map: blending neighbours keeps
-            // edges sharp, and denser slices measurably add nothing but memory.
             (layout, 0.0, s_last, span, span * s_last)
         } else {
             let view = texel_from_world.transform_vector3(camera.ray(0.0, 0.0).direction);
@@ -139,12 +167,12 @@ impl EpipolarMap {
             };
             (layout, s_min, s_max, o_max - o_min, o_max - o_min)
         };
-        let slices = if slices == 0 {
-            ((texels_across * 0.5).ceil() as u32).clamp(16, MAX_AUTO_SLICES)
+        let slices = if desc.slices == 0 {
+            ((texels_across * desc.slices_per_texel).ceil() as u32).clamp(16, desc.max_auto_slices)
         } else {
-            slices
+            desc.slices
         };
-        let samples = (((s_last - s_first) * SAMPLES_PER_TEXEL).ceil() as u32).max(1);
+        let samples = (((s_last - s_first) * desc.samples_per_texel).ceil() as u32).max(1);
         let s_step = (s_last - s_first) / samples as f64;
         let layout = match layout {
             Layout::Radial {
@@ -335,6 +363,15 @@ impl EpipolarMap {
             lower + 1
         };
         [(lower, 1.0 - fraction), (upper, fraction)]
+    }
+
+    /// A monotone key with: a ray is lit at a sample when key(threshold) ≥ key(K). It is the
+    /// angle between view ray and light for a pinhole camera, bounded to [0, π].
+    pub fn order_key(&self, value: f64) -> f64 {
+        match self.layout {
+            Layout::Radial { .. } => 1.0f64.atan2(value),
+            Layout::Parallel { .. } => -value,
+        }
     }
 
     /// Sample i's interval along its slice.

@@ -14,6 +14,7 @@ pub mod layers;
 pub mod mesh_builder;
 pub mod minmax;
 pub mod phase;
+pub mod prefiltered;
 pub mod preview;
 pub mod raster;
 pub mod reference;

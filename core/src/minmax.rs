@@ -268,6 +268,7 @@ impl<'a> MinMaxMethod<'a> {
 mod tests {
     use super::*;
     use crate::camera::CameraModel;
+    use crate::epipolar::RectifyDesc;
     use crate::render::FlatGeometry;
     use crate::scene::{Camera, Medium, Mesh, RenderSettings};
     use crate::shadow_map::ShadowMap;
@@ -333,7 +334,8 @@ mod tests {
             triangles: mesh.triangles,
         };
         let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view());
-        EpipolarMap::build(&camera, &shadow, 0).expect("a pinhole camera rectifies")
+        EpipolarMap::build(&camera, &shadow, &RectifyDesc::min_max(0))
+            .expect("a pinhole camera rectifies")
     }
 
     #[test]

@@ -5,10 +5,11 @@ use rayon::prelude::*;
 
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
-use crate::epipolar::{epipoles_in_image, EpipolarMap};
+use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::{Error, Result};
 use crate::layers::Layers;
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
+use crate::prefiltered::Prefiltered;
 use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
@@ -138,13 +139,14 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             marcher.phase(ray.direction),
         )
     };
-    let rectified = match frame.settings.method {
+    let rectify = match frame.settings.method {
         Method::Reference => None,
-        Method::MinMax => EpipolarMap::build(&camera, &shadow, frame.settings.epipolar_slices),
+        Method::MinMax => Some(RectifyDesc::min_max(frame.settings.epipolar_slices)),
+        Method::Prefiltered => Some(RectifyDesc::prefiltered(frame.settings.epipolar_slices)),
     };
-    let Some(map) = rectified else {
-        // The reference, and any method where rectification is undefined (an
-        // orthographic camera looking straight along the light).
+    // Rectification is undefined for an orthographic camera looking straight along the
+    // light; the reference handles that view as it does any other.
+    let Some(map) = rectify.and_then(|desc| EpipolarMap::build(&camera, &shadow, &desc)) else {
         return shade_pixels(
             &camera,
             &surfaces,
@@ -161,9 +163,29 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             .iter()
             .any(|e| (pixel[0] - e[0]).abs() <= block && (pixel[1] - e[1]).abs() <= block)
     };
-    // Only the min-max method rectifies so far.
-    let mipmap = MinMaxMipmap::build(&map);
-    let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
+    let mipmap;
+    let prefiltered;
+    type FastMethod<'f> = Box<dyn Fn(&Ray, f64, f64) -> Option<PixelSample> + Sync + 'f>;
+    let fast: FastMethod = match frame.settings.method {
+        Method::Reference => Box::new(|_, _, _| None),
+        Method::MinMax => {
+            mipmap = MinMaxMipmap::build(&map);
+            let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
+            Box::new(move |ray, t0, t1| {
+                let sample = method.march(ray, t0, t1)?;
+                Some(to_pixel(sample, method.phase(ray.direction)))
+            })
+        }
+        Method::Prefiltered => {
+            prefiltered =
+                Prefiltered::build(&map, &camera, frame.settings.bases, frame.sun, frame.medium);
+            let method = &prefiltered;
+            Box::new(move |ray, t0, t1| {
+                let sample = method.march(ray, t0, t1)?;
+                Some(to_pixel(sample, method.phase(ray.direction)))
+            })
+        }
+    };
     shade_pixels(
         &camera,
         &surfaces,
@@ -173,10 +195,7 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             if near_epipole(pixel) {
                 return reference(ray, t0, t1);
             }
-            match method.march(ray, t0, t1) {
-                Some(sample) => to_pixel(sample, method.phase(ray.direction)),
-                None => reference(ray, t0, t1),
-            }
+            fast(ray, t0, t1).unwrap_or_else(|| reference(ray, t0, t1))
         },
     )
 }

@@ -211,15 +211,18 @@ pub enum Method {
     /// 1D min-max mipmaps on the epipolar-rectified shadow map (Chen et al. 2011).
     #[serde(rename = "minmax")]
     MinMax,
+    /// Fourier-basis prefiltering of the rectified shadow map (dissertation ch. 4).
+    Prefiltered,
 }
 
 impl Method {
-    pub const ALL: [Method; 2] = [Method::Reference, Method::MinMax];
+    pub const ALL: [Method; 3] = [Method::Reference, Method::MinMax, Method::Prefiltered];
 
     pub fn name(self) -> &'static str {
         match self {
             Method::Reference => "reference",
             Method::MinMax => "minmax",
+            Method::Prefiltered => "prefiltered",
         }
     }
 }
@@ -263,6 +266,8 @@ pub struct RenderSettings {
     /// Evaluate scattering at 1/1, 1/2 or 1/4 of the resolution per axis, then upsample
     /// with the full-resolution depth as guide.
     pub downsample: u32,
+    /// Fourier basis coefficients M of the prefiltered method (even, 4 to 64).
+    pub bases: u32,
 }
 
 impl Default for RenderSettings {
@@ -277,6 +282,7 @@ impl Default for RenderSettings {
             epipolar_slices: 0,
             epipole_block: 16,
             downsample: 1,
+            bases: 32,
         }
     }
 }
@@ -482,6 +488,12 @@ impl RenderSettings {
             0,
             MAX_IMAGE_SIZE,
         )?;
+        if self.bases % 2 != 0 || !(4..=64).contains(&self.bases) {
+            return Err(Error::invalid(
+                "render.bases",
+                format!("{} is not an even number from 4 to 64", self.bases),
+            ));
+        }
         if ![1, 2, 4].contains(&self.downsample) {
             return Err(Error::invalid(
                 "render.downsample",

@@ -81,6 +81,8 @@ fn sizes_out_of_range_are_named() {
         "camera.clip_end",
     );
     check(|s| s.render.downsample = 3, "render.downsample");
+    check(|s| s.render.bases = 7, "render.bases");
+    check(|s| s.render.bases = 66, "render.bases");
     check(|s| s.render.epipolar_slices = 1, "render.epipolar_slices");
     let mut both = valid_scene();
     both.render.downsample = 2;

@@ -266,3 +266,45 @@ fn downsampled_evaluation_stays_close_to_full_resolution() {
         }
     }
 }
+
+/// The prefiltered method (work in progress): it meets the 2% bound at M = 32 on
+/// `torus` and `tree` in every view, and its error falls as M grows everywhere. On
+/// `colonnade` (low sun in view) and `plane` it does not meet its bounds yet; the test
+/// holds those to the trend only, and the numbers are printed for the record.
+#[test]
+fn prefiltered_error_falls_with_more_bases() {
+    let mut failures = Vec::new();
+    for name in BUILTIN_SCENES {
+        for (view, scene) in views(name) {
+            let reference = render_with(&scene, Method::Reference, 4096);
+            let errors: Vec<f64> = [8, 32, 64]
+                .iter()
+                .map(|&bases| {
+                    let mut scene = scene.clone();
+                    scene.render.bases = bases;
+                    let fast = render_with(&scene, Method::Prefiltered, 4096);
+                    assert_finite(&fast);
+                    error(&fast, &reference).0
+                })
+                .collect();
+            println!(
+                "{name:>10} {view:<12} M=8 {:.2}%  M=32 {:.2}%  M=64 {:.2}%",
+                errors[0] * 100.0,
+                errors[1] * 100.0,
+                errors[2] * 100.0
+            );
+            if !(errors[0] > errors[1] && errors[1] >= 0.95 * errors[2]) {
+                failures.push(format!(
+                    "{name} {view}: error does not fall with M: {errors:?}"
+                ));
+            }
+            if ["torus", "tree"].contains(&name) && errors[1] > 0.02 {
+                failures.push(format!(
+                    "{name} {view}: {:.2}% at M = 32",
+                    errors[1] * 100.0
+                ));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
+}
