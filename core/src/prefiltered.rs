@@ -3,8 +3,9 @@
 //! visibility over any stretch of a view ray is one dot product between the ray's
 //! coefficients and the difference of two prefix sums of the basis along its slice.
 //!
-//! Per slice, keys (view-ray angles) are normalized to the range the image's rays span
-//! and mapped into [¼, ¾], so that differences stay clear of the series' periodic jump.
+//! Per slice, keys (view-ray angles) are warped monotonically by the quantiles of the
+//! slice's ray keys into [¼, ¾], so that the basis resolves keys where rays are and
+//! differences stay clear of the series' periodic jump.
 //!
 //! Transmittance weighting departs from the paper's single reference ray per slice
 //! (§4.3.2): near the epipole, rays of one slice cross it at speeds that differ by orders
@@ -33,11 +34,26 @@ const SEGMENT_OPTICAL_DEPTH: f64 = 0.125;
 /// Most weighting segments per ray.
 const MAX_SEGMENTS: usize = 32;
 
-/// Per-slice normalization of keys.
+/// Quantiles of the ray keys kept per slice.
+const KNOTS: usize = 9;
+
+/// Per slice, a monotone warp of keys: the quantiles of the slice's ray keys map to
+/// evenly spaced positions in [¼, ¾], which spends the basis' resolution where rays are.
 #[derive(Clone, Copy, Debug)]
 struct SliceFrame {
-    key_low: f64,
-    key_scale: f64,
+    knots: [f64; KNOTS],
+}
+
+impl SliceFrame {
+    /// Position in [0, 1] for a key; rays land in [¼, ¾].
+    fn warp(&self, key: f64) -> f64 {
+        let k = &self.knots;
+        let segment = (KNOTS - 1) as f64;
+        let index = k[1..KNOTS - 1].partition_point(|&knot| knot <= key);
+        let (a, b) = (k[index], k[index + 1]);
+        let local = (index as f64 + (key - a) / (b - a)) / segment;
+        (0.25 + 0.5 * local).clamp(0.0, 1.0)
+    }
 }
 
 /// The filtered-basis storage: per slice and sample boundary, the prefix sums of the
@@ -78,8 +94,7 @@ impl<'a> Prefiltered<'a> {
                 let frame = frames[slice];
                 let mut sums = vec![0.0f64; row_len];
                 for (i, &value) in map.row(slice as u32).iter().enumerate() {
-                    let key = map.order_key(value as f64);
-                    let z = (0.25 + 0.5 * (key - frame.key_low) * frame.key_scale).clamp(0.0, 1.0);
+                    let z = frame.warp(map.order_key(value as f64));
                     for m in 0..frequencies {
                         let (sin, cos) = (frequency(m) * z).sin_cos();
                         sums[m] += cos;
@@ -117,8 +132,7 @@ impl<'a> Prefiltered<'a> {
     /// V ≈ ½ + Σ (2/c)(sin(c·z_r)·cos(c·z_i) − cos(c·z_r)·sin(c·z_i)).
     fn coefficients(&self, located: &RaySlice, slice: u32, out: &mut [f64]) {
         let frame = self.frames[slice as usize];
-        let z =
-            0.25 + 0.5 * (self.map.order_key(located.threshold) - frame.key_low) * frame.key_scale;
+        let z = frame.warp(self.map.order_key(located.threshold));
         let f = self.frequencies;
         for m in 0..f {
             let c = frequency(m);
@@ -210,12 +224,11 @@ impl<'a> Prefiltered<'a> {
     }
 }
 
-/// Normalization ranges per slice, from the rays of every other pixel and the image's
-/// border; slices that no sampled ray touches take the whole image's range.
+/// Key quantiles per slice, from the rays of every other pixel and the image's border;
+/// slices that no sampled ray touches take the whole image's quantiles.
 fn slice_frames(map: &EpipolarMap, camera: &CameraModel) -> Vec<SliceFrame> {
-    let empty = (f64::INFINITY, f64::NEG_INFINITY);
-    let mut ranges = vec![empty; map.slices as usize];
-    let mut global = empty;
+    let mut keys: Vec<Vec<f64>> = vec![Vec::new(); map.slices as usize];
+    let mut all = Vec::new();
     let (w, h) = (camera.width, camera.height);
     let xs: Vec<u32> = (0..w).step_by(2).chain(std::iter::once(w - 1)).collect();
     let ys: Vec<u32> = (0..h).step_by(2).chain(std::iter::once(h - 1)).collect();
@@ -229,24 +242,39 @@ fn slice_frames(map: &EpipolarMap, camera: &CameraModel) -> Vec<SliceFrame> {
                 };
                 let key = map.order_key(located.threshold);
                 for (slice, _) in map.neighbours(located.slice) {
-                    for range in [&mut ranges[slice as usize], &mut global] {
-                        *range = (range.0.min(key), range.1.max(key));
-                    }
+                    keys[slice as usize].push(key);
                 }
+                all.push(key);
             }
         }
     }
-    if !global.0.is_finite() {
-        global = (0.0, 1.0);
-    }
-    ranges
-        .iter()
-        .map(|&range| {
-            let (low, high) = if range.0.is_finite() { range } else { global };
-            SliceFrame {
-                key_low: low,
-                key_scale: 1.0 / (high - low).max(1e-9),
-            }
+    let quantiles = |keys: &mut Vec<f64>| -> Option<[f64; KNOTS]> {
+        if keys.is_empty() {
+            return None;
+        }
+        keys.sort_by(f64::total_cmp);
+        let mut knots = [0.0; KNOTS];
+        for (i, knot) in knots.iter_mut().enumerate() {
+            let position = i * (keys.len() - 1) / (KNOTS - 1);
+            *knot = keys[position];
+        }
+        // Strictly increasing, so that every segment has a slope.
+        let spread = (knots[KNOTS - 1] - knots[0]).max(1e-9);
+        for i in 1..KNOTS {
+            knots[i] = knots[i].max(knots[i - 1] + spread * 1e-6);
+        }
+        Some(knots)
+    };
+    let global = quantiles(&mut all).unwrap_or_else(|| {
+        let mut knots = [0.0; KNOTS];
+        for (i, knot) in knots.iter_mut().enumerate() {
+            *knot = i as f64;
+        }
+        knots
+    });
+    keys.par_iter_mut()
+        .map(|keys| SliceFrame {
+            knots: quantiles(keys).unwrap_or(global),
         })
         .collect()
 }
