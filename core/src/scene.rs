@@ -488,10 +488,14 @@ impl RenderSettings {
             0,
             MAX_IMAGE_SIZE,
         )?;
-        if self.bases % 2 != 0 || !(4..=64).contains(&self.bases) {
+        use crate::prefiltered::{MAX_BASES, MIN_BASES};
+        if self.bases % 2 != 0 || !(MIN_BASES..=MAX_BASES).contains(&self.bases) {
             return Err(Error::invalid(
                 "render.bases",
-                format!("{} is not an even number from 4 to 64", self.bases),
+                format!(
+                    "{} is not an even number from {MIN_BASES} to {MAX_BASES}",
+                    self.bases
+                ),
             ));
         }
         if ![1, 2, 4].contains(&self.downsample) {
