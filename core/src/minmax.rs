@@ -8,13 +8,11 @@
 //! integrated in closed form, so the result equals ray marching the rectified map with
 //! infinitely many steps.
 
-use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::camera::Ray;
 use crate::epipolar::{EpipolarMap, RaySlice};
-use crate::phase;
-use crate::reference::{integral_exp, BoxMedium, RaySample};
+use crate::reference::{integral_exp, medium_segment, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 
 /// Minimum and maximum of K over aligned runs of samples, for levels 1 and up. Each
@@ -177,7 +175,6 @@ pub struct MinMaxMethod<'a> {
     map: &'a EpipolarMap,
     mipmap: &'a MinMaxMipmap,
     medium: &'a Medium,
-    light_travel: DVec3,
     box_medium: Option<BoxMedium>,
 }
 
@@ -193,32 +190,18 @@ impl<'a> MinMaxMethod<'a> {
             map,
             mipmap,
             medium,
-            light_travel,
             box_medium: BoxMedium::new(&medium.extent, light_travel),
         }
-    }
-
-    pub fn phase(&self, direction: DVec3) -> f64 {
-        phase::evaluate(self.medium, self.light_travel, direction)
     }
 
     /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
         let located = self.map.locate(ray)?;
         if t_end <= t_start {
-            return Some(RaySample {
-                visibility: 1.0,
-                ..RaySample::default()
-            });
+            return Some(RaySample::EMPTY);
         }
         let sigma = self.medium.extinction as f64;
-        let medium_segment = match &self.box_medium {
-            None => Some((t_start, t_end)),
-            Some(box_medium) => box_medium
-                .clip(ray)
-                .map(|(a, b)| (a.max(t_start), b.min(t_end)))
-                .filter(|(a, b)| b > a),
-        };
+        let medium_segment = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end);
         let mut blended = RaySample::default();
         for (slice, weight) in self.map.neighbours(located.slice) {
             if weight == 0.0 {

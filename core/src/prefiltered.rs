@@ -16,13 +16,11 @@
 
 use std::f64::consts::PI;
 
-use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
-use crate::phase;
-use crate::reference::{integral_exp, BoxMedium, RaySample};
+use crate::reference::{integral_exp, medium_segment, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 
 /// Basis coefficients M: sine and cosine of M/2 frequencies.
@@ -65,7 +63,6 @@ pub struct Prefiltered<'a> {
     /// Per slice, (samples + 1) rows of [U_cos(F), U_sin(F)].
     prefix: Vec<f32>,
     medium: &'a Medium,
-    light_travel: DVec3,
     box_medium: Option<BoxMedium>,
 }
 
@@ -115,17 +112,12 @@ impl<'a> Prefiltered<'a> {
             frames,
             prefix,
             medium,
-            light_travel,
             box_medium: BoxMedium::new(&medium.extent, light_travel),
         }
     }
 
     pub fn memory_bytes(&self) -> usize {
         self.prefix.len() * std::mem::size_of::<f32>()
-    }
-
-    pub fn phase(&self, direction: DVec3) -> f64 {
-        phase::evaluate(self.medium, self.light_travel, direction)
     }
 
     /// The ray's basis coefficients in `slice`:
@@ -170,19 +162,10 @@ impl<'a> Prefiltered<'a> {
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
         let located = self.map.locate(ray)?;
         if t_end <= t_start {
-            return Some(RaySample {
-                visibility: 1.0,
-                ..RaySample::default()
-            });
+            return Some(RaySample::EMPTY);
         }
         let sigma = self.medium.extinction as f64;
-        let medium_segment = match &self.box_medium {
-            None => Some((t_start, t_end)),
-            Some(box_medium) => box_medium
-                .clip(ray)
-                .map(|(a, b)| (a.max(t_start), b.min(t_end)))
-                .filter(|(a, b)| b > a),
-        };
+        let medium_segment = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end);
         let s = |t: f64| located.s_origin + located.s_per_t * t;
         let mut coefficients = [0.0f64; MAX_BASES as usize];
         let coefficients = &mut coefficients[..2 * self.frequencies];

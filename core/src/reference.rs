@@ -7,7 +7,6 @@
 use glam::{DMat4, DVec3};
 
 use crate::camera::Ray;
-use crate::phase;
 use crate::scene::{Extent, Medium, Sun};
 use crate::shadow_map::ShadowMap;
 
@@ -20,6 +19,32 @@ pub struct RaySample {
     pub alpha: f64,
     /// Average sun visibility along the ray segment.
     pub visibility: f64,
+}
+
+impl RaySample {
+    /// An empty stretch of medium: nothing scattered or absorbed, nothing shadowed.
+    pub const EMPTY: RaySample = RaySample {
+        scattering: 0.0,
+        alpha: 0.0,
+        visibility: 1.0,
+    };
+}
+
+/// The part of [t_start, t_end] where the ray is inside the medium: all of it when the
+/// medium is unbounded, `None` when the ray misses the box.
+pub(crate) fn medium_segment(
+    box_medium: Option<&BoxMedium>,
+    ray: &Ray,
+    t_start: f64,
+    t_end: f64,
+) -> Option<(f64, f64)> {
+    match box_medium {
+        None => Some((t_start, t_end)),
+        Some(box_medium) => box_medium
+            .clip(ray)
+            .map(|(a, b)| (a.max(t_start), b.min(t_end)))
+            .filter(|(a, b)| b > a),
+    }
 }
 
 /// ∫₀ᵈ e^(−k·u) du, also for k near zero or negative.
@@ -144,39 +169,26 @@ impl BoxMedium {
 #[derive(Clone, Debug)]
 pub struct Marcher<'a> {
     shadow: &'a ShadowMap,
-    light_travel: DVec3,
     extinction: f64,
     steps: u32,
-    medium: &'a Medium,
     box_medium: Option<BoxMedium>,
 }
 
 impl<'a> Marcher<'a> {
-    pub fn new(shadow: &'a ShadowMap, sun: &Sun, medium: &'a Medium, steps: u32) -> Self {
+    pub fn new(shadow: &'a ShadowMap, sun: &Sun, medium: &Medium, steps: u32) -> Self {
         let light_travel = sun.direction.as_dvec3().normalize();
-        let box_medium = BoxMedium::new(&medium.extent, light_travel);
         Self {
             shadow,
-            light_travel,
             extinction: medium.extinction as f64,
             steps,
-            medium,
-            box_medium,
+            box_medium: BoxMedium::new(&medium.extent, light_travel),
         }
-    }
-
-    /// The phase function value for a view ray direction.
-    pub fn phase(&self, direction: DVec3) -> f64 {
-        phase::evaluate(self.medium, self.light_travel, direction)
     }
 
     /// Integrates one ray over [t_start, t_end].
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
         if t_end <= t_start {
-            return RaySample {
-                visibility: 1.0,
-                ..RaySample::default()
-            };
+            return RaySample::EMPTY;
         }
         let texel_origin = self.shadow.texel_from_world.transform_point3(ray.origin);
         let texel_step = self
@@ -188,19 +200,12 @@ impl<'a> Marcher<'a> {
             None => self.march_unbounded(&lit, t_start, t_end),
             Some(box_medium) => {
                 let visibility = self.average_visibility(&lit, t_start, t_end);
-                let Some((a, b)) = box_medium.clip(ray) else {
+                let Some((a, b)) = medium_segment(Some(box_medium), ray, t_start, t_end) else {
                     return RaySample {
                         visibility,
-                        ..RaySample::default()
+                        ..RaySample::EMPTY
                     };
                 };
-                let (a, b) = (a.max(t_start), b.min(t_end));
-                if b <= a {
-                    return RaySample {
-                        visibility,
-                        ..RaySample::default()
-                    };
-                }
                 RaySample {
                     scattering: self.scatter_in_box(box_medium, ray, &lit, a, b),
                     alpha: -(-self.extinction * (b - a)).exp_m1(),

@@ -9,6 +9,7 @@ use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::{Error, Result};
 use crate::layers::Layers;
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
+use crate::phase;
 use crate::prefiltered::Prefiltered;
 use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
@@ -128,17 +129,15 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     let tint = frame.medium.albedo.as_dvec3()
         * frame.medium.extinction as f64
         * frame.sun.irradiance().as_dvec3();
-    let to_pixel = |sample: RaySample, phase: f64| PixelSample {
-        radiance: tint * (sample.scattering * phase),
+    let light_travel = frame.sun.direction.as_dvec3().normalize();
+    let to_pixel = |sample: RaySample, ray: &Ray| PixelSample {
+        radiance: tint
+            * (sample.scattering * phase::evaluate(frame.medium, light_travel, ray.direction)),
         alpha: sample.alpha,
         visibility: sample.visibility,
     };
-    let reference = |ray: &Ray, t_start: f64, t_end: f64| {
-        to_pixel(
-            marcher.march(ray, t_start, t_end),
-            marcher.phase(ray.direction),
-        )
-    };
+    let reference =
+        |ray: &Ray, t_start: f64, t_end: f64| to_pixel(marcher.march(ray, t_start, t_end), ray);
     let rectify = match frame.settings.method {
         Method::Reference => None,
         Method::MinMax => Some(RectifyDesc::min_max(frame.settings.epipolar_slices)),
@@ -173,7 +172,7 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
             Box::new(move |ray, t0, t1| {
                 let sample = method.march(ray, t0, t1)?;
-                Some(to_pixel(sample, method.phase(ray.direction)))
+                Some(to_pixel(sample, ray))
             })
         }
         Method::Prefiltered => {
@@ -182,7 +181,7 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             let method = &prefiltered;
             Box::new(move |ray, t0, t1| {
                 let sample = method.march(ray, t0, t1)?;
-                Some(to_pixel(sample, method.phase(ray.direction)))
+                Some(to_pixel(sample, ray))
             })
         }
     };
