@@ -1,7 +1,11 @@
-//! Kernel benchmarks: shadow-map and camera rasterization, and the reference ray march,
-//! on the built-in scenes. Whole-frame timings come from `crepuscular bench`.
+//! Kernel benchmarks: shadow-map and camera rasterization, the reference ray march,
+//! epipolar rectification, and prefiltering (basis transform with weighted prefix sums,
+//! and per-ray evaluation) on the built-in scenes. Whole-frame timings come from
+//! `crepuscular bench`.
 
 use crepuscular::camera::CameraModel;
+use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
+use crepuscular::prefiltered::Prefiltered;
 use crepuscular::raster::{rasterize, RasterDesc};
 use crepuscular::reference::Marcher;
 use crepuscular::render::FlatGeometry;
@@ -70,5 +74,59 @@ fn reference_march(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(kernels, rasterization, reference_march);
+/// At 1920×1080 with a 1024² map: rectification, the filtered basis for M = 16/32/64,
+/// and 4096 rays spread over the image evaluated against it.
+fn prefiltering(c: &mut Criterion) {
+    let mut group = c.benchmark_group("prefiltering");
+    group.sample_size(10);
+    for name in ["tree", "colonnade"] {
+        let mut scene = builtin_scene(name).expect("built-in scene");
+        scene.camera.width = 1920;
+        scene.camera.height = 1080;
+        let geometry = FlatGeometry::from_scene(&scene);
+        let camera = CameraModel::new(&scene.camera);
+        let shadow = ShadowMap::build(
+            &camera,
+            &scene.sun,
+            &scene.medium,
+            &scene.render,
+            &geometry.view(),
+        );
+        let desc = RectifyDesc::prefiltered(0);
+        group.bench_function(BenchmarkId::new("rectify", name), |b| {
+            b.iter(|| EpipolarMap::build(&camera, &shadow, &desc))
+        });
+        let map = EpipolarMap::build(&camera, &shadow, &desc).expect("rectifiable view");
+        let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+        for bases in [16, 32, 64] {
+            group.bench_function(BenchmarkId::new(format!("filter_m{bases}"), name), |b| {
+                b.iter(|| {
+                    Prefiltered::build(&map, &camera, &epipoles, bases, &scene.sun, &scene.medium)
+                })
+            });
+        }
+        let prefiltered =
+            Prefiltered::build(&map, &camera, &epipoles, 32, &scene.sun, &scene.medium);
+        let rays: Vec<_> = (0..4096)
+            .map(|i| {
+                camera.ray(
+                    (i % 64) as f64 * 30.0 + 15.0,
+                    (i / 64) as f64 * 16.875 + 8.0,
+                )
+            })
+            .collect();
+        let max_distance = scene.render.max_distance as f64;
+        group.bench_function(BenchmarkId::new("evaluate_4096_rays_m32", name), |b| {
+            b.iter(|| {
+                rays.iter()
+                    .filter_map(|ray| prefiltered.march(ray, 0.1, max_distance))
+                    .map(|sample| sample.scattering)
+                    .sum::<f64>()
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(kernels, rasterization, reference_march, prefiltering);
 criterion_main!(kernels);

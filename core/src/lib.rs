@@ -27,5 +27,8 @@ pub use builtin::{builtin_scene, BUILTIN_SCENES};
 pub use control::RenderControl;
 pub use error::{Error, Result};
 pub use layers::Layers;
-pub use render::{render, render_scene, CameraDepth, DepthKind, Frame, Geometry};
+pub use render::{
+    render, render_scene, render_scene_timed, render_timed, CameraDepth, DepthKind, Frame,
+    Geometry, StageTimes,
+};
 pub use scene::Scene;

@@ -12,7 +12,7 @@ use rayon::prelude::*;
 
 use crate::camera::Ray;
 use crate::epipolar::{EpipolarMap, RaySlice};
-use crate::reference::{integral_exp, medium_segment, BoxMedium, RaySample};
+use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 
 /// Minimum and maximum of K over aligned runs of samples, for levels 1 and up. Each
@@ -226,7 +226,16 @@ impl<'a> MinMaxMethod<'a> {
             blended.scattering += weight * scattering;
             blended.visibility += weight * lit_length / (t_end - t_start);
         }
-        blended.alpha = medium_segment.map_or(0.0, |(a, b)| -(-sigma * (b - a)).exp_m1());
+        if let Some((a, b)) = medium_segment {
+            let unshadowed = match &self.box_medium {
+                None => integral_exp(sigma, b - a),
+                Some(box_medium) => box_medium.integrate(ray, a, b, a, sigma),
+            };
+            blended.alpha = -(-sigma * (b - a)).exp_m1();
+            if let Some(visibility) = weighted_visibility(blended.scattering, unshadowed) {
+                blended.visibility = visibility;
+            }
+        }
         Some(blended)
     }
 

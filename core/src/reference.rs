@@ -165,6 +165,13 @@ impl BoxMedium {
     }
 }
 
+/// V̄ of a ray: its in-scattering over what it would be unshadowed, i.e. visibility
+/// averaged along the ray with the weights light actually reaches the camera with. It is
+/// the plain average in thin media, and `None` where no medium is crossed.
+pub(crate) fn weighted_visibility(scattering: f64, unshadowed: f64) -> Option<f64> {
+    (unshadowed > 1e-300).then(|| (scattering / unshadowed).clamp(0.0, 1.0))
+}
+
 /// Per-frame constants of the march.
 #[derive(Clone, Debug)]
 pub struct Marcher<'a> {
@@ -199,17 +206,18 @@ impl<'a> Marcher<'a> {
         match &self.box_medium {
             None => self.march_unbounded(&lit, t_start, t_end),
             Some(box_medium) => {
-                let visibility = self.average_visibility(&lit, t_start, t_end);
                 let Some((a, b)) = medium_segment(Some(box_medium), ray, t_start, t_end) else {
                     return RaySample {
-                        visibility,
+                        visibility: self.average_visibility(&lit, t_start, t_end),
                         ..RaySample::EMPTY
                     };
                 };
+                let (scattering, unshadowed) = self.scatter_in_box(box_medium, ray, &lit, a, b);
                 RaySample {
-                    scattering: self.scatter_in_box(box_medium, ray, &lit, a, b),
+                    scattering,
                     alpha: -(-self.extinction * (b - a)).exp_m1(),
-                    visibility,
+                    visibility: weighted_visibility(scattering, unshadowed)
+                        .unwrap_or_else(|| self.average_visibility(&lit, t_start, t_end)),
                 }
             }
         }
@@ -222,19 +230,19 @@ impl<'a> Marcher<'a> {
         let decay = (-sigma * dt).exp();
         let per_step = integral_exp(sigma, dt);
         let mut transmittance = 1.0;
-        let mut scattering = 0.0;
-        let mut lit_steps = 0u32;
+        let (mut scattering, mut unshadowed) = (0.0, 0.0);
         for i in 0..n {
             if lit(t_start + (i as f64 + 0.5) * dt) {
                 scattering += transmittance;
-                lit_steps += 1;
             }
+            unshadowed += transmittance;
             transmittance *= decay;
         }
         RaySample {
             scattering: scattering * per_step,
             alpha: -(-sigma * (t_end - t_start)).exp_m1(),
-            visibility: lit_steps as f64 / n as f64,
+            visibility: weighted_visibility(scattering, unshadowed)
+                .unwrap_or_else(|| self.average_visibility(lit, t_start, t_end)),
         }
     }
 
@@ -248,7 +256,7 @@ impl<'a> Marcher<'a> {
     }
 
     /// ∫ₐᵇ V(t) · e^(−σt·ℓ(t)) · e^(−σt·(t−a)) dt, with ℓ the sunward depth into the box,
-    /// taken as linear within each step.
+    /// taken as linear within each step; and the same integral with V = 1.
     fn scatter_in_box(
         &self,
         box_medium: &BoxMedium,
@@ -256,7 +264,7 @@ impl<'a> Marcher<'a> {
         lit: &impl Fn(f64) -> bool,
         a: f64,
         b: f64,
-    ) -> f64 {
+    ) -> (f64, f64) {
         let n = self.steps;
         let dt = (b - a) / n as f64;
         let sigma = self.extinction;
@@ -264,18 +272,20 @@ impl<'a> Marcher<'a> {
         let cube_step = box_medium.cube_from_world.transform_vector3(ray.direction);
         let depth_at = |t: f64| box_medium.sunward_depth(cube_origin + cube_step * t);
         let mut depth_before = depth_at(a);
-        let mut scattering = 0.0;
+        let (mut scattering, mut unshadowed) = (0.0, 0.0);
         for i in 0..n {
             let t0 = a + i as f64 * dt;
             let depth_after = depth_at(t0 + dt);
+            let slope = (depth_after - depth_before) / dt;
+            let step =
+                (-sigma * (depth_before + t0 - a)).exp() * integral_exp(sigma * (1.0 + slope), dt);
             if lit(t0 + 0.5 * dt) {
-                let slope = (depth_after - depth_before) / dt;
-                scattering += (-sigma * (depth_before + t0 - a)).exp()
-                    * integral_exp(sigma * (1.0 + slope), dt);
+                scattering += step;
             }
+            unshadowed += step;
             depth_before = depth_after;
         }
-        scattering
+        (scattering, unshadowed)
     }
 }
 

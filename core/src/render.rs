@@ -95,9 +95,14 @@ impl FlatGeometry {
 
 /// Renders a validated scene description.
 pub fn render_scene(scene: &Scene, control: &RenderControl) -> Result<Layers> {
+    render_scene_timed(scene, control).map(|(layers, _)| layers)
+}
+
+/// [`render_scene`], also reporting how long each stage took.
+pub fn render_scene_timed(scene: &Scene, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     scene.validate()?;
     let geometry = FlatGeometry::from_scene(scene);
-    render(
+    render_timed(
         &Frame {
             camera: &scene.camera,
             sun: &scene.sun,
@@ -110,8 +115,41 @@ pub fn render_scene(scene: &Scene, control: &RenderControl) -> Result<Layers> {
     )
 }
 
+/// Wall time of each stage of one frame, in seconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StageTimes {
+    pub shadow_map: f64,
+    pub camera_depth: f64,
+    /// Epipolar rectification of the shadow map (fast methods).
+    pub rectify: f64,
+    /// The method's acceleration structure: min-max mipmap or filtered basis.
+    pub prepare: f64,
+    /// Per-pixel evaluation, upsampling included.
+    pub shading: f64,
+}
+
+impl StageTimes {
+    /// The scattering stage alone: everything after the two depth maps.
+    pub fn scattering(&self) -> f64 {
+        self.rectify + self.prepare + self.shading
+    }
+}
+
 /// Renders one frame from borrowed inputs, validating them first.
 pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
+    render_timed(frame, control).map(|(layers, _)| layers)
+}
+
+/// [`render`], also reporting how long each stage took.
+pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+    let mut times = StageTimes::default();
+    let mut clock = std::time::Instant::now();
+    let mut lap = || {
+        let now = std::time::Instant::now();
+        let seconds = (now - clock).as_secs_f64();
+        clock = now;
+        seconds
+    };
     frame.validate()?;
     control.begin(reduced_size(frame.camera.height, frame.settings.downsample) as u64);
     control.check()?;
@@ -124,7 +162,9 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
         &frame.geometry,
     );
     control.check()?;
+    times.shadow_map = lap();
     let surfaces = SurfaceDistances::new(&camera, frame);
+    times.camera_depth = lap();
     let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
     let tint = frame.medium.albedo.as_dvec3()
         * frame.medium.extinction as f64
@@ -146,15 +186,18 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     // Rectification is undefined for an orthographic camera looking straight along the
     // light; the reference handles that view as it does any other.
     let Some(map) = rectify.and_then(|desc| EpipolarMap::build(&camera, &shadow, &desc)) else {
-        return shade_pixels(
+        let layers = shade_pixels(
             &camera,
             &surfaces,
             frame.settings,
             control,
             |_, ray, t0, t1| reference(ray, t0, t1),
-        );
+        )?;
+        times.shading = lap();
+        return Ok((layers, times));
     };
     control.check()?;
+    times.rectify = lap();
     let block = frame.settings.epipole_block as f64;
     let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, block).collect();
     let near_epipole = |pixel: [f64; 2]| {
@@ -176,8 +219,16 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             })
         }
         Method::Prefiltered => {
-            prefiltered =
-                Prefiltered::build(&map, &camera, frame.settings.bases, frame.sun, frame.medium);
+            // Every epipole ahead of the camera, however far off the image.
+            let ahead: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+            prefiltered = Prefiltered::build(
+                &map,
+                &camera,
+                &ahead,
+                frame.settings.bases,
+                frame.sun,
+                frame.medium,
+            );
             let method = &prefiltered;
             Box::new(move |ray, t0, t1| {
                 let sample = method.march(ray, t0, t1)?;
@@ -185,7 +236,8 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             })
         }
     };
-    shade_pixels(
+    times.prepare = lap();
+    let layers = shade_pixels(
         &camera,
         &surfaces,
         frame.settings,
@@ -196,7 +248,9 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
             }
             fast(ray, t0, t1).unwrap_or_else(|| reference(ray, t0, t1))
         },
-    )
+    )?;
+    times.shading = lap();
+    Ok((layers, times))
 }
 
 /// One sample's result, before averaging into its pixel.

@@ -267,10 +267,8 @@ fn downsampled_evaluation_stays_close_to_full_resolution() {
     }
 }
 
-/// The prefiltered method (work in progress): it meets the 2% bound at M = 32 on
-/// `torus` and `tree` in every view, and its error falls as M grows everywhere. On
-/// `colonnade` (low sun in view) and `plane` it does not meet its bounds yet; the test
-/// holds those to the trend only, and the numbers are printed for the record.
+/// The prefiltered method: at M = 32 it meets the bounds (2%, 4% on `plane`) in
+/// every view but the known gaps below, and its error falls as M grows everywhere.
 #[test]
 fn prefiltered_error_falls_with_more_bases() {
     let mut failures = Vec::new();
@@ -298,10 +296,24 @@ fn prefiltered_error_falls_with_more_bases() {
                     "{name} {view}: error does not fall with M: {errors:?}"
                 ));
             }
-            if ["torus", "tree"].contains(&name) && errors[1] > 0.02 {
+            // Views above the bound, open work: rays that run along shafts or
+            // end right under their occluders (contact shadows) fall inside the Fourier
+            // step's transition. They are held to their current level so that they
+            // cannot regress unnoticed.
+            let known_gap = matches!(
+                (name, view),
+                ("plane", "sideways") | ("colonnade", "default" | "sun in view" | "sideways")
+            );
+            let bound = match (name, known_gap) {
+                (_, true) => 0.08,
+                ("plane", false) => 0.04,
+                _ => 0.02,
+            };
+            if errors[1] > bound {
                 failures.push(format!(
-                    "{name} {view}: {:.2}% at M = 32",
-                    errors[1] * 100.0
+                    "{name} {view}: {:.2}% at M = 32, above {:.0}%",
+                    errors[1] * 100.0,
+                    bound * 100.0
                 ));
             }
         }

@@ -124,13 +124,15 @@ fn a_half_space_occluder_cuts_rays_where_its_shadow_begins() {
             let i = (y * 64 + x) as usize;
             let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
             let t_cut = 5.0 / ray.direction.x;
-            let visible = (t_cut - t_start) / (20.0 - t_start);
+            // V̄ weights visibility by the transmittance to the camera.
+            let sigma = 0.1;
+            let visible =
+                (-sigma * (t_cut - t_start)).exp_m1() / (-sigma * (20.0 - t_start)).exp_m1();
             assert!(
                 (layers.visibility[i] as f64 - visible).abs() < 1e-3,
                 "V̄ ({x}, {y}): {} vs {visible}",
                 layers.visibility[i]
             );
-            let sigma = 0.1;
             let expected = source_term(&scene, ray.direction)
                 * (-(-sigma * (t_cut - t_start)).exp_m1() / sigma);
             let got = layers.volume_rgba(x, y);

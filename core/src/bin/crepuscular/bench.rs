@@ -1,12 +1,11 @@
-//! `crepuscular bench`: whole-frame timings of each method on the built-in scenes,
-//! measured side by side in one run so that ratios are meaningful on noisy machines.
-
-use std::time::Instant;
+//! `crepuscular bench`: whole-frame and scattering-stage timings of each method on the
+//! built-in scenes, measured side by side in one run so that ratios are meaningful on
+//! noisy machines.
 
 use clap::Args;
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
-use crepuscular::scene::Method;
-use crepuscular::{render_scene, RenderControl, Result};
+use crepuscular::scene::{Method, Scene};
+use crepuscular::{render_scene_timed, RenderControl, Result};
 
 use crate::Overrides;
 
@@ -18,31 +17,108 @@ pub struct BenchArgs {
     /// Timed runs per row (after one warm-up run).
     #[arg(long, default_value_t = 5)]
     runs: usize,
+    /// Instead of the method table, time prefiltering on the first scene across image
+    /// sizes (720p, 1080p, 2160p) and shadow-map sizes (512² to 4096²).
+    #[arg(long)]
+    scaling: bool,
     #[command(flatten)]
     overrides: Overrides,
 }
 
-struct Row {
-    scene: String,
+/// One timed configuration.
+#[derive(Clone, Copy)]
+struct Variant {
     method: Method,
     downsample: u32,
-    detail: String,
-    times_ms: Vec<f64>,
+    bases: Option<u32>,
+    size: Option<(u32, u32)>,
+    shadow_map_size: Option<u32>,
 }
 
-impl Row {
-    fn label(&self) -> String {
-        match self.downsample {
-            1 => self.method.name().to_owned(),
-            factor => format!("{} 1/{factor}", self.method.name()),
+impl Variant {
+    fn of(method: Method) -> Self {
+        Self {
+            method,
+            downsample: 1,
+            bases: None,
+            size: None,
+            shadow_map_size: None,
         }
+    }
+
+    fn apply(&self, scene: &mut Scene) {
+        scene.render.method = self.method;
+        scene.render.downsample = self.downsample;
+        if let Some(bases) = self.bases {
+            scene.render.bases = bases;
+        }
+        if let Some((width, height)) = self.size {
+            scene.camera.width = width;
+            scene.camera.height = height;
+        }
+        if let Some(size) = self.shadow_map_size {
+            scene.render.shadow_map_size = size;
+        }
+    }
+
+    fn label(&self, scene: &Scene) -> String {
+        let mut label = self.method.name().to_owned();
+        if self.method == Method::Prefiltered {
+            label += &format!(" M={}", scene.render.bases);
+        }
+        if self.downsample > 1 {
+            label += &format!(" 1/{}", self.downsample);
+        }
+        label
     }
 }
 
-/// The methods timed by default: each at full resolution, plus the fast one at half.
-fn default_variants() -> Vec<(Method, u32)> {
-    let mut variants: Vec<(Method, u32)> = Method::ALL.iter().map(|&m| (m, 1)).collect();
-    variants.push((Method::MinMax, 2));
+struct Row {
+    scene: String,
+    label: String,
+    is_reference: bool,
+    detail: String,
+    frame_ms: Vec<f64>,
+    scattering_ms: Vec<f64>,
+}
+
+/// The table: every method at full size, prefiltering at M = 16/32/64, and the
+/// fast methods at half resolution with upsampling.
+fn method_variants() -> Vec<Variant> {
+    let prefiltered = |bases: u32, downsample: u32| Variant {
+        bases: Some(bases),
+        downsample,
+        ..Variant::of(Method::Prefiltered)
+    };
+    vec![
+        Variant::of(Method::Reference),
+        Variant::of(Method::MinMax),
+        prefiltered(16, 1),
+        prefiltered(32, 1),
+        prefiltered(64, 1),
+        prefiltered(32, 2),
+        Variant {
+            downsample: 2,
+            ..Variant::of(Method::MinMax)
+        },
+    ]
+}
+
+/// Prefiltering across image and shadow-map sizes: the O(w·h + a·d) of §4.5.
+fn scaling_variants() -> Vec<Variant> {
+    let mut variants: Vec<Variant> = [(1280, 720), (1920, 1080), (3840, 2160)]
+        .into_iter()
+        .map(|size| Variant {
+            size: Some(size),
+            shadow_map_size: Some(1024),
+            ..Variant::of(Method::Prefiltered)
+        })
+        .collect();
+    variants.extend([512, 2048, 4096].into_iter().map(|sm| Variant {
+        size: Some((1920, 1080)),
+        shadow_map_size: Some(sm),
+        ..Variant::of(Method::Prefiltered)
+    }));
     variants
 }
 
@@ -68,79 +144,105 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     overrides.sm_size.get_or_insert(1024);
     overrides.steps.get_or_insert(1024);
     let runs = args.runs.max(1);
+    let (names, variants) = if args.scaling {
+        (names[..1].to_vec(), scaling_variants())
+    } else {
+        let variants = match overrides.method {
+            Some(method) => vec![Variant {
+                downsample: overrides.downsample.unwrap_or(1),
+                ..Variant::of(method)
+            }],
+            None => method_variants(),
+        };
+        (names, variants)
+    };
     let mut rows = Vec::new();
     for name in &names {
-        let mut scene = builtin_scene(name)?;
-        overrides.apply(&mut scene);
-        let variants = match overrides.method {
-            Some(method) => vec![(method, overrides.downsample.unwrap_or(1))],
-            None => default_variants(),
-        };
-        for (method, downsample) in variants {
-            scene.render.method = method;
-            scene.render.downsample = downsample;
-            render_scene(&scene, &RenderControl::new())?;
-            let mut times_ms = Vec::with_capacity(runs);
+        let mut base = builtin_scene(name)?;
+        overrides.apply(&mut base);
+        for variant in &variants {
+            let mut scene = base.clone();
+            variant.apply(&mut scene);
+            render_scene_timed(&scene, &RenderControl::new())?;
+            let (mut frame_ms, mut scattering_ms) = (Vec::new(), Vec::new());
+            let mut stages = Vec::new();
             for _ in 0..runs {
-                let started = Instant::now();
-                render_scene(&scene, &RenderControl::new())?;
-                times_ms.push(started.elapsed().as_secs_f64() * 1e3);
+                let started = std::time::Instant::now();
+                let (_, times) = render_scene_timed(&scene, &RenderControl::new())?;
+                frame_ms.push(started.elapsed().as_secs_f64() * 1e3);
+                scattering_ms.push(times.scattering() * 1e3);
+                stages.push(times);
             }
-            times_ms.sort_by(f64::total_cmp);
+            stages.sort_by(|a, b| a.scattering().total_cmp(&b.scattering()));
+            let stage = stages[stages.len() / 2];
+            frame_ms.sort_by(f64::total_cmp);
+            scattering_ms.sort_by(f64::total_cmp);
             let row = Row {
                 scene: name.clone(),
-                method,
-                downsample,
+                label: variant.label(&scene),
+                is_reference: variant.method == Method::Reference && variant.downsample == 1,
                 detail: format!(
-                    "{}×{} sm {}² steps {}",
-                    scene.camera.width,
-                    scene.camera.height,
-                    scene.render.shadow_map_size,
-                    scene.render.steps
+                    "{}×{} sm {}²",
+                    scene.camera.width, scene.camera.height, scene.render.shadow_map_size,
                 ),
-                times_ms,
+                frame_ms,
+                scattering_ms,
             };
             eprintln!(
-                "{name} {}: median {:.1} ms",
-                row.label(),
-                median(&row.times_ms)
+                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}, shading {:.1}; shadow map {:.1}, camera depth {:.1})",
+                row.label,
+                row.detail,
+                median(&row.scattering_ms),
+                stage.rectify * 1e3,
+                stage.prepare * 1e3,
+                stage.shading * 1e3,
+                stage.shadow_map * 1e3,
+                stage.camera_depth * 1e3,
             );
             rows.push(row);
         }
     }
+    print_table(&rows);
     println!(
-        "\n{:<10} {:<12} {:<32} {:>11} {:>21} {:>9}",
-        "scene", "method", "frame", "median ms", "min–max ms", "speed-up"
-    );
-    for row in &rows {
-        let reference = rows
-            .iter()
-            .find(|r| r.scene == row.scene && r.method == Method::Reference && r.downsample == 1)
-            .map(|r| median(&r.times_ms));
-        let med = median(&row.times_ms);
-        let speedup = reference.map_or("-".to_owned(), |r| format!("{:.2}×", r / med));
-        let range = format!(
-            "{:.1}–{:.1}",
-            row.times_ms[0],
-            row.times_ms[row.times_ms.len() - 1]
-        );
-        println!(
-            "{:<10} {:<12} {:<32} {:>11.1} {:>21} {:>9}",
-            row.scene,
-            row.label(),
-            row.detail,
-            med,
-            range,
-            speedup
-        );
-    }
-    println!(
-        "\n{} runs per row after one warm-up; {} threads; peak resident memory {}",
+        "\n{} runs per row after one warm-up; {} threads; reference at {} steps; peak resident memory {}",
         runs,
         rayon::current_num_threads(),
+        overrides.steps.unwrap_or(1024),
         peak_memory()
     );
     Ok(())
+}
+
+fn print_table(rows: &[Row]) {
+    println!(
+        "\n{:<10} {:<18} {:<22} {:>10} {:>16} {:>9} {:>10} {:>9}",
+        "scene", "method", "frame", "scatter ms", "min–max", "speed-up", "frame ms", "speed-up"
+    );
+    for row in rows {
+        let reference = rows.iter().find(|r| r.scene == row.scene && r.is_reference);
+        let ratio = |of: fn(&Row) -> &Vec<f64>| {
+            reference.map_or("-".to_owned(), |r| {
+                format!("{:.1}×", median(of(r)) / median(of(row)))
+            })
+        };
+        let scattering = median(&row.scattering_ms);
+        let range = format!(
+            "{:.1}–{:.1}",
+            row.scattering_ms[0],
+            row.scattering_ms[row.scattering_ms.len() - 1]
+        );
+        println!(
+            "{:<10} {:<18} {:<22} {:>10.1} {:>16} {:>9} {:>10.1} {:>9}",
+            row.scene,
+            row.label,
+            row.detail,
+            scattering,
+            range,
+            ratio(|r| &r.scattering_ms),
+            median(&row.frame_ms),
+            ratio(|r| &r.frame_ms),
+        );
+    }
 }
 
 pub struct DemoRow {
