@@ -10,7 +10,7 @@ use crepuscular::raster::{rasterize, RasterDesc};
 use crepuscular::reference::Marcher;
 use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
-use crepuscular::{builtin_scene, BUILTIN_SCENES};
+use crepuscular::{builtin_scene, Scene, BUILTIN_SCENES};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 
 fn rasterization(c: &mut Criterion) {
@@ -38,21 +38,31 @@ fn rasterization(c: &mut Criterion) {
     group.finish();
 }
 
+/// A built-in scene, optionally resized, with its camera and shadow map.
+fn with_shadow_map(name: &str, size: Option<(u32, u32)>) -> (Scene, CameraModel, ShadowMap) {
+    let mut scene = builtin_scene(name).expect("built-in scene");
+    if let Some((width, height)) = size {
+        scene.camera.width = width;
+        scene.camera.height = height;
+    }
+    let geometry = FlatGeometry::from_scene(&scene);
+    let camera = CameraModel::new(&scene.camera);
+    let shadow = ShadowMap::build(
+        &camera,
+        &scene.sun,
+        &scene.medium,
+        &scene.render,
+        &geometry.view(),
+    );
+    (scene, camera, shadow)
+}
+
 /// 1024 rays of 1024 steps each through the centre row of the image.
 fn reference_march(c: &mut Criterion) {
     let mut group = c.benchmark_group("reference_march");
     group.sample_size(20);
     for name in BUILTIN_SCENES {
-        let scene = builtin_scene(name).expect("built-in scene");
-        let geometry = FlatGeometry::from_scene(&scene);
-        let camera = CameraModel::new(&scene.camera);
-        let shadow = ShadowMap::build(
-            &camera,
-            &scene.sun,
-            &scene.medium,
-            &scene.render,
-            &geometry.view(),
-        );
+        let (scene, camera, shadow) = with_shadow_map(name, None);
         let marcher = Marcher::new(&shadow, &scene.sun, &scene.medium, 1024);
         let rays: Vec<_> = (0..1024)
             .map(|i| {
@@ -80,18 +90,7 @@ fn prefiltering(c: &mut Criterion) {
     let mut group = c.benchmark_group("prefiltering");
     group.sample_size(10);
     for name in ["tree", "colonnade"] {
-        let mut scene = builtin_scene(name).expect("built-in scene");
-        scene.camera.width = 1920;
-        scene.camera.height = 1080;
-        let geometry = FlatGeometry::from_scene(&scene);
-        let camera = CameraModel::new(&scene.camera);
-        let shadow = ShadowMap::build(
-            &camera,
-            &scene.sun,
-            &scene.medium,
-            &scene.render,
-            &geometry.view(),
-        );
+        let (scene, camera, shadow) = with_shadow_map(name, Some((1920, 1080)));
         let desc = RectifyDesc::prefiltered(0);
         group.bench_function(BenchmarkId::new("rectify", name), |b| {
             b.iter(|| EpipolarMap::build(&camera, &shadow, &desc))
