@@ -5,7 +5,7 @@
 
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
-use crepuscular::prefiltered::Prefiltered;
+use crepuscular::prefiltered::{Prefiltered, PrefilteredDesc};
 use crepuscular::raster::{rasterize, RasterDesc};
 use crepuscular::reference::Marcher;
 use crepuscular::render::FlatGeometry;
@@ -99,13 +99,18 @@ fn prefiltering(c: &mut Criterion) {
         let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
         for bases in [16, 32, 64] {
             group.bench_function(BenchmarkId::new(format!("filter_m{bases}"), name), |b| {
+                let desc = PrefilteredDesc {
+                    bases,
+                    ..PrefilteredDesc::from_settings(&scene.render)
+                };
                 b.iter(|| {
-                    Prefiltered::build(&map, &camera, &epipoles, bases, &scene.sun, &scene.medium)
+                    Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium)
                 })
             });
         }
+        let desc = PrefilteredDesc::from_settings(&scene.render);
         let prefiltered =
-            Prefiltered::build(&map, &camera, &epipoles, 32, &scene.sun, &scene.medium);
+            Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
         let rays: Vec<_> = (0..4096)
             .map(|i| {
                 camera.ray(

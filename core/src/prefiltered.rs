@@ -7,23 +7,29 @@
 //! - Keys (rectified values, oriented so that larger means more shadowed) are warped per
 //!   slice by the quantiles of the slice's ray keys into [¼, ¾], which spends the basis'
 //!   resolution where rays are and keeps differences clear of the series' periodic jump.
-//! - Weights follow one reference ray per slice (Eq. 4.8–4.12): the geometric mean of the
-//!   slice's smallest and largest projected speeds, so no ray is more than √(k_max/k_min)
-//!   off. Weights are stored normalized (the filtered basis stays in [−1, 1]), with the
-//!   cumulative weight beside them.
-//! - A ray whose own transmittance departs from its reference by more than
-//!   [`SEGMENT_MISMATCH`] in optical depth over its length (rays near the epipole, box
-//!   media) is cut into segments, each read from the same tables and weighted by the
-//!   ray's exact transmittance integral. Most rays take one lookup.
+//! - Weights follow a reference ray (Eq. 4.8–4.12). One reference per slice is the
+//!   paper's choice; it fails where a slice's rays cross texels at very different speeds
+//!   (near an on-screen sun, where the slowest rays run almost along the light). Each
+//!   slice therefore keeps *bands* of references whose speeds are [`BAND_RATIO`] apart,
+//!   and a ray reads the band nearest its own speed, so that no ray is more than
+//!   √[`BAND_RATIO`] off its reference. A slow ray's weights fade within few texels, so
+//!   its band's table ends there: all bands together cost little more than one.
+//! - Weights are stored normalized (the filtered basis stays in [−1, 1]), with the
+//!   cumulative weight beside them. Coefficients and basis are tabulated, so neither
+//!   building nor evaluating takes trigonometry per texel or per pixel.
+//! - The sunlight's attenuation inside a `box` medium is smooth, so it is factored out of
+//!   the visibility integral (as DESIGN allows): the weighted visibility multiplies the
+//!   ray's exact unshadowed in-scattering.
 
 use std::f64::consts::PI;
+use std::sync::OnceLock;
 
 use rayon::prelude::*;
 
 use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
-use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
-use crate::scene::{Medium, Sun};
+use crate::reference::{integral_exp, medium_segment, BoxMedium, RaySample};
+use crate::scene::{BasisStorage, Medium, RenderSettings, Sun};
 
 /// Basis coefficients M: sine and cosine of M/2 frequencies.
 pub const MIN_BASES: u32 = 4;
@@ -31,28 +37,56 @@ pub const MAX_BASES: u32 = 64;
 
 /// Quantiles of the ray keys kept per slice.
 const KNOTS: usize = 9;
-/// Resolution of the tabulated basis over warped keys in [0, 1]: finer than the
-/// highest frequency resolves by two orders of magnitude.
+/// Resolution of the tabulated basis and coefficients over warped keys in [0, 1]: the
+/// highest frequency's phase moves by at most 31π/8192 ≈ 0.012 rad between entries.
 const TABLE_STEPS: usize = 8192;
 /// Reference optical depth beyond which sample weights stop falling: differences of
 /// prefix sums far along a slice then keep f32 precision.
 const MAX_REFERENCE_DEPTH: f64 = 10.0;
-/// Optical depth by which a ray's transmittance may depart from its slice reference's
-/// within one segment.
-pub const SEGMENT_MISMATCH: f64 = 0.5;
-/// Most segments per ray.
-const MAX_SEGMENTS: usize = 24;
-/// Largest ratio between a slice's fastest and slowest ray considered for its reference.
+/// Ratio between the reference speeds of neighbouring bands.
+pub const BAND_RATIO: f64 = 2.0;
+/// Most bands per slice; the slowest takes every ray slower than it.
+const MAX_BANDS: usize = 8;
+/// Optical depth from which a ray's remaining in-scattering (below e^−16) is negligible:
+/// a band's table ends where its fastest ray gets there.
+const NEGLIGIBLE_DEPTH: f64 = 16.0;
+/// Largest ratio between a slice's fastest and slowest ray considered for its references.
 const MAX_SPEED_RATIO: f64 = 4096.0;
 
-/// Per slice: a monotone warp of keys, and the slice's reference ray.
+/// What the prefiltered method needs besides the map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PrefilteredDesc {
+    /// M, even, in [`MIN_BASES`]..=[`MAX_BASES`] (validated by the settings).
+    pub bases: u32,
+    /// Longest stretch of a view ray that is evaluated: bounds the tables' lengths.
+    pub max_distance: f64,
+    /// Subtract the stretch between the camera and the near clip plane (one more lookup
+    /// per slice). Media that begin later along the ray (a `box`) always subtract it.
+    pub near_plane_correction: bool,
+    pub storage: BasisStorage,
+}
+
+impl PrefilteredDesc {
+    pub fn from_settings(settings: &RenderSettings) -> Self {
+        Self {
+            bases: settings.bases,
+            max_distance: settings.max_distance as f64,
+            near_plane_correction: settings.near_plane_correction,
+            storage: settings.basis_storage,
+        }
+    }
+}
+
+/// Per slice: a monotone warp of keys, and the speeds of its rays.
 #[derive(Clone, Copy, Debug)]
 struct SliceFrame {
     /// Keys at evenly spaced warped positions in [¼, ¾], strictly increasing.
     knots: [f64; KNOTS],
-    /// Texels per unit of t of the reference ray, and its position at t = 0.
-    reference_rate: f64,
-    reference_origin: f64,
+    /// Texels per unit of t of the slice's fastest and slowest rays.
+    fastest: f64,
+    slowest: f64,
+    /// Where the slice's rays are at t = 0 (the smallest such position).
+    origin: f64,
 }
 
 impl SliceFrame {
@@ -66,21 +100,122 @@ impl SliceFrame {
         let local = (index as f64 + (key - a) / (b - a)) / segment;
         (0.25 + 0.5 * local).clamp(0.0, 1.0)
     }
+
+    /// Bands at speeds fastest·r^−j down to the first at or below the slowest ray.
+    fn band_count(&self) -> usize {
+        let ratio = (self.fastest / self.slowest).max(1.0);
+        let steps = (ratio.ln() / BAND_RATIO.ln() - 1e-9).ceil().max(0.0) as usize;
+        (steps + 1).min(MAX_BANDS)
+    }
+
+    /// Band j's reference speed.
+    fn band_rate(&self, j: usize) -> f64 {
+        self.fastest / BAND_RATIO.powi(j as i32)
+    }
+
+    /// Where a ray of `rate` falls between the bands: band index plus fraction.
+    #[inline]
+    fn band_position(&self, rate: f64, count: usize) -> f64 {
+        ((self.fastest / rate).ln() / BAND_RATIO.ln()).clamp(0.0, (count - 1) as f64)
+    }
+}
+
+/// One reference ray's table: `rows` boundaries from `first_row` on.
+#[derive(Clone, Copy, Debug)]
+struct Band {
+    /// Texels per unit of t of the reference.
+    rate: f64,
+    first_row: usize,
+    rows: usize,
+}
+
+impl Band {
+    /// A continuous boundary position as (lower boundary, fraction towards the next),
+    /// clamped to the table.
+    #[inline]
+    fn boundary(&self, x: f64) -> (usize, f64) {
+        let last = self.rows - 1;
+        let x = x.clamp(0.0, last as f64);
+        let lower = (x as usize).min(last);
+        if lower == last {
+            (last, 0.0)
+        } else {
+            (lower, x - lower as f64)
+        }
+    }
+}
+
+/// Per slice, where its bands are.
+#[derive(Clone, Copy, Debug)]
+struct SliceBands {
+    first: u32,
+    count: u32,
+}
+
+/// Basis and coefficients over warped keys, shared by every frame with the same M.
+struct Tables {
+    /// Row i: [cos(c·z)…, sin(c·z)…] at z = i / TABLE_STEPS.
+    basis: Vec<f32>,
+    /// Row i: [(2/c)·sin(c·z)…, −(2/c)·cos(c·z)…], so that the dot product with a basis
+    /// row is Σ (2/c)·sin(c·(z_ray − z_texel)).
+    coefficients: Vec<f32>,
+}
+
+impl Tables {
+    fn get(frequencies: usize) -> &'static Tables {
+        static CACHE: [OnceLock<Tables>; MAX_BASES as usize / 2 + 1] =
+            [const { OnceLock::new() }; MAX_BASES as usize / 2 + 1];
+        CACHE[frequencies].get_or_init(|| Tables::new(frequencies))
+    }
+
+    fn new(frequencies: usize) -> Self {
+        let row = 2 * frequencies;
+        let mut basis = vec![0.0f32; (TABLE_STEPS + 1) * row];
+        let mut coefficients = vec![0.0f32; (TABLE_STEPS + 1) * row];
+        let mut values = vec![0.0f64; row];
+        for (i, (basis, coefficients)) in basis
+            .chunks_exact_mut(row)
+            .zip(coefficients.chunks_exact_mut(row))
+            .enumerate()
+        {
+            harmonics(i as f64 / TABLE_STEPS as f64, frequencies, &mut values);
+            for m in 0..frequencies {
+                let scale = 2.0 / frequency(m);
+                let (cos, sin) = (values[m], values[frequencies + m]);
+                basis[m] = cos as f32;
+                basis[frequencies + m] = sin as f32;
+                coefficients[m] = (scale * sin) as f32;
+                coefficients[frequencies + m] = (-scale * cos) as f32;
+            }
+        }
+        Self {
+            basis,
+            coefficients,
+        }
+    }
+
+    #[inline]
+    fn index(z: f64) -> usize {
+        (z * TABLE_STEPS as f64).round() as usize
+    }
 }
 
 /// The filtered-basis storage.
 pub struct Prefiltered<'a> {
     map: &'a EpipolarMap,
-    frequencies: usize,
+    /// M: the length of every basis and coefficient row.
+    bases: usize,
+    tables: &'static Tables,
     frames: Vec<SliceFrame>,
-    /// Per slice, (samples + 1) rows of 2·frequencies: the weighted mean of
-    /// [cos(c·z), sin(c·z)] over the slice's samples before each boundary.
-    basis: Vec<f32>,
-    /// Per slice, the cumulative weight at each of its samples + 1 boundaries.
+    slice_bands: Vec<SliceBands>,
+    bands: Vec<Band>,
+    /// Per band, `rows` rows of M: the weighted mean of the basis over the slice's
+    /// samples before each boundary.
+    basis: FilteredBasis,
+    /// The cumulative weight at each boundary.
     weight: Vec<f32>,
-    /// 2/c_m, the Fourier coefficients' scale per frequency.
-    scales: Vec<f32>,
     extinction: f64,
+    near_plane_correction: bool,
     box_medium: Option<BoxMedium>,
 }
 
@@ -101,18 +236,48 @@ fn harmonics(z: f64, frequencies: usize, out: &mut [f64]) {
     }
 }
 
-/// The basis tabulated over warped keys: row i holds the harmonics of i / TABLE_STEPS.
-fn basis_table(frequencies: usize) -> Vec<f32> {
-    let row = 2 * frequencies;
-    let mut table = vec![0.0f32; (TABLE_STEPS + 1) * row];
-    let mut values = vec![0.0f64; row];
-    for (i, out) in table.chunks_exact_mut(row).enumerate() {
-        harmonics(i as f64 / TABLE_STEPS as f64, frequencies, &mut values);
-        for (o, v) in out.iter_mut().zip(&values) {
-            *o = *v as f32;
-        }
+/// A filtered-basis value as stored: normalized means lie in [−1, 1], so a 16-bit
+/// signed normalized integer keeps them to 1.5·10⁻⁵ at half the memory of f32.
+trait BasisValue: Copy + Default + Send + Sync {
+    /// What the stored value times `SCALE` is worth.
+    const SCALE: f32;
+    fn store(value: f32) -> Self;
+    fn load(self) -> f32;
+}
+
+impl BasisValue for f32 {
+    const SCALE: f32 = 1.0;
+    #[inline]
+    fn store(value: f32) -> Self {
+        value
     }
-    table
+    #[inline]
+    fn load(self) -> f32 {
+        self
+    }
+}
+
+impl BasisValue for i16 {
+    const SCALE: f32 = 1.0 / i16::MAX as f32;
+    #[inline]
+    fn store(value: f32) -> Self {
+        // Rounds half away from zero; `as` saturates and truncates.
+        let scaled = value.clamp(-1.0, 1.0) * i16::MAX as f32;
+        (scaled + 0.5f32.copysign(scaled)) as i16
+    }
+    #[inline]
+    fn load(self) -> f32 {
+        self as f32
+    }
+}
+
+/// `sum += factor × row`, loading the row from its storage.
+#[inline]
+fn add_scaled<T: BasisValue>(sum: &mut [f32], row: &[T], factor: f32) {
+    let factor = factor * T::SCALE;
+    for (s, v) in sum.iter_mut().zip(row) {
+        *s += factor * v.load();
+    }
 }
 
 #[inline]
@@ -132,158 +297,160 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     total
 }
 
-/// A ray's place on one slice: its coefficients, weighted.
-struct SliceRay {
-    slice: u32,
-    weight: f64,
-    coefficients: [f32; MAX_BASES as usize],
+/// The filtered basis in the precision the settings ask for.
+enum FilteredBasis {
+    F32(Vec<f32>),
+    Snorm16(Vec<i16>),
 }
 
 impl<'a> Prefiltered<'a> {
-    /// `bases` is M, even, in [`MIN_BASES`]..=[`MAX_BASES`] (validated by the settings).
     /// `epipoles` are where the sun and anti-sun points appear in the image, if they do:
     /// slices crowd there, so frames sample every pixel around them.
     pub fn build(
         map: &'a EpipolarMap,
         camera: &CameraModel,
         epipoles: &[[f64; 2]],
-        bases: u32,
+        desc: &PrefilteredDesc,
         sun: &Sun,
         medium: &Medium,
     ) -> Self {
-        let frequencies = (bases / 2) as usize;
+        let frequencies = (desc.bases / 2) as usize;
         let row = 2 * frequencies;
         let extinction = medium.extinction as f64;
+        let tables = Tables::get(frequencies);
         let frames = slice_frames(map, camera, epipoles);
-        let table = basis_table(frequencies);
-        let samples = map.samples as usize;
-        let mut basis = vec![0.0f32; map.slices as usize * (samples + 1) * row];
-        let mut weight = vec![0.0f32; map.slices as usize * (samples + 1)];
-        basis
-            .par_chunks_mut((samples + 1) * row)
-            .zip(weight.par_chunks_mut(samples + 1))
-            .enumerate()
-            .for_each(|(slice, (basis, weight))| {
-                let frame = &frames[slice];
-                let mut sums = [0.0f32; MAX_BASES as usize];
-                let sums = &mut sums[..row];
-                let mut total = 0.0f64;
-                let t_of = |s: f64| (s - frame.reference_origin) / frame.reference_rate;
-                let depth_of = |s: f64| (extinction * t_of(s).max(0.0)).min(MAX_REFERENCE_DEPTH);
-                for (i, &value) in map.row(slice as u32).iter().enumerate() {
-                    let (s0, s1) = map.sample_interval(i);
-                    let (d0, d1) = (depth_of(s0), depth_of(s1));
-                    // ∫ σ e^(−σt) dt over the sample, and its flat continuation beyond
-                    // the depth cap; as σ → 0 this tends to uniform weights.
-                    let w = if d1 > d0 {
-                        (-d0).exp() * -(d0 - d1).exp_m1()
-                    } else {
-                        (-d0).exp() * (extinction * map.s_step / frame.reference_rate)
-                    };
-                    let w = if extinction > 0.0 { w } else { 1.0 };
-                    let z = frame.warp(map.order_key(value as f64));
-                    let entry = &table[(z * TABLE_STEPS as f64).round() as usize * row..][..row];
-                    let w32 = w as f32;
-                    for (sum, b) in sums.iter_mut().zip(entry) {
-                        *sum += w32 * b;
-                    }
-                    total += w;
-                    let normalize = (1.0 / total) as f32;
-                    for (out, sum) in basis[(i + 1) * row..(i + 2) * row]
-                        .iter_mut()
-                        .zip(sums.iter())
-                    {
-                        *out = sum * normalize;
-                    }
-                    weight[i + 1] = total as f32;
-                }
-            });
+        let (slice_bands, bands) = plan_bands(map, &frames, extinction, desc.max_distance);
+        let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
+        let mut weight = vec![0.0f32; total_rows];
+        let basis = match desc.storage {
+            BasisStorage::F32 => {
+                let mut basis = vec![0.0f32; total_rows * row];
+                filter_slices(
+                    map,
+                    &frames,
+                    &slice_bands,
+                    &bands,
+                    tables,
+                    extinction,
+                    &mut basis,
+                    &mut weight,
+                );
+                FilteredBasis::F32(basis)
+            }
+            BasisStorage::Snorm16 => {
+                let mut basis = vec![0i16; total_rows * row];
+                filter_slices(
+                    map,
+                    &frames,
+                    &slice_bands,
+                    &bands,
+                    tables,
+                    extinction,
+                    &mut basis,
+                    &mut weight,
+                );
+                FilteredBasis::Snorm16(basis)
+            }
+        };
         Self {
             map,
-            frequencies,
+            bases: row,
+            tables,
             frames,
+            slice_bands,
+            bands,
             basis,
             weight,
-            scales: (0..frequencies)
-                .map(|m| (2.0 / frequency(m)) as f32)
-                .collect(),
             extinction,
+            near_plane_correction: desc.near_plane_correction,
             box_medium: BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize()),
         }
     }
 
     pub fn memory_bytes(&self) -> usize {
-        (self.basis.len() + self.weight.len()) * std::mem::size_of::<f32>()
-    }
-
-    /// The ray's coefficients in `slice`: V ≈ ½ + Σ (2/c)·sin(c·(z_r − z_i)), expanded
-    /// against the stored [cos(c·z_i), sin(c·z_i)].
-    fn slice_ray(&self, key: f64, slice: u32, weight: f64) -> SliceRay {
-        let z = self.frames[slice as usize].warp(key);
-        let f = self.frequencies;
-        let (sin, cos) = (PI * z).sin_cos();
-        let (step_sin, step_cos) = (2.0 * sin * cos, cos * cos - sin * sin);
-        let (step_sin, step_cos) = (step_sin as f32, step_cos as f32);
-        let (mut s, mut c) = (sin as f32, cos as f32);
-        let mut coefficients = [0.0f32; MAX_BASES as usize];
-        for m in 0..f {
-            let scale = self.scales[m];
-            // sin(c(z_r − z_i)) = sin(c·z_r)·cos(c·z_i) − cos(c·z_r)·sin(c·z_i)
-            coefficients[m] = scale * s;
-            coefficients[f + m] = -scale * c;
-            (s, c) = (s * step_cos + c * step_sin, c * step_cos - s * step_sin);
-        }
-        SliceRay {
-            slice,
-            weight,
-            coefficients,
-        }
-    }
-
-    /// (coefficients · weighted prefix sum, cumulative weight) at a continuous sample
-    /// position `x`, interpolated linearly between boundaries.
-    #[inline]
-    fn prefix(&self, ray: &SliceRay, x: f64) -> (f64, f64) {
-        let samples = self.map.samples as usize;
-        let row = 2 * self.frequencies;
-        let x = x.clamp(0.0, samples as f64);
-        let lower = (x as usize).min(samples);
-        let upper = (lower + 1).min(samples);
-        let fraction = x - lower as f64;
-        let base = ray.slice as usize * (samples + 1);
-        let coefficients = &ray.coefficients[..row];
-        let at = |b: usize| {
-            let w = self.weight[base + b] as f64;
-            let rows = &self.basis[(base + b) * row..][..row];
-            (w * dot(coefficients, rows) as f64, w)
+        let basis = match &self.basis {
+            FilteredBasis::F32(values) => std::mem::size_of_val(values.as_slice()),
+            FilteredBasis::Snorm16(values) => std::mem::size_of_val(values.as_slice()),
         };
-        let (s0, w0) = at(lower);
-        if fraction == 0.0 {
-            return (s0, w0);
-        }
-        let (s1, w1) = at(upper);
-        (s0 + fraction * (s1 - s0), w0 + fraction * (w1 - w0))
+        basis + std::mem::size_of_val(self.weight.as_slice())
     }
 
-    /// Weighted average visibility between continuous positions `x0 < x1`.
+    /// The one or two bands whose references bracket a ray crossing `rate` texels per
+    /// unit of t, with their shares (linear in the logarithm of the speed).
     #[inline]
-    fn average(&self, rays: &[SliceRay; 2], x0: f64, x1: f64) -> Option<f64> {
+    fn bands_for(&self, slice: u32, rate: f64) -> [(&Band, f64); 2] {
+        let range = self.slice_bands[slice as usize];
+        let first = range.first as usize;
+        let position = self.frames[slice as usize].band_position(rate, range.count as usize);
+        let j = (position as usize).min(range.count as usize - 1);
+        let fraction = position - j as f64;
+        let next = (j + 1).min(range.count as usize - 1);
+        [
+            (&self.bands[first + j], 1.0 - fraction),
+            (&self.bands[first + next], fraction),
+        ]
+    }
+
+    /// Adds `factor` × stored row `index` to `blended`.
+    #[inline]
+    fn accumulate(&self, blended: &mut [f32], index: usize, factor: f32) {
+        let range = index * self.bases..(index + 1) * self.bases;
+        match &self.basis {
+            FilteredBasis::F32(values) => add_scaled(blended, &values[range], factor),
+            FilteredBasis::Snorm16(values) => add_scaled(blended, &values[range], factor),
+        }
+    }
+
+    /// Weighted average visibility between continuous boundary positions `x0 < x1`
+    /// (`x0` ≤ 0 is the slice's start), blended over the two slices and the bands that
+    /// bracket the ray's speed. Per slice, the prefix rows are blended first and dotted
+    /// with the coefficients once.
+    #[inline]
+    fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Option<f64> {
         let mut visibility = 0.0;
-        for ray in rays {
-            if ray.weight == 0.0 {
+        let mut blended = [0.0f32; MAX_BASES as usize];
+        let blended = &mut blended[..self.bases];
+        for (slice, share) in self.map.neighbours(located.slice) {
+            if share == 0.0 {
                 continue;
             }
-            let (s1, w1) = self.prefix(ray, x1);
-            let (s0, w0) = if x0 <= 0.0 {
-                (0.0, 0.0)
-            } else {
-                self.prefix(ray, x0)
-            };
-            let dw = w1 - w0;
-            if dw <= 0.0 || x1 - x0 < 1e-9 {
-                return None;
+            blended.fill(0.0);
+            let mut shares = 0.0;
+            for (band, band_share) in self.bands_for(slice, located.s_per_t) {
+                if band_share == 0.0 {
+                    continue;
+                }
+                let end = band.boundary(x1);
+                let start = band.boundary(x0);
+                let weight_at = |(lower, fraction): (usize, f64)| {
+                    let w0 = self.weight[band.first_row + lower] as f64;
+                    if fraction == 0.0 {
+                        return w0;
+                    }
+                    w0 + fraction * (self.weight[band.first_row + lower + 1] as f64 - w0)
+                };
+                let dw = weight_at(end) - weight_at(start);
+                if dw <= 0.0 {
+                    return None;
+                }
+                let scale = share * band_share / dw;
+                for ((lower, fraction), sign) in [(end, 1.0), (start, -1.0)] {
+                    for (boundary, part) in [(lower, 1.0 - fraction), (lower + 1, fraction)] {
+                        // Boundary 0 is the empty prefix.
+                        if boundary == 0 || part == 0.0 {
+                            continue;
+                        }
+                        let index = band.first_row + boundary;
+                        let factor = sign * scale * part * self.weight[index] as f64;
+                        self.accumulate(blended, index, factor as f32);
+                    }
+                }
+                shares += share * band_share;
             }
-            visibility += ray.weight * (0.5 + (s1 - s0) / dw).clamp(0.0, 1.0);
+            let z = self.frames[slice as usize].warp(key);
+            let coefficients =
+                &self.tables.coefficients[Tables::index(z) * self.bases..][..self.bases];
+            visibility += (0.5 * shares + dot(coefficients, blended) as f64).clamp(0.0, shares);
         }
         Some(visibility)
     }
@@ -294,66 +461,185 @@ impl<'a> Prefiltered<'a> {
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
         }
-        let [(first, w_first), (second, w_second)] = self.map.neighbours(located.slice);
         let key = self.map.order_key(located.threshold);
-        let rays = [
-            self.slice_ray(key, first, w_first),
-            self.slice_ray(key, second, w_second),
-        ];
         let x =
             |t: f64| (located.s_origin + located.s_per_t * t - self.map.s_first) / self.map.s_step;
         let sigma = self.extinction;
         let Some((a, b)) = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end) else {
             // Off the map (shorter than a sample) counts as lit, like the other methods.
-            let visibility = self.average(&rays, x(t_start), x(t_end)).unwrap_or(1.0);
+            let visibility = self
+                .average(&located, key, x(t_start), x(t_end))
+                .unwrap_or(1.0);
             return Some(RaySample {
                 visibility,
                 ..RaySample::EMPTY
             });
         };
-        let unshadowed = |t0: f64, t1: f64| match &self.box_medium {
-            None => (-sigma * (t0 - a)).exp() * integral_exp(sigma, t1 - t0),
-            Some(box_medium) => box_medium.integrate(ray, t0, t1, a, sigma),
+        // Rays start at the slice's origin; what lies before the medium is subtracted when
+        // asked to, or when the medium begins later than the near clip plane.
+        let from = if self.near_plane_correction || a > t_start {
+            a
+        } else {
+            0.0
         };
-        let segments = self.segments(&located, &rays, a, b);
-        let step = (b - a) / segments as f64;
-        let (mut scattering, mut total) = (0.0, 0.0);
-        let mut x0 = x(a);
-        for k in 0..segments {
-            let (t0, t1) = (a + k as f64 * step, a + (k + 1) as f64 * step);
-            let x1 = x(t1);
-            let visibility = self.average(&rays, x0, x1).unwrap_or(1.0);
-            let weight = unshadowed(t0, t1);
-            scattering += visibility * weight;
-            total += weight;
-            x0 = x1;
-        }
-        let visibility = weighted_visibility(scattering, total)
-            .unwrap_or_else(|| self.average(&rays, x(t_start), x(t_end)).unwrap_or(1.0));
+        let visibility = self.average(&located, key, x(from), x(b)).unwrap_or(1.0);
+        let unshadowed = match &self.box_medium {
+            None => integral_exp(sigma, b - a),
+            Some(box_medium) => box_medium.integrate(ray, a, b, a, sigma),
+        };
         Some(RaySample {
-            scattering,
+            scattering: visibility * unshadowed,
             alpha: -(-sigma * (b - a)).exp_m1(),
             visibility,
         })
     }
+}
 
-    /// How many segments keep the ray's transmittance within [`SEGMENT_MISMATCH`] of
-    /// the references of the slices it reads.
-    fn segments(&self, located: &RaySlice, rays: &[SliceRay; 2], a: f64, b: f64) -> usize {
-        let depth = self.extinction * (b - a);
-        let mut mismatch = rays
-            .iter()
-            .filter(|ray| ray.weight > 0.0)
-            .map(|ray| {
-                let rate = self.frames[ray.slice as usize].reference_rate;
-                depth * (1.0 - located.s_per_t / rate).abs()
-            })
-            .fold(0.0, f64::max);
-        if self.box_medium.is_some() {
-            // Sunlight's attenuation inside the box varies along each ray differently.
-            mismatch += depth;
+/// Lays out every slice's bands: how many, their references, and how far each table
+/// reaches. A band's table ends where its fastest ray's weight has become negligible or
+/// the ray can go no farther, whichever comes first; the fastest band spans the slice.
+fn plan_bands(
+    map: &EpipolarMap,
+    frames: &[SliceFrame],
+    extinction: f64,
+    max_distance: f64,
+) -> (Vec<SliceBands>, Vec<Band>) {
+    let samples = map.samples as usize;
+    let reach_t = if extinction > 0.0 {
+        max_distance.min(NEGLIGIBLE_DEPTH / extinction)
+    } else {
+        max_distance
+    };
+    let mut slice_bands = Vec::with_capacity(frames.len());
+    let mut bands = Vec::new();
+    let mut next_row = 0;
+    for frame in frames {
+        let count = frame.band_count();
+        slice_bands.push(SliceBands {
+            first: bands.len() as u32,
+            count: count as u32,
+        });
+        for j in 0..count {
+            let rate = frame.band_rate(j);
+            // Rays read band j only while slower than band j − 1's reference.
+            let fastest = frame.band_rate(j.saturating_sub(1));
+            let used = if j == 0 {
+                samples
+            } else {
+                let s_reach = frame.origin + fastest * reach_t;
+                (((s_reach - map.s_first) / map.s_step).ceil().max(0.0) as usize + 1).min(samples)
+            };
+            bands.push(Band {
+                rate,
+                first_row: next_row,
+                rows: used + 1,
+            });
+            next_row += used + 1;
         }
-        ((mismatch / SEGMENT_MISMATCH).ceil() as usize).clamp(1, MAX_SEGMENTS)
+    }
+    (slice_bands, bands)
+}
+
+/// Fills every slice's bands, in parallel over slices.
+#[allow(clippy::too_many_arguments)]
+fn filter_slices<T: BasisValue>(
+    map: &EpipolarMap,
+    frames: &[SliceFrame],
+    slice_bands: &[SliceBands],
+    bands: &[Band],
+    tables: &Tables,
+    extinction: f64,
+    basis: &mut [T],
+    weight: &mut [f32],
+) {
+    let row = basis.len() / weight.len().max(1);
+    let samples = map.samples as usize;
+    // Each slice's bands are contiguous: hand every slice its own part of the tables.
+    let mut parts = Vec::with_capacity(frames.len());
+    let (mut basis_rest, mut weight_rest) = (basis, weight);
+    for (slice, range) in slice_bands.iter().enumerate() {
+        let own = &bands[range.first as usize..(range.first + range.count) as usize];
+        let rows: usize = own.iter().map(|b| b.rows).sum();
+        let (basis_part, b_rest) = basis_rest.split_at_mut(rows * row);
+        let (weight_part, w_rest) = weight_rest.split_at_mut(rows);
+        (basis_rest, weight_rest) = (b_rest, w_rest);
+        parts.push((slice, own, basis_part, weight_part));
+    }
+    parts
+        .into_par_iter()
+        .for_each(|(slice, own, basis_part, weight_part)| {
+            let frame = &frames[slice];
+            let entries: Vec<u32> = map
+                .row(slice as u32)
+                .iter()
+                .map(|&value| Tables::index(frame.warp(map.order_key(value as f64))) as u32)
+                .collect();
+            let mut offset = 0;
+            for band in own {
+                let rows = band.rows;
+                filter_band(
+                    map,
+                    frame.origin,
+                    band.rate,
+                    extinction,
+                    &entries[..(rows - 1).min(samples)],
+                    &tables.basis,
+                    &mut basis_part[offset * row..(offset + rows) * row],
+                    &mut weight_part[offset..offset + rows],
+                );
+                offset += rows;
+            }
+        });
+}
+
+/// Weighted, normalized prefix sums of the basis over one band: boundary 0 is empty and
+/// boundary i + 1 follows sample i. Weights are the reference ray's transmittance
+/// integral over each sample, ∫ σ e^(−σt) dt, which is uniform as σ → 0.
+#[allow(clippy::too_many_arguments)]
+fn filter_band<T: BasisValue>(
+    map: &EpipolarMap,
+    origin: f64,
+    rate: f64,
+    extinction: f64,
+    entries: &[u32],
+    table: &[f32],
+    basis: &mut [T],
+    weight: &mut [f32],
+) {
+    let row = basis.len() / weight.len();
+    basis[..row].fill(T::default());
+    weight[0] = 0.0;
+    let mut sums = [0.0f32; MAX_BASES as usize];
+    let sums = &mut sums[..row];
+    let depth_of = |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
+    // Past the depth cap, every sample keeps the last full sample's weight.
+    let flat = (-MAX_REFERENCE_DEPTH).exp() * extinction * map.s_step / rate;
+    let mut total = 0.0f64;
+    let mut before = (-depth_of(map.s_first)).exp();
+    for (i, &entry) in entries.iter().enumerate() {
+        let w = if extinction > 0.0 {
+            let (_, s1) = map.sample_interval(i);
+            let after = (-depth_of(s1)).exp();
+            let w = if after < before { before - after } else { flat };
+            before = after;
+            w
+        } else {
+            1.0
+        };
+        let values = &table[entry as usize * row..][..row];
+        let w32 = w as f32;
+        for (sum, b) in sums.iter_mut().zip(values) {
+            *sum += w32 * b;
+        }
+        total += w;
+        let normalize = (1.0 / total) as f32;
+        for (out, sum) in basis[(i + 1) * row..(i + 2) * row]
+            .iter_mut()
+            .zip(sums.iter())
+        {
+            *out = T::store(sum * normalize);
+        }
+        weight[i + 1] = total as f32;
     }
 }
 
@@ -365,10 +651,10 @@ struct SampledRay {
     origin: f64,
 }
 
-/// Per slice, key quantiles and the reference ray, from the rays of the image's border
-/// (where each slice's extreme rays are), every other pixel inside, and every pixel
-/// near an epipole, where slices are closer than two pixels. Slices that no sampled ray
-/// touches take their nearest sampled neighbour's frame.
+/// Per slice, key quantiles and ray speeds, from the rays of the image's border (where
+/// each slice's extreme rays are), every other pixel inside, and every pixel near an
+/// epipole, where slices are closer than two pixels. Slices that no sampled ray touches
+/// take their nearest sampled neighbour's frame.
 fn slice_frames(map: &EpipolarMap, camera: &CameraModel, epipoles: &[[f64; 2]]) -> Vec<SliceFrame> {
     const INTERIOR_STRIDE: u32 = 2;
     let (w, h) = (camera.width, camera.height);
@@ -417,8 +703,9 @@ fn slice_frames(map: &EpipolarMap, camera: &CameraModel, epipoles: &[[f64; 2]]) 
     let sampled: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].is_some()).collect();
     let fallback = SliceFrame {
         knots: std::array::from_fn(|i| i as f64),
-        reference_rate: 1.0,
-        reference_origin: 0.0,
+        fastest: 1.0,
+        slowest: 1.0,
+        origin: 0.0,
     };
     (0..frames.len())
         .map(|i| {
@@ -436,7 +723,7 @@ fn frame_of(rays: &mut [SampledRay]) -> Option<SliceFrame> {
     if rays.is_empty() {
         return None;
     }
-    rays.sort_by(|a, b| a.key.total_cmp(&b.key));
+    rays.sort_unstable_by(|a, b| a.key.total_cmp(&b.key));
     let mut knots = [0.0; KNOTS];
     for (i, knot) in knots.iter_mut().enumerate() {
         *knot = rays[i * (rays.len() - 1) / (KNOTS - 1)].key;
@@ -455,8 +742,9 @@ fn frame_of(rays: &mut [SampledRay]) -> Option<SliceFrame> {
     let origin = rays.iter().map(|r| r.origin).fold(f64::INFINITY, f64::min);
     Some(SliceFrame {
         knots,
-        reference_rate: (fastest * slowest).sqrt(),
-        reference_origin: origin,
+        fastest,
+        slowest,
+        origin,
     })
 }
 
@@ -491,22 +779,32 @@ mod tests {
         }
     }
 
-    /// ½ + Σ (2/c)·sin(c·(z_r − z_i)) is a step: 1 where the ray's key exceeds the
-    /// texel's, 0 below, ½ at the jump, within the ringing of a truncated series.
     #[test]
-    fn the_series_reconstructs_the_visibility_step() {
+    fn snorm16_storage_keeps_unit_values_to_its_step() {
+        let unit: Vec<f32> = (0..64).map(|i| ((i as f32) * 0.7).sin()).collect();
+        let stored: Vec<i16> = unit.iter().map(|&v| i16::store(v)).collect();
+        let mut loaded = vec![0.0f32; unit.len()];
+        add_scaled(&mut loaded, &stored, 1.0);
+        for (v, l) in unit.iter().zip(&loaded) {
+            assert!((v - l).abs() <= 0.5 / i16::MAX as f32 + 1e-7, "{v} → {l}");
+        }
+        assert_eq!(
+            (i16::store(1.0), i16::store(-1.0), i16::store(2.0)),
+            (i16::MAX, -i16::MAX, i16::MAX)
+        );
+    }
+
+    /// ½ + coefficients(z_ray) · basis(z_texel) is a step: 1 where the ray's key exceeds
+    /// the texel's, 0 below, ½ at the jump, within the ringing of a truncated series.
+    #[test]
+    fn the_tables_reconstruct_the_visibility_step() {
         let frequencies = 32;
-        let table = basis_table(frequencies);
+        let tables = Tables::new(frequencies);
         let row = 2 * frequencies;
         let visibility = |z_ray: f64, z_texel: f64| {
-            let entry = &table[(z_texel * TABLE_STEPS as f64).round() as usize * row..][..row];
-            let mut sum = 0.5;
-            for m in 0..frequencies {
-                let (sin, cos) = (frequency(m) * z_ray).sin_cos();
-                let scale = 2.0 / frequency(m);
-                sum += scale * (sin * entry[m] as f64 - cos * entry[frequencies + m] as f64);
-            }
-            sum
+            let at = |table: &[f32], z: f64| table[Tables::index(z) * row..][..row].to_vec();
+            let (c, b) = (at(&tables.coefficients, z_ray), at(&tables.basis, z_texel));
+            0.5 + dot(&c, &b) as f64
         };
         for &(z_ray, z_texel, expected) in &[
             (0.6, 0.3, 1.0),
@@ -544,7 +842,48 @@ mod tests {
             assert!((0.0..=1.0).contains(&z) && z >= last);
             last = z;
         }
-        // Eq. 4.12: the reference speed is the geometric mean of the extremes.
-        assert!((frame.reference_rate - (1.0f64 * 100.0).sqrt()).abs() < 1e-9);
+        assert_eq!((frame.fastest, frame.slowest), (100.0, 1.0));
+    }
+
+    /// Bands cover the slice's speeds in steps of BAND_RATIO from the fastest ray down,
+    /// and every ray falls between two adjacent bands that bracket its speed.
+    #[test]
+    fn bands_bracket_every_ray() {
+        let frame = SliceFrame {
+            knots: std::array::from_fn(|i| i as f64),
+            fastest: 300.0,
+            slowest: 0.7,
+            origin: 0.0,
+        };
+        let count = frame.band_count();
+        assert_eq!(
+            count, 8,
+            "300/0.7 needs ⌈log₂ 429⌉ + 1 bands, capped at MAX_BANDS"
+        );
+        assert_eq!(frame.band_rate(0), 300.0);
+        for rate in [300.0, 150.0, 74.9, 20.0, 4.7, 2.4] {
+            let position = frame.band_position(rate, count);
+            let lower = position.floor() as usize;
+            assert!(frame.band_rate(lower) >= rate * (1.0 - 1e-9), "rate {rate}");
+            if lower + 1 < count {
+                assert!(
+                    frame.band_rate(lower + 1) <= rate * (1.0 + 1e-9),
+                    "rate {rate}"
+                );
+            }
+        }
+        let few = SliceFrame {
+            slowest: 40.0,
+            ..frame
+        };
+        assert_eq!(few.band_count(), 4, "300/40 needs ⌈log₂ 7.5⌉ + 1 bands");
+        assert_eq!(few.band_position(40.0, 4), (300.0f64 / 40.0).log2());
+        let single = SliceFrame {
+            fastest: 10.0,
+            slowest: 10.0,
+            ..frame
+        };
+        assert_eq!(single.band_count(), 1);
+        assert_eq!(single.band_position(10.0, 1), 0.0);
     }
 }

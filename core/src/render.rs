@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::layers::Layers;
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
-use crate::prefiltered::Prefiltered;
+use crate::prefiltered::{Prefiltered, PrefilteredDesc};
 use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
@@ -225,7 +225,7 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
                 &map,
                 &camera,
                 &ahead,
-                frame.settings.bases,
+                &PrefilteredDesc::from_settings(frame.settings),
                 frame.sun,
                 frame.medium,
             );

@@ -302,7 +302,7 @@ fn prefiltered_error_falls_with_more_bases() {
             // cannot regress unnoticed.
             let known_gap = matches!(
                 (name, view),
-                ("plane", "sideways") | ("colonnade", "default" | "sun in view" | "sideways")
+                ("plane", "sideways") | ("colonnade", "default")
             );
             let bound = match (name, known_gap) {
                 (_, true) => 0.08,
