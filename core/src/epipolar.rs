@@ -306,7 +306,7 @@ impl EpipolarMap {
                 let angle = projected.y.atan2(projected.x);
                 let mut turns = angle - first_angle;
                 if full_circle {
-                    turns = turns.rem_euclid(TAU);
+                    turns = wrap_from(turns, 0.0);
                 } else {
                     turns = wrap_angle(turns);
                 }
@@ -347,11 +347,21 @@ impl EpipolarMap {
             }
         );
         let clamped = if full_circle {
-            slice.rem_euclid(self.slices as f64)
+            let count = self.slices as f64;
+            // Slice coordinates come from angles in one turn: one wrap at most.
+            if slice < 0.0 {
+                slice + count
+            } else if slice >= count {
+                slice - count
+            } else {
+                slice
+            }
+            .clamp(0.0, count)
         } else {
             slice.clamp(0.0, last as f64)
         };
-        let lower = (clamped.floor() as u32).min(last);
+        // Non-negative, so truncation is the floor, without a libm call.
+        let lower = (clamped as u32).min(last);
         let fraction = clamped - lower as f64;
         let upper = if lower == last {
             if full_circle {
@@ -365,11 +375,19 @@ impl EpipolarMap {
         [(lower, 1.0 - fraction), (upper, fraction)]
     }
 
-    /// A monotone key with: a ray is lit at a sample when key(threshold) ≥ key(K). It is the
-    /// angle between view ray and light for a pinhole camera, bounded to [0, π].
+    /// A monotone key with: a ray is lit at a sample when key(threshold) ≥ key(K). For a
+    /// pinhole camera it is bounded to [−1, 1] (like the angle between view ray and light,
+    /// without the arctangent), so that ±∞ map to finite keys.
+    #[inline]
     pub fn order_key(&self, value: f64) -> f64 {
         match self.layout {
-            Layout::Radial { .. } => 1.0f64.atan2(value),
+            Layout::Radial { .. } => {
+                if value.is_infinite() {
+                    -value.signum()
+                } else {
+                    -value / (1.0 + value.abs())
+                }
+            }
             Layout::Parallel { .. } => -value,
         }
     }
@@ -494,8 +512,25 @@ pub fn epipoles_in_image<'a>(
     })
 }
 
+/// The angle in [−π, π).
 fn wrap_angle(angle: f64) -> f64 {
-    (angle + std::f64::consts::PI).rem_euclid(TAU) - std::f64::consts::PI
+    wrap_from(angle, -std::f64::consts::PI)
+}
+
+/// The angle in [low, low + 2π); angles here are differences of a few turns at most, so
+/// whole turns are taken off by steps rather than a division.
+#[inline]
+fn wrap_from(mut angle: f64, low: f64) -> f64 {
+    if !angle.is_finite() {
+        return low;
+    }
+    while angle < low {
+        angle += TAU;
+    }
+    while angle >= low + TAU {
+        angle -= TAU;
+    }
+    angle
 }
 
 fn extent(points: &[DVec2], axis: DVec2) -> (f64, f64) {

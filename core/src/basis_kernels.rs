@@ -1,0 +1,256 @@
+//! The inner loops of prefiltering: accumulating basis rows into prefix sums, and
+//! blending filtered rows into one dot product per pixel. Each is written once over
+//! lanes of [`LANES`] and compiled twice, portable and with AVX2 + FMA; [`Kernels`]
+//! picks one per frame, so a build runs everywhere and uses what the CPU has.
+
+/// Rows are padded to a multiple of this many values, with zeros.
+pub const LANES: usize = 8;
+
+/// A filtered-basis value as stored: normalized means lie in [−1, 1], so a 16-bit
+/// signed normalized integer keeps them to 1.5·10⁻⁵ at half the memory of f32.
+pub trait BasisValue: Copy + Default + Send + Sync {
+    /// What the stored value times `SCALE` is worth.
+    const SCALE: f32;
+    fn store(value: f32) -> Self;
+    fn load(self) -> f32;
+}
+
+impl BasisValue for f32 {
+    const SCALE: f32 = 1.0;
+    #[inline(always)]
+    fn store(value: f32) -> Self {
+        value
+    }
+    #[inline(always)]
+    fn load(self) -> f32 {
+        self
+    }
+}
+
+impl BasisValue for i16 {
+    const SCALE: f32 = 1.0 / i16::MAX as f32;
+    #[inline(always)]
+    fn store(value: f32) -> Self {
+        // Round half away from zero without a libm call; the clamp keeps ±1 in range.
+        let scaled = (value * i16::MAX as f32).clamp(-(i16::MAX as f32), i16::MAX as f32);
+        (scaled + 0.5f32.copysign(scaled)) as i16
+    }
+    #[inline(always)]
+    fn load(self) -> f32 {
+        self as f32
+    }
+}
+
+/// The length a row of `values` takes once padded to whole lanes.
+pub fn padded(values: usize) -> usize {
+    values.div_ceil(LANES) * LANES
+}
+
+/// The instruction set the kernels run with, detected once.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernels {
+    Portable,
+    #[cfg(target_arch = "x86_64")]
+    Avx2Fma,
+}
+
+impl Kernels {
+    pub fn detect() -> Self {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            return Kernels::Avx2Fma;
+        }
+        Kernels::Portable
+    }
+
+    /// Σ_r factor_r · ⟨stored row index_r, coefficients⟩, over padded rows of `stored`.
+    #[inline]
+    pub fn blend_dot<T: BasisValue>(
+        self,
+        stored: &[T],
+        rows: &[(u32, f32)],
+        coefficients: &[f32],
+    ) -> f32 {
+        match self {
+            Kernels::Portable => blend_dot(stored, rows, coefficients),
+            // SAFETY: `detect` only chose this variant where the CPU has AVX2 and FMA.
+            #[cfg(target_arch = "x86_64")]
+            Kernels::Avx2Fma => unsafe { blend_dot_avx2(stored, rows, coefficients) },
+        }
+    }
+
+    /// Running prefix sums of weighted basis rows: for each sample i,
+    /// `sums += weights[i] · table row entries[i]`, and output row i becomes
+    /// `sums · scales[i]`. Rows are padded; `out` holds one row per sample.
+    #[inline]
+    pub fn prefix_sums<T: BasisValue>(
+        self,
+        table: &[f32],
+        entries: &[u32],
+        weights: &[f32],
+        scales: &[f32],
+        out: &mut [T],
+    ) {
+        match self {
+            Kernels::Portable => prefix_sums(table, entries, weights, scales, out),
+            // SAFETY: as in `blend_dot`.
+            #[cfg(target_arch = "x86_64")]
+            Kernels::Avx2Fma => unsafe { prefix_sums_avx2(table, entries, weights, scales, out) },
+        }
+    }
+}
+
+#[inline(always)]
+fn blend_dot<T: BasisValue>(stored: &[T], rows: &[(u32, f32)], coefficients: &[f32]) -> f32 {
+    let stride = coefficients.len();
+    let mut total = [0.0f32; LANES];
+    for (lane_start, coefficients) in (0..stride)
+        .step_by(LANES)
+        .zip(coefficients.chunks_exact(LANES))
+    {
+        let mut blended = [0.0f32; LANES];
+        for &(index, factor) in rows {
+            let start = index as usize * stride + lane_start;
+            let values = &stored[start..start + LANES];
+            let factor = factor * T::SCALE;
+            for lane in 0..LANES {
+                blended[lane] += factor * values[lane].load();
+            }
+        }
+        for lane in 0..LANES {
+            total[lane] += blended[lane] * coefficients[lane];
+        }
+    }
+    total.iter().sum()
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn blend_dot_avx2<T: BasisValue>(
+    stored: &[T],
+    rows: &[(u32, f32)],
+    coefficients: &[f32],
+) -> f32 {
+    blend_dot(stored, rows, coefficients)
+}
+
+#[inline(always)]
+fn prefix_sums<T: BasisValue>(
+    table: &[f32],
+    entries: &[u32],
+    weights: &[f32],
+    scales: &[f32],
+    out: &mut [T],
+) {
+    let stride = out.len() / entries.len().max(1);
+    let mut sums = [0.0f32; crate::prefiltered::MAX_BASES as usize];
+    let sums = &mut sums[..stride];
+    for (((&entry, &weight), &scale), out) in entries
+        .iter()
+        .zip(weights)
+        .zip(scales)
+        .zip(out.chunks_exact_mut(stride))
+    {
+        let values = &table[entry as usize * stride..][..stride];
+        for ((sum, &value), out) in sums.iter_mut().zip(values).zip(out.iter_mut()) {
+            *sum += weight * value;
+            *out = T::store(*sum * scale);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn prefix_sums_avx2<T: BasisValue>(
+    table: &[f32],
+    entries: &[u32],
+    weights: &[f32],
+    scales: &[f32],
+    out: &mut [T],
+) {
+    prefix_sums(table, entries, weights, scales, out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn all_kernels() -> Vec<Kernels> {
+        let mut kernels = vec![Kernels::Portable];
+        if Kernels::detect() != Kernels::Portable {
+            kernels.push(Kernels::detect());
+        }
+        kernels
+    }
+
+    #[test]
+    fn snorm16_storage_keeps_unit_values_to_its_step() {
+        for v in (0..64).map(|i| ((i as f32) * 0.7).sin()) {
+            let loaded = i16::store(v).load() * i16::SCALE;
+            assert!(
+                (v - loaded).abs() <= 0.5 / i16::MAX as f32 + 1e-7,
+                "{v} → {loaded}"
+            );
+        }
+        assert_eq!(
+            (i16::store(1.0), i16::store(-1.0), i16::store(2.0)),
+            (i16::MAX, -i16::MAX, i16::MAX)
+        );
+    }
+
+    #[test]
+    fn blend_dot_matches_the_direct_sum() {
+        let stride = padded(20);
+        let rows = 5;
+        let stored: Vec<f32> = (0..rows * stride)
+            .map(|i| ((i * 37 % 23) as f32 - 11.0) / 11.0)
+            .collect();
+        let coefficients: Vec<f32> = (0..stride)
+            .map(|k| if k < 20 { (k as f32).sin() } else { 0.0 })
+            .collect();
+        let picked = [(4u32, 0.25f32), (1, -1.5), (3, 2.0)];
+        let mut expected = 0.0f64;
+        for &(index, factor) in &picked {
+            for k in 0..stride {
+                expected += factor as f64
+                    * stored[index as usize * stride + k] as f64
+                    * coefficients[k] as f64;
+            }
+        }
+        for kernels in all_kernels() {
+            let got = kernels.blend_dot(&stored, &picked, &coefficients);
+            assert!(
+                (got as f64 - expected).abs() < 1e-5,
+                "{kernels:?}: {got} vs {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn prefix_sums_accumulate_and_scale_every_row() {
+        let stride = padded(12);
+        let table: Vec<f32> = (0..4 * stride)
+            .map(|i| ((i % 7) as f32 - 3.0) / 3.0)
+            .collect();
+        let entries = [2u32, 0, 3, 3, 1];
+        let weights = [0.5f32, 0.25, 1.0, 0.125, 2.0];
+        let scales = [1.0f32, 0.5, 0.25, 0.2, 0.1];
+        for kernels in all_kernels() {
+            let mut out = vec![0i16; entries.len() * stride];
+            kernels.prefix_sums(&table, &entries, &weights, &scales, &mut out);
+            let mut sums = vec![0.0f64; stride];
+            for (i, &entry) in entries.iter().enumerate() {
+                for k in 0..stride {
+                    sums[k] += weights[i] as f64 * table[entry as usize * stride + k] as f64;
+                    let want = (sums[k] * scales[i] as f64).clamp(-1.0, 1.0);
+                    let got = out[i * stride + k].load() * i16::SCALE;
+                    assert!(
+                        (got as f64 - want).abs() <= 0.6 / i16::MAX as f64,
+                        "{kernels:?} row {i} lane {k}"
+                    );
+                }
+            }
+        }
+    }
+}
