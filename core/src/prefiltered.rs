@@ -566,12 +566,22 @@ fn filter_band<T: BasisValue>(
     let flat = (-MAX_REFERENCE_DEPTH).exp() * extinction * map.s_step / rate;
     let mut weights = vec![1.0f32; entries.len()];
     let mut scales = vec![0.0f32; entries.len()];
+    // Between the origin and the depth cap, each sample multiplies the transmittance by
+    // the same factor: one exp per band rather than one per sample.
+    let step_factor = (-extinction * map.s_step / rate).exp();
     let mut total = 0.0f64;
-    let mut before = (-depth_of(map.s_first)).exp();
+    let mut s0 = map.s_first;
+    let mut before = (-depth_of(s0)).exp();
     for (i, (w32, scale)) in weights.iter_mut().zip(scales.iter_mut()).enumerate() {
         let w = if extinction > 0.0 {
             let (_, s1) = map.sample_interval(i);
-            let after = (-depth_of(s1)).exp();
+            let unclamped = |s: f64| extinction * (s - origin) / rate;
+            let after = if unclamped(s0) >= 0.0 && unclamped(s1) <= MAX_REFERENCE_DEPTH {
+                before * step_factor
+            } else {
+                (-depth_of(s1)).exp()
+            };
+            s0 = s1;
             let w = if after < before { before - after } else { flat };
             before = after;
             w
@@ -595,11 +605,14 @@ struct SampledRay {
 }
 
 /// Per slice, key quantiles and ray speeds, from the rays of the image's border (where
-/// each slice's extreme rays are), every other pixel inside, and every pixel near an
-/// epipole, where slices are closer than two pixels. Slices that no sampled ray touches
-/// take their nearest sampled neighbour's frame.
+/// each slice's extreme rays are, with the epipoles), a regular grid of pixels inside
+/// dense enough for about [`RAYS_PER_SLICE`] rays per slice (the quantiles need no
+/// more), and every pixel near an epipole, where slices are closer than two pixels.
+/// Slices that no sampled ray touches take their nearest sampled neighbour's frame.
 fn slice_frames(map: &EpipolarMap, camera: &CameraModel, epipoles: &[[f64; 2]]) -> Vec<SliceFrame> {
-    const INTERIOR_STRIDE: u32 = 2;
+    const RAYS_PER_SLICE: f64 = 128.0;
+    let pixels = camera.width as f64 * camera.height as f64;
+    let interior_stride = ((pixels / (map.slices as f64 * RAYS_PER_SLICE)).sqrt() as u32).max(1);
     let (w, h) = (camera.width, camera.height);
     // Slices 2 px apart: at distance r from the epipole they are 2π·r/slices apart.
     let dense_radius = 2.0 * map.slices as f64 / std::f64::consts::TAU;
@@ -620,7 +633,7 @@ fn slice_frames(map: &EpipolarMap, camera: &CameraModel, epipoles: &[[f64; 2]]) 
     for y in 0..h {
         for x in 0..w {
             let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
-            let on_grid = x % INTERIOR_STRIDE == 0 && y % INTERIOR_STRIDE == 0;
+            let on_grid = x % interior_stride == 0 && y % interior_stride == 0;
             if on_grid || near_epipole(px, py) {
                 positions.push((px, py));
             }
