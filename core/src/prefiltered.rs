@@ -66,6 +66,9 @@ pub struct PrefilteredDesc {
     /// per slice). Media that begin later along the ray (a `box`) always subtract it.
     pub near_plane_correction: bool,
     pub storage: BasisStorage,
+    /// Half-width in pixels of the block around an on-screen epipole that is ray-marched
+    /// instead: its rays need no tables.
+    pub epipole_block: f64,
 }
 
 impl PrefilteredDesc {
@@ -75,6 +78,7 @@ impl PrefilteredDesc {
             max_distance: settings.max_distance as f64,
             near_plane_correction: settings.near_plane_correction,
             storage: settings.basis_storage,
+            epipole_block: settings.epipole_block as f64,
         }
     }
 }
@@ -263,7 +267,7 @@ impl<'a> Prefiltered<'a> {
         let kernels = Kernels::detect();
         let extinction = medium.extinction as f64;
         let tables = Tables::get(frequencies);
-        let frames = slice_frames(map, camera, epipoles);
+        let frames = slice_frames(map, camera, epipoles, desc.epipole_block);
         let (slice_bands, bands) = plan_bands(map, &frames, extinction, desc.max_distance);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         let mut weight = vec![0.0f32; total_rows];
@@ -606,20 +610,26 @@ struct SampledRay {
 
 /// Per slice, key quantiles and ray speeds, from the rays of the image's border (where
 /// each slice's extreme rays are, with the epipoles), a regular grid of pixels inside
-/// dense enough for about [`RAYS_PER_SLICE`] rays per slice (the quantiles need no
-/// more), and every pixel near an epipole, where slices are closer than two pixels.
+/// dense enough for about `RAYS_PER_SLICE` rays per slice (the quantiles need no more),
+/// and every pixel near an epipole, where slices are closer than two pixels, but none
+/// in the block around it that is ray-marched instead.
 /// Slices that no sampled ray touches take their nearest sampled neighbour's frame.
-fn slice_frames(map: &EpipolarMap, camera: &CameraModel, epipoles: &[[f64; 2]]) -> Vec<SliceFrame> {
+fn slice_frames(
+    map: &EpipolarMap,
+    camera: &CameraModel,
+    epipoles: &[[f64; 2]],
+    block: f64,
+) -> Vec<SliceFrame> {
     const RAYS_PER_SLICE: f64 = 128.0;
     let pixels = camera.width as f64 * camera.height as f64;
     let interior_stride = ((pixels / (map.slices as f64 * RAYS_PER_SLICE)).sqrt() as u32).max(1);
     let (w, h) = (camera.width, camera.height);
     // Slices 2 px apart: at distance r from the epipole they are 2π·r/slices apart.
     let dense_radius = 2.0 * map.slices as f64 / std::f64::consts::TAU;
-    let near_epipole = |x: f64, y: f64| {
+    let within = |x: f64, y: f64, radius: f64| {
         epipoles
             .iter()
-            .any(|e| (x - e[0]).abs() <= dense_radius && (y - e[1]).abs() <= dense_radius)
+            .any(|e| (x - e[0]).abs() <= radius && (y - e[1]).abs() <= radius)
     };
     let mut positions: Vec<(f64, f64)> = Vec::new();
     for x in 0..=w {
@@ -634,7 +644,7 @@ fn slice_frames(map: &EpipolarMap, camera: &CameraModel, epipoles: &[[f64; 2]]) 
         for x in 0..w {
             let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
             let on_grid = x % interior_stride == 0 && y % interior_stride == 0;
-            if on_grid || near_epipole(px, py) {
+            if (on_grid || within(px, py, dense_radius)) && !within(px, py, block) {
                 positions.push((px, py));
             }
         }
