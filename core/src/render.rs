@@ -126,6 +126,11 @@ pub struct StageTimes {
     pub prepare: f64,
     /// Per-pixel evaluation, upsampling included.
     pub shading: f64,
+    /// Bytes held by the rectified shadow map (fast methods).
+    pub rectified_bytes: usize,
+    /// Bytes held by the method's own structure: the min-max mipmap or the filtered
+    /// basis with its cumulative weights.
+    pub structure_bytes: usize,
 }
 
 impl StageTimes {
@@ -198,6 +203,7 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
     };
     control.check()?;
     times.rectify = lap();
+    times.rectified_bytes = map.memory_bytes();
     let block = frame.settings.epipole_block as f64;
     let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, block).collect();
     let near_epipole = |pixel: [f64; 2]| {
@@ -212,6 +218,7 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
         Method::Reference => Box::new(|_, _, _| None),
         Method::MinMax => {
             mipmap = MinMaxMipmap::build(&map);
+            times.structure_bytes = mipmap.memory_bytes();
             let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
             Box::new(move |ray, t0, t1| {
                 let sample = method.march(ray, t0, t1)?;
@@ -229,6 +236,7 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
                 frame.sun,
                 frame.medium,
             );
+            times.structure_bytes = prefiltered.memory_bytes();
             let method = &prefiltered;
             Box::new(move |ray, t0, t1| {
                 let sample = method.march(ray, t0, t1)?;

@@ -189,7 +189,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 scattering_ms,
             };
             eprintln!(
-                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}, shading {:.1}; shadow map {:.1}, camera depth {:.1})",
+                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}, shading {:.1}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB)",
                 row.label,
                 row.detail,
                 median(&row.scattering_ms),
@@ -198,6 +198,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 stage.shading * 1e3,
                 stage.shadow_map * 1e3,
                 stage.camera_depth * 1e3,
+                stage.rectified_bytes as f64 / (1 << 20) as f64,
+                stage.structure_bytes as f64 / (1 << 20) as f64,
             );
             rows.push(row);
         }
