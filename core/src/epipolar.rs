@@ -735,3 +735,125 @@ fn extent(points: &[DVec2], axis: DVec2) -> (f64, f64) {
             (lo.min(d), hi.max(d))
         })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::FlatGeometry;
+    use crate::scene::{Camera, Medium, RenderSettings, Sun};
+    use glam::Vec3;
+    use rand::{RngExt, SeedableRng};
+
+    /// A tilted square occluder over x, y ∈ [−HALF, HALF].
+    const HALF: f64 = 3.0;
+    const BIAS: f64 = 0.05;
+
+    fn occluder_height(x: f64, y: f64) -> f64 {
+        4.0 + 0.2 * x + 0.1 * y
+    }
+
+    /// Where the light line through `p` meets the occluder's plane: how far towards the
+    /// sun, and where.
+    fn towards_occluder(p: DVec3, light: DVec3) -> (f64, DVec3) {
+        // The gap to the plane is linear in u along p − u·light.
+        let gap = |u: f64| {
+            let q = p - light * u;
+            q.z - occluder_height(q.x, q.y)
+        };
+        let (g0, g1) = (gap(0.0), gap(1.0));
+        let u = g0 / (g0 - g1);
+        (u, p - light * u)
+    }
+
+    /// Whether the map says the point at `t` along `ray` is lit.
+    fn lit_in_map(map: &EpipolarMap, ray: &Ray, t: f64) -> bool {
+        let located = map.locate(ray).expect("a ray of the frustum");
+        let slice = (located.slice.round() as u32).min(map.slices - 1);
+        let s = located.s_origin + located.s_per_t * t;
+        let i = map.sample_coordinate(s) as usize;
+        assert!(i < map.samples as usize, "inside the frustum, inside the map");
+        map.lit_part(i, map.row(slice)[i], located.threshold)
+            .is_some_and(|(a, b)| a <= s && s <= b)
+    }
+
+    /// Seen from the side by a shallow frustum, with the shadow bias given in scene units.
+    #[test]
+    fn the_projective_map_shadows_exactly_what_the_occluder_shadows() {
+        let corners = [[-HALF, -HALF], [HALF, -HALF], [HALF, HALF], [-HALF, HALF]];
+        let positions: Vec<[f32; 3]> = corners
+            .iter()
+            .map(|&[x, y]| [x as f32, y as f32, occluder_height(x, y) as f32])
+            .collect();
+        let geometry = FlatGeometry {
+            positions,
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+            object_ids: vec![2, 2],
+        };
+        let mut scene_camera = Camera::pinhole_looking_at(
+            Vec3::new(-10.0, -1.0, 2.0),
+            Vec3::new(0.0, 0.0, 2.0),
+            30.0,
+            64,
+            48,
+        );
+        scene_camera.clip_start = 6.0;
+        let camera = CameraModel::new(&scene_camera);
+        let sun = Sun {
+            direction: Vec3::new(0.3, 0.2, -1.0),
+            color: Vec3::ONE,
+            strength: 1.0,
+            angular_diameter: 0.0,
+        };
+        let light = sun.direction.as_dvec3().normalize();
+        let medium = Medium {
+            extinction: 0.1,
+            albedo: Vec3::ONE,
+            anisotropy: 0.0,
+            phase: Default::default(),
+            extent: Default::default(),
+        };
+        let settings = RenderSettings {
+            shadow_map_size: 256,
+            max_distance: 14.0,
+            shadow_bias: Some(BIAS as f32),
+            ..RenderSettings::default()
+        };
+        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &geometry.view());
+        let map = EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &geometry.view(),
+            light,
+            14.0,
+            Rectification::Projective,
+            &RectifyDesc::min_max(0),
+        )
+        .expect("a valid view")
+        .expect("a map");
+        assert!(map.is_projective());
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let (mut lit, mut shadowed) = (0, 0);
+        for _ in 0..20000 {
+            let ray = camera.ray(rng.random_range(0.0..64.0), rng.random_range(0.0..48.0));
+            let t = rng.random_range(6.0..14.0) * ray.distance_per_depth;
+            let p = ray.at(t);
+            let (u, hit) = towards_occluder(p, light);
+            // Within a few of the map's texels of an edge, or of the biased surface, the
+            // decision is the sampling's to make.
+            let margin = 0.15;
+            let near_edge =
+                (hit.x.abs() - HALF).abs() < margin || (hit.y.abs() - HALF).abs() < margin;
+            if near_edge || (u - BIAS).abs() < margin {
+                continue;
+            }
+            let truth = !(hit.x.abs() < HALF && hit.y.abs() < HALF && u > BIAS);
+            assert_eq!(lit_in_map(&map, &ray, t), truth, "at {p} (u = {u})");
+            if truth {
+                lit += 1;
+            } else {
+                shadowed += 1;
+            }
+        }
+        assert!(lit > 1000 && shadowed > 1000, "{lit} lit, {shadowed} shadowed");
+    }
+}
