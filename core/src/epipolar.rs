@@ -771,7 +771,10 @@ mod tests {
         let slice = (located.slice.round() as u32).min(map.slices - 1);
         let s = located.s_origin + located.s_per_t * t;
         let i = map.sample_coordinate(s) as usize;
-        assert!(i < map.samples as usize, "inside the frustum, inside the map");
+        assert!(
+            i < map.samples as usize,
+            "inside the frustum, inside the map"
+        );
         map.lit_part(i, map.row(slice)[i], located.threshold)
             .is_some_and(|(a, b)| a <= s && s <= b)
     }
@@ -854,6 +857,9 @@ mod tests {
                 shadowed += 1;
             }
         }
-        assert!(lit > 1000 && shadowed > 1000, "{lit} lit, {shadowed} shadowed");
+        assert!(
+            lit > 1000 && shadowed > 1000,
+            "{lit} lit, {shadowed} shadowed"
+        );
     }
 }

@@ -161,13 +161,13 @@ impl ProjectiveFrame {
         })
     }
 
-    /// Sizes the map for `desc` against a regular shadow map of `texel_size` world units:
-    /// as many columns as the epipolar layout spends along its longest slice (the slice's
-    /// length in texels × `samples_per_texel`), and, with automatic slices, rows
-    /// `slices_per_texel` apart at the far end along the bisectrix.
+    /// Sizes the map for `desc` against a regular shadow map of `texel_size` world units.
+    /// Columns: as many as the epipolar layout spends on its widest slice from the camera
+    /// to the frustum's far end (that length in texels × `samples_per_texel`). Rows, with
+    /// automatic slices: `slices_per_texel` apart at the far end along the bisectrix.
     pub fn grid(&self, desc: &RectifyDesc, texel_size: f64) -> ProjectiveGrid {
         let secant = self.tan_max.hypot(1.0);
-        let slice_texels = (self.far - self.near) * secant / texel_size;
+        let slice_texels = self.far * secant / texel_size;
         let columns = (slice_texels * desc.samples_per_texel)
             .ceil()
             .clamp(1.0, MAX_COLUMNS) as u32;
@@ -250,8 +250,9 @@ impl ProjectiveGrid {
     /// Whether the map resolves shadows about as finely as the regular shadow map of
     /// `texel_size` that the epipolar layout resamples: the rule `auto` applies is that
     /// [`far_column_length`](Self::far_column_length) is at most
-    /// [`MAX_FAR_COLUMN_TEXELS`] × `texel_size`. With the epipolar layout's sample budget
-    /// that holds roughly while far/near ≤ 2 × `samples_per_texel`.
+    /// [`MAX_FAR_COLUMN_TEXELS`] × `texel_size`. With the columns of
+    /// [`ProjectiveFrame::grid`], that holds while far/near ≤ 1 + 2 × `samples_per_texel`,
+    /// about (3 for prefiltering, 5 for min-max).
     pub fn is_sharp(&self, texel_size: f64) -> bool {
         self.far_column_length() <= MAX_FAR_COLUMN_TEXELS * texel_size
     }
