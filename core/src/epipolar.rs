@@ -1,8 +1,10 @@
-//! Epipolar rectification of the shadow map (dissertation §4.4.1).
+//! Rectification of the shadow map: epipolar resampling (dissertation §4.4.1) or
+//! projective rasterization (§4.4.2, see [`crate::projective`]).
 //!
 //! View rays projected into the shadow-map plane are lines: through the epipole (the
 //! camera's position in the map) for a pinhole camera, parallel to each other for an
-//! orthographic one. Each such line is a *slice*, sampled at regular steps `s` along it.
+//! orthographic one. Each such line is a *slice*, sampled along a coordinate `s`: at
+//! regular steps of `s` when resampling, at regular steps of `1/s` in a projective map.
 //! A ray with the light-space depth `w(s) = w₀ + k·(s − s₀)` is lit at `s` when
 //! `w(s) ≤ D(s) + bias`. The rectified map stores, per slice sample, a value `K(s)` with
 //! a ray-dependent `threshold`, such that the test becomes `threshold ≤ K(s)`: one
@@ -10,13 +12,21 @@
 //! need.
 //! - Pinhole: `K(s) = (D(s) + bias − w_c)/s` and `threshold = k` (the ray's slope).
 //! - Orthographic: `K(s) = D(s) + bias − k·s` and `threshold = w₀ − k·s₀` (all rays share k).
+//! - Projective: `s` is the distance X from the camera along the bisectrix, the stored
+//!   depth is Z/X (light depth from the camera over X), so `K(s) = (Z + bias)/s` and
+//!   `threshold = Z/X` of the ray: the pinhole case with the camera's depth as origin.
 
 use std::f64::consts::TAU;
 
-use glam::{DVec2, DVec3};
+use glam::{DMat4, DVec2, DVec3};
 use rayon::prelude::*;
 
 use crate::camera::{CameraModel, Ray};
+use crate::error::Result;
+use crate::projective::{choose, ProjectiveGrid};
+use crate::raster::{rasterize, RasterDesc};
+use crate::render::Geometry;
+use crate::scene::Rectification;
 use crate::shadow_map::ShadowMap;
 
 /// How densely to rectify.
@@ -77,6 +87,56 @@ enum Layout {
         offset_step: f64,
         slope: f64,
     },
+    /// Slices are the planes Y/X = `first_tan + j·tan_step` of the projective frame
+    /// `view_from_world` (X along its bisectrix, Z along the light, camera at 0); `s` is X.
+    Projective {
+        view_from_world: DMat4,
+        first_tan: f64,
+        tan_step: f64,
+    },
+}
+
+impl Layout {
+    /// Whether K = N/s within a sample (pinhole cameras), rather than affine in s.
+    fn is_reciprocal(&self) -> bool {
+        !matches!(self, Layout::Parallel { .. })
+    }
+}
+
+/// Where samples sit along every slice.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Spacing {
+    /// Sample i covers s ∈ [first + i·step, first + (i+1)·step).
+    Uniform { first: f64, step: f64 },
+    /// Uniform in 1/s, as a projective map's columns: sample i covers the s > 0 with
+    /// 1/s ∈ (first − (i+1)·step, first − i·step].
+    Reciprocal { first: f64, step: f64 },
+}
+
+impl Spacing {
+    /// s at the continuous sample coordinate `x` (sample i spans x ∈ [i, i + 1]).
+    #[inline]
+    fn s_at(&self, x: f64) -> f64 {
+        match *self {
+            Spacing::Uniform { first, step } => first + x * step,
+            Spacing::Reciprocal { first, step } => 1.0 / (first - x * step),
+        }
+    }
+
+    /// The inverse of [`Spacing::s_at`]; −∞ for s at or behind the projective camera.
+    #[inline]
+    fn coordinate(&self, s: f64) -> f64 {
+        match *self {
+            Spacing::Uniform { first, step } => (s - first) / step,
+            Spacing::Reciprocal { first, step } => {
+                if s > 0.0 {
+                    (first - 1.0 / s) / step
+                } else {
+                    f64::NEG_INFINITY
+                }
+            }
+        }
+    }
 }
 
 /// Where one view ray lies in the rectified map.
@@ -84,7 +144,8 @@ enum Layout {
 pub struct RaySlice {
     /// Fractional slice coordinate: between slice `floor` and the next.
     pub slice: f64,
-    /// Position along the slice at t = 0, and texels per unit of t.
+    /// Position along the slice at t = 0, and s per unit of t (texels for the epipolar
+    /// layouts, scene units for the projective one).
     pub s_origin: f64,
     pub s_per_t: f64,
     /// The ray is lit at `s` when `threshold ≤ K(s)`.
@@ -97,14 +158,13 @@ impl RaySlice {
     }
 }
 
-/// The rectified shadow map: `slices` rows of `samples` values of K.
+/// The rectified shadow map: `slices` rows of `samples` values of K. Sample i of every
+/// slice covers [`EpipolarMap::sample_interval`]`(i)` of s.
 #[derive(Clone, Debug)]
 pub struct EpipolarMap {
     pub slices: u32,
     pub samples: u32,
-    /// Sample i of a slice covers s ∈ [s_first + i·s_step, s_first + (i+1)·s_step).
-    pub s_first: f64,
-    pub s_step: f64,
+    spacing: Spacing,
     pub values: Vec<f32>,
     layout: Layout,
     texel_from_world: glam::DMat4,
@@ -173,7 +233,10 @@ impl EpipolarMap {
             desc.slices
         };
         let samples = (((s_last - s_first) * desc.samples_per_texel).ceil() as u32).max(1);
-        let s_step = (s_last - s_first) / samples as f64;
+        let spacing = Spacing::Uniform {
+            first: s_first,
+            step: (s_last - s_first) / samples as f64,
+        };
         let layout = match layout {
             Layout::Radial {
                 epipole,
@@ -205,34 +268,115 @@ impl EpipolarMap {
                 offset_step: span / (slices.max(2) - 1) as f64,
                 slope,
             },
+            projective @ Layout::Projective { .. } => projective,
         };
-        let bound_factors = (0..samples as usize)
-            .map(|i| {
-                let s0 = s_first + i as f64 * s_step;
-                let centre = s0 + 0.5 * s_step;
-                match layout {
-                    Layout::Radial { .. } => {
-                        [(centre / s0) as f32, (centre / (s0 + s_step)) as f32]
-                    }
-                    Layout::Parallel { slope, .. } => {
-                        let half = (slope.abs() * 0.5 * s_step) as f32;
-                        [half, half]
-                    }
-                }
-            })
-            .collect();
         let mut map = EpipolarMap {
             slices,
             samples,
-            s_first,
-            s_step,
+            spacing,
             values: vec![0.0; slices as usize * samples as usize],
             layout,
             texel_from_world,
-            bound_factors,
+            bound_factors: Vec::new(),
         };
+        map.bound_factors = map.compute_bound_factors();
         map.resample(shadow);
         Some(map)
+    }
+
+    /// The rectified map `rectification` asks for: projective where it is forced, or
+    /// where `auto` finds the view valid and the map sharp enough
+    /// ([`crate::projective::choose`]), epipolar otherwise. `reach` is the longest planar
+    /// depth a view ray is evaluated to. `Ok(None)` where nothing rectifies the view (an
+    /// orthographic camera looking straight along the light).
+    pub fn rectify(
+        camera: &CameraModel,
+        shadow: &ShadowMap,
+        geometry: &Geometry,
+        light_travel: DVec3,
+        reach: f64,
+        rectification: Rectification,
+        desc: &RectifyDesc,
+    ) -> Result<Option<Self>> {
+        let grid = choose(
+            rectification,
+            camera,
+            light_travel,
+            reach,
+            desc,
+            shadow.texel_size,
+        )?;
+        Ok(match grid {
+            Some(grid) => Some(Self::build_projective(&grid, shadow, geometry)),
+            None => Self::build(camera, shadow, desc),
+        })
+    }
+
+    /// Rasterizes `geometry` straight into the projective map `grid`. K per sample is the
+    /// stored depth Z/X plus the shadow bias (scene units of light depth) over the X of
+    /// the sample's centre, where the rasterizer sampled it.
+    pub fn build_projective(
+        grid: &ProjectiveGrid,
+        shadow: &ShadowMap,
+        geometry: &Geometry,
+    ) -> Self {
+        let frame = &grid.frame;
+        let (samples, slices) = (grid.columns, grid.rows);
+        // Nothing closer than the frustum's near X lands in a column; w stays positive.
+        let desc = RasterDesc::projective(samples, slices, 0.5 * frame.near);
+        let target = rasterize(geometry, &grid.clip_from_world(), &desc);
+        let spacing = Spacing::Reciprocal {
+            first: 1.0 / frame.near,
+            step: grid.reciprocal_step(),
+        };
+        let layout = Layout::Projective {
+            view_from_world: frame.view_from_world,
+            first_tan: -frame.tan_max,
+            tan_step: grid.tan_step(),
+        };
+        let bias_over_x: Vec<f64> = (0..samples as usize)
+            .map(|i| shadow.bias / spacing.s_at(i as f64 + 0.5))
+            .collect();
+        let mut values = target.depth;
+        values.par_chunks_mut(samples as usize).for_each(|row| {
+            for (value, bias) in row.iter_mut().zip(&bias_over_x) {
+                *value = (*value as f64 + bias) as f32;
+            }
+        });
+        let mut map = EpipolarMap {
+            slices,
+            samples,
+            spacing,
+            values,
+            layout,
+            texel_from_world: shadow.texel_from_world,
+            bound_factors: Vec::new(),
+        };
+        map.bound_factors = map.compute_bound_factors();
+        map
+    }
+
+    /// Per sample, what turns K at its centre into K at its ends (see
+    /// [`EpipolarMap::sample_bounds`]).
+    fn compute_bound_factors(&self) -> Vec<[f32; 2]> {
+        (0..self.samples as usize)
+            .map(|i| {
+                let (s0, s1) = self.sample_interval(i);
+                let centre = self.sample_centre(i);
+                match self.layout {
+                    Layout::Parallel { slope, .. } => {
+                        let half = (slope.abs() * 0.5 * (s1 - s0)) as f32;
+                        [half, half]
+                    }
+                    _ => [(centre / s0) as f32, (centre / s1) as f32],
+                }
+            })
+            .collect()
+    }
+
+    /// Whether the map was rasterized projectively rather than resampled.
+    pub fn is_projective(&self) -> bool {
+        matches!(self.layout, Layout::Projective { .. })
     }
 
     /// Slice line: a point at s = 0 and the unit direction of growing s.
@@ -257,12 +401,14 @@ impl EpipolarMap {
                 normal * (first_offset + slice as f64 * offset_step),
                 direction,
             ),
+            // Only resampled layouts have lines in the regular shadow map.
+            Layout::Projective { .. } => (DVec2::ZERO, DVec2::X),
         }
     }
 
     fn resample(&mut self, shadow: &ShadowMap) {
         let samples = self.samples as usize;
-        let (s_first, s_step, layout) = (self.s_first, self.s_step, self.layout);
+        let (spacing, layout) = (self.spacing, self.layout);
         let lines: Vec<_> = (0..self.slices).map(|j| self.slice_line(j)).collect();
         let size = shadow.size as f64;
         self.values
@@ -270,7 +416,7 @@ impl EpipolarMap {
             .zip(lines.par_iter())
             .for_each(|(row, &(base, direction))| {
                 for (i, value) in row.iter_mut().enumerate() {
-                    let s = s_first + (i as f64 + 0.5) * s_step;
+                    let s = spacing.s_at(i as f64 + 0.5);
                     let p = base + direction * s;
                     let occluder = if p.x >= 0.0 && p.y >= 0.0 && p.x < size && p.y < size {
                         shadow.depth[p.y as usize * shadow.size as usize + p.x as usize] as f64
@@ -281,6 +427,7 @@ impl EpipolarMap {
                     *value = match layout {
                         Layout::Radial { camera_depth, .. } => (lit_below - camera_depth) / s,
                         Layout::Parallel { slope, .. } => lit_below - slope * s,
+                        Layout::Projective { .. } => f64::INFINITY,
                     } as f32;
                 }
             });
@@ -288,6 +435,24 @@ impl EpipolarMap {
 
     /// Locates a view ray, or `None` when it runs along the light (at the epipole).
     pub fn locate(&self, ray: &Ray) -> Option<RaySlice> {
+        if let Layout::Projective {
+            view_from_world,
+            first_tan,
+            tan_step,
+        } = self.layout
+        {
+            // Camera rays start at the frame's origin, so Z/X is the same all along them.
+            let d = view_from_world.transform_vector3(ray.direction);
+            if d.x < MIN_PROJECTED_LENGTH {
+                return None;
+            }
+            return Some(RaySlice {
+                slice: (d.y / d.x - first_tan) / tan_step,
+                s_origin: view_from_world.transform_point3(ray.origin).x,
+                s_per_t: d.x,
+                threshold: d.z / d.x,
+            });
+        }
         let origin = self.texel_from_world.transform_point3(ray.origin);
         let direction = self.texel_from_world.transform_vector3(ray.direction);
         let projected = direction.truncate();
@@ -333,6 +498,7 @@ impl EpipolarMap {
                     threshold: origin.z - shared_slope * s_origin,
                 })
             }
+            Layout::Projective { .. } => None,
         }
     }
 
@@ -380,35 +546,65 @@ impl EpipolarMap {
     /// without the arctangent), so that ±∞ map to finite keys.
     #[inline]
     pub fn order_key(&self, value: f64) -> f64 {
-        match self.layout {
-            Layout::Radial { .. } => {
-                if value.is_infinite() {
-                    -value.signum()
-                } else {
-                    -value / (1.0 + value.abs())
-                }
+        if self.layout.is_reciprocal() {
+            if value.is_infinite() {
+                -value.signum()
+            } else {
+                -value / (1.0 + value.abs())
             }
-            Layout::Parallel { .. } => -value,
+        } else {
+            -value
         }
     }
 
     /// Sample i's interval along its slice.
+    #[inline]
     pub fn sample_interval(&self, i: usize) -> (f64, f64) {
         (
-            self.s_first + i as f64 * self.s_step,
-            self.s_first + (i + 1) as f64 * self.s_step,
+            self.spacing.s_at(i as f64),
+            self.spacing.s_at((i + 1) as f64),
         )
+    }
+
+    /// Where sample i's value was taken.
+    #[inline]
+    pub fn sample_centre(&self, i: usize) -> f64 {
+        self.spacing.s_at(i as f64 + 0.5)
+    }
+
+    /// The continuous, increasing sample coordinate of `s`: sample i spans [i, i + 1].
+    /// Below the first sample it is negative (−∞ behind a projective map's camera), past
+    /// the last one above `samples`.
+    #[inline]
+    pub fn sample_coordinate(&self, s: f64) -> f64 {
+        self.spacing.coordinate(s)
+    }
+
+    /// The s covered by the samples: from the first one's start to the last one's end.
+    pub fn s_range(&self) -> (f64, f64) {
+        (
+            self.spacing.s_at(0.0),
+            self.spacing.s_at(self.samples as f64),
+        )
+    }
+
+    /// The common length of all samples, where they are evenly spaced.
+    pub fn uniform_step(&self) -> Option<f64> {
+        match self.spacing {
+            Spacing::Uniform { step, .. } => Some(step),
+            Spacing::Reciprocal { .. } => None,
+        }
     }
 
     /// K along sample i's interval is monotone in s, determined by its centre value:
     /// returns (a, b) such that the ray with `threshold` is lit at s where a·s ≤ b.
     fn lit_condition(&self, i: usize, centre: f32, threshold: f64) -> (f64, f64) {
-        let s_centre = self.s_first + (i as f64 + 0.5) * self.s_step;
+        let s_centre = self.sample_centre(i);
         match self.layout {
-            // K(s) = N/s with N = K(s_c)·s_c: lit where threshold·s ≤ N.
-            Layout::Radial { .. } => (threshold, centre as f64 * s_centre),
             // K(s) = M − slope·s with M = K(s_c) + slope·s_c: lit where slope·s ≤ M − threshold.
             Layout::Parallel { slope, .. } => (slope, centre as f64 + slope * s_centre - threshold),
+            // K(s) = N/s with N = K(s_c)·s_c: lit where threshold·s ≤ N.
+            _ => (threshold, centre as f64 * s_centre),
         }
     }
 
@@ -416,19 +612,17 @@ impl EpipolarMap {
     #[inline]
     pub fn sample_bounds(&self, i: usize, centre: f32) -> (f32, f32) {
         let [near, far] = self.bound_factors[i];
-        match self.layout {
-            // K(s) = K(s_c)·s_c/s: scale the centre value by s_c/s at both ends.
-            Layout::Radial { .. } => {
-                if centre == 0.0 || centre.is_infinite() {
-                    (centre, centre)
-                } else if centre > 0.0 {
-                    (centre * far, centre * near)
-                } else {
-                    (centre * near, centre * far)
-                }
-            }
+        if !self.layout.is_reciprocal() {
             // K(s) = K(s_c) + slope·(s_c − s): the ends differ by ±|slope|·step/2.
-            Layout::Parallel { .. } => (centre - near, centre + near),
+            return (centre - near, centre + near);
+        }
+        // K(s) = K(s_c)·s_c/s: scale the centre value by s_c/s at both ends.
+        if centre == 0.0 || centre.is_infinite() {
+            (centre, centre)
+        } else if centre > 0.0 {
+            (centre * far, centre * near)
+        } else {
+            (centre * near, centre * far)
         }
     }
 
@@ -540,4 +734,132 @@ fn extent(points: &[DVec2], axis: DVec2) -> (f64, f64) {
             let d = p.dot(axis);
             (lo.min(d), hi.max(d))
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::FlatGeometry;
+    use crate::scene::{Camera, Medium, RenderSettings, Sun};
+    use glam::Vec3;
+    use rand::{RngExt, SeedableRng};
+
+    /// A tilted square occluder over x, y ∈ [−HALF, HALF].
+    const HALF: f64 = 3.0;
+    const BIAS: f64 = 0.05;
+
+    fn occluder_height(x: f64, y: f64) -> f64 {
+        4.0 + 0.2 * x + 0.1 * y
+    }
+
+    /// Where the light line through `p` meets the occluder's plane: how far towards the
+    /// sun, and where.
+    fn towards_occluder(p: DVec3, light: DVec3) -> (f64, DVec3) {
+        // The gap to the plane is linear in u along p − u·light.
+        let gap = |u: f64| {
+            let q = p - light * u;
+            q.z - occluder_height(q.x, q.y)
+        };
+        let (g0, g1) = (gap(0.0), gap(1.0));
+        let u = g0 / (g0 - g1);
+        (u, p - light * u)
+    }
+
+    /// Whether the map says the point at `t` along `ray` is lit.
+    fn lit_in_map(map: &EpipolarMap, ray: &Ray, t: f64) -> bool {
+        let located = map.locate(ray).expect("a ray of the frustum");
+        let slice = (located.slice.round() as u32).min(map.slices - 1);
+        let s = located.s_origin + located.s_per_t * t;
+        let i = map.sample_coordinate(s) as usize;
+        assert!(
+            i < map.samples as usize,
+            "inside the frustum, inside the map"
+        );
+        map.lit_part(i, map.row(slice)[i], located.threshold)
+            .is_some_and(|(a, b)| a <= s && s <= b)
+    }
+
+    /// Seen from the side by a shallow frustum, with the shadow bias given in scene units.
+    #[test]
+    fn the_projective_map_shadows_exactly_what_the_occluder_shadows() {
+        let corners = [[-HALF, -HALF], [HALF, -HALF], [HALF, HALF], [-HALF, HALF]];
+        let positions: Vec<[f32; 3]> = corners
+            .iter()
+            .map(|&[x, y]| [x as f32, y as f32, occluder_height(x, y) as f32])
+            .collect();
+        let geometry = FlatGeometry {
+            positions,
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+            object_ids: vec![2, 2],
+        };
+        let mut scene_camera = Camera::pinhole_looking_at(
+            Vec3::new(-10.0, -1.0, 2.0),
+            Vec3::new(0.0, 0.0, 2.0),
+            30.0,
+            64,
+            48,
+        );
+        scene_camera.clip_start = 6.0;
+        let camera = CameraModel::new(&scene_camera);
+        let sun = Sun {
+            direction: Vec3::new(0.3, 0.2, -1.0),
+            color: Vec3::ONE,
+            strength: 1.0,
+            angular_diameter: 0.0,
+        };
+        let light = sun.direction.as_dvec3().normalize();
+        let medium = Medium {
+            extinction: 0.1,
+            albedo: Vec3::ONE,
+            anisotropy: 0.0,
+            phase: Default::default(),
+            extent: Default::default(),
+        };
+        let settings = RenderSettings {
+            shadow_map_size: 256,
+            max_distance: 14.0,
+            shadow_bias: Some(BIAS as f32),
+            ..RenderSettings::default()
+        };
+        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &geometry.view());
+        let map = EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &geometry.view(),
+            light,
+            14.0,
+            Rectification::Projective,
+            &RectifyDesc::min_max(0),
+        )
+        .expect("a valid view")
+        .expect("a map");
+        assert!(map.is_projective());
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let (mut lit, mut shadowed) = (0, 0);
+        for _ in 0..20000 {
+            let ray = camera.ray(rng.random_range(0.0..64.0), rng.random_range(0.0..48.0));
+            let t = rng.random_range(6.0..14.0) * ray.distance_per_depth;
+            let p = ray.at(t);
+            let (u, hit) = towards_occluder(p, light);
+            // Within a few of the map's texels of an edge, or of the biased surface, the
+            // decision is the sampling's to make.
+            let margin = 0.15;
+            let near_edge =
+                (hit.x.abs() - HALF).abs() < margin || (hit.y.abs() - HALF).abs() < margin;
+            if near_edge || (u - BIAS).abs() < margin {
+                continue;
+            }
+            let truth = !(hit.x.abs() < HALF && hit.y.abs() < HALF && u > BIAS);
+            assert_eq!(lit_in_map(&map, &ray, t), truth, "at {p} (u = {u})");
+            if truth {
+                lit += 1;
+            } else {
+                shadowed += 1;
+            }
+        }
+        assert!(
+            lit > 1000 && shadowed > 1000,
+            "{lit} lit, {shadowed} shadowed"
+        );
+    }
 }

@@ -17,6 +17,7 @@ pub mod minmax;
 pub mod phase;
 pub mod prefiltered;
 pub mod preview;
+pub mod projective;
 pub mod raster;
 pub mod reference;
 pub mod render;

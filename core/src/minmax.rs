@@ -97,7 +97,7 @@ impl MinMaxMipmap {
         mut visit: impl FnMut(f64, f64),
     ) {
         let samples = map.samples as usize;
-        let s_end_of_map = map.s_first + samples as f64 * map.s_step;
+        let (s_start_of_map, s_end_of_map) = map.s_range();
         let mut pending: Option<(f64, f64)> = None;
         let mut emit = |s0: f64, s1: f64, visit: &mut dyn FnMut(f64, f64)| {
             if s1 <= s0 {
@@ -112,13 +112,13 @@ impl MinMaxMipmap {
                 None => pending = Some((s0, s1)),
             }
         };
-        if s_a < map.s_first {
-            emit(s_a, s_b.min(map.s_first), &mut visit);
+        if s_a < s_start_of_map {
+            emit(s_a, s_b.min(s_start_of_map), &mut visit);
         }
-        let (inside_a, inside_b) = (s_a.max(map.s_first), s_b.min(s_end_of_map));
+        let (inside_a, inside_b) = (s_a.max(s_start_of_map), s_b.min(s_end_of_map));
         if inside_b > inside_a {
             let row = map.row(slice);
-            let leaf = |s: f64| (((s - map.s_first) / map.s_step) as usize).min(samples - 1);
+            let leaf = |s: f64| (map.sample_coordinate(s) as usize).min(samples - 1);
             let (first, last) = (leaf(inside_a), leaf(inside_b));
             let exact_threshold = threshold;
             let threshold = threshold as f32;
@@ -154,8 +154,8 @@ impl MinMaxMipmap {
                 }
                 let run = 1usize << level;
                 if lit {
-                    let s0 = map.s_first + i as f64 * map.s_step;
-                    let s1 = map.s_first + (i + run) as f64 * map.s_step;
+                    let (s0, _) = map.sample_interval(i);
+                    let (_, s1) = map.sample_interval(i + run - 1);
                     emit(s0.max(inside_a), s1.min(inside_b), &mut visit);
                 }
                 i += run;
@@ -262,13 +262,13 @@ mod tests {
     use crate::camera::CameraModel;
     use crate::epipolar::RectifyDesc;
     use crate::render::FlatGeometry;
-    use crate::scene::{Camera, Medium, Mesh, RenderSettings};
+    use crate::scene::{Camera, Medium, Mesh, Rectification, RenderSettings};
     use crate::shadow_map::ShadowMap;
     use glam::{Mat4, Vec3};
     use rand::{RngExt, SeedableRng};
 
     /// A rectified map of 200 random floating quads, seen by a pinhole camera.
-    fn rectified() -> EpipolarMap {
+    fn rectified(rectification: Rectification) -> EpipolarMap {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
         let mut positions = Vec::new();
         let mut triangles = Vec::new();
@@ -326,23 +326,43 @@ mod tests {
             triangles: mesh.triangles,
         };
         let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view());
-        EpipolarMap::build(&camera, &shadow, &RectifyDesc::min_max(0))
-            .expect("a pinhole camera rectifies")
+        let map = EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &flat.view(),
+            sun.direction.as_dvec3(),
+            settings.max_distance as f64,
+            rectification,
+            &RectifyDesc::min_max(0),
+        );
+        let map = map
+            .expect("a valid view")
+            .expect("a pinhole camera rectifies");
+        assert_eq!(
+            map.is_projective(),
+            rectification == Rectification::Projective
+        );
+        map
     }
 
     #[test]
     fn the_mipmap_walk_equals_testing_every_sample() {
-        let map = rectified();
-        let mipmap = MinMaxMipmap::build(&map);
+        for rectification in [Rectification::Epipolar, Rectification::Projective] {
+            walk_equals_testing_every_sample(&rectified(rectification));
+        }
+    }
+
+    fn walk_equals_testing_every_sample(map: &EpipolarMap) {
+        let mipmap = MinMaxMipmap::build(map);
         let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
-        let s_end = map.s_first + map.samples as f64 * map.s_step;
+        let (s_start, s_end) = map.s_range();
         for _ in 0..2000 {
             let slice = rng.random_range(0..map.slices);
             let threshold = rng.random_range(-1.5..1.5);
-            let s_a = rng.random_range(map.s_first..s_end);
+            let s_a = rng.random_range(s_start..s_end);
             let s_b = rng.random_range(s_a..s_end + 5.0);
             let mut walked = Vec::new();
-            mipmap.lit_spans(&map, slice, threshold, s_a, s_b, |a, b| walked.push((a, b)));
+            mipmap.lit_spans(map, slice, threshold, s_a, s_b, |a, b| walked.push((a, b)));
             let mut brute: Vec<(f64, f64)> = Vec::new();
             let row = map.row(slice);
             for (i, &value) in row.iter().enumerate() {

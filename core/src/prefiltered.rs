@@ -413,8 +413,10 @@ impl<'a> Prefiltered<'a> {
             return Some(RaySample::EMPTY);
         }
         let key = self.map.order_key(located.threshold);
-        let x =
-            |t: f64| (located.s_origin + located.s_per_t * t - self.map.s_first) / self.map.s_step;
+        let x = |t: f64| {
+            self.map
+                .sample_coordinate(located.s_origin + located.s_per_t * t)
+        };
         let sigma = self.extinction;
         let Some((a, b)) = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end) else {
             // Off the map (shorter than a sample) counts as lit, like the other methods.
@@ -480,7 +482,7 @@ fn plan_bands(
                 samples
             } else {
                 let s_reach = frame.origin + fastest * reach_t;
-                (((s_reach - map.s_first) / map.s_step).ceil().max(0.0) as usize + 1).min(samples)
+                (map.sample_coordinate(s_reach).ceil().max(0.0) as usize + 1).min(samples)
             };
             bands.push(Band {
                 rate,
@@ -566,27 +568,35 @@ fn filter_band<T: BasisValue>(
     basis[..row].fill(T::default());
     weight[0] = 0.0;
     let depth_of = |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
-    // Past the depth cap, every sample keeps the last full sample's weight.
-    let flat = (-MAX_REFERENCE_DEPTH).exp() * extinction * map.s_step / rate;
+    // Past the depth cap, every sample keeps the weight it would have at the cap.
+    let flat_per_s = (-MAX_REFERENCE_DEPTH).exp() * extinction / rate;
     let mut weights = vec![1.0f32; entries.len()];
     let mut scales = vec![0.0f32; entries.len()];
-    // Between the origin and the depth cap, each sample multiplies the transmittance by
-    // the same factor: one exp per band rather than one per sample.
-    let step_factor = (-extinction * map.s_step / rate).exp();
+    // Between the origin and the depth cap, evenly spaced samples each multiply the
+    // transmittance by the same factor: one exp per band rather than one per sample.
+    // Others (a projective map's) take each sample's own interval: the cross-ratio weights.
+    let step_factor = map
+        .uniform_step()
+        .map(|step| (-extinction * step / rate).exp());
     let mut total = 0.0f64;
-    let mut s0 = map.s_first;
+    let (mut s0, _) = map.sample_interval(0);
     let mut before = (-depth_of(s0)).exp();
     for (i, (w32, scale)) in weights.iter_mut().zip(scales.iter_mut()).enumerate() {
         let w = if extinction > 0.0 {
             let (_, s1) = map.sample_interval(i);
             let unclamped = |s: f64| extinction * (s - origin) / rate;
-            let after = if unclamped(s0) >= 0.0 && unclamped(s1) <= MAX_REFERENCE_DEPTH {
-                before * step_factor
+            let after = match step_factor {
+                Some(factor) if unclamped(s0) >= 0.0 && unclamped(s1) <= MAX_REFERENCE_DEPTH => {
+                    before * factor
+                }
+                _ => (-depth_of(s1)).exp(),
+            };
+            let w = if after < before {
+                before - after
             } else {
-                (-depth_of(s1)).exp()
+                flat_per_s * (s1 - s0)
             };
             s0 = s1;
-            let w = if after < before { before - after } else { flat };
             before = after;
             w
         } else {

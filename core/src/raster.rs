@@ -25,6 +25,9 @@ pub struct RasterDesc {
     pub height: u32,
     /// True when the projection divides by w (a pinhole camera); depth is then w itself.
     pub perspective: bool,
+    /// With `perspective`, store z/w instead of w: affine in the image, so interpolated
+    /// linearly (a projective shadow map's depth).
+    pub projected_depth: bool,
     /// Smallest w kept by the near-plane clip (perspective only).
     pub near_w: f64,
     /// Samples whose depth falls outside this range are left empty (clip planes).
@@ -37,6 +40,7 @@ impl RasterDesc {
             width,
             height,
             perspective: false,
+            projected_depth: false,
             near_w: 0.0,
             depth_range: (f64::NEG_INFINITY, f64::INFINITY),
         }
@@ -47,9 +51,28 @@ impl RasterDesc {
             width,
             height,
             perspective: true,
+            projected_depth: false,
             near_w: near,
             depth_range: (near, far),
         }
+    }
+
+    /// Divides by w, clips at `near_w`, and stores z/w with no depth clipping: geometry
+    /// at any depth is kept (the rasterizer's equivalent of depth clamping).
+    pub fn projective(width: u32, height: u32, near_w: f64) -> Self {
+        Self {
+            width,
+            height,
+            perspective: true,
+            projected_depth: true,
+            near_w,
+            depth_range: (f64::NEG_INFINITY, f64::INFINITY),
+        }
+    }
+
+    /// Whether depth is recovered as the reciprocal of an interpolated 1/w.
+    fn interpolates_reciprocal(&self) -> bool {
+        self.perspective && !self.projected_depth
     }
 }
 
@@ -68,7 +91,7 @@ pub struct DepthTarget {
 struct ScreenTriangle {
     /// Fixed-point vertex positions, counter-clockwise in the sense of positive area.
     vertices: [[i64; 2]; 3],
-    /// Per-vertex depth, or 1/w for perspective projections.
+    /// Per-vertex depth: z, 1/w for perspective projections, or z/w for projected depth.
     attributes: [f64; 3],
     object_id: u32,
     /// Inclusive pixel bounds, already clamped to the target.
@@ -162,7 +185,7 @@ fn fill_tile(
     let (near, far) = desc.depth_range;
     for &index in bin {
         let triangle = &triangles[index as usize];
-        for_each_covered_sample(triangle, rect, desc.perspective, |x, y, z| {
+        for_each_covered_sample(triangle, rect, desc.interpolates_reciprocal(), |x, y, z| {
             if z < near || z > far {
                 return;
             }
@@ -352,7 +375,13 @@ fn snap_triangle(corners: [DVec4; 3], object_id: u32, desc: &RasterDesc) -> Opti
     for (i, c) in corners.iter().enumerate() {
         let (x, y) = (c.x / c.w, c.y / c.w);
         vertices[i] = [(x * SUBPIXEL).round() as i64, (y * SUBPIXEL).round() as i64];
-        attributes[i] = if desc.perspective { 1.0 / c.w } else { c.z };
+        attributes[i] = if desc.projected_depth {
+            c.z / c.w
+        } else if desc.perspective {
+            1.0 / c.w
+        } else {
+            c.z
+        };
     }
     let area = (vertices[1][0] - vertices[0][0]) * (vertices[2][1] - vertices[0][1])
         - (vertices[1][1] - vertices[0][1]) * (vertices[2][0] - vertices[0][0]);

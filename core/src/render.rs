@@ -120,7 +120,7 @@ pub fn render_scene_timed(scene: &Scene, control: &RenderControl) -> Result<(Lay
 pub struct StageTimes {
     pub shadow_map: f64,
     pub camera_depth: f64,
-    /// Epipolar rectification of the shadow map (fast methods).
+    /// Rectification of the shadow map (fast methods), projective rasterization included.
     pub rectify: f64,
     /// The method's acceleration structure: min-max mipmap or filtered basis.
     pub prepare: f64,
@@ -188,9 +188,21 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
         Method::MinMax => Some(RectifyDesc::min_max(frame.settings.epipolar_slices)),
         Method::Prefiltered => Some(RectifyDesc::prefiltered(frame.settings.epipolar_slices)),
     };
+    let map = match rectify {
+        Some(desc) => EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &frame.geometry,
+            light_travel,
+            frame.settings.max_distance as f64,
+            frame.settings.rectification,
+            &desc,
+        )?,
+        None => None,
+    };
     // Rectification is undefined for an orthographic camera looking straight along the
     // light; the reference handles that view as it does any other.
-    let Some(map) = rectify.and_then(|desc| EpipolarMap::build(&camera, &shadow, &desc)) else {
+    let Some(map) = map else {
         let layers = shade_pixels(
             &camera,
             &surfaces,

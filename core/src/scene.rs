@@ -244,6 +244,58 @@ impl std::str::FromStr for Method {
     }
 }
 
+/// How the fast methods rectify the shadow map, so that view rays run along its rows.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Rectification {
+    /// Projective where the view allows it and it resolves shadows as finely as the
+    /// regular shadow map, epipolar otherwise.
+    #[default]
+    Auto,
+    /// Resample the regular shadow map along epipolar slices (dissertation §4.4.1).
+    Epipolar,
+    /// Rasterize straight into a projectively rectified map (dissertation §4.4.2); an error
+    /// for views it cannot handle (orthographic cameras, the sun or the anti-sun point in
+    /// or near the image).
+    Projective,
+}
+
+impl Rectification {
+    pub const ALL: [Rectification; 3] = [
+        Rectification::Auto,
+        Rectification::Epipolar,
+        Rectification::Projective,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Rectification::Auto => "auto",
+            Rectification::Epipolar => "epipolar",
+            Rectification::Projective => "projective",
+        }
+    }
+}
+
+impl std::str::FromStr for Rectification {
+    type Err = Error;
+
+    fn from_str(text: &str) -> Result<Self> {
+        Rectification::ALL
+            .into_iter()
+            .find(|r| r.name() == text)
+            .ok_or_else(|| {
+                let known: Vec<_> = Rectification::ALL.iter().map(|r| r.name()).collect();
+                Error::invalid(
+                    "render.rectification",
+                    format!(
+                        "unknown rectification '{text}' (known: {})",
+                        known.join(", ")
+                    ),
+                )
+            })
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RenderSettings {
@@ -273,6 +325,8 @@ pub struct RenderSettings {
     pub near_plane_correction: bool,
     /// Prefiltered method: precision of the stored filtered basis.
     pub basis_storage: BasisStorage,
+    /// Fast methods: how the shadow map is rectified.
+    pub rectification: Rectification,
 }
 
 /// How the prefiltered method stores its filtered basis. It is normalized to [−1, 1],
@@ -301,6 +355,7 @@ impl Default for RenderSettings {
             bases: 32,
             near_plane_correction: true,
             basis_storage: BasisStorage::default(),
+            rectification: Rectification::default(),
         }
     }
 }

@@ -185,3 +185,24 @@ fn a_cancelled_render_stops_with_cancelled() {
         Err(Error::Cancelled)
     ));
 }
+
+#[test]
+fn an_unknown_rectification_is_named_with_its_path() {
+    let json = valid_scene().to_json();
+    assert!(
+        json.contains("\"rectification\": \"auto\""),
+        "the default is written"
+    );
+    let json = json.replacen(
+        "\"rectification\": \"auto\"",
+        "\"rectification\": \"linear\"",
+        1,
+    );
+    match Scene::from_json(&json) {
+        Err(Error::SceneFormat(message)) => assert!(
+            message.contains("render.rectification") && message.contains("linear"),
+            "{message}"
+        ),
+        other => panic!("expected a format error, got {other:?}"),
+    }
+}

@@ -10,7 +10,7 @@ use clap::{Args, Parser, Subcommand};
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::exr_file::{write_layers, Precision};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
-use crepuscular::scene::{Method, Scene};
+use crepuscular::scene::{Method, Rectification, Scene};
 use crepuscular::{render_scene, Error, Layers, RenderControl, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -66,6 +66,9 @@ pub struct Overrides {
     sm_size: Option<u32>,
     #[arg(long)]
     method: Option<Method>,
+    /// How the fast methods rectify the shadow map: auto, epipolar or projective.
+    #[arg(long)]
+    rectification: Option<Rectification>,
     /// Ray-march steps of the reference method.
     #[arg(long)]
     steps: Option<u32>,
@@ -90,6 +93,9 @@ impl Overrides {
         }
         if let Some(method) = self.method {
             scene.render.method = method;
+        }
+        if let Some(rectification) = self.rectification {
+            scene.render.rectification = rectification;
         }
         if let Some(steps) = self.steps {
             scene.render.steps = steps;
