@@ -401,7 +401,7 @@ impl EpipolarMap {
                 normal * (first_offset + slice as f64 * offset_step),
                 direction,
             ),
-            // Only resampled layouts have lines in the regular shadow map.
+            // Projective maps are rasterized, never resampled: no lines to follow.
             Layout::Projective { .. } => (DVec2::ZERO, DVec2::X),
         }
     }
@@ -427,6 +427,7 @@ impl EpipolarMap {
                     *value = match layout {
                         Layout::Radial { camera_depth, .. } => (lit_below - camera_depth) / s,
                         Layout::Parallel { slope, .. } => lit_below - slope * s,
+                        // Projective maps are rasterized, never resampled.
                         Layout::Projective { .. } => f64::INFINITY,
                     } as f32;
                 }
@@ -498,6 +499,7 @@ impl EpipolarMap {
                     threshold: origin.z - shared_slope * s_origin,
                 })
             }
+            // Located above, without the regular shadow map.
             Layout::Projective { .. } => None,
         }
     }

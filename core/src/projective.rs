@@ -87,7 +87,8 @@ pub struct ProjectiveFrame {
 
 impl ProjectiveFrame {
     /// Wraps a light frustum around `camera`'s frustum from its near clip plane to planar
-    /// depth `reach`, for light travelling along `light_travel`.
+    /// depth `reach` (at least twice the near clip distance, as the regular shadow map
+    /// does), for light travelling along `light_travel`.
     pub fn fit(
         camera: &CameraModel,
         light_travel: DVec3,
@@ -251,8 +252,8 @@ impl ProjectiveGrid {
     /// `texel_size` that the epipolar layout resamples: the rule `auto` applies is that
     /// [`far_column_length`](Self::far_column_length) is at most
     /// [`MAX_FAR_COLUMN_TEXELS`] × `texel_size`. With the columns of
-    /// [`ProjectiveFrame::grid`], that holds while far/near ≤ 1 + 2 × `samples_per_texel`,
-    /// about (3 for prefiltering, 5 for min-max).
+    /// [`ProjectiveFrame::grid`] that holds, to first order, while far/near ≤
+    /// 1 + 2 × `samples_per_texel`: 3 for prefiltering, 5 for min-max.
     pub fn is_sharp(&self, texel_size: f64) -> bool {
         self.far_column_length() <= MAX_FAR_COLUMN_TEXELS * texel_size
     }
