@@ -5,8 +5,9 @@
 //! along its slice.
 //!
 //! - Keys (rectified values, oriented so that larger means more shadowed) are warped per
-//!   slice by the quantiles of the slice's ray keys into [¼, ¾], which spends the basis'
-//!   resolution where rays are and keeps differences clear of the series' periodic jump.
+//!   slice by the quantiles of the slice's ray keys into [[`RAY_MARGIN`], 1 − [`RAY_MARGIN`]],
+//!   which spends the basis' resolution where rays are and keeps differences clear of the
+//!   series' periodic jump.
 //! - Weights follow a reference ray (Eq. 4.8–4.12). One reference per slice is the
 //!   paper's choice; it fails where a slice's rays cross texels at very different speeds
 //!   (near an on-screen sun, where the slowest rays run almost along the light). Each
@@ -83,10 +84,18 @@ impl PrefilteredDesc {
     }
 }
 
+/// Warped keys of a slice's rays lie this far inside [0, 1]. Keys beyond the rays' range
+/// compare like the nearest end, so the margin only has to keep them clear of the series'
+/// jump at a difference of ±1. A quarter (the first choice) wasted half the resolution:
+/// 0.1 took colonnade's default view from 3.7% to 2.2% at M = 32, and no view got worse
+/// by more than 0.15 points.
+const RAY_MARGIN: f64 = 0.1;
+
 /// Per slice: a monotone warp of keys, and the speeds of its rays.
 #[derive(Clone, Copy, Debug)]
 struct SliceFrame {
-    /// Keys at evenly spaced warped positions in [¼, ¾], strictly increasing.
+    /// Keys at evenly spaced warped positions in [`RAY_MARGIN`, 1 − `RAY_MARGIN`], strictly
+    /// increasing.
     knots: [f64; KNOTS],
     /// Texels per unit of t of the slice's fastest and slowest rays.
     fastest: f64,
@@ -97,7 +106,7 @@ struct SliceFrame {
 }
 
 impl SliceFrame {
-    /// Position in [0, 1] for a key; rays land in [¼, ¾].
+    /// Position in [0, 1] for a key; rays land in [`RAY_MARGIN`, 1 − `RAY_MARGIN`].
     #[inline]
     fn warp(&self, key: f64) -> f64 {
         let k = &self.knots;
@@ -105,7 +114,7 @@ impl SliceFrame {
         let index = k[1..KNOTS - 1].iter().filter(|&&knot| knot <= key).count();
         let (a, b) = (k[index], k[index + 1]);
         let local = (index as f64 + (key - a) / (b - a)) / segment;
-        (0.25 + 0.5 * local).clamp(0.0, 1.0)
+        (RAY_MARGIN + (1.0 - 2.0 * RAY_MARGIN) * local).clamp(0.0, 1.0)
     }
 
     /// Bands at speeds fastest·r^−j down to the first at or below the slowest ray.
@@ -776,7 +785,7 @@ mod tests {
     }
 
     #[test]
-    fn warp_is_monotone_and_puts_ray_keys_in_the_middle_half() {
+    fn warp_is_monotone_and_puts_ray_keys_inside_the_margins() {
         let mut rays: Vec<SampledRay> = (0..100)
             .map(|i| SampledRay {
                 key: (i as f64 * 0.37).sin() * 3.0 + i as f64 * 0.01,
@@ -786,8 +795,8 @@ mod tests {
             .collect();
         let frame = frame_of(&mut rays).expect("a frame");
         let (lo, hi) = (rays[0].key, rays[99].key);
-        assert!((frame.warp(lo) - 0.25).abs() < 1e-9);
-        assert!((frame.warp(hi) - 0.75).abs() < 1e-9);
+        assert!((frame.warp(lo) - RAY_MARGIN).abs() < 1e-9);
+        assert!((frame.warp(hi) - (1.0 - RAY_MARGIN)).abs() < 1e-9);
         let mut last = -1.0;
         for i in 0..=1000 {
             let key = lo - 5.0 + (hi - lo + 10.0) * i as f64 / 1000.0;

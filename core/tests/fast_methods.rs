@@ -296,17 +296,16 @@ fn prefiltered_error_falls_with_more_bases() {
                     "{name} {view}: error does not fall with M: {errors:?}"
                 ));
             }
-            // Views above the bound, open work: rays that run along shafts or
-            // end right under their occluders (contact shadows) fall inside the Fourier
-            // step's transition. They are held to their current level so that they
-            // cannot regress unnoticed.
-            let known_gap = matches!(
-                (name, view),
-                ("plane", "sideways") | ("colonnade", "default")
-            );
-            let bound = match (name, known_gap) {
-                (_, true) => 0.08,
-                ("plane", false) => 0.04,
+            // Views above the bound, open work, held just above their current
+            // level so that they cannot regress unnoticed. colonnade default (2.2%):
+            // rays ending right under their occluders fall inside the Fourier step's
+            // transition. plane sideways (4.4%): slice-to-slice wedges that neither
+            // more bases nor denser bands reduce, while min-max on the same map is at
+            // 1.7%.
+            let bound = match (name, view) {
+                ("colonnade", "default") => 0.025,
+                ("plane", "sideways") => 0.047,
+                ("plane", _) => 0.04,
                 _ => 0.02,
             };
             if errors[1] > bound {
