@@ -25,6 +25,7 @@ pub mod render;
 mod running;
 pub mod scene;
 pub mod shadow_map;
+pub mod silhouette;
 pub mod upsample;
 
 pub use builtin::{builtin_scene, BUILTIN_SCENES};
