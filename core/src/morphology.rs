@@ -118,23 +118,28 @@ pub fn apply(depth: &[f32], size: u32, desc: &MorphologyDesc) -> Result<Vec<f32>
     desc.validate()?;
     let n = check_depth(depth, size)?;
     let (shape, radius) = (desc.shape, desc.radius_texels);
-    let mut scratch = Scratch::default();
-    let mut out = Vec::new();
+    let mut map = depth.to_vec();
+    let mut scratch = Vec::new();
+    let mut pass = |occluders_grow: bool| {
+        if occluders_grow {
+            filter::<Min>(&mut map, n, shape, radius, &mut scratch);
+        } else {
+            filter::<Max>(&mut map, n, shape, radius, &mut scratch);
+        }
+    };
     match desc.op {
-        MorphologyOp::Dilate => filter::<Min>(depth, n, shape, radius, &mut scratch, &mut out),
-        MorphologyOp::Erode => filter::<Max>(depth, n, shape, radius, &mut scratch, &mut out),
+        MorphologyOp::Dilate => pass(true),
+        MorphologyOp::Erode => pass(false),
         MorphologyOp::Close => {
-            let mut dilated = Vec::new();
-            filter::<Min>(depth, n, shape, radius, &mut scratch, &mut dilated);
-            filter::<Max>(&dilated, n, shape, radius, &mut scratch, &mut out);
+            pass(true);
+            pass(false);
         }
         MorphologyOp::Open => {
-            let mut eroded = Vec::new();
-            filter::<Max>(depth, n, shape, radius, &mut scratch, &mut eroded);
-            filter::<Min>(&eroded, n, shape, radius, &mut scratch, &mut out);
+            pass(false);
+            pass(true);
         }
     }
-    Ok(out)
+    Ok(map)
 }
 
 /// The same filter evaluated by brute force, O(r²) per texel: the definition the fast
@@ -233,36 +238,28 @@ fn naive<P: Pick>(src: &[f32], n: usize, shape: KernelShape, radius: f32) -> Vec
     out
 }
 
-/// Buffers reused by the passes of one call.
-#[derive(Default)]
-struct Scratch {
-    first: Vec<f32>,
-    second: Vec<f32>,
-}
-
 /// Resizes `buffer` to `len` values; their content is left for the caller to overwrite.
 fn sized(buffer: &mut Vec<f32>, len: usize) -> &mut [f32] {
     buffer.resize(len, 0.0);
     &mut buffer[..len]
 }
 
+/// Filters `map` in place; `scratch` is one more map's worth of memory, kept between
+/// passes.
 fn filter<P: Pick>(
-    src: &[f32],
+    map: &mut [f32],
     n: usize,
     shape: KernelShape,
     radius: f32,
-    scratch: &mut Scratch,
-    out: &mut Vec<f32>,
+    scratch: &mut Vec<f32>,
 ) {
     let reach = reach(radius, n);
     if reach == 0 {
-        out.clear();
-        out.extend_from_slice(src);
         return;
     }
     match shape {
-        KernelShape::Disk => disk::<P>(src, n, radius, scratch, out),
-        KernelShape::Box => square::<P>(src, n, reach, scratch, out),
+        KernelShape::Disk => disk::<P>(map, n, radius, scratch),
+        KernelShape::Box => square::<P>(map, n, reach, scratch),
     }
 }
 
@@ -273,7 +270,7 @@ const CHUNK: usize = 32;
 /// so every chord query is the same two loads; the sparse table is built one level at a
 /// time in place, and each level serves the chords whose length it spans, so memory
 /// stays one padded copy of the map whatever the radius.
-fn disk<P: Pick>(src: &[f32], n: usize, radius: f32, scratch: &mut Scratch, out: &mut Vec<f32>) {
+fn disk<P: Pick>(map: &mut [f32], n: usize, radius: f32, scratch: &mut Vec<f32>) {
     let widths = disk_half_widths(radius, n);
     let pad = widths[0];
     let padded = n + 2 * pad;
@@ -289,16 +286,16 @@ fn disk<P: Pick>(src: &[f32], n: usize, radius: f32, scratch: &mut Scratch, out:
         }
     }
 
-    let table = sized(&mut scratch.first, n * padded);
+    let table = sized(scratch, n * padded);
     table
         .par_chunks_mut(padded)
-        .zip(src.par_chunks(n))
+        .zip(map.par_chunks(n))
         .for_each(|(row, src_row)| {
             row[..pad].fill(P::neutral());
             row[pad..pad + n].copy_from_slice(src_row);
             row[pad + n..].fill(P::neutral());
         });
-    let out = sized(out, n * n);
+    let out = map;
     out.fill(P::neutral());
     for (level, level_chords) in chords.iter().enumerate() {
         let span = 1usize << level;
@@ -359,21 +356,22 @@ fn accumulate_chords<P: Pick>(out: &mut [f32], spans: &[(&[f32], &[f32])]) {
 }
 
 /// The (2·reach+1)² box: running extrema along rows, then along columns.
-fn square<P: Pick>(src: &[f32], n: usize, reach: usize, scratch: &mut Scratch, out: &mut Vec<f32>) {
+fn square<P: Pick>(map: &mut [f32], n: usize, reach: usize, scratch: &mut Vec<f32>) {
     let block = 2 * reach + 1;
     let window = |i: usize| (i.saturating_sub(reach), (i + reach).min(n - 1));
 
-    let suffix = sized(&mut scratch.first, n * n);
+    let suffix = sized(scratch, n * n);
     suffix
         .par_chunks_mut(n)
-        .zip(src.par_chunks(n))
+        .zip(map.par_chunks(n))
         .for_each_init(BlockExtrema::new, |blocks, (out_row, src_row)| {
             centred::<f32, P>(src_row, reach, blocks, out_row)
         });
 
     // Columns: the same block scheme with whole rows as the elements, so the inner loops
-    // run over contiguous x.
-    let prefix = sized(&mut scratch.second, n * n);
+    // run over contiguous x. The row pass's result becomes the per-block prefixes in
+    // `map` and the suffixes in `scratch`.
+    let prefix = map;
     prefix.copy_from_slice(suffix);
     prefix
         .par_chunks_mut(block * n)
@@ -395,18 +393,47 @@ fn square<P: Pick>(src: &[f32], n: usize, reach: usize, scratch: &mut Scratch, o
                 }
             }
         });
-    let (prefix, suffix) = (&*prefix, &*suffix);
-    let out = sized(out, n * n);
-    out.par_chunks_mut(n).enumerate().for_each(|(y, out_row)| {
-        let (a, b) = window(y);
-        let prefix_row = &prefix[b * n..(b + 1) * n];
-        let suffix_row = &suffix[a * n..(a + 1) * n];
-        if a / block != b / block {
-            pick_into::<f32, P>(suffix_row, prefix_row, out_row);
-        } else if a % block == 0 {
-            out_row.copy_from_slice(prefix_row);
-        } else {
-            out_row.copy_from_slice(suffix_row);
+
+    // Row y's window is read from the prefixes at its last row b ≥ y, so the result can
+    // overwrite the prefixes in increasing y, in strips of columns that run in parallel.
+    let suffix = &*suffix;
+    let mut strips: Vec<Vec<&mut [f32]>> = Vec::new();
+    for row in prefix.chunks_mut(n) {
+        for (s, piece) in row.chunks_mut(STRIP).enumerate() {
+            if s == strips.len() {
+                strips.push(Vec::with_capacity(n));
+            }
+            strips[s].push(piece);
         }
-    });
+    }
+    strips
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(s, mut rows)| {
+            let x0 = s * STRIP;
+            for y in 0..n {
+                let (a, b) = window(y);
+                let suffix_row = &suffix[a * n + x0..a * n + x0 + rows[y].len()];
+                if a / block != b / block {
+                    if b == y {
+                        for (o, &t) in rows[y].iter_mut().zip(suffix_row) {
+                            *o = P::pick(t, *o);
+                        }
+                    } else {
+                        let (head, tail) = rows.split_at_mut(b);
+                        pick_into::<f32, P>(suffix_row, tail[0], head[y]);
+                    }
+                } else if a % block == 0 {
+                    if b != y {
+                        let (head, tail) = rows.split_at_mut(b);
+                        head[y].copy_from_slice(tail[0]);
+                    }
+                } else {
+                    rows[y].copy_from_slice(suffix_row);
+                }
+            }
+        });
 }
+
+/// Width of the column strips of the box's last pass (256 bytes).
+const STRIP: usize = 64;

@@ -117,6 +117,26 @@ impl<T: Scalar> BlockExtrema<T> {
         let len = values.len();
         self.prefix.resize(len, T::INFINITY);
         self.suffix.resize(len, T::INFINITY);
+        if width == 1 {
+            // One lane: plain running extrema, without per-row slices.
+            let blocks = values
+                .chunks(block)
+                .zip(self.prefix.chunks_mut(block))
+                .zip(self.suffix.chunks_mut(block));
+            for ((values, prefix), suffix) in blocks {
+                let mut acc = P::neutral();
+                for (p, &v) in prefix.iter_mut().zip(values) {
+                    acc = P::pick(acc, v);
+                    *p = acc;
+                }
+                let mut acc = P::neutral();
+                for (s, &v) in suffix.iter_mut().zip(values).rev() {
+                    acc = P::pick(acc, v);
+                    *s = acc;
+                }
+            }
+            return;
+        }
         let rows = len / width;
         for start in (0..rows).step_by(block) {
             let end = (start + block).min(rows);
