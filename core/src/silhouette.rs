@@ -124,20 +124,17 @@ pub fn apply(
     let Some(lines) = Lines::new(depth, size, epipole, desc)? else {
         return Ok(depth.to_vec());
     };
-    let (swept, stride) = lines.sweep();
-    let n = lines.size;
-    let mut out = vec![0.0f32; n * n];
-    out.par_chunks_mut(n).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let bits = swept[y * stride + x].load(Ordering::Relaxed);
-            *o = if bits == UNSET {
-                lines.naive_texel(y * n + x)
-            } else {
-                f32::from_bits(bits)
-            };
+    let swept = lines.sweep();
+    swept.par_iter().enumerate().for_each(|(index, bits)| {
+        if bits.load(Ordering::Relaxed) == UNSET {
+            bits.store(lines.naive_texel(index).to_bits(), Ordering::Relaxed);
         }
     });
-    Ok(out)
+    // In place: the sweep's buffer becomes the result.
+    Ok(swept
+        .into_iter()
+        .map(|bits| f32::from_bits(bits.into_inner()))
+        .collect())
 }
 
 /// The same filter evaluated texel by texel, walking each texel's rays: the definition
@@ -161,18 +158,24 @@ pub fn apply_naive(
 const LENGTH_FIELD: &str = "style.silhouette.length";
 const EPIPOLE_FIELD: &str = "style.silhouette.epipole";
 
+/// Largest coordinate of a pinhole epipole that the single-precision depth transform
+/// handles.
+const MAX_POINT: f64 = 1.0e12;
+
 /// Marks texels no ray has written yet; outputs are never NaN.
 const UNSET: u32 = 0x7fc0_dead;
 
 /// Rays swept together: the lanes of the sweep's inner loops.
-const LANES: usize = 16;
+const LANES: usize = 32;
 
-/// ⌊x⌋ without a libm call (baseline x86-64 has no rounding instruction); saturates far
-/// outside the map, where only the sign matters.
+/// ⌊x⌋ for the map's texel lookups, without a libm call (baseline x86-64 has no rounding
+/// instruction): the truncation of x shifted positive. Below 2²⁰ texels it is the floor
+/// of x rounded by at most 2⁻³² of a texel, the same for every caller; rows far outside
+/// stay outside, and it never decreases with x, which the sweep relies on.
 #[inline(always)]
 fn floor(x: f64) -> i64 {
-    let t = x as i64;
-    t.saturating_sub(((t as f64) > x) as i64)
+    const SHIFT: i64 = 1 << 20;
+    (x.max(-1.0e12) + SHIFT as f64) as i64 - SHIFT
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -540,6 +543,13 @@ impl<'a> Lines<'a> {
                 format!("{v:?} is not finite"),
             ));
         }
+        // The depth transform runs in single precision (see `Transform`).
+        if matches!(epipole, Epipole::Point(_)) && v.abs().max_element() > MAX_POINT {
+            return Err(Error::invalid(
+                EPIPOLE_FIELD,
+                format!("{v:?} lies too far from the map (beyond {MAX_POINT:e} texels or depth units); use a direction for a camera at infinity"),
+            ));
+        }
         let size = check_depth(depth, size)?;
         if length < 1.0 || size == 0 {
             return Ok(None);
@@ -650,10 +660,10 @@ impl<'a> Lines<'a> {
     /// Runs every family's rays and returns, per texel, the lowest result over the rays
     /// that cross it, as bits, or [`UNSET`] where none does.
     ///
-    /// The sweep reads and writes rows `stride` apart, a little more than the map's
-    /// width: along x-major rays the lanes of a column are a row apart, and with a
+    /// The sweep reads a copy of the map with rows `stride` apart, a little more than the
+    /// map's width: along x-major rays the lanes of a column are a row apart, and with a
     /// power-of-two row length they would all fall into the same cache set.
-    fn sweep(&self) -> (Vec<AtomicU32>, usize) {
+    fn sweep(&self) -> Vec<AtomicU32> {
         let n = self.size;
         let stride = n + PAD;
         let mut padded = vec![f32::INFINITY; n * stride];
@@ -665,14 +675,14 @@ impl<'a> Lines<'a> {
             depth: &padded,
             stride,
         };
-        let out: Vec<AtomicU32> = (0..n * stride)
+        let out: Vec<AtomicU32> = (0..n * n)
             .into_par_iter()
             .map(|_| AtomicU32::new(UNSET))
             .collect();
         for family in &self.families {
             self.sweep_family(family, &grid, &out);
         }
-        (out, stride)
+        out
     }
 
     fn sweep_family(&self, family: &Family, grid: &Grid, out: &[AtomicU32]) {
@@ -690,10 +700,9 @@ impl<'a> Lines<'a> {
                 }),
             }
         }
-        // A texel strictly between a bundle's first and last ray at a column is crossed
-        // by that bundle's rays alone (a column's samples never decrease with the ray
-        // index), so it is written at once; texels on a bundle's edge rays may be
-        // crossed by its neighbours too and are merged afterwards.
+        // Bundles write the texels only their own rays cross (see `scatter`) at once; the
+        // few they share with a neighbour are merged here, in a fixed order, though the
+        // minimum would not depend on it.
         let edges: Vec<Vec<(usize, f32)>> = bundles
             .par_iter()
             .map_init(Sweep::default, |sweep, bundle| {
@@ -806,7 +815,7 @@ impl Sweep {
         }
         if steps == 0 {
             scatter(
-                grid,
+                lines,
                 family,
                 bundle,
                 span,
@@ -847,7 +856,7 @@ impl Sweep {
         }
         if !lines.close {
             scatter(
-                grid,
+                lines,
                 family,
                 bundle,
                 span,
@@ -879,7 +888,7 @@ impl Sweep {
             }
         }
         scatter(
-            grid,
+            lines,
             family,
             bundle,
             span,
@@ -898,7 +907,7 @@ impl Sweep {
 /// once, the bundle's first and last run otherwise go to `edges` to be merged.
 #[allow(clippy::too_many_arguments)]
 fn scatter(
-    grid: &Grid,
+    lines: &Lines,
     family: &Family,
     bundle: &Bundle,
     span: &[usize],
@@ -927,7 +936,7 @@ fn scatter(
                 end += 1;
             }
             if (lo..=hi).contains(&r) {
-                let texel = grid.index(family.axis, q, r as usize);
+                let texel = lines.index(family.axis, q, r as usize);
                 if (k == 0 && shared_first) || (end == width && shared_last) {
                     edges.push((texel, value));
                 } else {
@@ -979,9 +988,10 @@ mod tests {
             let lines = Lines::new(&map, size as u32, epipole, &desc)
                 .unwrap()
                 .unwrap();
-            let (swept, stride) = lines.sweep();
-            let unset = (0..size * size)
-                .filter(|&i| swept[(i / size) * stride + i % size].load(Ordering::Relaxed) == UNSET)
+            let swept = lines.sweep();
+            let unset = swept
+                .iter()
+                .filter(|bits| bits.load(Ordering::Relaxed) == UNSET)
                 .count();
             assert!(
                 unset <= 1,

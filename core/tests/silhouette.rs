@@ -328,6 +328,8 @@ fn bad_parameters_name_their_field() {
     for bad in [
         Epipole::Point(DVec3::new(f64::NAN, 0.0, 0.0)),
         Epipole::Direction(DVec3::new(1.0, f64::INFINITY, 0.0)),
+        Epipole::Point(DVec3::new(1.0, 2.0, 1e300)),
+        Epipole::Point(DVec3::new(-1e40, 2.0, 3.0)),
     ] {
         let error = apply(&map, 4, bad, &SilhouetteDesc::close(3.0)).unwrap_err();
         assert_eq!(field_of(error), "style.silhouette.epipole");
