@@ -178,6 +178,11 @@ fn floor(x: f64) -> i64 {
     (x.max(-1.0e12) + SHIFT as f64) as i64 - SHIFT
 }
 
+/// Whole column steps within `length` texels along a line of minor-per-major `slope`.
+fn column_steps(length: f64, slope: f64) -> usize {
+    (length / (1.0 + slope * slope).sqrt()).floor() as usize
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Axis {
     X,
@@ -321,7 +326,7 @@ impl Family {
         if sign < 0 {
             columns.reverse();
         }
-        let steps = (length / (1.0 + slope * slope).sqrt()).floor() as usize;
+        let steps = column_steps(length, slope);
         Some(Family {
             axis,
             sign,
@@ -445,15 +450,17 @@ impl Family {
         Some(lo..=hi)
     }
 
-    /// Number of columns the kernel reaches back from a sample of ray `ray`.
+    /// Number of columns the kernel reaches back from a sample of ray `ray`; never more
+    /// than there are columns.
     fn steps(&self, ray: i64, length: f64) -> usize {
-        match &self.kind {
+        let steps = match &self.kind {
             Kind::Fan { minor, far, .. } => {
                 let slope = (ray as f64 + 0.5 - minor) / far;
-                (length / (1.0 + slope * slope).sqrt()).floor() as usize
+                column_steps(length, slope)
             }
             Kind::Parallel { steps, .. } => *steps,
-        }
+        };
+        steps.min(self.columns.len())
     }
 
     /// The depth transform at column `q`.

@@ -2,6 +2,11 @@
 //! against the texel-by-texel definition for epipoles inside, outside on every side and
 //! at infinity; the shape and depths of an extruded occluder; order properties; bad input.
 
+use crepuscular::builtin_scene;
+use crepuscular::camera::CameraModel;
+use crepuscular::render::FlatGeometry;
+use crepuscular::scene::{Projection, SensorFit};
+use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{apply, apply_naive, Epipole, SilhouetteDesc};
 use crepuscular::Error;
 use glam::DVec3;
@@ -69,7 +74,7 @@ fn same_bits(a: &[f32], b: &[f32]) -> bool {
 fn line_sweep_equals_the_texel_by_texel_definition() {
     let size = 41;
     let map = random_map(size, 7, 0.35);
-    let lengths = [0.0, 0.9, 1.0, 2.5, 7.0, 12.3, 100.0];
+    let lengths = [0.0, 0.9, 1.0, 2.5, 7.0, 12.3, 100.0, 1e30];
     for (e, epipole) in points().into_iter().chain(directions()).enumerate() {
         for (l, length) in lengths.into_iter().enumerate() {
             // The closure's naive form is O(length²) per texel: spread the cases.
@@ -384,4 +389,41 @@ fn extrusions_have_no_gaps_for_any_occluder_position() {
             }
         }
     }
+}
+
+#[test]
+fn a_camera_projects_to_its_position_or_its_view_direction() {
+    let mut scene = builtin_scene("torus").unwrap();
+    scene.render.shadow_map_size = 64;
+    let geometry = FlatGeometry::from_scene(&scene);
+    let camera = CameraModel::new(&scene.camera);
+    let shadow = ShadowMap::build(
+        &camera,
+        &scene.sun,
+        &scene.medium,
+        &scene.render,
+        &geometry.view(),
+    );
+    let map = shadow.texel_from_world;
+    match Epipole::of_camera(&camera, &map) {
+        Epipole::Point(p) => {
+            assert!((p - map.transform_point3(camera.position())).length() < 1e-9)
+        }
+        other => panic!("a pinhole camera gave {other:?}"),
+    }
+
+    scene.camera.projection = Projection::Orthographic {
+        ortho_scale: 10.0,
+        sensor_fit: SensorFit::Auto,
+        shift_x: 0.0,
+        shift_y: 0.0,
+    };
+    let camera = CameraModel::new(&scene.camera);
+    let Epipole::Direction(direction) = Epipole::of_camera(&camera, &map) else {
+        panic!("an orthographic camera has its epipole at infinity");
+    };
+    // Any view ray runs along it, away from the camera.
+    let ray = camera.ray(3.0, 4.0);
+    let along = map.transform_point3(ray.at(5.0)) - map.transform_point3(ray.at(1.0));
+    assert!((along.normalize() - direction.normalize()).length() < 1e-9);
 }
