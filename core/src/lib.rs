@@ -14,6 +14,7 @@ pub mod exr_file;
 pub mod layers;
 pub mod mesh_builder;
 pub mod minmax;
+pub mod morphology;
 pub mod phase;
 pub mod prefiltered;
 pub mod preview;
@@ -21,8 +22,10 @@ pub mod projective;
 pub mod raster;
 pub mod reference;
 pub mod render;
+mod running;
 pub mod scene;
 pub mod shadow_map;
+pub mod silhouette;
 pub mod upsample;
 
 pub use builtin::{builtin_scene, BUILTIN_SCENES};
