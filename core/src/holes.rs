@@ -4,6 +4,8 @@
 //! A hole map H is a threshold of Perlin fBm N (Eq. 4–5). Where H says "hole" on a texel
 //! whose occluder is one of the chosen objects, that occluder is removed from the map used
 //! for scattering. Surface shadows are never changed: this works on a copy of the depth.
+//! [`HolesDesc`] holds the settings, [`HoleNoise`] lays one frame's noise over one map
+//! (and [`HoleNoise::apply`] opens the holes), [`holed_depth`] does both on a copy.
 //!
 //! How this departs from, or pins down, the papers:
 //! - **Scene units.** The paper looks the noise up at texture coordinates t ∈ [0, 1]² of the
@@ -571,6 +573,15 @@ fn mix(mut h: u32) -> u32 {
     h
 }
 
+/// A lattice point's hash, of which only the top bits are used: the xorshift brings the
+/// first product's high bits down for the second multiply to spread up again. Half the
+/// work of `mix`, which the hot loop feels.
+#[inline(always)]
+fn lattice_hash(point: u32) -> u32 {
+    let h = point.wrapping_mul(0x7feb_352d);
+    (h ^ (h >> 15)).wrapping_mul(0x846c_a68b)
+}
+
 /// The lattice's period in cells: a power of two wraps with a mask, any other size with
 /// a float division.
 #[derive(Clone, Copy, Debug)]
@@ -789,10 +800,10 @@ fn perlin<const MASKED: bool>(x: f32, y: f32, seed: u32, period: Period) -> f32 
     // Lattice points are numbered row by row, so distinct points hash distinct numbers.
     let row0 = y0.wrapping_mul(period.whole);
     let row1 = y1.wrapping_mul(period.whole);
-    let n00 = gradient(mix((row0 + x0) ^ seed), dx, dy);
-    let n10 = gradient(mix((row0 + x1) ^ seed), dx - 1.0, dy);
-    let n01 = gradient(mix((row1 + x0) ^ seed), dx, dy - 1.0);
-    let n11 = gradient(mix((row1 + x1) ^ seed), dx - 1.0, dy - 1.0);
+    let n00 = gradient(lattice_hash((row0 + x0) ^ seed), dx, dy);
+    let n10 = gradient(lattice_hash((row0 + x1) ^ seed), dx - 1.0, dy);
+    let n01 = gradient(lattice_hash((row1 + x0) ^ seed), dx, dy - 1.0);
+    let n11 = gradient(lattice_hash((row1 + x1) ^ seed), dx - 1.0, dy - 1.0);
     let (u, v) = (fade(dx), fade(dy));
     let bottom = n00 + u * (n10 - n00);
     let top = n01 + u * (n11 - n01);
