@@ -11,6 +11,7 @@ pub mod control;
 pub mod epipolar;
 pub mod error;
 pub mod exr_file;
+pub mod holes;
 pub mod layers;
 pub mod mesh_builder;
 pub mod minmax;
