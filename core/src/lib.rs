@@ -8,6 +8,7 @@ pub mod builtin;
 pub mod camera;
 pub mod composite;
 pub mod control;
+pub mod diffusion;
 pub mod epipolar;
 pub mod error;
 pub mod exr_file;
