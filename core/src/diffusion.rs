@@ -179,7 +179,7 @@ pub fn solve(width: u32, height: u32, pins: &[Pin], tolerance: f64) -> Result<Di
                 let ri = &mut r[i];
                 for c in 0..4 {
                     ri[c] -= alpha[c] * q[i][c];
-                    largest[c] = largest[c].max(ri[c].abs());
+                    largest[c] = bigger(largest[c], ri[c].abs());
                 }
                 work.b[0][i] = ri.map(|v| v as f32);
             }
@@ -286,6 +286,17 @@ fn check_side(field: &str, side: u32) -> Result<()> {
 #[inline(always)]
 fn lanes<T>(f: impl Fn(usize) -> T) -> [T; 4] {
     [f(0), f(1), f(2), f(3)]
+}
+
+/// `max` without NaN handling, which the hot loops do not need: a NaN residual can only
+/// come from NaN input, which [`solve`] refuses.
+#[inline(always)]
+fn bigger(a: f64, b: f64) -> f64 {
+    if b > a {
+        b
+    } else {
+        a
+    }
 }
 
 fn above(largest: &V4, threshold: &V4) -> [bool; 4] {
@@ -512,7 +523,7 @@ impl Level {
                     b[i][c] + (e * ue[c] + w * uw[c] + so * us[c] + n * un[c]) - d * ui[c]
                 });
                 for c in 0..4 {
-                    largest[c] = largest[c].max(ri[c].abs());
+                    largest[c] = bigger(largest[c], ri[c].abs());
                 }
                 r[i] = ri;
                 r32[i] = ri.map(|v| v as f32);
@@ -610,7 +621,7 @@ impl Cholesky {
             for k in 0..j {
                 d -= a[j * n + k] * a[j * n + k];
             }
-            if !(d > 0.0) {
+            if d.is_nan() || d <= 0.0 {
                 return Err(Error::Internal(
                     "diffusion solve: coarse operator is not positive definite".into(),
                 ));
@@ -837,7 +848,7 @@ mod tests {
                 pin(0, 0, [1.0, 1.0, 0.0, 0.0]),
             ];
             let d = solve(w, h, &pins, DEFAULT_TOLERANCE).unwrap();
-            assert!(d.residual <= DEFAULT_TOLERANCE, "{w}x{h}: {}", d.residual);
+            assert!(d.residual <= 1e-6, "{w}x{h}: {}", d.residual);
             // A regression in the preconditioner shows as many more iterations.
             assert!(d.iterations <= 20, "{w}x{h}: {} iterations", d.iterations);
             for p in &pins {
@@ -849,10 +860,7 @@ mod tests {
             let residual = laplacian_residual(w as usize, h as usize, &d.values, &mask);
             for (c, r) in residual.iter().enumerate() {
                 let scale = if c == 2 { 3.0 } else { 1.0 };
-                assert!(
-                    *r <= 2.0 * DEFAULT_TOLERANCE * scale,
-                    "{w}x{h} channel {c}: {r}"
-                );
+                assert!(*r <= 2e-6 * scale, "{w}x{h} channel {c}: {r}");
             }
         }
     }
