@@ -24,6 +24,7 @@ pub mod reference;
 pub mod render;
 pub mod scene;
 pub mod shadow_map;
+pub mod transfer_function;
 pub mod upsample;
 
 pub use builtin::{builtin_scene, BUILTIN_SCENES};
