@@ -174,8 +174,9 @@ pub enum GradientShape {
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum ImageSource {
     /// A PNG (8 or 16 bit, read as sRGB-encoded, straight alpha) or an OpenEXR file (linear,
-    /// premultiplied as EXR specifies; `R`, `G`, `B` and optional `A` channels). Chosen by
-    /// the extension. Relative paths are relative to the working directory.
+    /// premultiplied as EXR specifies; `R`, `G`, `B` and optional `A` channels, negative
+    /// values and alpha above 1 clamped). Chosen by the extension. Relative paths are
+    /// relative to the working directory.
     File { path: PathBuf },
     /// Straight linear RGBA, rows top to bottom.
     Pixels {
@@ -691,12 +692,26 @@ fn load_exr(path: &Path) -> Result<(u32, u32, Vec<Rgba>)> {
         reason: "no R, G, B channels (nor a view layer's Combined pass) to read a TF image from"
             .into(),
     })?;
-    // EXR stores premultiplied colour; TF layers hold straight colour.
+    let width = image.width as usize;
+    if let Some(k) = rgba.iter().position(|v| !v.is_finite()) {
+        let pixel = k / 4;
+        return Err(Error::Exr {
+            path: path.to_path_buf(),
+            reason: format!(
+                "pixel ({}, {}) has a non-finite value, which a TF image cannot hold",
+                pixel % width.max(1),
+                pixel / width.max(1)
+            ),
+        });
+    }
+    // EXR stores premultiplied colour; TF layers hold straight colour. Renders may hold small
+    // negative values (filter ringing) or alpha above 1: those are clamped.
     let straight = rgba
         .chunks_exact(4)
         .map(|p| {
-            if p[3] > 0.0 {
-                [p[0] / p[3], p[1] / p[3], p[2] / p[3], p[3]]
+            let a = unit(p[3]);
+            if a > 0.0 {
+                [p[0] / a, p[1] / a, p[2] / a, a].map(|v| v.max(0.0))
             } else {
                 [0.0; 4]
             }
@@ -2136,7 +2151,7 @@ mod tests {
         let exr_path = temp_path("layer.exr");
         let channels: [(&str, &[f32]); 4] = [
             ("R", &[0.25, 2.0]),
-            ("G", &[0.0, 0.0]),
+            ("G", &[0.0, -0.1]), // ringing below zero is clamped
             ("B", &[0.1, 0.0]),
             ("A", &[0.5, 1.0]),
         ];
@@ -2159,6 +2174,20 @@ mod tests {
         std::fs::remove_file(&exr_path).ok();
         assert_eq!(colors[0], [0.5, 0.0, 0.2, 0.5]);
         assert_eq!(colors[1], [2.0, 0.0, 0.0, 1.0]);
+
+        // Non-finite values are refused, naming the file.
+        let nan: [(&str, &[f32]); 3] = [("R", &[f32::NAN]), ("G", &[0.0]), ("B", &[0.0])];
+        crate::exr_file::write_channels(&exr_path, 1, 1, &nan, crate::exr_file::Precision::F32)
+            .unwrap();
+        let result = bake_layers(&[layer], 2, "layers");
+        std::fs::remove_file(&exr_path).ok();
+        match result {
+            Err(Error::Exr { path, reason }) => {
+                assert_eq!(path, exr_path);
+                assert!(reason.contains("(0, 0)"), "{reason}");
+            }
+            other => panic!("expected Exr, got {other:?}"),
+        }
     }
 
     #[test]
