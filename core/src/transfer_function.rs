@@ -882,7 +882,7 @@ impl TransferFunction {
     }
 
     pub fn to_json(&self) -> String {
-        serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+        serde_json::to_string_pretty(self).expect("a transfer function always serializes to JSON")
     }
 
     /// [`Self::validate_at`] under `style.tf`.
