@@ -8,6 +8,7 @@ pub mod builtin;
 pub mod camera;
 pub mod composite;
 pub mod control;
+pub mod diffusion;
 pub mod epipolar;
 pub mod error;
 pub mod exr_file;
@@ -27,6 +28,7 @@ mod running;
 pub mod scene;
 pub mod shadow_map;
 pub mod silhouette;
+pub mod transfer_function;
 pub mod upsample;
 
 pub use builtin::{builtin_scene, BUILTIN_SCENES};
