@@ -17,6 +17,7 @@ use rand_pcg::Pcg64;
 
 use crate::error::{Error, Result};
 use crate::mesh_builder::{Arch, MeshBuilder};
+use crate::style::Style;
 use crate::scene::{
     Camera, Extent, Medium, Mesh, Method, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
@@ -68,6 +69,7 @@ fn torus() -> Scene {
             ring.build("torus", 2),
         ],
         render: settings(60.0),
+        style: Style::default(),
     }
 }
 
@@ -127,6 +129,7 @@ fn tree() -> Scene {
             leaves.build("leaves", 3),
         ],
         render: settings(70.0),
+        style: Style::default(),
     }
 }
 
@@ -178,6 +181,7 @@ fn plane() -> Scene {
             slab.build("slotted plane", 2),
         ],
         render: settings(70.0),
+        style: Style::default(),
     }
 }
 
@@ -263,6 +267,7 @@ fn colonnade() -> Scene {
             roof.build("roof", 4),
         ],
         render: settings(60.0),
+        style: Style::default(),
     }
 }
 

@@ -28,6 +28,7 @@ mod running;
 pub mod scene;
 pub mod shadow_map;
 pub mod silhouette;
+pub mod style;
 pub mod transfer_function;
 pub mod upsample;
 
@@ -40,3 +41,4 @@ pub use render::{
     Geometry, StageTimes,
 };
 pub use scene::Scene;
+pub use style::Style;

@@ -15,6 +15,7 @@ use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
 use crate::shadow_map::ShadowMap;
+use crate::style::Style;
 use crate::upsample::{joint_bilateral, reduced_size, sample_pixel};
 
 /// World-space triangles, borrowed so that hosts can pass their buffers without copies.
@@ -53,6 +54,7 @@ pub struct Frame<'a> {
     pub settings: &'a RenderSettings,
     pub geometry: Geometry<'a>,
     pub camera_depth: Option<CameraDepth<'a>>,
+    pub style: &'a Style,
 }
 
 /// World-space geometry flattened from a scene's meshes.
@@ -110,6 +112,7 @@ pub fn render_scene_timed(scene: &Scene, control: &RenderControl) -> Result<(Lay
             settings: &scene.render,
             geometry: geometry.view(),
             camera_depth: None,
+            style: &scene.style,
         },
         control,
     )
@@ -126,6 +129,10 @@ pub struct StageTimes {
     pub prepare: f64,
     /// Per-pixel evaluation, upsampling included.
     pub shading: f64,
+    /// Occluder manipulation of the scattering's shadow-map copy.
+    pub occluders: f64,
+    /// Transfer-function application, baking included.
+    pub transfer_function: f64,
     /// Bytes held by the rectified shadow map (fast methods).
     pub rectified_bytes: usize,
     /// Bytes held by the method's own structure: the min-max mipmap or the filtered
@@ -147,6 +154,22 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
 
 /// [`render`], also reporting how long each stage took.
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+    let (mut layers, mut times) = scatter_timed(frame, control)?;
+    if frame.style.tf.is_some() {
+        let started = std::time::Instant::now();
+        let light = frame.sun.irradiance() * frame.medium.albedo;
+        frame.style.apply_transfer_function(
+            &mut layers,
+            &CameraModel::new(frame.camera),
+            light.to_array(),
+        )?;
+        times.transfer_function = started.elapsed().as_secs_f64();
+    }
+    Ok((layers, times))
+}
+
+/// Everything up to the per-pixel layers: depth maps, occluder manipulation, scattering.
+fn scatter_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
     let mut clock = std::time::Instant::now();
     let mut lap = || {
@@ -168,6 +191,13 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
     );
     control.check()?;
     times.shadow_map = lap();
+    let shadow = if frame.style.manipulates_occluders() {
+        let manipulated = frame.style.scattering_map(&shadow, &camera)?;
+        times.occluders = lap();
+        manipulated
+    } else {
+        shadow
+    };
     let surfaces = SurfaceDistances::new(&camera, frame);
     times.camera_depth = lap();
     let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
@@ -466,6 +496,7 @@ impl Frame<'_> {
         self.sun.validate()?;
         self.medium.validate()?;
         self.settings.validate()?;
+        self.style.validate()?;
         self.geometry.validate()?;
         if self.settings.downsample > 1
             && self.camera_depth.is_none()

@@ -8,6 +8,7 @@ use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::style::Style;
 
 /// The scene-description version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
@@ -36,6 +37,9 @@ pub struct Scene {
     pub meshes: Vec<Mesh>,
     #[serde(default)]
     pub render: RenderSettings,
+    /// Departures from the physically based look (papers 000/001 §4).
+    #[serde(default, skip_serializing_if = "Style::is_physical")]
+    pub style: Style,
 }
 
 /// A camera looking down its local −Z axis with +Y up, as in Blender and USD.
@@ -391,6 +395,7 @@ impl Scene {
         self.sun.validate()?;
         self.medium.validate()?;
         self.render.validate()?;
+        self.style.validate()?;
         for (index, mesh) in self.meshes.iter().enumerate() {
             mesh.validate(&format!("meshes[{index}]"))?;
         }

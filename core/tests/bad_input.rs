@@ -158,6 +158,7 @@ fn camera_depth_is_checked() {
             values,
             kind: DepthKind::Planar,
         }),
+        style: &scene.style,
     };
     let short: &'static [f32] = &[1.0; 10];
     assert_eq!(

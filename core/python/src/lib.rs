@@ -13,7 +13,10 @@ mod run;
 
 use crepuscular::render::FlatGeometry;
 use crepuscular::scene::{parse_json_at, Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
-use crepuscular::{CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene};
+use crepuscular::style::STYLE_VERSION;
+use crepuscular::{
+    CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene, Style,
+};
 use numpy::{PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
@@ -27,23 +30,30 @@ use crate::run::run_detached;
 /// Returns `(width, height, volume, visibility, depth)` with arrays shaped `(H, W, 4)`,
 /// `(H, W)` and `(H, W)`.
 #[pyfunction]
-#[pyo3(signature = (scene_json, /, *, camera_depth=None, depth_kind="planar", progress=None))]
+#[pyo3(signature = (
+    scene_json, /, *, style_json=None, camera_depth=None, depth_kind="planar", progress=None,
+))]
 fn render_json<'py>(
     py: Python<'py>,
     scene_json: &str,
+    style_json: Option<&str>,
     camera_depth: Option<PyReadonlyArray2<'py, f32>>,
     depth_kind: &str,
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref()).map_err(to_py_err)?;
     let layers = run_detached(py, progress.as_ref(), |control| {
-        let scene = Scene::from_json(scene_json)?;
+        let mut scene = Scene::from_json(scene_json)?;
+        if let Some(style) = style_json {
+            scene.style = Style::from_json(style)?;
+        }
         let geometry = FlatGeometry::from_scene(&scene);
         let parts = Parts {
             camera: &scene.camera,
             sun: &scene.sun,
             medium: &scene.medium,
             settings: &scene.render,
+            style: &scene.style,
         };
         parts.render(geometry.view(), depth, kind, control)
     })?;
@@ -58,7 +68,7 @@ fn render_json<'py>(
 #[pyfunction]
 #[pyo3(signature = (
     positions, triangles, object_ids, camera_json, sun_json, medium_json, settings_json, /,
-    *, camera_depth=None, depth_kind="planar", progress=None,
+    *, style_json=None, camera_depth=None, depth_kind="planar", progress=None,
 ))]
 #[allow(clippy::too_many_arguments)]
 fn render_arrays<'py>(
@@ -70,6 +80,7 @@ fn render_arrays<'py>(
     sun_json: &str,
     medium_json: &str,
     settings_json: &str,
+    style_json: Option<&str>,
     camera_depth: Option<PyReadonlyArray2<'py, f32>>,
     depth_kind: &str,
     progress: Option<Bound<'py, PyAny>>,
@@ -79,21 +90,27 @@ fn render_arrays<'py>(
         let sun: Sun = parse_json_at("sun", sun_json)?;
         let medium: Medium = parse_json_at("medium", medium_json)?;
         let settings: RenderSettings = parse_json_at("render", settings_json)?;
+        let style = match style_json {
+            Some(text) => Style::from_json(text)?,
+            None => Style::default(),
+        };
         let geometry = Geometry {
             positions: rows("positions", &positions)?,
             triangles: rows("triangles", &triangles)?,
             object_ids: values("object_ids", &object_ids)?,
         };
         let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref())?;
-        Ok((camera, sun, medium, settings, geometry, kind, depth))
+        Ok((camera, sun, medium, settings, style, geometry, kind, depth))
     })();
-    let (camera, sun, medium, settings, geometry, kind, depth) = prepared.map_err(to_py_err)?;
+    let (camera, sun, medium, settings, style, geometry, kind, depth) =
+        prepared.map_err(to_py_err)?;
     let layers = run_detached(py, progress.as_ref(), |control| {
         let parts = Parts {
             camera: &camera,
             sun: &sun,
             medium: &medium,
             settings: &settings,
+            style: &style,
         };
         parts.render(geometry, depth, kind, control)
     })?;
@@ -109,12 +126,22 @@ fn normalize_scene_json(py: Python<'_>, scene_json: &str) -> PyResult<String> {
         .map_err(to_py_err)
 }
 
+/// Parses and validates a JSON style preset and returns it re-serialized with every
+/// default filled in.
+#[pyfunction]
+#[pyo3(signature = (style_json, /))]
+fn normalize_style_json(py: Python<'_>, style_json: &str) -> PyResult<String> {
+    py.detach(|| Style::from_json(style_json).map(|style| style.to_json()))
+        .map_err(to_py_err)
+}
+
 /// The frame-wide parts of a render, borrowed.
 struct Parts<'a> {
     camera: &'a Camera,
     sun: &'a Sun,
     medium: &'a Medium,
     settings: &'a RenderSettings,
+    style: &'a Style,
 }
 
 impl Parts<'_> {
@@ -131,6 +158,7 @@ impl Parts<'_> {
             sun: self.sun,
             medium: self.medium,
             settings: self.settings,
+            style: self.style,
             geometry,
             camera_depth: depth.map(|map| CameraDepth {
                 values: map.values,
@@ -171,6 +199,8 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(render_json, module)?)?;
     module.add_function(wrap_pyfunction!(render_arrays, module)?)?;
     module.add_function(wrap_pyfunction!(normalize_scene_json, module)?)?;
+    module.add_function(wrap_pyfunction!(normalize_style_json, module)?)?;
+    module.add("STYLE_VERSION", STYLE_VERSION)?;
     module.add_function(wrap_pyfunction!(files::builtin_scene_json, module)?)?;
     module.add_function(wrap_pyfunction!(files::builtin_scene_names, module)?)?;
     module.add_function(wrap_pyfunction!(files::read_exr, module)?)?;

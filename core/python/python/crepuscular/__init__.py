@@ -29,6 +29,7 @@ from crepuscular.errors import CancelledError, CrepuscularError, ExrError, Inval
 
 __all__ = [
     "SCENE_VERSION",
+    "STYLE_VERSION",
     "CancelledError",
     "CrepuscularError",
     "DepthKind",
@@ -37,6 +38,7 @@ __all__ = [
     "Layers",
     "ProgressCallback",
     "SceneLike",
+    "StyleLike",
     "__version__",
     "builtin_scene",
     "builtin_scene_names",
@@ -44,6 +46,7 @@ __all__ = [
     "read_exr",
     "render",
     "render_arrays",
+    "load_style",
     "scene_from_json",
     "validate_scene",
     "write_exr",
@@ -54,8 +57,13 @@ __version__: str = _core.__version__
 #: The scene-description version this build reads and writes.
 SCENE_VERSION: int = _core.SCENE_VERSION
 
+#: The style-preset version this build reads and writes.
+STYLE_VERSION: int = _core.STYLE_VERSION
+
 #: A scene description: a mapping, JSON text (starting with "{") or a path to a .json file.
 SceneLike: TypeAlias = Mapping[str, Any] | str | os.PathLike[str]
+#: A style preset: a mapping, JSON text (starting with "{") or a path to a .json file.
+StyleLike: TypeAlias = Mapping[str, Any] | str | os.PathLike[str]
 #: How a supplied camera depth measures distance: along the view axis (Blender's Z pass)
 #: or along each pixel's ray.
 DepthKind: TypeAlias = Literal["planar", "ray_distance"]
@@ -83,6 +91,7 @@ class Layers:
 def render(
     scene: SceneLike,
     *,
+    style: StyleLike | None = None,
     camera_depth: npt.ArrayLike | None = None,
     depth_kind: DepthKind = "planar",
     progress: ProgressCallback | None = None,
@@ -92,10 +101,12 @@ def render(
     `camera_depth`, when given, is a renderer's depth pass of shape (height, width) that
     replaces the depth rasterized from the scene's meshes; `depth_kind` says how it measures
     distance. Values at or beyond the camera's `clip_end`, and +inf, are background.
+    `style`, when given, is a style preset that replaces the scene's own `style`.
     """
     _check_progress(progress)
     raw = _core.render_json(
         _convert.scene_json(scene),
+        style_json=_style_json(style),
         camera_depth=_convert.depth_map(camera_depth),
         depth_kind=depth_kind,
         progress=progress,
@@ -112,6 +123,7 @@ def render_arrays(
     sun: Mapping[str, Any],
     medium: Mapping[str, Any],
     settings: Mapping[str, Any] | None = None,
+    style: StyleLike | None = None,
     camera_depth: npt.ArrayLike | None = None,
     depth_kind: DepthKind = "planar",
     progress: ProgressCallback | None = None,
@@ -122,7 +134,7 @@ def render_arrays(
     one id per triangle (all 0 when omitted). Arrays that are already C-contiguous with
     those dtypes (uint32 for indices and ids) are read in place without a copy; others are
     converted once. `camera`, `sun`, `medium` and `settings` are the members `camera`,
-    `sun`, `medium` and `render` of a scene description.
+    `sun`, `medium` and `render` of a scene description; `style` is a style preset.
     """
     _check_progress(progress)
     triangle_rows = _convert.index_rows(triangles, "triangles")
@@ -134,11 +146,30 @@ def render_arrays(
         _convert.to_json(sun, "sun"),
         _convert.to_json(medium, "medium"),
         _convert.to_json({} if settings is None else settings, "render"),
+        style_json=_style_json(style),
         camera_depth=_convert.depth_map(camera_depth),
         depth_kind=depth_kind,
         progress=progress,
     )
     return Layers(*raw)
+
+
+def load_style(style: StyleLike) -> dict[str, Any]:
+    """Reads and validates a style preset; returns it with every default filled in.
+
+    Unknown keys and out-of-range values raise errors that name the field, e.g.
+    "style.closing.radius".
+    """
+    result: dict[str, Any] = json.loads(_core.normalize_style_json(_convert.scene_json(style)))
+    return result
+
+
+def _style_json(style: StyleLike | None) -> str | None:
+    if style is None:
+        return None
+    if isinstance(style, Mapping):
+        return _convert.to_json(style, "style")
+    return _convert.scene_json(style)
 
 
 def scene_from_json(text: str) -> dict[str, Any]:

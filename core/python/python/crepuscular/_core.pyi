@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 __version__: Final[str]
 SCENE_VERSION: Final[int]
+STYLE_VERSION: Final[int]
 
 _Float32Array: TypeAlias = npt.NDArray[np.float32]
 _UInt32Array: TypeAlias = npt.NDArray[np.uint32]
@@ -32,6 +33,7 @@ def render_json(
     scene_json: str,
     /,
     *,
+    style_json: str | None = None,
     camera_depth: _Float32Array | None = None,
     depth_kind: _DepthKind = "planar",
     progress: _Progress | None = None,
@@ -46,11 +48,13 @@ def render_arrays(
     settings_json: str,
     /,
     *,
+    style_json: str | None = None,
     camera_depth: _Float32Array | None = None,
     depth_kind: _DepthKind = "planar",
     progress: _Progress | None = None,
 ) -> _RawLayers: ...
 def normalize_scene_json(scene_json: str, /) -> str: ...
+def normalize_style_json(style_json: str, /) -> str: ...
 def builtin_scene_json(name: str, /) -> str: ...
 def builtin_scene_names() -> list[str]: ...
 def read_exr(path: str | os.PathLike[str], /) -> tuple[int, int, dict[str, _Float32Array]]: ...

@@ -159,7 +159,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     let mut rows = Vec::new();
     for name in &names {
         let mut base = builtin_scene(name)?;
-        overrides.apply(&mut base);
+        overrides.apply(&mut base)?;
         for variant in &variants {
             let mut scene = base.clone();
             variant.apply(&mut scene);

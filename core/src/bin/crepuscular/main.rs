@@ -11,7 +11,7 @@ use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::exr_file::{write_layers, Precision};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
 use crepuscular::scene::{Method, Rectification, Scene};
-use crepuscular::{render_scene, Error, Layers, RenderControl, Result};
+use crepuscular::{render_scene, Error, Layers, RenderControl, Result, Style};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Parser)]
@@ -78,10 +78,16 @@ pub struct Overrides {
     /// Evaluate at 1/1, 1/2 or 1/4 resolution and upsample.
     #[arg(long)]
     downsample: Option<u32>,
+    /// A style preset (JSON) replacing the scene's style.
+    #[arg(long)]
+    style: Option<PathBuf>,
 }
 
 impl Overrides {
-    pub fn apply(&self, scene: &mut Scene) {
+    pub fn apply(&self, scene: &mut Scene) -> Result<()> {
+        if let Some(path) = &self.style {
+            scene.style = Style::load(path)?;
+        }
         if let Some(width) = self.width {
             scene.camera.width = width;
         }
@@ -106,6 +112,7 @@ impl Overrides {
         if let Some(factor) = self.downsample {
             scene.render.downsample = factor;
         }
+        Ok(())
     }
 }
 
@@ -227,7 +234,7 @@ fn write_preview(path: &Path, layers: &Layers) -> Result<()> {
 
 fn run_render(args: &RenderArgs) -> Result<()> {
     let mut scene = load_scene(&args.scene)?;
-    args.overrides.apply(&mut scene);
+    args.overrides.apply(&mut scene)?;
     let started = std::time::Instant::now();
     let layers = render_with_progress(&scene, &args.scene)?;
     let elapsed = started.elapsed();
@@ -253,7 +260,7 @@ fn run_demo(args: &DemoArgs) -> Result<()> {
     let mut rows = Vec::new();
     for name in BUILTIN_SCENES {
         let mut scene = builtin_scene(name)?;
-        args.overrides.apply(&mut scene);
+        args.overrides.apply(&mut scene)?;
         let started = std::time::Instant::now();
         let layers = render_with_progress(&scene, name)?;
         let elapsed = started.elapsed();
