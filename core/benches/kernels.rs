@@ -45,15 +45,8 @@ fn with_shadow_map(name: &str, size: Option<(u32, u32)>) -> (Scene, CameraModel,
         scene.camera.width = width;
         scene.camera.height = height;
     }
-    let geometry = FlatGeometry::from_scene(&scene);
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::build(
-        &camera,
-        &scene.sun,
-        &scene.medium,
-        &scene.render,
-        &geometry.view(),
-    );
+    let shadow = ShadowMap::of_scene(&scene, &camera);
     (scene, camera, shadow)
 }
 

@@ -6,7 +6,6 @@
 use crepuscular::builtin_scene;
 use crepuscular::camera::CameraModel;
 use crepuscular::morphology::{self, KernelShape, MorphologyDesc};
-use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{self, Epipole, SilhouetteDesc};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
@@ -15,15 +14,8 @@ use glam::DVec3;
 fn tree_map() -> (ShadowMap, Epipole) {
     let mut scene = builtin_scene("tree").expect("built-in scene");
     scene.render.shadow_map_size = 1024;
-    let geometry = FlatGeometry::from_scene(&scene);
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::build(
-        &camera,
-        &scene.sun,
-        &scene.medium,
-        &scene.render,
-        &geometry.view(),
-    );
+    let shadow = ShadowMap::of_scene(&scene, &camera);
     let epipole = Epipole::of_camera(&camera, &shadow.texel_from_world);
     (shadow, epipole)
 }

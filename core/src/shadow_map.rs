@@ -27,6 +27,18 @@ pub struct ShadowMap {
 }
 
 impl ShadowMap {
+    /// The map of a whole scene description: its meshes, sun, medium and settings.
+    pub fn of_scene(scene: &crate::scene::Scene, camera: &CameraModel) -> Self {
+        let geometry = crate::render::FlatGeometry::from_scene(scene);
+        Self::build(
+            camera,
+            &scene.sun,
+            &scene.medium,
+            &scene.render,
+            &geometry.view(),
+        )
+    }
+
     pub fn build(
         camera: &CameraModel,
         sun: &Sun,

@@ -200,7 +200,9 @@ impl Style {
             }
         }
         if let Some(silhouette) = &self.silhouette {
-            let length = silhouette.length_texels.unwrap_or(texels(silhouette.length));
+            let length = silhouette
+                .length_texels
+                .unwrap_or(texels(silhouette.length));
             if length > 0.0 {
                 let desc = SilhouetteDesc {
                     op: silhouette.operation,

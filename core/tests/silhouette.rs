@@ -4,7 +4,6 @@
 
 use crepuscular::builtin_scene;
 use crepuscular::camera::CameraModel;
-use crepuscular::render::FlatGeometry;
 use crepuscular::scene::{Projection, SensorFit};
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{apply, apply_naive, Epipole, SilhouetteDesc};
@@ -395,15 +394,8 @@ fn extrusions_have_no_gaps_for_any_occluder_position() {
 fn a_camera_projects_to_its_position_or_its_view_direction() {
     let mut scene = builtin_scene("torus").unwrap();
     scene.render.shadow_map_size = 64;
-    let geometry = FlatGeometry::from_scene(&scene);
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::build(
-        &camera,
-        &scene.sun,
-        &scene.medium,
-        &scene.render,
-        &geometry.view(),
-    );
+    let shadow = ShadowMap::of_scene(&scene, &camera);
     let map = shadow.texel_from_world;
     match Epipole::of_camera(&camera, &map) {
         Epipole::Point(p) => {

@@ -7,7 +7,7 @@ use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::scene::{Method, Scene};
 use crepuscular::{render_scene_timed, RenderControl, Result};
 
-use crate::Overrides;
+use crate::{style_bench, Overrides};
 
 #[derive(Args)]
 pub struct BenchArgs {
@@ -21,6 +21,10 @@ pub struct BenchArgs {
     /// sizes (720p, 1080p, 2160p) and shadow-map sizes (512² to 4096²).
     #[arg(long)]
     scaling: bool,
+    /// Only the stylization table: occluder operators on each scene's shadow map and the
+    /// transfer function on its rendered layers.
+    #[arg(long)]
+    stylize: bool,
     #[command(flatten)]
     overrides: Overrides,
 }
@@ -122,7 +126,7 @@ fn scaling_variants() -> Vec<Variant> {
     variants
 }
 
-fn median(sorted: &[f64]) -> f64 {
+pub fn median(sorted: &[f64]) -> f64 {
     let n = sorted.len();
     if n % 2 == 1 {
         sorted[n / 2]
@@ -156,6 +160,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         };
         (names, variants)
     };
+    if args.stylize {
+        return stylization_table(&names, &overrides, runs);
+    }
     let mut rows = Vec::new();
     for name in &names {
         let mut base = builtin_scene(name)?;
@@ -212,6 +219,20 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         overrides.steps.unwrap_or(1024),
         peak_memory()
     );
+    if args.scaling {
+        return Ok(());
+    }
+    stylization_table(&names, &overrides, runs)
+}
+
+fn stylization_table(names: &[String], overrides: &Overrides, runs: usize) -> Result<()> {
+    let mut rows = Vec::new();
+    for name in names {
+        let mut scene = builtin_scene(name)?;
+        overrides.apply(&mut scene)?;
+        rows.extend(style_bench::rows(name, &scene, runs)?);
+    }
+    style_bench::print_table(&rows);
     Ok(())
 }
 

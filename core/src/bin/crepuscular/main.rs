@@ -1,6 +1,8 @@
 //! `crepuscular`: render scenes to layer EXRs, export built-in scenes, and benchmark.
 
 mod bench;
+mod gallery;
+mod style_bench;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -281,5 +283,11 @@ fn run_demo(args: &DemoArgs) -> Result<()> {
         });
     }
     bench::print_demo_table(&rows);
+    let gallery = gallery::render(&args.out_dir.join("gallery"), &args.overrides)?;
+    println!(
+        "\ngallery: {} before/after pairs (physical | styled) in {}",
+        gallery.len(),
+        args.out_dir.join("gallery").display()
+    );
     Ok(())
 }
