@@ -3,7 +3,7 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use crepuscular::exr_file::{read_exr as read_exr_file, write_layers, Precision};
+use crepuscular::exr_file::{read_exr as read_exr_file, write_channels, write_layers, Precision};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
 use crepuscular::{composite::composite_over, Error, Layers};
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
@@ -95,6 +95,53 @@ pub fn write_layers_exr(
     let precision = if half { Precision::F16 } else { Precision::F32 };
     py.detach(|| write_layers(&path, &layers, precision))
         .map_err(to_py_err)
+}
+
+/// Writes named (H, W) float32 planes as one single-part EXR, e.g. a composited
+/// frame's `R`, `G`, `B`, `A`. Channel names are written as given, in the given order.
+#[pyfunction]
+#[pyo3(signature = (path, channels, /, *, half=false))]
+pub fn write_channels_exr(
+    py: Python<'_>,
+    path: PathBuf,
+    channels: Vec<(String, PyReadonlyArray2<'_, f32>)>,
+    half: bool,
+) -> PyResult<()> {
+    let (h, w) = match channels.first() {
+        Some((_, first)) => (first.shape()[0], first.shape()[1]),
+        None => {
+            return Err(to_py_err(Error::invalid(
+                "channels",
+                "no channels to write",
+            )))
+        }
+    };
+    let planes = channels
+        .iter()
+        .map(|(name, array)| {
+            let field = format!("channels.{name}");
+            if array.shape() != [h, w] {
+                return Err(Error::invalid(
+                    field,
+                    format!(
+                        "must have shape ({h}, {w}) like the first channel, got {:?}",
+                        array.shape()
+                    ),
+                ));
+            }
+            Ok((
+                name.as_str(),
+                contiguous(&field, array.as_slice())?.to_vec(),
+            ))
+        })
+        .collect::<crepuscular::Result<Vec<_>>>()
+        .map_err(to_py_err)?;
+    let precision = if half { Precision::F16 } else { Precision::F32 };
+    py.detach(|| {
+        let named: Vec<(&str, &[f32])> = planes.iter().map(|(n, v)| (*n, v.as_slice())).collect();
+        write_channels(&path, w as u32, h as u32, &named, precision)
+    })
+    .map_err(to_py_err)
 }
 
 /// Premultiplied over: `volume.rgb + (1 − volume.a) · beauty`, both (H, W, 4).

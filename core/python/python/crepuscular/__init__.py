@@ -50,6 +50,7 @@ __all__ = [
     "scene_from_json",
     "validate_scene",
     "write_exr",
+    "write_exr_channels",
     "write_preview_png",
 ]
 
@@ -216,6 +217,23 @@ def write_exr(path: str | os.PathLike[str], layers: Layers, *, half: bool = Fals
         np.ascontiguousarray(layers.volume, dtype=np.float32),
         np.ascontiguousarray(layers.visibility, dtype=np.float32),
         np.ascontiguousarray(layers.depth, dtype=np.float32),
+        half=half,
+    )
+
+
+def write_exr_channels(
+    path: str | os.PathLike[str],
+    channels: Mapping[str, npt.ArrayLike],
+    *,
+    half: bool = False,
+) -> None:
+    """Writes named (height, width) planes as one EXR, in the mapping's order.
+
+    For images that are not a layer set, such as a composited frame (`R`, `G`, `B`, `A`).
+    """
+    _core.write_channels_exr(
+        os.fspath(path),
+        [(name, np.ascontiguousarray(plane, dtype=np.float32)) for name, plane in channels.items()],
         half=half,
     )
 

@@ -67,6 +67,13 @@ def write_layers_exr(
     *,
     half: bool = False,
 ) -> None: ...
+def write_channels_exr(
+    path: str | os.PathLike[str],
+    channels: list[tuple[str, _Float32Array]],
+    /,
+    *,
+    half: bool = False,
+) -> None: ...
 def composite(volume: _Float32Array, beauty: _Float32Array, /) -> _Float32Array: ...
 def write_preview_png(
     path: str | os.PathLike[str],

@@ -1,0 +1,397 @@
+"""`crepuscular-usd`: render light-shaft layers from a USD stage, or author the schema.
+
+    crepuscular-usd render STAGE --camera /cam --frames 1-100x2 --out 'shafts.####.exr'
+        [--light /sun] [--beauty 'beauty.####.exr' [--comp 'comp.####.exr']]
+        [--out-layer shafts.usda] [--width W] [--height H] [--half] [--quiet]
+    crepuscular-usd apply-schema STAGE --light /sun [--medium-extent /fog] [--output FILE]
+
+Exit status: 0 on success, 2 for command-line errors (a bad frame range or frame
+placeholder included), 1 when the stage, its camera or light, an input file or a render
+fails. Every error is one line on stderr that names what is wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+from pxr import Sdf, Tf, Usd, UsdGeom
+
+import crepuscular
+from crepuscular_usd import __version__
+from crepuscular_usd.frames import FrameSpecError, add_cmdline_args, validate_cmdline_args
+from crepuscular_usd.geometry import MeshError
+from crepuscular_usd.output import OutputLayerError, RenderRecord, write_output_layer
+from crepuscular_usd.schema import API_NAME, SchemaError, apply_schema
+from crepuscular_usd.stage import StageError, StageReader, open_stage
+
+__all__ = ["main"]
+
+PROG = "crepuscular-usd"
+
+
+class CommandError(Exception):
+    """A failure that ends the command with a message and exit status 1."""
+
+
+class UsageError(Exception):
+    """A command-line mistake: exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(message)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    render = commands.add_parser("render", help="render layer EXRs for a frame range")
+    render.add_argument("stage", metavar="STAGE", help="the USD stage to render")
+    render.add_argument("--camera", "-cam", help="camera prim path (default: the only camera)")
+    render.add_argument(
+        "--light", help="DistantLight prim path (default: the only one, preferring the API)"
+    )
+    add_cmdline_args(render)
+    render.add_argument(
+        "--out", required=True, help="layer EXR path with a frame placeholder, e.g. shafts.####.exr"
+    )
+    render.add_argument(
+        "--beauty", help="beauty EXR sequence to composite over, e.g. beauty.####.exr"
+    )
+    render.add_argument(
+        "--comp", help="composited EXR path (default: 'comp.' + the --out file name, same folder)"
+    )
+    render.add_argument(
+        "--beauty-depth",
+        choices=("auto", "planar", "ray_distance", "ignore"),
+        default="auto",
+        help=(
+            "how the beauty's depth channel measures distance, in stage units: auto takes "
+            "our own 'depth' as ray distance and any other (Depth.Z, Z) as planar"
+        ),
+    )
+    render.add_argument("--out-layer", help="USD layer recording the products and settings")
+    render.add_argument("--width", type=int, help="image width (default 1920 or the beauty's)")
+    render.add_argument("--height", type=int, help="image height (default from the aperture)")
+    render.add_argument("--half", action="store_true", help="write volume and visibility as half")
+    render.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+    schema = commands.add_parser("apply-schema", help=f"apply {API_NAME} with its defaults")
+    schema.add_argument("stage", metavar="STAGE", help="the USD stage (or layer) to edit")
+    schema.add_argument("--light", required=True, help="DistantLight prim path")
+    schema.add_argument("--medium-extent", help="prim whose bounds make the medium's box")
+    schema.add_argument("--output", "-o", help="write the edited stage here (default: in place)")
+    return parser
+
+
+# --- progress ---------------------------------------------------------------------------
+
+
+class Progress:
+    """A plain-text progress bar on stderr: one line redrawn on a terminal, else per frame."""
+
+    WIDTH = 30
+
+    def __init__(self, total: int, stream: TextIO, enabled: bool) -> None:
+        self.total = total
+        self.stream = stream
+        self.enabled = enabled
+        self.tty = stream.isatty()
+        self.started = time.perf_counter()
+        self._last = -1.0
+
+    def update(self, done_frames: int, fraction: float, label: str) -> None:
+        if not self.enabled:
+            return
+        overall = (done_frames + fraction) / self.total
+        if not self.tty and fraction not in (0.0, 1.0):
+            return
+        if self.tty and overall - self._last < 0.005 and fraction not in (0.0, 1.0):
+            return
+        self._last = overall
+        filled = int(self.WIDTH * overall)
+        bar = "#" * filled + "-" * (self.WIDTH - filled)
+        elapsed = time.perf_counter() - self.started
+        line = f"[{bar}] {overall * 100:5.1f}% {label} ({elapsed:.1f} s)"
+        if self.tty:
+            self.stream.write("\r" + line)
+        elif fraction == 1.0:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def finish(self) -> None:
+        if self.enabled and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# --- beauty -----------------------------------------------------------------------------
+
+
+def _beauty_planes(
+    path: str, width: int, height: int
+) -> tuple[npt.NDArray[np.float32], tuple[str, npt.NDArray[np.float32]] | None]:
+    """RGBA (H, W, 4) and, if present, the (channel, plane) depth pass of a beauty EXR."""
+    try:
+        channels = crepuscular.read_exr(path)
+    except (OSError, crepuscular.CrepuscularError) as error:
+        raise CommandError(f"cannot read beauty {path}: {error}") from error
+    # Blender's multi-layer files: the first view layer's Combined pass, else plain RGBA.
+    combined = sorted(n for n in channels if n == "Combined.R" or n.endswith(".Combined.R"))
+    prefix = combined[0][: -len("R")] if combined else None
+    if prefix is None and "R" in channels:
+        prefix = ""
+    if prefix is None or any(f"{prefix}{c}" not in channels for c in "GB"):
+        raise CommandError(
+            f"beauty {path} has no R, G, B channels (nor a render layer's Combined.R/G/B)"
+        )
+    first = channels[f"{prefix}R"]
+    if first.shape != (height, width):
+        raise CommandError(
+            f"beauty {path} is {first.shape[1]}x{first.shape[0]} but the camera renders "
+            f"{width}x{height}; pass --width/--height to match"
+        )
+    alpha = channels.get(f"{prefix}A", np.ones_like(first))
+    rgba = np.stack([channels[f"{prefix}{c}"] for c in "RGB"] + [alpha], axis=-1)
+    depth_name = next((n for n in sorted(channels) if n.endswith(".Depth.Z")), None)
+    for candidate in ("depth.Z", "depth", "Z"):
+        if depth_name is None and candidate in channels:
+            depth_name = candidate
+    depth = (depth_name, channels[depth_name]) if depth_name is not None else None
+    return rgba.astype(np.float32), depth
+
+
+def _beauty_size(path: str) -> tuple[int, int]:
+    try:
+        channels = crepuscular.read_exr(path)
+    except (OSError, crepuscular.CrepuscularError) as error:
+        raise CommandError(f"cannot read beauty {path}: {error}") from error
+    if not channels:
+        raise CommandError(f"beauty {path} has no channels")
+    height, width = next(iter(channels.values())).shape
+    return int(width), int(height)
+
+
+# --- commands ---------------------------------------------------------------------------
+
+
+def _frame_path(template: str, time_code: Usd.TimeCode) -> str:
+    if time_code.IsDefault() or time_code.IsEarliestTime():
+        return template
+    return template.format(frame=time_code.GetValue())
+
+
+def _resolve_time(stage: Usd.Stage, time_code: Usd.TimeCode) -> Usd.TimeCode:
+    # usdrecord works at the earliest time without --frames; name it for file records.
+    if time_code.IsEarliestTime():
+        if stage.HasAuthoredTimeCodeRange():
+            return Usd.TimeCode(stage.GetStartTimeCode())
+        return Usd.TimeCode.Default()
+    return time_code
+
+
+def _record_key(time_code: Usd.TimeCode) -> float | None:
+    return None if time_code.IsDefault() else float(time_code.GetValue())
+
+
+def _warn(stream: TextIO, message: str) -> None:
+    stream.write(f"{PROG}: warning: {message}\n")
+
+
+def _render(args: argparse.Namespace, err: TextIO) -> int:
+    if args.comp and not args.beauty:
+        raise UsageError("--comp needs --beauty")
+    for name in ("width", "height"):
+        value = getattr(args, name)
+        if value is not None and not 1 <= value <= 16384:
+            raise UsageError(f"--{name} {value} is outside 1..16384")
+    if args.beauty and not args.comp:
+        folder, name = os.path.split(args.out)
+        args.comp = os.path.join(folder, "comp." + name)
+    try:
+        frame_args = validate_cmdline_args(args, ("out", "beauty", "comp"))
+    except FrameSpecError as error:
+        raise UsageError(str(error)) from error
+    if not os.path.isfile(args.stage):
+        raise CommandError(f"cannot open stage {args.stage}: no such file")
+    stage = open_stage(args.stage)
+    time_codes = [_resolve_time(stage, code) for code in frame_args.time_codes]
+    width, height = args.width, args.height
+    if args.beauty and width is None and height is None:
+        width, height = _beauty_size(_frame_path(frame_args.formats["beauty"], time_codes[0]))
+    reader = StageReader(stage, args.camera, args.light, width=width, height=height)
+    if not reader.light_prim.HasAPI(API_NAME):
+        _warn(
+            err,
+            f"{reader.light_prim.GetPath()} has no {API_NAME}: rendering with the physically "
+            "based defaults (run apply-schema to author them)",
+        )
+    record = RenderRecord(
+        camera_path=reader.camera_prim.GetPath(),
+        light_path=reader.light_prim.GetPath(),
+        stage_path=os.path.abspath(args.stage),
+        resolution=(0, 0),
+        meters_per_unit=reader.meters_per_unit,
+        up_axis=str(UsdGeom.GetStageUpAxis(stage)),
+        time_codes_per_second=reader.time_codes_per_second,
+        inputs={
+            key: getattr(args, key)
+            for key in (
+                "camera",
+                "light",
+                "frames",
+                "out",
+                "beauty",
+                "comp",
+                "beauty_depth",
+                "half",
+            )
+        },
+    )
+    progress = Progress(len(time_codes), err, enabled=not args.quiet)
+    skipped: Counter[str] = Counter()
+    invalid: set[str] = set()
+    timings = {"read": 0.0, "render": 0.0, "write": 0.0}
+    for index, time_code in enumerate(time_codes):
+        label = "default time" if time_code.IsDefault() else f"frame {time_code.GetValue():g}"
+        progress.update(index, 0.0, label)
+        started = time.perf_counter()
+        frame = reader.read(time_code)
+        timings["read"] += time.perf_counter() - started
+        if index == 0:
+            skipped = frame.geometry.unsupported
+            invalid = set(frame.geometry.invalid)
+            if skipped or invalid:
+                parts = [f"{count} {kind}" for kind, count in sorted(skipped.items())]
+                parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
+                count = sum(skipped.values()) + len(invalid)
+                _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
+        if len(frame.geometry.triangles) == 0:
+            raise CommandError(f"{label}: the stage has no visible mesh triangles to cast shadows")
+        kwargs = frame.render_kwargs()
+        beauty_rgba = None
+        key = _record_key(time_code)
+        if args.beauty:
+            beauty_path = _frame_path(frame_args.formats["beauty"], time_code)
+            if not os.path.isfile(beauty_path):
+                raise CommandError(f"{label}: beauty {beauty_path} does not exist")
+            beauty_rgba, depth = _beauty_planes(
+                beauty_path, frame.camera["width"], frame.camera["height"]
+            )
+            if depth is not None and args.beauty_depth != "ignore":
+                name, plane = depth
+                kind = args.beauty_depth
+                if kind == "auto":
+                    kind = "ray_distance" if name == "depth" else "planar"
+                kwargs["camera_depth"] = plane * np.float32(reader.meters_per_unit)
+                kwargs["depth_kind"] = kind
+            record.beauties[key] = beauty_path
+        started = time.perf_counter()
+        try:
+            layers = crepuscular.render_arrays(
+                **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
+            )
+        except crepuscular.InvalidInputError as error:
+            field = f" ({error.field})" if getattr(error, "field", None) else ""
+            raise CommandError(
+                f"{label}: the renderer rejected the frame{field}: {error}"
+            ) from error
+        timings["render"] += time.perf_counter() - started
+        started = time.perf_counter()
+        out_path = _frame_path(frame_args.formats["out"], time_code)
+        _write(
+            lambda p=out_path, lay=layers: crepuscular.write_exr(p, lay, half=args.half), out_path
+        )
+        record.shafts[key] = out_path
+        if beauty_rgba is not None:
+            comp_path = _frame_path(frame_args.formats["comp"], time_code)
+            comp = crepuscular.composite(layers.volume, beauty_rgba)
+            planes = {c: comp[..., i] for i, c in enumerate("RGBA")}
+            _write(lambda p=comp_path, pl=planes: crepuscular.write_exr_channels(p, pl), comp_path)
+            record.composites[key] = comp_path
+        timings["write"] += time.perf_counter() - started
+        record.resolution = (layers.width, layers.height)
+        record.settings[key] = frame.settings_record()
+    progress.finish()
+    if args.out_layer:
+        write_output_layer(args.out_layer, record)
+    if not args.quiet:
+        total = sum(timings.values())
+        err.write(
+            f"{PROG}: {len(time_codes)} frame(s) in {total:.2f} s: "
+            f"read USD {timings['read']:.2f} s, render {timings['render']:.2f} s, "
+            f"write {timings['write']:.2f} s\n"
+        )
+    return 0
+
+
+def _write(action: Any, path: str) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise CommandError(f"cannot write {path}: folder {folder} does not exist")
+    try:
+        action()
+    except (OSError, crepuscular.CrepuscularError) as error:
+        raise CommandError(f"cannot write {path}: {error}") from error
+
+
+def _apply_schema(args: argparse.Namespace, err: TextIO) -> int:
+    if not os.path.isfile(args.stage):
+        raise CommandError(f"cannot open stage {args.stage}: no such file")
+    stage = open_stage(args.stage)
+    for option, path in (("--light", args.light), ("--medium-extent", args.medium_extent)):
+        if path is None:
+            continue
+        if not Sdf.Path.IsValidPathString(path) or not stage.GetPrimAtPath(path):
+            raise CommandError(f"{option} {path} does not exist on the stage")
+    extent = Sdf.Path(args.medium_extent) if args.medium_extent else None
+    apply_schema(stage.GetPrimAtPath(args.light), medium_extent=extent)
+    layer = stage.GetRootLayer()
+    saved = layer.Export(args.output) if args.output else layer.Save()
+    if not saved:
+        raise CommandError(f"cannot save {args.output or args.stage}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None, *, stderr: TextIO | None = None) -> int:
+    """Runs the command line; returns the exit status instead of exiting."""
+    err = stderr if stderr is not None else sys.stderr
+    try:
+        args = _parser().parse_args(argv)
+        if args.command == "render":
+            return _render(args, err)
+        return _apply_schema(args, err)
+    except UsageError as error:
+        err.write(f"{PROG}: error: {error}\n")
+        return 2
+    except (
+        CommandError,
+        StageError,
+        SchemaError,
+        MeshError,
+        OutputLayerError,
+        crepuscular.CrepuscularError,
+    ) as error:
+        err.write(f"{PROG}: error: {error}\n")
+        return 1
+    except Tf.ErrorException as error:
+        message = " ".join(str(error).split())
+        err.write(f"{PROG}: error: USD: {message}\n")
+        return 1
+    except KeyboardInterrupt:
+        err.write(f"{PROG}: interrupted\n")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,369 @@
+"""Meshes of a USD stage as world-space triangles: triangulation, transforms, instancing.
+
+Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed in
+`holeIndices` are left out, faces with fewer than three vertices are skipped, and
+`leftHanded` meshes get their winding flipped. Instance proxies and `PointInstancer`
+prototypes share one triangulation per prototype mesh; every placement is one numpy
+matrix product, never a Python loop over vertices.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdVol
+
+__all__ = ["GeometryCollector", "MeshError", "SceneGeometry", "triangulate"]
+
+F64 = npt.NDArray[np.float64]
+
+
+class MeshError(ValueError):
+    """A mesh whose topology cannot be used; the message names the prim."""
+
+
+def triangulate(
+    face_vertex_counts: npt.ArrayLike,
+    face_vertex_indices: npt.ArrayLike,
+    hole_indices: npt.ArrayLike = (),
+    *,
+    left_handed: bool = False,
+    point_count: int | None = None,
+    where: str = "mesh",
+) -> npt.NDArray[np.uint32]:
+    """(M, 3) triangles of a USD polygon mesh, fan-triangulated per face.
+
+    Faces in `hole_indices` and faces with fewer than 3 vertices produce no triangles.
+    Raises `MeshError` naming `where` for inconsistent topology.
+    """
+    counts = np.asarray(face_vertex_counts, dtype=np.int64).reshape(-1)
+    indices = np.asarray(face_vertex_indices, dtype=np.int64).reshape(-1)
+    if np.any(counts < 0):
+        raise MeshError(f"{where}: faceVertexCounts has negative entries")
+    if int(counts.sum()) != len(indices):
+        raise MeshError(
+            f"{where}: faceVertexCounts sum to {int(counts.sum())} but faceVertexIndices "
+            f"has {len(indices)} entries"
+        )
+    if len(indices) and (
+        indices.min() < 0 or (point_count is not None and indices.max() >= point_count)
+    ):
+        raise MeshError(
+            f"{where}: faceVertexIndices reach {int(indices.max())} but there are "
+            f"{point_count} points"
+        )
+    keep = counts >= 3
+    holes = np.asarray(hole_indices, dtype=np.int64).reshape(-1)
+    holes = holes[(holes >= 0) & (holes < len(counts))]
+    keep[holes] = False
+    per_face = np.where(keep, counts - 2, 0)
+    total = int(per_face.sum())
+    starts = np.cumsum(counts) - counts
+    face = np.repeat(np.arange(len(counts)), per_face)
+    corner = np.arange(total) - np.repeat(np.cumsum(per_face) - per_face, per_face)
+    base = starts[face]
+    first, second, third = indices[base], indices[base + corner + 1], indices[base + corner + 2]
+    if left_handed:
+        second, third = third, second
+    return np.stack([first, second, third], axis=1).astype(np.uint32)
+
+
+def row_matrix(matrix: object) -> F64:
+    """A Gf.Matrix4d (row vectors, translation in the last row) as a numpy array."""
+    return np.array(matrix, dtype=np.float64).reshape(4, 4)
+
+
+@dataclass
+class _LocalMesh:
+    points: F64
+    triangles: npt.NDArray[np.uint32]
+
+
+@dataclass
+class SceneGeometry:
+    """World-space triangles in the renderer's space, with one object id per triangle."""
+
+    positions: npt.NDArray[np.float32]
+    triangles: npt.NDArray[np.uint32]
+    object_ids: npt.NDArray[np.uint32]
+    #: Object id of each owner path (a mesh, an instance proxy or a PointInstancer).
+    ids_by_path: dict[Sdf.Path, int]
+    #: Prototype mesh paths placed by each PointInstancer owner.
+    instanced_paths: dict[Sdf.Path, set[Sdf.Path]]
+    #: "TypeName" -> number of prims skipped because this step does not render them.
+    unsupported: Counter[str] = field(default_factory=Counter)
+    invalid: list[str] = field(default_factory=list)
+
+    def ids_under(self, roots: Iterable[Sdf.Path]) -> list[int]:
+        """Object ids of every owner at or below one of `roots`."""
+        roots = list(roots)
+        ids: set[int] = set()
+        for path, object_id in self.ids_by_path.items():
+            sources = {path} | self.instanced_paths.get(path, set())
+            if any(source.HasPrefix(root) for source in sources for root in roots):
+                ids.add(object_id)
+        return sorted(ids)
+
+
+_LIGHT_TYPES = (UsdLux.BoundableLightBase, UsdLux.NonboundableLightBase)
+
+
+class GeometryCollector:
+    """Reads the renderable meshes of a stage at a time code.
+
+    Local triangulations are cached across time codes when nothing about the mesh is
+    time-varying, so a long frame range pays for topology once.
+    """
+
+    def __init__(
+        self,
+        stage: Usd.Stage,
+        core_from_stage: F64,
+        *,
+        skip: Iterable[Sdf.Path] = (),
+    ) -> None:
+        self._stage = stage
+        #: Column-vector 4x4: stage world space -> renderer space (Z-up, metres).
+        self._core_from_stage = core_from_stage
+        self._skip = set(skip)
+        self._cache: dict[Sdf.Path, _LocalMesh] = {}
+
+    # --- meshes ---------------------------------------------------------------------
+
+    def _local_mesh(self, prim: Usd.Prim, time: Usd.TimeCode) -> _LocalMesh | None:
+        key = prim.GetPrimInPrototype().GetPath() if prim.IsInstanceProxy() else prim.GetPath()
+        cached = self._cache.get(key)
+        if cached is not None:
+            return cached
+        mesh = UsdGeom.Mesh(prim)
+        attrs = [
+            mesh.GetPointsAttr(),
+            mesh.GetFaceVertexCountsAttr(),
+            mesh.GetFaceVertexIndicesAttr(),
+            mesh.GetHoleIndicesAttr(),
+            mesh.GetOrientationAttr(),
+        ]
+        points_value = attrs[0].Get(time)
+        counts = attrs[1].Get(time)
+        indices = attrs[2].Get(time)
+        if points_value is None or counts is None or indices is None:
+            return _LocalMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint32))
+        points = np.array(points_value, dtype=np.float64).reshape(-1, 3)
+        triangles = triangulate(
+            counts,
+            indices,
+            attrs[3].Get(time) or (),
+            left_handed=attrs[4].Get(time) == UsdGeom.Tokens.leftHanded,
+            point_count=len(points),
+            where=str(prim.GetPath()),
+        )
+        local = _LocalMesh(points, triangles)
+        if not any(attr.ValueMightBeTimeVarying() for attr in attrs):
+            self._cache[key] = local
+        return local
+
+    # --- traversal ------------------------------------------------------------------
+
+    def collect(self, time: Usd.TimeCode) -> SceneGeometry:
+        """Every visible render-purpose mesh at `time`, in the renderer's space."""
+        xforms = UsdGeom.XformCache(time)
+        chunks: list[tuple[Sdf.Path, F64, npt.NDArray[np.uint32]]] = []
+        instanced: dict[Sdf.Path, set[Sdf.Path]] = {}
+        unsupported: Counter[str] = Counter()
+        invalid: list[str] = []
+        core_row = self._core_from_stage.T
+        predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+        prims = iter(Usd.PrimRange(self._stage.GetPseudoRoot(), predicate))
+        next(prims)  # the pseudo-root itself
+        for prim in prims:
+            if not self._renderable(prim, time):
+                prims.PruneChildren()
+                continue
+            if prim.GetPath() in self._skip:
+                prims.PruneChildren()
+                continue
+            if prim.IsA(UsdGeom.PointInstancer):
+                prims.PruneChildren()
+                placed = self._point_instancer(prim, time, xforms, core_row, unsupported)
+                if placed is not None:
+                    chunks.append((prim.GetPath(), *placed[0]))
+                    instanced[prim.GetPath()] = placed[1]
+                continue
+            if prim.IsA(UsdGeom.Mesh):
+                prims.PruneChildren()
+                try:
+                    local = self._local_mesh(prim, time)
+                except MeshError as error:
+                    invalid.append(str(error))
+                    continue
+                if local is None or len(local.triangles) == 0:
+                    continue
+                world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
+                chunks.append(
+                    (prim.GetPath(), _transform(local.points, world_row), local.triangles)
+                )
+                continue
+            self._count_unsupported(prim, unsupported)
+        return _assemble(chunks, instanced, unsupported, invalid)
+
+    @staticmethod
+    def _renderable(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
+        imageable = UsdGeom.Imageable(prim)
+        if not imageable:
+            # Typed but not imageable (materials, shaders, render settings) holds no geometry.
+            return not prim.GetTypeName()
+        if imageable.GetVisibilityAttr().Get(time) == UsdGeom.Tokens.invisible:
+            return False
+        purpose = imageable.GetPurposeAttr().Get()
+        return purpose not in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)
+
+    @staticmethod
+    def _count_unsupported(prim: Usd.Prim, unsupported: Counter[str]) -> None:
+        if prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdVol.Volume):
+            unsupported[str(prim.GetTypeName())] += 1
+        elif prim.IsA(UsdLux.DistantLight):
+            return  # other distant lights: the light in use is chosen explicitly
+        elif any(prim.IsA(kind) for kind in _LIGHT_TYPES):
+            unsupported[str(prim.GetTypeName())] += 1
+
+    def _prototype_meshes(
+        self,
+        root: Usd.Prim,
+        time: Usd.TimeCode,
+        xforms: UsdGeom.XformCache,
+        unsupported: Counter[str],
+    ) -> list[tuple[Sdf.Path, _LocalMesh, F64]]:
+        """Meshes under a prototype root, with transforms relative to the root's parent."""
+        found: list[tuple[Sdf.Path, _LocalMesh, F64]] = []
+        parent = root.GetParent()
+        predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+        prims = iter(Usd.PrimRange(root, predicate))
+        for prim in prims:
+            if not self._renderable(prim, time):
+                prims.PruneChildren()
+                continue
+            if prim.IsA(UsdGeom.PointInstancer):
+                # Nested instancers are not read; they are reported with the other skips.
+                unsupported["PointInstancer (nested)"] += 1
+                prims.PruneChildren()
+                continue
+            if prim.IsA(UsdGeom.Mesh):
+                prims.PruneChildren()
+                local = self._local_mesh(prim, time)
+                if local is not None and len(local.triangles):
+                    relative, _ = xforms.ComputeRelativeTransform(prim, parent)
+                    found.append((prim.GetPath(), local, row_matrix(relative)))
+                continue
+            self._count_unsupported(prim, unsupported)
+        return found
+
+    def _point_instancer(
+        self,
+        prim: Usd.Prim,
+        time: Usd.TimeCode,
+        xforms: UsdGeom.XformCache,
+        core_row: F64,
+        unsupported: Counter[str],
+    ) -> tuple[tuple[F64, npt.NDArray[np.uint32]], set[Sdf.Path]] | None:
+        instancer = UsdGeom.PointInstancer(prim)
+        where = str(prim.GetPath())
+        proto_paths = instancer.GetPrototypesRel().GetForwardedTargets()
+        proto_indices = instancer.GetProtoIndicesAttr().Get(time)
+        if not proto_paths or proto_indices is None or len(proto_indices) == 0:
+            return None
+        # ExcludeProtoXform: the prototype root's own transform comes with its meshes below.
+        transforms = instancer.ComputeInstanceTransformsAtTime(
+            time, time, UsdGeom.PointInstancer.ExcludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
+        )
+        if transforms is None or len(transforms) != len(proto_indices):
+            raise MeshError(f"{where}: instance transforms could not be computed at {time}")
+        instance_rows = np.array(transforms, dtype=np.float64).reshape(-1, 4, 4)
+        indices = np.asarray(proto_indices, dtype=np.int64)
+        mask = instancer.ComputeMaskAtTime(time)
+        if mask is not None and len(mask):
+            keep = np.asarray(mask, dtype=bool)
+            indices, instance_rows = indices[keep], instance_rows[keep]
+        if len(indices) and (indices.min() < 0 or indices.max() >= len(proto_paths)):
+            raise MeshError(
+                f"{where}: protoIndices reach {int(indices.max())} but there are "
+                f"{len(proto_paths)} prototypes"
+            )
+        world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
+        positions: list[F64] = []
+        triangles: list[npt.NDArray[np.uint32]] = []
+        sources: set[Sdf.Path] = set()
+        base = 0
+        for proto_index, proto_path in enumerate(proto_paths):
+            placements = instance_rows[indices == proto_index]
+            if not len(placements):
+                continue
+            proto = self._stage.GetPrimAtPath(proto_path)
+            if not proto:
+                raise MeshError(f"{where}: prototype {proto_path} does not exist")
+            for mesh_path, local, relative in self._prototype_meshes(
+                proto, time, xforms, unsupported
+            ):
+                sources.add(mesh_path)
+                # (K, 4, 4) per-instance rows: mesh-in-prototype, instance, instancer-to-world.
+                full = relative @ placements @ world_row
+                homogeneous = np.concatenate(
+                    [local.points, np.ones((len(local.points), 1))], axis=1
+                )
+                placed = np.einsum("nj,kjl->knl", homogeneous, full)[..., :3]
+                count = len(local.points)
+                offsets = (np.arange(len(placements), dtype=np.int64) * count + base)[:, None, None]
+                positions.append(placed.reshape(-1, 3))
+                triangles.append(
+                    (local.triangles[None, :, :].astype(np.int64) + offsets).reshape(-1, 3)
+                )
+                base += count * len(placements)
+        if not positions:
+            return None
+        stacked = np.concatenate(triangles)
+        return (np.concatenate(positions), stacked.astype(np.uint32)), sources
+
+
+def _transform(points: F64, world_row: F64) -> F64:
+    return points @ world_row[:3, :3] + world_row[3, :3]
+
+
+def _assemble(
+    chunks: list[tuple[Sdf.Path, F64, npt.NDArray[np.uint32]]],
+    instanced: dict[Sdf.Path, set[Sdf.Path]],
+    unsupported: Counter[str],
+    invalid: list[str],
+) -> SceneGeometry:
+    ids_by_path: dict[Sdf.Path, int] = {}
+    positions: list[F64] = []
+    triangles: list[npt.NDArray[np.uint32]] = []
+    object_ids: list[npt.NDArray[np.uint32]] = []
+    base = 0
+    for path, points, tris in chunks:
+        object_id = ids_by_path.setdefault(path, len(ids_by_path) + 1)
+        positions.append(points)
+        triangles.append(tris.astype(np.int64) + base)
+        object_ids.append(np.full(len(tris), object_id, dtype=np.uint32))
+        base += len(points)
+    if base > np.iinfo(np.uint32).max:
+        raise MeshError(f"the stage has {base} vertices, more than 32-bit indices address")
+    return SceneGeometry(
+        positions=(
+            np.concatenate(positions).astype(np.float32)
+            if positions
+            else np.zeros((0, 3), dtype=np.float32)
+        ),
+        triangles=(
+            np.concatenate(triangles).astype(np.uint32)
+            if triangles
+            else np.zeros((0, 3), dtype=np.uint32)
+        ),
+        object_ids=(np.concatenate(object_ids) if object_ids else np.zeros(0, dtype=np.uint32)),
+        ids_by_path=ids_by_path,
+        instanced_paths=instanced,
+        unsupported=unsupported,
+        invalid=invalid,
+    )

@@ -1,0 +1,327 @@
+"""The codeless `CrepuscularLightAPI` schema: registration, reading and authoring.
+
+The schema ships as `resources/plugInfo.json` + `resources/generatedSchema.usda` and is
+registered with `Plug.Registry` when this package is imported. Its attributes map one to
+one onto the renderer's scene description (`medium`, `render`) and style preset; this
+module holds that map. Lengths are authored in stage units and converted to metres here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pxr import Plug, Sdf, Usd, UsdGeom, UsdLux, UsdVol
+
+__all__ = [
+    "API_NAME",
+    "PROPERTY_NAMES",
+    "SchemaError",
+    "apply_schema",
+    "fallback",
+    "read_light_settings",
+    "register",
+]
+
+API_NAME = "CrepuscularLightAPI"
+RESOURCES = Path(__file__).resolve().parent / "resources"
+
+MEDIUM_EXTENT = "crepuscular:mediumExtent"
+HOLES_OBJECTS = "crepuscular:holes:objects"
+TF_ASSET = "crepuscular:tf:asset"
+TF_JSON = "crepuscular:tf:json"
+
+
+class SchemaError(ValueError):
+    """An unusable CrepuscularLightAPI value; the message names the prim and attribute."""
+
+
+def register() -> None:
+    """Registers the schema plug-in (idempotent). Raises RuntimeError if USD refuses it."""
+    registry = Plug.Registry()
+    registry.RegisterPlugins(os.fspath(RESOURCES / "plugInfo.json"))
+    if not Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(API_NAME):
+        raise RuntimeError(f"{API_NAME} did not register from {RESOURCES}")
+
+
+def _definition() -> Usd.PrimDefinition:
+    definition = Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(API_NAME)
+    if not definition:
+        raise RuntimeError(f"{API_NAME} is not registered")
+    return definition
+
+
+def fallback(name: str) -> Any:
+    """The schema's fallback value for attribute `name`."""
+    return _definition().GetAttributeFallbackValue(name)
+
+
+@dataclass(frozen=True)
+class _Field:
+    """One attribute: where its value goes and how it converts."""
+
+    #: ("medium", "extinction"), ("render", "steps"), ("style", "closing", "radius") ...
+    target: tuple[str, ...]
+    #: Stage units per unit of the value: 1 for lengths, -1 for per-length, 0 for none.
+    length_power: int = 0
+    convert: Callable[[Any], Any] | None = None
+    #: Negative means "unset" (the key is left out), for the core's optional values.
+    negative_unset: bool = False
+
+
+def _token_to_snake(value: Any) -> str:
+    text = str(value)
+    return "".join("_" + c.lower() if c.isupper() else c for c in text)
+
+
+def _vec3(value: Any) -> list[float]:
+    return [float(c) for c in value]
+
+
+FIELDS: dict[str, _Field] = {
+    "crepuscular:medium:extinction": _Field(("medium", "extinction"), -1, float),
+    "crepuscular:medium:albedo": _Field(("medium", "albedo"), 0, _vec3),
+    "crepuscular:medium:anisotropy": _Field(("medium", "anisotropy"), 0, float),
+    "crepuscular:medium:phase": _Field(("medium", "phase"), 0, _token_to_snake),
+    "crepuscular:method": _Field(("render", "method"), 0, str),
+    "crepuscular:shadowMapSize": _Field(("render", "shadow_map_size"), 0, int),
+    "crepuscular:maxDistance": _Field(("render", "max_distance"), 1, float),
+    "crepuscular:steps": _Field(("render", "steps"), 0, int),
+    "crepuscular:supersampling": _Field(("render", "supersampling"), 0, int),
+    "crepuscular:shadowBias": _Field(("render", "shadow_bias"), 1, float, negative_unset=True),
+    "crepuscular:epipolarSlices": _Field(("render", "epipolar_slices"), 0, int),
+    "crepuscular:epipoleBlock": _Field(("render", "epipole_block"), 0, int),
+    "crepuscular:downsample": _Field(("render", "downsample"), 0, int),
+    "crepuscular:bases": _Field(("render", "bases"), 0, int),
+    "crepuscular:nearPlaneCorrection": _Field(("render", "near_plane_correction"), 0, bool),
+    "crepuscular:basisStorage": _Field(("render", "basis_storage"), 0, str),
+    "crepuscular:rectification": _Field(("render", "rectification"), 0, str),
+    "crepuscular:closing:enable": _Field(("style", "closing", "enable"), 0, bool),
+    "crepuscular:closing:operation": _Field(("style", "closing", "operation"), 0, str),
+    "crepuscular:closing:kernel": _Field(("style", "closing", "kernel"), 0, str),
+    "crepuscular:closing:radius": _Field(("style", "closing", "radius"), 1, float),
+    "crepuscular:closing:radiusTexels": _Field(
+        ("style", "closing", "radius_texels"), 0, float, negative_unset=True
+    ),
+    "crepuscular:silhouette:enable": _Field(("style", "silhouette", "enable"), 0, bool),
+    "crepuscular:silhouette:operation": _Field(("style", "silhouette", "operation"), 0, str),
+    "crepuscular:silhouette:length": _Field(("style", "silhouette", "length"), 1, float),
+    "crepuscular:silhouette:lengthTexels": _Field(
+        ("style", "silhouette", "length_texels"), 0, float, negative_unset=True
+    ),
+    "crepuscular:holes:enable": _Field(("style", "holes", "enable"), 0, bool),
+    "crepuscular:holes:frequency": _Field(("style", "holes", "frequency"), -1, float),
+    "crepuscular:holes:persistence": _Field(("style", "holes", "persistence"), 0, float),
+    "crepuscular:holes:octaves": _Field(("style", "holes", "octaves"), 0, int),
+    "crepuscular:holes:threshold": _Field(("style", "holes", "threshold"), 0, float),
+    "crepuscular:holes:gridSize": _Field(("style", "holes", "grid_size"), 0, int),
+    "crepuscular:holes:seed": _Field(("style", "holes", "seed"), 0, int),
+    "crepuscular:holes:time": _Field(("style", "holes", "time"), 0, float),
+    "crepuscular:holes:speed": _Field(("style", "holes", "speed"), 0, float),
+    "crepuscular:holes:warp": _Field(("style", "holes", "warp"), 0, float),
+    # A point: converted with the full stage-to-renderer transform, not just the scale.
+    "crepuscular:holes:pivot": _Field(("style", "holes", "pivot"), 0, _vec3),
+}
+
+#: Every property the schema defines; tests check that the definition has exactly these.
+PROPERTY_NAMES = frozenset(FIELDS) | {MEDIUM_EXTENT, HOLES_OBJECTS, TF_ASSET, TF_JSON}
+
+
+@dataclass
+class LightSettings:
+    """What the schema on a light says at one time code, in renderer units."""
+
+    medium: dict[str, Any]
+    render: dict[str, Any]
+    style: dict[str, Any]
+    #: Prim whose bounds make the medium's box, or None for an unbounded medium.
+    extent_prim: Usd.Prim | None
+    #: Roots whose meshes get holes (the `crepuscular:holes:objects` targets).
+    holes_roots: list[Sdf.Path]
+    has_api: bool
+
+
+def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode, has_api: bool) -> Any:
+    if has_api:
+        attr = prim.GetAttribute(name)
+        if attr:
+            value = attr.Get(time)
+            if value is not None:
+                return value
+    return fallback(name)
+
+
+def _single_target(prim: Usd.Prim, name: str) -> Usd.Prim | None:
+    rel = prim.GetRelationship(name)
+    if not rel:
+        return None
+    targets = rel.GetForwardedTargets()
+    if not targets:
+        return None
+    if len(targets) > 1:
+        raise SchemaError(f"{prim.GetPath()}.{name} targets {len(targets)} prims; give exactly one")
+    target = prim.GetStage().GetPrimAtPath(targets[0])
+    if not target or not target.IsActive():
+        raise SchemaError(f"{prim.GetPath()}.{name} targets {targets[0]}, which does not exist")
+    return target
+
+
+def read_light_settings(
+    prim: Usd.Prim, time: Usd.TimeCode, meters_per_unit: float
+) -> LightSettings:
+    """Reads every schema attribute of `prim` at `time` (fallbacks where the API is absent).
+
+    Lengths become metres; `crepuscular:holes:pivot` stays in stage space for the caller to
+    transform. Raises `SchemaError` naming the attribute for unusable values.
+    """
+    has_api = prim.HasAPI(API_NAME)
+    groups: dict[str, dict[str, Any]] = {"medium": {}, "render": {}, "style": {}}
+    for name, spec in FIELDS.items():
+        raw = _value(prim, name, time, has_api)
+        try:
+            value = spec.convert(raw) if spec.convert else raw
+        except (TypeError, ValueError) as error:
+            raise SchemaError(f"{prim.GetPath()}.{name}: unusable value {raw!r}") from error
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SchemaError(f"{prim.GetPath()}.{name}: {value} is not finite")
+        if spec.negative_unset and value < 0:
+            continue
+        if spec.length_power == 1:
+            value *= meters_per_unit
+        elif spec.length_power == -1:
+            value /= meters_per_unit
+        node = groups[spec.target[0]]
+        for key in spec.target[1:-1]:
+            node = node.setdefault(key, {})
+        node[spec.target[-1]] = value
+    style = groups["style"]
+    for operator in ("closing", "silhouette", "holes"):
+        if not style[operator].pop("enable"):
+            del style[operator]
+    holes_roots: list[Sdf.Path] = []
+    if has_api:
+        rel = prim.GetRelationship(HOLES_OBJECTS)
+        holes_roots = list(rel.GetForwardedTargets()) if rel else []
+    tf = _read_tf(prim, time, has_api)
+    if tf is not None:
+        style["tf"] = tf
+    return LightSettings(
+        medium=groups["medium"],
+        render=groups["render"],
+        style=style,
+        extent_prim=_single_target(prim, MEDIUM_EXTENT) if has_api else None,
+        holes_roots=holes_roots,
+        has_api=has_api,
+    )
+
+
+def _read_tf(prim: Usd.Prim, time: Usd.TimeCode, has_api: bool) -> dict[str, Any] | None:
+    if not has_api:
+        return None
+    asset = _value(prim, TF_ASSET, time, has_api)
+    inline = str(_value(prim, TF_JSON, time, has_api) or "")
+    authored = asset.path if asset is not None else ""
+    if authored and inline.strip():
+        raise SchemaError(
+            f"{prim.GetPath()}: both {TF_ASSET} and {TF_JSON} are set; author only one"
+        )
+    if authored:
+        resolved = asset.resolvedPath
+        if not resolved:
+            raise SchemaError(f"{prim.GetPath()}.{TF_ASSET}: cannot resolve @{authored}@")
+        try:
+            text = Path(resolved).read_text(encoding="utf-8")
+        except OSError as error:
+            raise SchemaError(
+                f"{prim.GetPath()}.{TF_ASSET}: cannot read {resolved}: {error}"
+            ) from error
+        return _parse_tf(text, f"{prim.GetPath()}.{TF_ASSET} ({resolved})")
+    if inline.strip():
+        return _parse_tf(inline, f"{prim.GetPath()}.{TF_JSON}")
+    return None
+
+
+def _parse_tf(text: str, where: str) -> dict[str, Any]:
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise SchemaError(f"{where}: not JSON: {error}") from error
+    if not isinstance(data, dict):
+        raise SchemaError(f"{where}: expected a JSON object")
+    # A whole style preset carries its TF under "tf"; anything else is the TF itself.
+    if "tf" in data:
+        tf = data["tf"]
+    elif "version" in data:
+        raise SchemaError(f"{where}: the style preset has no tf")
+    else:
+        tf = data
+    if not isinstance(tf, dict):
+        raise SchemaError(f"{where}: its tf is not a JSON object")
+    return tf
+
+
+def box_from_extent_prim(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
+    """Column-vector 4x4 mapping the cube [-1, 1]^3 onto the prim's local box."""
+    where = str(prim.GetPath())
+    if prim.IsA(UsdGeom.Cube):
+        size = UsdGeom.Cube(prim).GetSizeAttr().Get(time)
+        low = np.full(3, -0.5 * float(size))
+        high = -low
+    elif prim.IsA(UsdGeom.Mesh):
+        points = UsdGeom.Mesh(prim).GetPointsAttr().Get(time)
+        if points is None or len(points) == 0:
+            raise SchemaError(f"medium extent {where}: the mesh has no points")
+        array = np.array(points, dtype=np.float64).reshape(-1, 3)
+        low, high = array.min(axis=0), array.max(axis=0)
+    elif prim.IsA(UsdVol.Volume) or prim.IsA(UsdGeom.Boundable):
+        extent = UsdGeom.Boundable(prim).GetExtentAttr().Get(time)
+        if extent is None or len(extent) != 2:
+            raise SchemaError(f"medium extent {where}: author its extent attribute")
+        low = np.array(extent[0], dtype=np.float64)
+        high = np.array(extent[1], dtype=np.float64)
+    else:
+        raise SchemaError(
+            f"medium extent {where} is a {prim.GetTypeName() or 'typeless prim'}; "
+            "use a Cube, a box Mesh or a Volume"
+        )
+    half = 0.5 * (high - low)
+    if not np.all(np.isfinite(half)) or np.any(half <= 0):
+        raise SchemaError(f"medium extent {where} has an empty box ({low} to {high})")
+    box = np.diag([*half, 1.0])
+    box[:3, 3] = 0.5 * (high + low)
+    return box
+
+
+def apply_schema(
+    light: Usd.Prim,
+    *,
+    medium_extent: Sdf.Path | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> None:
+    """Applies CrepuscularLightAPI to a DistantLight and authors every attribute's default."""
+    if not light.IsA(UsdLux.DistantLight):
+        raise SchemaError(
+            f"{light.GetPath()} is a {light.GetTypeName() or 'typeless prim'}; "
+            f"{API_NAME} applies to DistantLight only"
+        )
+    if not light.ApplyAPI(API_NAME):
+        raise SchemaError(f"could not apply {API_NAME} to {light.GetPath()}")
+    definition = _definition()
+    for name in sorted(PROPERTY_NAMES - {MEDIUM_EXTENT, HOLES_OBJECTS}):
+        spec = definition.GetAttributeDefinition(name)
+        attr = light.CreateAttribute(name, spec.GetTypeName())
+        value = (overrides or {}).get(name, fallback(name))
+        if not attr or not attr.Set(value):
+            raise SchemaError(f"could not author {light.GetPath()}.{name}")
+    extent_rel = light.CreateRelationship(MEDIUM_EXTENT)
+    holes_rel = light.CreateRelationship(HOLES_OBJECTS)
+    if not extent_rel or not holes_rel:
+        raise SchemaError(f"could not author the relationships of {light.GetPath()}")
+    if medium_extent is not None and not extent_rel.SetTargets([medium_extent]):
+        raise SchemaError(f"could not target {medium_extent} from {light.GetPath()}")

@@ -1,0 +1,302 @@
+"""A USD stage at one time code as the renderer's frame: camera, sun, medium, triangles.
+
+The renderer works right-handed, Z up, in metres. Stage space converts with
+`metersPerUnit` (a uniform scale) and, for Y-up stages, a +90 degree rotation about X,
+the same as Blender's USD importer. Cameras map exactly:
+
+- perspective: the aperture that fits the image (conform policy "fit", as Hydra's
+  default) becomes the fitted sensor side, and aperture offsets become lens shifts in
+  units of that side;
+- orthographic: apertures are tenths of a stage unit (Gf.Camera's convention);
+- clipping range in stage units along the view axis, like the renderer's clip planes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+import crepuscular
+from crepuscular_usd.geometry import GeometryCollector, SceneGeometry, row_matrix
+from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
+
+__all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage"]
+
+F64 = npt.NDArray[np.float64]
+
+
+class StageError(ValueError):
+    """A stage, camera or light that cannot be rendered; the message says which and why."""
+
+
+def open_stage(path: str) -> Usd.Stage:
+    """Opens a stage, raising StageError with USD's reason when it cannot be read."""
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as error:  # pxr raises Tf.ErrorException, a plain Exception subclass
+        reason = str(error).strip().splitlines()[-1].strip() if str(error).strip() else ""
+        raise StageError(f"cannot open stage {path}: {reason or type(error).__name__}") from error
+    if not stage:
+        raise StageError(f"cannot open stage {path}")
+    return stage
+
+
+def core_from_stage(stage: Usd.Stage) -> tuple[F64, float]:
+    """Column-vector 4x4 from stage world space to renderer space, and metersPerUnit."""
+    meters = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if not (math.isfinite(meters) and meters > 0):
+        raise StageError(f"metersPerUnit is {meters}; it must be a positive number")
+    rotation = np.eye(4)
+    up = UsdGeom.GetStageUpAxis(stage)
+    if up == UsdGeom.Tokens.y:
+        rotation[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    elif up != UsdGeom.Tokens.z:
+        raise StageError(f"upAxis is {up!r}; USD allows Y or Z")
+    scale = np.diag([meters, meters, meters, 1.0])
+    return scale @ rotation, meters
+
+
+def _column_major(matrix: F64) -> list[float]:
+    return [float(v) for v in matrix.flatten(order="F")]
+
+
+@dataclass
+class Frame:
+    """Everything `crepuscular.render_arrays` needs for one time code."""
+
+    time: Usd.TimeCode
+    geometry: SceneGeometry
+    camera: dict[str, Any]
+    sun: dict[str, Any]
+    medium: dict[str, Any]
+    settings: dict[str, Any]
+    style: dict[str, Any]
+    light_settings: LightSettings
+
+    def render_kwargs(self) -> dict[str, Any]:
+        return {
+            "positions": self.geometry.positions,
+            "triangles": self.geometry.triangles,
+            "object_ids": self.geometry.object_ids,
+            "camera": self.camera,
+            "sun": self.sun,
+            "medium": self.medium,
+            "settings": self.settings,
+            "style": self.style,
+        }
+
+    def settings_record(self) -> dict[str, Any]:
+        """The exact scene description without meshes, for the output layer."""
+        return {
+            "camera": self.camera,
+            "sun": self.sun,
+            "medium": self.medium,
+            "render": self.settings,
+            "style": self.style,
+        }
+
+
+class StageReader:
+    """Reads frames of one stage for one camera and one DistantLight."""
+
+    def __init__(
+        self,
+        stage: Usd.Stage,
+        camera_path: str | None,
+        light_path: str | None,
+        *,
+        width: int | None = None,
+        height: int | None = None,
+    ) -> None:
+        self.stage = stage
+        self.core_from_stage, self.meters_per_unit = core_from_stage(stage)
+        self.camera_prim = self._find_camera(camera_path)
+        self.light_prim = self._find_light(light_path)
+        self._width = width
+        self._height = height
+        self._collectors: dict[Sdf.Path | None, GeometryCollector] = {}
+        self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
+
+    # --- prims ----------------------------------------------------------------------
+
+    def _find_camera(self, path: str | None) -> Usd.Prim:
+        if path is None:
+            cameras = [p for p in self.stage.Traverse() if p.IsA(UsdGeom.Camera)]
+            if len(cameras) != 1:
+                found = ", ".join(str(p.GetPath()) for p in cameras) or "none"
+                raise StageError(f"give --camera: the stage has {len(cameras)} cameras ({found})")
+            return cameras[0]
+        prim = self._prim(path, "camera")
+        if not prim.IsA(UsdGeom.Camera):
+            raise StageError(
+                f"camera {path} is a {prim.GetTypeName() or 'typeless prim'}, not a Camera"
+            )
+        return prim
+
+    def _find_light(self, path: str | None) -> Usd.Prim:
+        if path is None:
+            lights = [p for p in self.stage.Traverse() if p.IsA(UsdLux.DistantLight)]
+            with_api = [p for p in lights if p.HasAPI("CrepuscularLightAPI")]
+            candidates = with_api or lights
+            if len(candidates) != 1:
+                found = ", ".join(str(p.GetPath()) for p in candidates) or "none"
+                raise StageError(
+                    f"give --light: the stage has {len(candidates)} DistantLights ({found})"
+                )
+            return candidates[0]
+        prim = self._prim(path, "light")
+        if not prim.IsA(UsdLux.DistantLight):
+            raise StageError(
+                f"light {path} is a {prim.GetTypeName() or 'typeless prim'}, not a DistantLight"
+            )
+        return prim
+
+    def _prim(self, path: str, what: str) -> Usd.Prim:
+        if not Sdf.Path.IsValidPathString(path) or not Sdf.Path(path).IsAbsolutePath():
+            raise StageError(f"{what} path {path!r} is not an absolute prim path")
+        prim = self.stage.GetPrimAtPath(path)
+        if not prim:
+            raise StageError(f"{what} {path} does not exist on the stage")
+        if not prim.IsActive():
+            raise StageError(f"{what} {path} is deactivated")
+        return prim
+
+    # --- per frame ------------------------------------------------------------------
+
+    def seconds(self, time: Usd.TimeCode) -> float:
+        return 0.0 if time.IsDefault() else time.GetValue() / self.time_codes_per_second
+
+    def read(self, time: Usd.TimeCode) -> Frame:
+        light = read_light_settings(self.light_prim, time, self.meters_per_unit)
+        extent_path = light.extent_prim.GetPath() if light.extent_prim is not None else None
+        collector = self._collectors.get(extent_path)
+        if collector is None:
+            skip = [extent_path] if extent_path is not None else []
+            collector = GeometryCollector(self.stage, self.core_from_stage, skip=skip)
+            self._collectors[extent_path] = collector
+        geometry = collector.collect(time)
+        medium = dict(light.medium)
+        medium["extent"] = self._extent(light, time)
+        style: dict[str, Any] = {"version": crepuscular.STYLE_VERSION, "time": self.seconds(time)}
+        style.update(light.style)
+        if "holes" in style:
+            pivot = self.core_from_stage @ np.array([*style["holes"]["pivot"], 1.0])
+            style["holes"]["pivot"] = [float(v) for v in pivot[:3]]
+            style["holes"]["objects"] = geometry.ids_under(light.holes_roots)
+        return Frame(
+            time=time,
+            geometry=geometry,
+            camera=self.camera(time),
+            sun=self.sun(time),
+            medium=medium,
+            settings=light.render,
+            style=style,
+            light_settings=light,
+        )
+
+    def _extent(self, light: LightSettings, time: Usd.TimeCode) -> dict[str, Any]:
+        if light.extent_prim is None:
+            return {"kind": "unbounded"}
+        prim = light.extent_prim
+        local = box_from_extent_prim(prim, time)
+        world = row_matrix(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)).T
+        return {
+            "kind": "box",
+            "world_from_cube": _column_major(self.core_from_stage @ world @ local),
+        }
+
+    def resolution(self, aperture_aspect: float) -> tuple[int, int]:
+        """The image size: as given, or the other side from the aperture's aspect ratio."""
+        if self._width and self._height:
+            return self._width, self._height
+        if self._height:
+            return max(1, round(self._height * aperture_aspect)), self._height
+        width = self._width or 1920
+        return width, max(1, round(width / aperture_aspect))
+
+    def camera(self, time: Usd.TimeCode) -> dict[str, Any]:
+        where = str(self.camera_prim.GetPath())
+        camera = UsdGeom.Camera(self.camera_prim).GetCamera(time)
+        h_aperture, v_aperture = camera.horizontalAperture, camera.verticalAperture
+        if not (h_aperture > 0 and v_aperture > 0):
+            raise StageError(
+                f"camera {where}: apertures must be positive, got {h_aperture} x {v_aperture}"
+            )
+        width, height = self.resolution(h_aperture / v_aperture)
+        # Fit the aperture inside the image: the side whose aspect is tighter wins.
+        vertical = width / height > h_aperture / v_aperture
+        fitted = v_aperture if vertical else h_aperture
+        fit = "vertical" if vertical else "horizontal"
+        shift_x = camera.horizontalApertureOffset / fitted
+        shift_y = camera.verticalApertureOffset / fitted
+        if camera.projection == Gf.Camera.Orthographic:
+            # Gf.Camera: apertures in tenths of a stage unit for orthographic views.
+            projection: dict[str, Any] = {
+                "kind": "orthographic",
+                "ortho_scale": fitted * 0.1 * self.meters_per_unit,
+                "sensor_fit": fit,
+                "shift_x": shift_x,
+                "shift_y": shift_y,
+            }
+        else:
+            if not camera.focalLength > 0:
+                raise StageError(f"camera {where}: focalLength must be positive")
+            projection = {
+                "kind": "perspective",
+                "focal_length": camera.focalLength,
+                "sensor_width": h_aperture,
+                "sensor_height": v_aperture,
+                "sensor_fit": fit,
+                "shift_x": shift_x,
+                "shift_y": shift_y,
+            }
+        transform = Gf.Matrix4d(camera.transform)
+        # A camera's scale does not change its projection; keep rotation and position.
+        transform.Orthonormalize()
+        world = row_matrix(transform).T
+        rotation = self.core_from_stage[:3, :3] / self.meters_per_unit
+        core = np.eye(4)
+        core[:3, :3] = rotation @ world[:3, :3]
+        core[:3, 3] = self.core_from_stage[:3, :3] @ world[:3, 3]
+        clip = camera.clippingRange
+        return {
+            "world_from_camera": _column_major(core),
+            "projection": projection,
+            "clip_start": float(clip.min) * self.meters_per_unit,
+            "clip_end": float(clip.max) * self.meters_per_unit,
+            "width": width,
+            "height": height,
+        }
+
+    def sun(self, time: Usd.TimeCode) -> dict[str, Any]:
+        light = UsdLux.DistantLight(self.light_prim)
+        where = str(self.light_prim.GetPath())
+        matrix = UsdGeom.Xformable(self.light_prim).ComputeLocalToWorldTransform(time)
+        travel = matrix.TransformDir(Gf.Vec3d(0, 0, -1))
+        direction = self.core_from_stage[:3, :3] @ np.array(travel)
+        norm = float(np.linalg.norm(direction))
+        if not (math.isfinite(norm) and norm > 0):
+            raise StageError(f"light {where}: its transform gives no direction")
+        intensity = float(light.GetIntensityAttr().Get(time))
+        exposure = float(light.GetExposureAttr().Get(time))
+        color = np.array(light.GetColorAttr().Get(time), dtype=np.float64)
+        if light.GetEnableColorTemperatureAttr().Get(time):
+            kelvin = float(light.GetColorTemperatureAttr().Get(time))
+            color = color * np.array(UsdLux.BlackbodyTemperatureAsRgb(kelvin))
+        visible = (
+            UsdGeom.Imageable(self.light_prim).ComputeVisibility(time) != UsdGeom.Tokens.invisible
+        )
+        strength = intensity * 2.0**exposure if visible else 0.0
+        if not (math.isfinite(strength) and strength >= 0):
+            raise StageError(f"light {where}: intensity x 2^exposure is {strength}")
+        return {
+            "direction": [float(v) for v in direction / norm],
+            "color": [float(v) for v in color],
+            "strength": strength,
+            "angular_diameter": math.radians(float(light.GetAngleAttr().Get(time))),
+        }
