@@ -225,6 +225,8 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
     if not os.path.isfile(args.stage):
         raise CommandError(f"cannot open stage {args.stage}: no such file")
     stage = open_stage(args.stage)
+    for option in ("out", "comp", "out_layer"):
+        _make_folder(getattr(args, option), option)
     time_codes = [_resolve_time(stage, code) for code in frame_args.time_codes]
     width, height = args.width, args.height
     if args.beauty and width is None and height is None:
@@ -333,6 +335,17 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
             f"write {timings['write']:.2f} s\n"
         )
     return 0
+
+
+def _make_folder(path: str | None, option: str) -> None:
+    if not path:
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as error:
+        flag = "--" + option.replace("_", "-")
+        raise CommandError(f"{flag}: cannot create folder {folder}: {error.strerror}") from error
 
 
 def _write(action: Any, path: str) -> None:

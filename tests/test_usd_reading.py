@@ -1,0 +1,397 @@
+"""The USD step's stage reading: frames syntax, triangulation, units, instancing, time."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import crepuscular
+import numpy as np
+import pytest
+from conftest import build_scene, flatten
+from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
+from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
+from crepuscular_usd.schema import API_NAME, PROPERTY_NAMES, fallback
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from usd_helpers import author_stage, light_matrix
+
+SMALL = {"steps": 32, "shadow_map_size": 128}
+
+
+def _layers_close(a: crepuscular.Layers, b: crepuscular.Layers, tol: float = 1e-4) -> None:
+    for name in ("volume", "visibility", "depth"):
+        left, right = getattr(a, name), getattr(b, name)
+        scale = max(float(np.abs(left).max()), 1e-6)
+        assert np.abs(left - right).max() <= tol * scale, name
+
+
+def _render(reader: StageReader, time: float | None = None) -> crepuscular.Layers:
+    code = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    return crepuscular.render_arrays(**reader.read(code).render_kwargs())
+
+
+# --- frames ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("spec", "frames"),
+    [
+        ("1-100x2", list(range(1, 100, 2))),
+        ("1:10x3", [1, 4, 7, 10]),
+        ("1,5,9", [1, 5, 9]),
+        ("42", [42]),
+        ("5-1x2", [5, 3, 1]),
+        ("-3--1", [-3, -2, -1]),
+        ("101:102x0.5", [101, 101.5, 102]),
+        ("1-2,7", [1, 2, 7]),
+    ],
+)
+def test_frame_specs_follow_usd_conventions(spec: str, frames: list[float]) -> None:
+    assert FrameSpecIterator(spec).frames() == frames
+
+
+@pytest.mark.parametrize("spec", ["", "1-", "a-b", "1-10x0", "1-10y2", "1,,2", "1-2-3"])
+def test_bad_frame_specs_are_rejected(spec: str) -> None:
+    with pytest.raises(FrameSpecError):
+        FrameSpecIterator(spec)
+
+
+def test_frame_placeholders_format_like_usdrecord() -> None:
+    template = convert_frame_placeholder_to_float_spec("out/shafts.####.exr")
+    assert template is not None
+    assert template.format(frame=7.0) == "out/shafts.0007.exr"
+    template = convert_frame_placeholder_to_float_spec("a.###.##.exr")
+    assert template is not None
+    assert template.format(frame=12.5) == "a.012.50.exr"
+    assert convert_frame_placeholder_to_float_spec("plain.exr") is None
+    with pytest.raises(FrameSpecError):
+        convert_frame_placeholder_to_float_spec("a.##.b.##.exr")
+    assert FrameSpecIterator("1:2x0.25").min_float_precision == 2
+
+
+# --- triangulation --------------------------------------------------------------------
+
+
+def test_polygons_fan_triangulate_and_skip_holes_and_degenerate_faces() -> None:
+    counts = [4, 5, 3, 2, 3]
+    indices = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16]
+    triangles = triangulate(counts, indices, [2], point_count=17)
+    expected = [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7], [4, 7, 8], [14, 15, 16]]
+    assert triangles.tolist() == expected
+    flipped = triangulate(counts, indices, [2], left_handed=True, point_count=17)
+    assert flipped.tolist() == [[a, c, b] for a, b, c in expected]
+
+
+def test_inconsistent_topology_names_the_mesh() -> None:
+    with pytest.raises(MeshError, match="/World/bad: faceVertexCounts sum to 4"):
+        triangulate([4], [0, 1, 2], where="/World/bad")
+    with pytest.raises(MeshError, match="reach 9 but there are 4 points"):
+        triangulate([3], [0, 1, 9], point_count=4, where="/World/bad")
+
+
+def test_usd_face_holes_and_orientation_are_read(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "s.usda"), scene)
+    ground = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ground"))
+    occluder = UsdGeom.Mesh(stage.GetPrimAtPath("/World/occluder"))
+    # The occluder as one quad whose only face is a hole: no shadow, as if absent.
+    occluder.GetFaceVertexCountsAttr().Set([4])
+    occluder.GetFaceVertexIndicesAttr().Set([0, 1, 2, 3])
+    occluder.CreateHoleIndicesAttr().Set([0])
+    ground.GetFaceVertexCountsAttr().Set([4])
+    ground.GetFaceVertexIndicesAttr().Set([0, 3, 2, 1])
+    ground.CreateOrientationAttr().Set(UsdGeom.Tokens.leftHanded)
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    frame = reader.read(Usd.TimeCode.Default())
+    assert len(frame.geometry.triangles) == 2
+    assert frame.geometry.triangles.tolist() == [[0, 2, 3], [0, 1, 2]]
+    empty = build_scene(occluder=False, **SMALL)
+    _layers_close(
+        crepuscular.render_arrays(**frame.render_kwargs()), crepuscular.render(empty), 1e-5
+    )
+
+
+# --- units and up axis ------------------------------------------------------------------
+
+
+def _styled_medium(stage: Usd.Stage, meters_per_unit: float, up: str) -> None:
+    """A box medium from a Cube and a closing radius, both in stage units."""
+    cube = UsdGeom.Cube.Define(stage, "/World/Fog")
+    cube.CreateSizeAttr().Set(2.0)
+    centre = np.array([0.0, 2.0, 0.0])
+    if up == "Y":
+        centre = np.array([centre[0], centre[2], -centre[1]])
+    xform = cube.AddTransformOp()
+    matrix = Gf.Matrix4d().SetScale(Gf.Vec3d(6.0, 6.0, 6.0) / meters_per_unit)
+    matrix.SetTranslateOnly(Gf.Vec3d(*(centre / meters_per_unit)))
+    xform.Set(matrix)
+    light = stage.GetPrimAtPath("/World/Sun")
+    light.GetRelationship("crepuscular:mediumExtent").SetTargets([cube.GetPath()])
+    light.GetAttribute("crepuscular:closing:enable").Set(True)
+    light.GetAttribute("crepuscular:closing:radius").Set(0.4 / meters_per_unit)
+    stage.GetRootLayer().Save()
+
+
+def test_z_up_metres_and_y_up_centimetres_give_the_same_layers(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    layers = {}
+    for up, meters in (("Z", 1.0), ("Y", 0.01)):
+        stage = author_stage(str(tmp_path / f"{up}.usda"), scene, up=up, meters_per_unit=meters)
+        _styled_medium(stage, meters, up)
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        layers[up] = _render(reader)
+    _layers_close(layers["Z"], layers["Y"], 1e-4)
+    # And both equal the scene description with the same box and closing, in metres.
+    direct = dict(scene)
+    box = np.diag([6.0, 6.0, 6.0, 1.0])
+    box[:3, 3] = [0.0, 2.0, 0.0]
+    direct["medium"] = {
+        **scene["medium"],
+        "extent": {"kind": "box", "world_from_cube": list(box.T.ravel())},
+    }
+    direct["style"] = {"closing": {"radius": 0.4}}
+    _layers_close(layers["Z"], crepuscular.render(direct), 1e-4)
+    assert float(layers["Z"].volume[..., 3].max()) > 0.0
+
+
+def test_camera_apertures_offsets_and_orthographic_map_exactly(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "cam.usda"), scene, meters_per_unit=0.5)
+    camera = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    camera.GetHorizontalApertureAttr().Set(24.0)
+    camera.GetVerticalApertureAttr().Set(24.0)
+    camera.CreateHorizontalApertureOffsetAttr().Set(3.0)
+    camera.CreateVerticalApertureOffsetAttr().Set(-1.5)
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64, height=36)
+    projection = reader.camera(Usd.TimeCode.Default())["projection"]
+    # A square aperture in a 16:9 image fits vertically: offsets in units of its height.
+    assert projection["sensor_fit"] == "vertical"
+    assert projection["sensor_height"] == 24.0
+    assert projection["shift_x"] == pytest.approx(3.0 / 24.0)
+    assert projection["shift_y"] == pytest.approx(-1.5 / 24.0)
+    camera.GetProjectionAttr().Set(UsdGeom.Tokens.orthographic)
+    ortho = reader.camera(Usd.TimeCode.Default())
+    # Apertures are tenths of a stage unit; a stage unit is half a metre here.
+    assert ortho["projection"]["ortho_scale"] == pytest.approx(24.0 * 0.1 * 0.5)
+    assert ortho["clip_end"] == pytest.approx(scene["camera"]["clip_end"])
+    # Without --height the image keeps the aperture's aspect ratio, as usdrecord does.
+    assert (
+        StageReader(stage, "/World/Camera", None, width=50).camera(Usd.TimeCode.Default())["height"]
+        == 50
+    )
+
+
+# --- instancing ---------------------------------------------------------------------------
+
+
+def _box_points(size: float) -> tuple[list[Gf.Vec3f], list[int], list[int]]:
+    s = size / 2
+    points = [Gf.Vec3f(x, y, z) for x in (-s, s) for y in (-s, s) for z in (-s, s)]
+    faces = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    return points, [4] * 6, [i for face in faces for i in face]
+
+
+def _instanced_stage(path: str, flattened: bool) -> Usd.Stage:
+    scene = build_scene(occluder=False, **SMALL)
+    stage = author_stage(path, scene)
+    rng = np.random.default_rng(5)
+    count = 60
+    positions = np.column_stack(
+        [rng.uniform(-3, 3, count), rng.uniform(2.5, 4.0, count), rng.uniform(-3, 3, count)]
+    )
+    # Unit quaternions that half precision holds exactly, so both forms see one rotation.
+    signs = rng.choice([-0.5, 0.5], (count, 4))
+    # Every third instance turns a quarter or half turn about one axis (a lone +-1).
+    orientations = [
+        Gf.Quath(*(q if i % 3 else 2 * q * (np.arange(4) == i % 4))) for i, q in enumerate(signs)
+    ]
+    scales = rng.uniform(0.5, 1.5, (count, 3))
+    proto_indices = rng.integers(0, 3, count)
+    root = "/World/Flat" if flattened else "/World/Instancer"
+    prototypes: list[str] = []
+    proto_parent = "/World/Protos" if flattened else f"{root}/Protos"
+    if flattened:
+        UsdGeom.Scope.Define(stage, proto_parent)
+    for index, size in enumerate((0.3, 0.5, 0.2)):
+        proto = UsdGeom.Xform.Define(stage, f"{proto_parent}/P{index}")
+        proto.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.1 * index, 0.0))  # prototype root xform
+        mesh = UsdGeom.Mesh.Define(stage, f"{proto_parent}/P{index}/Mesh")
+        mesh.AddRotateYOp().Set(15.0 * index)
+        points, counts, indices = _box_points(size)
+        mesh.CreatePointsAttr(points)
+        mesh.CreateFaceVertexCountsAttr(counts)
+        mesh.CreateFaceVertexIndicesAttr(indices)
+        prototypes.append(str(proto.GetPath()))
+    if flattened:
+        UsdGeom.Imageable(stage.GetPrimAtPath(proto_parent)).MakeInvisible()
+        for i in range(count):
+            if i == 7:
+                continue  # the instancer's invisible id
+            holder = UsdGeom.Xform.Define(stage, f"{root}/I{i}")
+            holder.AddTranslateOp().Set(Gf.Vec3d(*positions[i]))
+            holder.AddOrientOp(UsdGeom.XformOp.PrecisionHalf).Set(orientations[i])
+            holder.AddScaleOp().Set(Gf.Vec3f(*scales[i]))
+            instance = stage.DefinePrim(f"{root}/I{i}/Proto")
+            instance.GetReferences().AddInternalReference(prototypes[proto_indices[i]])
+            instance.SetInstanceable(True)
+    else:
+        instancer = UsdGeom.PointInstancer.Define(stage, root)
+        instancer.CreatePrototypesRel().SetTargets([Sdf.Path(p) for p in prototypes])
+        instancer.CreateProtoIndicesAttr([int(i) for i in proto_indices])
+        instancer.CreatePositionsAttr([Gf.Vec3f(*p) for p in positions])
+        instancer.CreateOrientationsAttr(Vt.QuathArray(orientations))
+        instancer.CreateScalesAttr([Gf.Vec3f(*s) for s in scales])
+        instancer.CreateInvisibleIdsAttr([7])
+    stage.GetRootLayer().Save()
+    return stage
+
+
+def test_point_instancer_equals_the_flattened_scene(tmp_path: Path) -> None:
+    instanced = StageReader(
+        _instanced_stage(str(tmp_path / "pi.usda"), False), "/World/Camera", "/World/Sun", width=64
+    )
+    flat = StageReader(
+        _instanced_stage(str(tmp_path / "flat.usda"), True), "/World/Camera", "/World/Sun", width=64
+    )
+    a = instanced.read(Usd.TimeCode.Default())
+    b = flat.read(Usd.TimeCode.Default())
+    # 59 visible boxes of 12 triangles, plus the ground; the flat one via instance proxies.
+    assert len(a.geometry.triangles) == len(b.geometry.triangles) == 59 * 12 + 2
+    ordered = lambda g: np.sort(g.positions[g.triangles].reshape(len(g.triangles), -1), axis=0)  # noqa: E731
+    np.testing.assert_allclose(ordered(a.geometry), ordered(b.geometry), atol=1e-5)
+    _layers_close(
+        crepuscular.render_arrays(**a.render_kwargs()),
+        crepuscular.render_arrays(**b.render_kwargs()),
+        1e-4,
+    )
+
+
+# --- time samples ---------------------------------------------------------------------
+
+
+def test_animated_camera_light_and_schema_change_each_frame_as_authored(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "anim.usda"), scene)
+    camera_op = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera")).GetOrderedXformOps()[0]
+    base = camera_op.Get()
+    for frame, dx in ((1, 0.0), (3, 1.0)):
+        moved = Gf.Matrix4d(base)
+        moved.SetTranslateOnly(base.ExtractTranslation() + Gf.Vec3d(dx, 0, 0))
+        camera_op.Set(moved, Usd.TimeCode(frame))
+    light = stage.GetPrimAtPath("/World/Sun")
+    light_op = UsdGeom.Xformable(light).GetOrderedXformOps()[0]
+    light_op.Set(light_matrix([0.3, -1.0, -0.2], "Z"), Usd.TimeCode(1))
+    light_op.Set(light_matrix([-0.3, -1.0, 0.2], "Z"), Usd.TimeCode(3))
+    intensity = light.GetAttribute("inputs:intensity")
+    intensity.Set(3.0, Usd.TimeCode(1))
+    intensity.Set(5.0, Usd.TimeCode(3))
+    extinction = light.GetAttribute("crepuscular:medium:extinction")
+    extinction.Set(0.08, Usd.TimeCode(1))
+    extinction.Set(0.16, Usd.TimeCode(3))
+    radius = light.GetAttribute("crepuscular:closing:radius")
+    light.GetAttribute("crepuscular:closing:enable").Set(True)
+    radius.Set(0.0, Usd.TimeCode(1))
+    radius.Set(1.0, Usd.TimeCode(3))
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64, height=36)
+    frames = {t: reader.read(Usd.TimeCode(t)) for t in (1, 2, 3)}
+    assert frames[2].camera["world_from_camera"][12] == pytest.approx(0.5)
+    assert frames[3].camera["world_from_camera"][12] == pytest.approx(1.0)
+    assert frames[2].sun["strength"] == pytest.approx(4.0)
+    assert frames[3].sun["direction"][0] < 0 < frames[1].sun["direction"][0]
+    assert frames[2].medium["extinction"] == pytest.approx(0.12)
+    assert frames[3].style["closing"]["radius"] == pytest.approx(1.0)
+    assert frames[2].style["time"] == pytest.approx(2 / 24)
+    layers = {t: crepuscular.render_arrays(**f.render_kwargs()) for t, f in frames.items()}
+    assert not np.array_equal(layers[1].volume, layers[2].volume)
+    assert not np.array_equal(layers[2].volume, layers[3].volume)
+    # Frame 3 renders exactly like a still scene with the values authored for frame 3.
+    still = build_scene(**SMALL)
+    still["camera"]["world_from_camera"][12] = 1.0
+    still["sun"] = {"direction": frames[3].sun["direction"], "strength": 5.0}
+    still["medium"]["extinction"] = 0.16
+    still["style"] = {"closing": {"radius": 1.0}}
+    _layers_close(layers[3], crepuscular.render(still), 1e-4)
+
+
+# --- schema -----------------------------------------------------------------------------
+
+
+def test_schema_defines_exactly_the_attributes_the_reader_maps() -> None:
+    definition = Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(API_NAME)
+    assert set(definition.GetPropertyNames()) == set(PROPERTY_NAMES)
+
+
+def test_schema_fallbacks_are_the_renderers_defaults() -> None:
+    core = crepuscular.scene_from_json(json.dumps(build_scene()))["render"]
+    for attribute, key in {
+        "crepuscular:method": "method",
+        "crepuscular:shadowMapSize": "shadow_map_size",
+        "crepuscular:steps": "steps",
+        "crepuscular:supersampling": "supersampling",
+        "crepuscular:epipoleBlock": "epipole_block",
+        "crepuscular:downsample": "downsample",
+        "crepuscular:bases": "bases",
+        "crepuscular:basisStorage": "basis_storage",
+        "crepuscular:rectification": "rectification",
+        "crepuscular:nearPlaneCorrection": "near_plane_correction",
+    }.items():
+        defaults = crepuscular.scene_from_json(json.dumps({**build_scene(), "render": {}}))[
+            "render"
+        ]
+        assert fallback(attribute) == defaults[key], attribute
+    assert core["steps"] == 32  # the test scene's own value, not a default
+    styled = crepuscular.load_style({"closing": {}, "silhouette": {}, "holes": {}})
+    for name, value in styled["holes"].items():
+        usd_name = "crepuscular:holes:" + "".join(
+            part.capitalize() if i else part for i, part in enumerate(name.split("_"))
+        )
+        if usd_name in PROPERTY_NAMES and name not in ("pivot", "objects"):
+            assert fallback(usd_name) == pytest.approx(value), usd_name
+    assert fallback("crepuscular:closing:operation") == styled["closing"]["operation"]
+    assert fallback("crepuscular:silhouette:operation") == styled["silhouette"]["operation"]
+
+
+def test_transfer_function_inline_and_as_asset_and_holes_objects(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "tf.usda"), scene)
+    tf = {
+        "mode": "monochrome",
+        "depth_range": {"near": 0, "far": 30},
+        "layers": [{"kind": "solid", "color": [0.2, 0.2, 0.2, 1.0]}],
+    }
+    preset = tmp_path / "presets" / "dim.json"
+    preset.parent.mkdir()
+    preset.write_text(json.dumps({"version": 1, "tf": tf}))
+    light = stage.GetPrimAtPath("/World/Sun")
+    light.GetAttribute("crepuscular:tf:json").Set(json.dumps(tf))
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    inline = reader.read(Usd.TimeCode.Default())
+    assert inline.style["tf"] == tf
+    light.GetAttribute("crepuscular:tf:json").Set("")
+    light.GetAttribute("crepuscular:tf:asset").Set(Sdf.AssetPath("./presets/dim.json"))
+    light.GetAttribute("crepuscular:holes:enable").Set(True)
+    light.GetRelationship("crepuscular:holes:objects").SetTargets(["/World/occluder"])
+    asset = reader.read(Usd.TimeCode.Default())
+    assert asset.style["tf"] == tf
+    occluder_id = asset.geometry.ids_by_path[Sdf.Path("/World/occluder")]
+    assert asset.style["holes"]["objects"] == [occluder_id]
+    expected = flatten(scene)
+    assert np.array_equal(np.unique(asset.geometry.object_ids), [1, 2])
+    direct = crepuscular.render_arrays(
+        **{**expected, "object_ids": asset.geometry.object_ids}, style=asset.style
+    )
+    _layers_close(crepuscular.render_arrays(**asset.render_kwargs()), direct, 1e-6)
+    plain = crepuscular.render(scene)
+    assert float(crepuscular.render_arrays(**asset.render_kwargs()).volume[..., :3].sum()) < float(
+        plain.volume[..., :3].sum()
+    )
+
+
+def test_stage_without_the_api_gets_physical_defaults(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "plain.usda"), scene, apply_api=False)
+    frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
+    assert frame.light_settings.has_api is False
+    assert frame.medium["extinction"] == pytest.approx(0.05)
+    assert frame.medium["extent"] == {"kind": "unbounded"}
+    assert set(frame.style) == {"version", "time"}
