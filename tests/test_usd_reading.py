@@ -5,15 +5,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import crepuscular
 import numpy as np
 import pytest
 from conftest import build_scene, flatten
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from usd_helpers import author_stage, light_matrix
+
+import crepuscular
 from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
 from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
 from crepuscular_usd.schema import API_NAME, PROPERTY_NAMES, fallback
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
-from usd_helpers import author_stage, light_matrix
 
 SMALL = {"steps": 32, "shadow_map_size": 128}
 
