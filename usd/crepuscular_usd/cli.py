@@ -30,7 +30,7 @@ from crepuscular_usd.frames import FrameSpecError, add_cmdline_args, validate_cm
 from crepuscular_usd.geometry import MeshError
 from crepuscular_usd.output import OutputLayerError, RenderRecord, write_output_layer
 from crepuscular_usd.schema import API_NAME, SchemaError, apply_schema
-from crepuscular_usd.stage import StageError, StageReader, open_stage
+from crepuscular_usd.stage import StageError, StageReader, open_stage, tf_message
 
 __all__ = ["main"]
 
@@ -172,6 +172,8 @@ def _beauty_planes(
 
 
 def _beauty_size(path: str) -> tuple[int, int]:
+    if not os.path.isfile(path):
+        raise CommandError(f"beauty {path} does not exist")
     try:
         channels = crepuscular.read_exr(path)
     except (OSError, crepuscular.CrepuscularError) as error:
@@ -218,6 +220,9 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
     if args.beauty and not args.comp:
         folder, name = os.path.split(args.out)
         args.comp = os.path.join(folder, "comp." + name)
+    paths = [os.path.abspath(p) for p in (args.out, args.beauty, args.comp) if p]
+    if len(set(paths)) != len(paths):
+        raise UsageError("--out, --beauty and --comp must be different paths")
     try:
         frame_args = validate_cmdline_args(args, ("out", "beauty", "comp"))
     except FrameSpecError as error:
@@ -398,8 +403,7 @@ def main(argv: Sequence[str] | None = None, *, stderr: TextIO | None = None) -> 
         err.write(f"{PROG}: error: {error}\n")
         return 1
     except Tf.ErrorException as error:
-        message = " ".join(str(error).split())
-        err.write(f"{PROG}: error: USD: {message}\n")
+        err.write(f"{PROG}: error: USD: {tf_message(error)}\n")
         return 1
     except KeyboardInterrupt:
         err.write(f"{PROG}: interrupted\n")

@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdLux
 
 import crepuscular
 from crepuscular_usd.geometry import GeometryCollector, SceneGeometry, row_matrix
 from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
 
-__all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage"]
+__all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage", "tf_message"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -34,13 +34,23 @@ class StageError(ValueError):
     """A stage, camera or light that cannot be rendered; the message says which and why."""
 
 
+def tf_message(error: Exception) -> str:
+    """The messages of a Tf.ErrorException without USD's source locations."""
+    messages = []
+    for arg in error.args or (str(error),):
+        text = str(arg).strip()
+        # "Error in 'function' at line N in file F : 'message'"
+        head, sep, quoted = text.partition(" : '")
+        messages.append(" ".join((quoted.rstrip("'").strip() if sep else head).split()))
+    return "; ".join(m for m in messages if m) or type(error).__name__
+
+
 def open_stage(path: str) -> Usd.Stage:
     """Opens a stage, raising StageError with USD's reason when it cannot be read."""
     try:
         stage = Usd.Stage.Open(path)
-    except Exception as error:  # pxr raises Tf.ErrorException, a plain Exception subclass
-        reason = str(error).strip().splitlines()[-1].strip() if str(error).strip() else ""
-        raise StageError(f"cannot open stage {path}: {reason or type(error).__name__}") from error
+    except Tf.ErrorException as error:
+        raise StageError(f"cannot open stage {path}: {tf_message(error)}") from error
     if not stage:
         raise StageError(f"cannot open stage {path}")
     return stage
