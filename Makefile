@@ -9,7 +9,7 @@ CLI         := target/release/crepuscular
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(VIRTUAL_ENV)/bin:$(PATH)
 
-.PHONY: demo test system-deps build wheel rust-test python-test lint bench clean
+.PHONY: demo test system-deps build wheel usd-package rust-test python-test lint bench clean
 
 demo: build
 	$(CLI) demo --out-dir out/demo
@@ -38,16 +38,21 @@ wheel: $(VENV)/.build-deps
 	maturin build --release --quiet -m core/python/Cargo.toml -o $(WHEEL_DIR)
 	$(PYTHON) -m pip install --quiet --force-reinstall --no-deps $(WHEEL_DIR)/crepuscular-*.whl
 
+# The USD step (crepuscular_usd and the crepuscular-usd command), editable so that tests
+# and the console script run the sources; its dependencies come from the test requirements.
+usd-package: $(VENV)/.test-deps
+	$(PYTHON) -m pip install --quiet --no-deps -e usd
+
 lint: $(VENV)/.test-deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets --release -- -D warnings
-	ruff check core/python tests examples
-	ruff format --check core/python tests examples
+	ruff check core/python tests examples usd
+	ruff format --check core/python tests examples usd
 
 rust-test:
 	$(CARGO) test -p crepuscular --release
 
-python-test: $(VENV)/.test-deps
+python-test: $(VENV)/.test-deps usd-package
 	$(PYTHON) -m pytest tests -q
 
 bench: build
