@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import build_scene, flatten
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdVol, Vt
 from usd_helpers import author_stage, light_matrix
 
 import crepuscular
@@ -396,3 +396,86 @@ def test_stage_without_the_api_gets_physical_defaults(tmp_path: Path) -> None:
     assert frame.medium["extinction"] == pytest.approx(0.05)
     assert frame.medium["extent"] == {"kind": "unbounded"}
     assert set(frame.style) == {"version", "time"}
+
+
+def test_xform_resets_nested_transforms_and_animated_points(tmp_path: Path) -> None:
+    stage = author_stage(str(tmp_path / "xf.usda"), build_scene(**SMALL))
+    parent = UsdGeom.Xform.Define(stage, "/World/Parent")
+    parent.AddTranslateOp().Set(Gf.Vec3d(100.0, 0.0, 0.0))
+    parent.AddRotateZOp().Set(90.0)
+    child = UsdGeom.Mesh.Define(stage, "/World/Parent/Reset")
+    child.SetResetXformStack(True)
+    child.AddTranslateOp().Set(Gf.Vec3d(0.0, 5.0, 0.0))
+    child.AddScaleOp().Set(Gf.Vec3f(2.0, 2.0, 2.0))
+    child.CreateFaceVertexCountsAttr([3])
+    child.CreateFaceVertexIndicesAttr([0, 1, 2])
+    points = child.CreatePointsAttr()
+    points.Set([Gf.Vec3f(0, 0, 0), Gf.Vec3f(1, 0, 0), Gf.Vec3f(0, 1, 0)], Usd.TimeCode(1))
+    points.Set([Gf.Vec3f(0, 0, 0), Gf.Vec3f(3, 0, 0), Gf.Vec3f(0, 1, 0)], Usd.TimeCode(2))
+    kept = UsdGeom.Mesh.Define(stage, "/World/Parent/Kept")
+    kept.CreatePointsAttr([Gf.Vec3f(1, 0, 0), Gf.Vec3f(2, 0, 0), Gf.Vec3f(1, 1, 0)])
+    kept.CreateFaceVertexCountsAttr([3])
+    kept.CreateFaceVertexIndicesAttr([0, 1, 2])
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    for time, x in ((1, 2.0), (2, 6.0), (1, 2.0)):
+        geometry = reader.read(Usd.TimeCode(time)).geometry
+        reset_id = geometry.ids_by_path[Sdf.Path("/World/Parent/Reset")]
+        corners = geometry.positions[geometry.triangles[geometry.object_ids == reset_id][0]]
+        np.testing.assert_allclose(corners, [[0, 5, 0], [x, 5, 0], [0, 7, 0]], atol=1e-6)
+        kept_id = geometry.ids_by_path[Sdf.Path("/World/Parent/Kept")]
+        corners = geometry.positions[geometry.triangles[geometry.object_ids == kept_id][0]]
+        np.testing.assert_allclose(corners, [[100, 1, 0], [100, 2, 0], [99, 1, 0]], atol=1e-5)
+
+
+def test_medium_extent_from_a_box_mesh_and_a_volume(tmp_path: Path) -> None:
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "extent.usda"), scene, meters_per_unit=0.1, up="Y")
+    light = stage.GetPrimAtPath("/World/Sun")
+    box = UsdGeom.Mesh.Define(stage, "/World/FogBox")
+    box.AddTranslateOp().Set(Gf.Vec3d(10.0, 0.0, 0.0))
+    box.CreatePointsAttr([Gf.Vec3f(x, y, z) for x in (-5, 15) for y in (0, 30) for z in (-5, 5)])
+    volume = UsdVol.Volume.Define(stage, "/World/FogVolume")
+    volume.AddTranslateOp().Set(Gf.Vec3d(10.0, 0.0, 0.0))
+    volume.CreateExtentAttr([Gf.Vec3f(-5, 0, -5), Gf.Vec3f(15, 30, 5)])
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    boxes = []
+    for target in ("/World/FogBox", "/World/FogVolume"):
+        light.GetRelationship("crepuscular:mediumExtent").SetTargets([Sdf.Path(target)])
+        frame = reader.read(Usd.TimeCode.Default())
+        # The extent prim holds the medium; it does not cast shadows.
+        assert Sdf.Path(target) not in frame.geometry.ids_by_path
+        boxes.append(np.reshape(frame.medium["extent"]["world_from_cube"], (4, 4)).T)
+    # Stage box x 5..25, y 0..30, z -5..5 in decimetres; Y up turns stage y into +z and
+    # stage z into -y: cube axes (1, 0, 0), (0, 0, 1.5), (0, -0.5, 0) metres about the centre.
+    expected = np.array(
+        [[1.0, 0.0, 0.0, 1.5], [0.0, 0.0, -0.5, 0.0], [0.0, 1.5, 0.0, 1.5], [0.0, 0.0, 0.0, 1.0]]
+    )
+    np.testing.assert_allclose(boxes[0], expected, atol=1e-6)
+    np.testing.assert_allclose(boxes[0], boxes[1], atol=1e-6)
+
+
+def test_distant_light_exposure_color_temperature_angle_and_visibility(tmp_path: Path) -> None:
+    stage = author_stage(str(tmp_path / "sun.usda"), build_scene(**SMALL))
+    light = UsdLux.DistantLight(stage.GetPrimAtPath("/World/Sun"))
+    light.GetIntensityAttr().Set(2.0)
+    light.CreateExposureAttr().Set(1.5)
+    light.GetColorAttr().Set(Gf.Vec3f(1.0, 0.5, 0.25))
+    light.CreateEnableColorTemperatureAttr().Set(True)
+    light.CreateColorTemperatureAttr().Set(3000.0)
+    light.GetAngleAttr().Set(2.0)
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    sun = reader.sun(Usd.TimeCode.Default())
+    assert sun["strength"] == pytest.approx(2.0 * 2**1.5)
+    blackbody = UsdLux.BlackbodyTemperatureAsRgb(3000.0)
+    assert sun["color"] == pytest.approx(
+        [1.0 * blackbody[0], 0.5 * blackbody[1], 0.25 * blackbody[2]]
+    )
+    assert sun["angular_diameter"] == pytest.approx(np.radians(2.0))
+    UsdGeom.Imageable(light.GetPrim()).GetVisibilityAttr().Set(UsdGeom.Tokens.invisible, 3.0)
+    UsdGeom.Imageable(light.GetPrim()).GetVisibilityAttr().Set(UsdGeom.Tokens.inherited, 1.0)
+    assert reader.sun(Usd.TimeCode(1))["strength"] > 0
+    off = reader.read(Usd.TimeCode(3))
+    assert off.sun["strength"] == 0.0
+    layers = crepuscular.render_arrays(**off.render_kwargs())
+    assert float(np.abs(layers.volume[..., :3]).max()) == 0.0
+    assert float(layers.volume[..., 3].max()) > 0.0  # the medium still hides what is behind
