@@ -371,3 +371,35 @@ def test_console_script_runs_in_a_subprocess(stage_path: Path, tmp_path: Path) -
 def test_round_trip_from_blender() -> None:
     """A bpy scene exported with Blender's USD exporter, rendered here, within tolerance of
     the add-on's render_layers output with the same settings authored via the API."""
+
+
+def test_without_frames_renders_the_start_time_code(stage_path: Path, tmp_path: Path) -> None:
+    stage = Usd.Stage.Open(str(stage_path))
+    stage.SetStartTimeCode(5)
+    stage.SetEndTimeCode(5)
+    stage.GetRootLayer().Save()
+    out = tmp_path / "still.exr"
+    status, err = run("render", str(stage_path), "--out", str(out), "--width", "64", "-q")
+    assert status == 0, err
+    at_five = crepuscular.render_arrays(
+        **StageReader(stage, "/World/Camera", None, width=64).read(Usd.TimeCode(5)).render_kwargs()
+    )
+    np.testing.assert_array_equal(crepuscular.read_exr(out)["volume.B"], at_five.volume[..., 2])
+    layer_path = tmp_path / "default.usda"
+    status, err = run(
+        "render",
+        str(stage_path),
+        "-d",
+        "--out",
+        str(out),
+        "--width",
+        "64",
+        "-q",
+        "--out-layer",
+        str(layer_path),
+    )
+    assert status == 0, err
+    layer = Usd.Stage.Open(str(layer_path))
+    product = UsdRender.Product(layer.GetPrimAtPath("/Render/Products/shafts"))
+    assert product.GetProductNameAttr().Get() == "./still.exr"
+    assert product.GetProductNameAttr().GetTimeSamples() == []
