@@ -7,7 +7,7 @@ the `CrepuscularLightAPI` with the scene's medium and render settings. Usage:
     python usd/benchmarks/colonnade_stage.py --out-dir out/usd-bench [--method minmax]
         [--frames 1-100] [--width 1920 --height 1080]
 
-It prints frames per second and the share of time spent reading USD, rendering and writing.
+It prints frames per second and the share of time spent reading USD versus rendering.
 """
 
 from __future__ import annotations
@@ -135,14 +135,16 @@ def run() -> int:
     if status != 0 or not summary:
         sys.stderr.write(err.getvalue())
         return status or 1
-    # "... N frame(s) in T s: read USD R s, render C s, write W s"
+    # "... N frame(s) in T s: read USD R s, render C s, write W s (overlapping ...)"
     numbers = [float(word) for word in summary[0].replace(",", " ").split() if _is_float(word)]
     frames, total, read, render, write = numbers[:5]
     print(summary[0])
     print(
         f"{int(frames)} frames at {args.width}x{args.height} ({args.method}) in {wall:.1f} s: "
-        f"{frames / wall:.3f} fps; read USD {100 * read / total:.1f}%, "
-        f"render {100 * render / total:.1f}%, write EXR {100 * write / total:.1f}%"
+        f"{frames / wall:.3f} fps; of the frame loop's {total:.1f} s, reading USD "
+        f"{100 * read / total:.1f}% and rendering {100 * render / total:.1f}% (EXR writing, "
+        f"{write:.1f} s in all, overlaps the next frame's render); reading USD is "
+        f"{100 * read / (read + render):.2f}% of read + compute"
     )
     return 0
 

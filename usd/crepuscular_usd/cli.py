@@ -17,8 +17,9 @@ import os
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
-from typing import Any, TextIO
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TextIO
 
 import numpy as np
 import numpy.typing as npt
@@ -268,76 +269,86 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
     progress = Progress(len(time_codes), err, enabled=not args.quiet)
     skipped: Counter[str] = Counter()
     invalid: set[str] = set()
-    timings = {"read": 0.0, "render": 0.0, "write": 0.0}
-    for index, time_code in enumerate(time_codes):
-        label = "default time" if time_code.IsDefault() else f"frame {time_code.GetValue():g}"
-        progress.update(index, 0.0, label)
-        started = time.perf_counter()
-        frame = reader.read(time_code)
-        timings["read"] += time.perf_counter() - started
-        if index == 0:
-            skipped = frame.geometry.unsupported
-            invalid = set(frame.geometry.invalid)
-            if skipped or invalid:
-                parts = [f"{count} {kind}" for kind, count in sorted(skipped.items())]
-                parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
-                count = sum(skipped.values()) + len(invalid)
-                _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
-        if len(frame.geometry.triangles) == 0:
-            raise CommandError(f"{label}: the stage has no visible mesh triangles to cast shadows")
-        kwargs = frame.render_kwargs()
-        beauty_rgba = None
-        key = _record_key(time_code)
-        if args.beauty:
-            beauty_path = _frame_path(frame_args.formats["beauty"], time_code)
-            if not os.path.isfile(beauty_path):
-                raise CommandError(f"{label}: beauty {beauty_path} does not exist")
-            beauty_rgba, depth = _beauty_planes(
-                beauty_path, frame.camera["width"], frame.camera["height"]
+    timings = {"read": 0.0, "render": 0.0}
+    loop_started = time.perf_counter()
+    writer = _Writer()
+    try:
+        for index, time_code in enumerate(time_codes):
+            label = "default time" if time_code.IsDefault() else f"frame {time_code.GetValue():g}"
+            progress.update(index, 0.0, label)
+            started = time.perf_counter()
+            frame = reader.read(time_code)
+            timings["read"] += time.perf_counter() - started
+            if index == 0:
+                skipped = frame.geometry.unsupported
+                invalid = set(frame.geometry.invalid)
+                if skipped or invalid:
+                    parts = [f"{count} {kind}" for kind, count in sorted(skipped.items())]
+                    parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
+                    count = sum(skipped.values()) + len(invalid)
+                    _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
+            if len(frame.geometry.triangles) == 0:
+                raise CommandError(
+                    f"{label}: the stage has no visible mesh triangles to cast shadows"
+                )
+            kwargs = frame.render_kwargs()
+            beauty_rgba = None
+            key = _record_key(time_code)
+            if args.beauty:
+                beauty_path = _frame_path(frame_args.formats["beauty"], time_code)
+                if not os.path.isfile(beauty_path):
+                    raise CommandError(f"{label}: beauty {beauty_path} does not exist")
+                beauty_rgba, depth = _beauty_planes(
+                    beauty_path, frame.camera["width"], frame.camera["height"]
+                )
+                if depth is not None and args.beauty_depth != "ignore":
+                    name, plane = depth
+                    kind = args.beauty_depth
+                    if kind == "auto":
+                        kind = "ray_distance" if name == "depth" else "planar"
+                    kwargs["camera_depth"] = plane * np.float32(reader.meters_per_unit)
+                    kwargs["depth_kind"] = kind
+                record.beauties[key] = beauty_path
+            started = time.perf_counter()
+            try:
+                layers = crepuscular.render_arrays(
+                    **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
+                )
+            except crepuscular.InvalidInputError as error:
+                field = f" ({error.field})" if getattr(error, "field", None) else ""
+                raise CommandError(
+                    f"{label}: the renderer rejected the frame{field}: {error}"
+                ) from error
+            timings["render"] += time.perf_counter() - started
+            out_path = _frame_path(frame_args.formats["out"], time_code)
+            writer.submit(
+                lambda p=out_path, lay=layers: crepuscular.write_exr(p, lay, half=args.half),
+                out_path,
             )
-            if depth is not None and args.beauty_depth != "ignore":
-                name, plane = depth
-                kind = args.beauty_depth
-                if kind == "auto":
-                    kind = "ray_distance" if name == "depth" else "planar"
-                kwargs["camera_depth"] = plane * np.float32(reader.meters_per_unit)
-                kwargs["depth_kind"] = kind
-            record.beauties[key] = beauty_path
-        started = time.perf_counter()
-        try:
-            layers = crepuscular.render_arrays(
-                **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
-            )
-        except crepuscular.InvalidInputError as error:
-            field = f" ({error.field})" if getattr(error, "field", None) else ""
-            raise CommandError(
-                f"{label}: the renderer rejected the frame{field}: {error}"
-            ) from error
-        timings["render"] += time.perf_counter() - started
-        started = time.perf_counter()
-        out_path = _frame_path(frame_args.formats["out"], time_code)
-        _write(
-            lambda p=out_path, lay=layers: crepuscular.write_exr(p, lay, half=args.half), out_path
-        )
-        record.shafts[key] = out_path
-        if beauty_rgba is not None:
-            comp_path = _frame_path(frame_args.formats["comp"], time_code)
-            comp = crepuscular.composite(layers.volume, beauty_rgba)
-            planes = {c: comp[..., i] for i, c in enumerate("RGBA")}
-            _write(lambda p=comp_path, pl=planes: crepuscular.write_exr_channels(p, pl), comp_path)
-            record.composites[key] = comp_path
-        timings["write"] += time.perf_counter() - started
-        record.resolution = (layers.width, layers.height)
-        record.settings[key] = frame.settings_record()
+            record.shafts[key] = out_path
+            if beauty_rgba is not None:
+                comp_path = _frame_path(frame_args.formats["comp"], time_code)
+                comp = crepuscular.composite(layers.volume, beauty_rgba)
+                planes = {c: comp[..., i] for i, c in enumerate("RGBA")}
+                writer.submit(
+                    lambda p=comp_path, pl=planes: crepuscular.write_exr_channels(p, pl), comp_path
+                )
+                record.composites[key] = comp_path
+            record.resolution = (layers.width, layers.height)
+            record.settings[key] = frame.settings_record()
+    except BaseException:
+        writer.abandon()
+        raise
+    writer.close()
     progress.finish()
     if args.out_layer:
         write_output_layer(args.out_layer, record)
     if not args.quiet:
-        total = sum(timings.values())
+        wall = time.perf_counter() - loop_started
         err.write(
-            f"{PROG}: {len(time_codes)} frame(s) in {total:.2f} s: "
+            f"{PROG}: {len(time_codes)} frame(s) in {wall:.2f} s: "
             f"read USD {timings['read']:.2f} s, render {timings['render']:.2f} s, "
-            f"write {timings['write']:.2f} s\n"
+            f"write {writer.seconds:.2f} s (overlapping the next frame)\n"
         )
     return 0
 
@@ -353,14 +364,42 @@ def _make_folder(path: str | None, option: str) -> None:
         raise CommandError(f"{flag}: cannot create folder {folder}: {error.strerror}") from error
 
 
-def _write(action: Any, path: str) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise CommandError(f"cannot write {path}: folder {folder} does not exist")
-    try:
-        action()
-    except (OSError, crepuscular.CrepuscularError) as error:
-        raise CommandError(f"cannot write {path}: {error}") from error
+class _Writer:
+    """Writes EXRs on one background thread, so that frame N is written while frame N + 1
+    renders (both release the GIL). At most one write waits; its error surfaces on the next
+    `submit` or on `close`."""
+
+    def __init__(self) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="exr-writer")
+        self._pending: list[Future[None]] = []
+        self.seconds = 0.0
+
+    def _run(self, action: Callable[[], None], path: str) -> None:
+        started = time.perf_counter()
+        try:
+            action()
+        except (OSError, crepuscular.CrepuscularError) as error:
+            raise CommandError(f"cannot write {path}: {error}") from error
+        finally:
+            self.seconds += time.perf_counter() - started
+
+    def _drain(self, keep: int) -> None:
+        while len(self._pending) > keep:
+            self._pending.pop(0).result()
+
+    def submit(self, action: Callable[[], None], path: str) -> None:
+        self._drain(keep=1)
+        self._pending.append(self._pool.submit(self._run, action, path))
+
+    def abandon(self) -> None:
+        """Stops after the write in progress, dropping queued ones and their errors."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def close(self) -> None:
+        try:
+            self._drain(keep=0)
+        finally:
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _apply_schema(args: argparse.Namespace, err: TextIO) -> int:
