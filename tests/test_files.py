@@ -111,3 +111,25 @@ def test_unknown_method_names_the_field() -> None:
     scene["render"]["method"] = "raytraced"
     with pytest.raises(crepuscular.InvalidInputError, match=r"render\.method"):
         crepuscular.render(scene)
+
+
+def test_named_channels_round_trip_and_mismatches_name_the_channel(tmp_path: Path) -> None:
+    rng = np.random.default_rng(11)
+    planes = {name: rng.uniform(-2, 2, (5, 7)).astype(np.float32) for name in "RGBA"}
+    planes["Z"] = np.full((5, 7), 1e10, dtype=np.float32)
+    crepuscular.write_exr_channels(tmp_path / "rgba.exr", planes)
+    back = crepuscular.read_exr(tmp_path / "rgba.exr")
+    assert set(back) == set(planes)
+    for name, plane in planes.items():
+        np.testing.assert_array_equal(back[name], plane)
+    crepuscular.write_exr_channels(tmp_path / "half.exr", {"R": planes["R"]}, half=True)
+    np.testing.assert_allclose(
+        crepuscular.read_exr(tmp_path / "half.exr")["R"], planes["R"], rtol=1e-3
+    )
+    with pytest.raises(crepuscular.InvalidInputError, match=r"must have shape \(5, 7\)") as info:
+        crepuscular.write_exr_channels(
+            tmp_path / "bad.exr", {"R": planes["R"], "G": np.zeros((5, 6), np.float32)}
+        )
+    assert info.value.field == "channels.G"
+    with pytest.raises(crepuscular.InvalidInputError, match="no channels"):
+        crepuscular.write_exr_channels(tmp_path / "none.exr", {})
