@@ -192,7 +192,10 @@ def _box_points(size: float) -> tuple[list[Gf.Vec3f], list[int], list[int]]:
     return points, [4] * 6, [i for face in faces for i in face]
 
 
-def _instanced_stage(path: str, flattened: bool) -> Usd.Stage:
+def _instanced_stage(path: str, mode: str) -> Usd.Stage:
+    """mode: "instancer" (a PointInstancer), "instanceable" (instanceable references) or
+    "plain" (the same references, not instanceable)."""
+    flattened = mode != "instancer"
     scene = build_scene(occluder=False, **SMALL)
     stage = author_stage(path, scene)
     rng = np.random.default_rng(5)
@@ -207,13 +210,13 @@ def _instanced_stage(path: str, flattened: bool) -> Usd.Stage:
         Gf.Quath(*(q if i % 3 else 2 * q * (np.arange(4) == i % 4))) for i, q in enumerate(signs)
     ]
     scales = rng.uniform(0.5, 1.5, (count, 3))
-    proto_indices = rng.integers(0, 3, count)
+    proto_indices = rng.integers(0, 5, count)
     root = "/World/Flat" if flattened else "/World/Instancer"
     prototypes: list[str] = []
     proto_parent = "/World/Protos" if flattened else f"{root}/Protos"
     if flattened:
         UsdGeom.Scope.Define(stage, proto_parent)
-    for index, size in enumerate((0.3, 0.5, 0.2)):
+    for index, size in enumerate((0.3, 0.5, 0.2, 0.4, 0.25)):
         proto = UsdGeom.Xform.Define(stage, f"{proto_parent}/P{index}")
         proto.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.1 * index, 0.0))  # prototype root xform
         mesh = UsdGeom.Mesh.Define(stage, f"{proto_parent}/P{index}/Mesh")
@@ -234,7 +237,7 @@ def _instanced_stage(path: str, flattened: bool) -> Usd.Stage:
             holder.AddScaleOp().Set(Gf.Vec3f(*scales[i]))
             instance = stage.DefinePrim(f"{root}/I{i}/Proto")
             instance.GetReferences().AddInternalReference(prototypes[proto_indices[i]])
-            instance.SetInstanceable(True)
+            instance.SetInstanceable(mode == "instanceable")
     else:
         instancer = UsdGeom.PointInstancer.Define(stage, root)
         instancer.CreatePrototypesRel().SetTargets([Sdf.Path(p) for p in prototypes])
@@ -248,23 +251,23 @@ def _instanced_stage(path: str, flattened: bool) -> Usd.Stage:
 
 
 def test_point_instancer_equals_the_flattened_scene(tmp_path: Path) -> None:
-    instanced = StageReader(
-        _instanced_stage(str(tmp_path / "pi.usda"), False), "/World/Camera", "/World/Sun", width=64
-    )
-    flat = StageReader(
-        _instanced_stage(str(tmp_path / "flat.usda"), True), "/World/Camera", "/World/Sun", width=64
-    )
-    a = instanced.read(Usd.TimeCode.Default())
-    b = flat.read(Usd.TimeCode.Default())
-    # 59 visible boxes of 12 triangles, plus the ground; the flat one via instance proxies.
-    assert len(a.geometry.triangles) == len(b.geometry.triangles) == 59 * 12 + 2
+    frames = {}
+    for mode in ("instancer", "instanceable", "plain"):
+        stage = _instanced_stage(str(tmp_path / f"{mode}.usda"), mode)
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        frames[mode] = reader.read(Usd.TimeCode.Default())
+    assert frames["instanceable"].geometry.ids_by_path == frames["plain"].geometry.ids_by_path
+    rendered = {mode: crepuscular.render_arrays(**f.render_kwargs()) for mode, f in frames.items()}
+    # 59 visible boxes of 12 triangles (one id is invisible), plus the ground.
+    for mode, frame in frames.items():
+        assert len(frame.geometry.triangles) == 59 * 12 + 2, mode
     ordered = lambda g: np.sort(g.positions[g.triangles].reshape(len(g.triangles), -1), axis=0)  # noqa: E731
-    np.testing.assert_allclose(ordered(a.geometry), ordered(b.geometry), atol=1e-5)
-    _layers_close(
-        crepuscular.render_arrays(**a.render_kwargs()),
-        crepuscular.render_arrays(**b.render_kwargs()),
-        1e-4,
-    )
+    for mode in ("instanceable", "plain"):
+        np.testing.assert_allclose(
+            ordered(frames["instancer"].geometry), ordered(frames[mode].geometry), atol=1e-5
+        )
+        _layers_close(rendered["instancer"], rendered[mode], 1e-4)
+    np.testing.assert_array_equal(rendered["instanceable"].volume, rendered["plain"].volume)
 
 
 # --- time samples ---------------------------------------------------------------------
