@@ -9,12 +9,12 @@ CLI         := target/release/crepuscular
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(VIRTUAL_ENV)/bin:$(PATH)
 
-.PHONY: demo test system-deps build wheel rust-test python-test lint bench clean
+.PHONY: demo test system-deps build wheel addon rust-test python-test lint bench clean
 
 demo: build
 	$(CLI) demo --out-dir out/demo
 
-test: system-deps $(VENV)/.test-deps lint rust-test wheel python-test
+test: system-deps $(VENV)/.test-deps lint rust-test wheel addon python-test
 
 system-deps:
 	@.ci/system-deps
@@ -41,8 +41,12 @@ wheel: $(VENV)/.build-deps
 lint: $(VENV)/.test-deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets --release -- -D warnings
-	ruff check core/python tests examples
-	ruff format --check core/python tests examples
+	ruff check core/python tests examples blender_addon
+	ruff format --check core/python tests examples blender_addon
+
+# The Blender extension zip (add-on sources, manifest and the wheel above) in out/addon/.
+addon: wheel
+	$(PYTHON) blender_addon/build_extension.py $(WHEEL_DIR) out/addon
 
 rust-test:
 	$(CARGO) test -p crepuscular --release
