@@ -52,24 +52,72 @@ def log(message: str) -> None:
     print(f"crepuscular: {message}", file=sys.stderr, flush=True)
 
 
+def pixel_filter_width(scene: bpy.types.Scene) -> float:
+    """The beauty's pixel filter width in pixels (Cycles' or the render setting)."""
+    if scene.render.engine == "CYCLES":
+        return float(scene.cycles.filter_width)
+    return float(scene.render.filter_size)
+
+
+def match_pixel_filter(volume: np.ndarray, filter_width: float, samples: int) -> np.ndarray:
+    """Widens the volume layer's pixel filter to the beauty's, so that edges line up.
+
+    The core box-averages `samples`² depth samples per pixel, a filter of variance
+    (1 − 1/samples²)/12. The beauty is filtered with a Blackman-Harris window 2·width wide
+    (Cycles doubles it), whose standard deviation is 0.1385 of its support. A separable
+    3-tap kernel [a, 1 − 2a, a] adds the missing variance 2a. Only the volume layer is
+    filtered: depth and visibility stay exact.
+    """
+    target = (0.1385 * 2.0 * filter_width) ** 2
+    extra = target - (1.0 - 1.0 / samples**2) / 12.0
+    a = min(max(extra / 2.0, 0.0), 1.0 / 3.0)
+    if a <= 0.0 or min(volume.shape[:2]) < 2:
+        return volume
+    result = np.array(volume, dtype=np.float32)
+    for axis in (0, 1):
+        padded = np.concatenate(
+            [np.take(result, [0], axis), result, np.take(result, [-1], axis)], axis=axis
+        )
+        n = result.shape[axis]
+        before = np.take(padded, range(0, n), axis)
+        after = np.take(padded, range(2, n + 2), axis)
+        result = (a * (before + after) + (1.0 - 2.0 * a) * result).astype(np.float32)
+    return result
+
+
 def render_layers(
     scene: bpy.types.Scene,
     depsgraph: bpy.types.Depsgraph,
     *,
     progress: crepuscular.ProgressCallback | None = None,
 ) -> tuple[crepuscular.Layers, export.FrameInputs]:
-    """Exports the frame in `depsgraph` and renders its layers at the render's size."""
+    """Exports the frame in `depsgraph` and renders its layers at the render's size, with
+    the volume layer filtered like the beauty's pixels."""
     inputs = export.frame_inputs(scene, depsgraph, cache=CACHE)
     layers = crepuscular.render_arrays(**inputs.kwargs, progress=progress)
+    settings = inputs.kwargs["settings"]
+    volume = match_pixel_filter(layers.volume, pixel_filter_width(scene), settings["supersampling"])
+    layers = crepuscular.Layers(
+        layers.width, layers.height, volume, layers.visibility, layers.depth
+    )
     return layers, inputs
 
 
 def layers_path(scene: bpy.types.Scene, frame: int) -> str:
-    """`<output dir>/<output name>crepuscular_<frame>.exr`, next to the rendered frame."""
+    """The layers' EXR next to the rendered frame: `<output>crepuscular_<frame>.exr`.
+
+    `//renders/shot_` gives `renders/shot_crepuscular_0012.exr`, `/tmp/x.png` gives
+    `/tmp/x_crepuscular_0012.exr` and a bare folder `/tmp/` gives `/tmp/crepuscular_0012.exr`.
+    """
     output = bpy.path.abspath(scene.render.filepath)
-    frame_file = scene.render.frame_path(frame=frame)
+    directory = os.path.dirname(scene.render.frame_path(frame=frame))
     stem = os.path.basename(output).replace("#", "")
-    return os.path.join(os.path.dirname(frame_file), f"{stem}crepuscular_{frame:04d}.exr")
+    root, extension = os.path.splitext(stem)
+    if extension.lower() in bpy.path.extensions_image:
+        stem = root
+    if stem and stem[-1] not in "_-.":
+        stem += "_"
+    return os.path.join(directory, f"{stem}crepuscular_{frame:04d}.exr")
 
 
 # Compositor -----------------------------------------------------------------------------

@@ -308,7 +308,9 @@ def test_static_geometry_is_cached_and_invalidated(addon: ModuleType) -> None:
     depsgraph = bpy.context.evaluated_depsgraph_get()
     moved = addon.export.export_geometry(depsgraph, cache=cache)
     assert (cache.misses, cache.hits) == (1, 1)
-    np.testing.assert_allclose(moved.positions, first.positions + np.array([3.0, 0.0, 0.0]), atol=1e-6)
+    np.testing.assert_allclose(
+        moved.positions, first.positions + np.array([3.0, 0.0, 0.0]), atol=1e-6
+    )
     # An edit reaches the depsgraph handler, which drops the entry.
     addon.render.CACHE.meshes.update(cache.meshes)
     cube.data.vertices[0].co.z = 5.0
@@ -504,6 +506,8 @@ def test_layers_are_named_next_to_the_render_output(addon: ModuleType) -> None:
     assert path.endswith(os.path.join("renders", "shot_crepuscular_0012.exr"))
     scene.render.filepath = "/tmp/frames/"
     assert addon.render.layers_path(scene, 3) == "/tmp/frames/crepuscular_0003.exr"
+    scene.render.filepath = "/tmp/frames/still.png"
+    assert addon.render.layers_path(scene, 3) == "/tmp/frames/still_crepuscular_0003.exr"
 
 
 def test_enabling_shafts_wires_the_compositor(addon: ModuleType) -> None:
