@@ -108,6 +108,13 @@ def job_composite(spec: dict[str, Any], out: Path) -> None:
     _render(scene, out / "beauty.exr")
     sun.enabled = True
     _render(scene, out / "composite.exr")
+    # Cycles' Depth pass, and our depth sampled at pixel centres like it.
+    scene.view_layers[0].use_pass_z = True
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.crepuscular.composite = scene.crepuscular.write_layers = False
+    _render(scene, out / "passes.exr")
+    sun.edge_samples = 1
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "centres.exr")) == {"FINISHED"}
 
 
 def job_animation(spec: dict[str, Any], out: Path) -> None:

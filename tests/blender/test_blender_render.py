@@ -62,6 +62,28 @@ def test_f12_composites_the_layers_over_the_beauty(installed: ModuleType, tmp_pa
     assert np.abs(composite - beauty).mean() > 0.01
 
 
+def test_depth_matches_cycles_depth_pass(installed: ModuleType, tmp_path: Path) -> None:
+    run_job(tmp_path, "composite", width=64, height=36, samples=4)
+    planar = crepuscular.read_exr(tmp_path / "passes.exr")["ViewLayer.Depth.Z"]
+    ours = crepuscular.read_exr(tmp_path / "centres.exr")["depth"]
+    # Cycles writes z-depth along the view axis; ours is the distance along the ray.
+    # 35 mm lens, 36 mm sensor fitted to the 64 pixel width.
+    pixel = 36.0 / 35.0 / 64
+    xs = (np.arange(64) + 0.5 - 32) * pixel
+    ys = (18 - (np.arange(36) + 0.5)) * pixel
+    stretch = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+    surface = planar < 1e9
+    # Away from silhouettes, where Cycles' single depth sample may land on either side.
+    smooth = np.ones_like(surface)
+    for axis in (0, 1):
+        curvature = np.roll(planar, 1, axis) + np.roll(planar, -1, axis) - 2 * planar
+        smooth &= np.abs(curvature) < 0.01 * planar
+    compared = surface & smooth
+    assert compared.sum() > 0.5 * surface.sum()
+    np.testing.assert_allclose(ours[compared], (planar * stretch)[compared], rtol=2e-3)
+    assert np.all(ours[~surface] == pytest.approx(100.0))  # background: max distance
+
+
 def test_animation_renders_every_frame_composited(installed: ModuleType, tmp_path: Path) -> None:
     run_job(tmp_path, "animation", width=64, height=36, samples=4)
     shots = [rgba(tmp_path / f"shot_{f:04d}.exr") for f in (1, 2, 3)]
