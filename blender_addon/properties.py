@@ -281,11 +281,6 @@ class CrepuscularLight(PropertyGroup):
     tf_resolution: IntProperty(name="Resolution", min=2, max=4096, default=256, update=_tag_preview)
     tf_layers: CollectionProperty(type=CrepuscularTfLayer)
     active_tf_layer: IntProperty(default=0)
-    tf_image: PointerProperty(
-        name="Baked TF",
-        type=bpy.types.Image,
-        description="The baked TF as an image (V̄ left to right, depth bottom to top)",
-    )
 
 
 CASTS = [
