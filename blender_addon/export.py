@@ -11,6 +11,7 @@ only their matrices are applied again; `GeometryCache.invalidate` drops what cha
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -115,6 +116,36 @@ def _object_arrays(obj: bpy.types.Object, cache: GeometryCache | None) -> MeshAr
     return arrays
 
 
+#: The core's vertex indices are 32-bit.
+MAX_VERTICES = 2**32 - 1
+#: Bytes the export and the core hold per vertex and per triangle, about (world positions,
+#: a copy while concatenating, indices and object ids, and the core's own copies).
+BYTES_PER_VERTEX = 3 * 4 * 3
+BYTES_PER_TRIANGLE = (3 * 4 + 4) * 3
+
+
+def available_memory() -> int | None:
+    """Physical memory available now, in bytes, where the system says (Linux)."""
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(vertices: int, triangles: int, obj: bpy.types.Object) -> None:
+    # Checked every million vertices, so that the check itself costs nothing.
+    if vertices < 1_000_000 or vertices % 1_000_000 > 100_000:
+        return
+    need = vertices * BYTES_PER_VERTEX + triangles * BYTES_PER_TRIANGLE
+    free = available_memory()
+    if free is not None and need > free:
+        raise ExportError(
+            f"geometry too large for memory: {vertices} vertices and {triangles} triangles "
+            f"so far (at object '{obj.original.name}') need about {need / 2**30:.1f} GiB, "
+            f"{free / 2**30:.1f} GiB are free"
+        )
+
+
 def _hidden_in_render(obj: bpy.types.Object) -> bool:
     """Render visibility for a viewport depsgraph: the object or a collection hides it."""
     if obj.hide_render:
@@ -163,6 +194,12 @@ def export_geometry(
         arrays = _object_arrays(obj, cache)
         if arrays is None or len(arrays.triangles) == 0:
             continue
+        if base + len(arrays.positions) > MAX_VERTICES:
+            raise ExportError(
+                f"geometry too large: more than {MAX_VERTICES} vertices by object "
+                f"'{obj.original.name}' (the core indexes vertices with 32 bits)"
+            )
+        _check_memory(base + len(arrays.positions), sum(len(t) for t in triangles), obj)
         matrix = np.array(instance.matrix_world, dtype=np.float64)
         world = arrays.positions @ matrix[:3, :3].T + matrix[:3, 3]
         owner = chain[-1].original

@@ -183,6 +183,74 @@ class CREPUSCULAR_OT_tf_item_remove(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def add_world_constraint(settings, point) -> bpy.types.PropertyGroup:
+    """Adds a 3D TF constraint at world `point` to the active TF layer, or to a new
+    diffusion layer on top when the active layer is not one. Each frame, the core moves it
+    to the (V̄, depth) of the pixel where the point appears."""
+    layers = settings.tf_layers
+    active = settings.active_tf_layer
+    if not 0 <= active < len(layers) or layers[active].kind != "diffusion":
+        layer = layers.add()
+        layer.kind, layer.name = "diffusion", f"Diffusion {len(layers)}"
+        settings.active_tf_layer = len(layers) - 1
+    layer = layers[settings.active_tf_layer]
+    constraint = layer.constraints.add()
+    constraint.use_world_point = True
+    constraint.world_point = point
+    settings.use_tf = True
+    preview.CONTROLLER.mark_dirty()
+    return constraint
+
+
+class CREPUSCULAR_OT_pick_constraint(bpy.types.Operator):
+    """Click on a surface in the 3D viewport to add a 3D TF constraint there"""
+
+    bl_idname = "crepuscular.pick_constraint"
+    bl_label = "Pick TF Constraint in Viewport"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.area is not None and context.area.type == "VIEW_3D"
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        from . import export
+
+        if not export.shaft_suns(context.scene):
+            self.report({"ERROR"}, "no sun lamp has Stylized Shafts enabled")
+            return {"CANCELLED"}
+        context.window.cursor_modal_set("EYEDROPPER")
+        context.window_manager.modal_handler_add(self)
+        self.report({"INFO"}, "Click a surface to add a constraint; Esc or right-click cancels")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        from bpy_extras import view3d_utils
+
+        from . import export
+
+        if event.type in {"ESC", "RIGHTMOUSE"}:
+            context.window.cursor_modal_restore()
+            return {"CANCELLED"}
+        if event.type != "LEFTMOUSE" or event.value != "PRESS":
+            return {"RUNNING_MODAL"}
+        context.window.cursor_modal_restore()
+        region, view = context.region, context.region_data
+        mouse = (event.mouse_region_x, event.mouse_region_y)
+        origin = view3d_utils.region_2d_to_origin_3d(region, view, mouse)
+        direction = view3d_utils.region_2d_to_vector_3d(region, view, mouse)
+        hit, location, *_ = context.scene.ray_cast(
+            context.evaluated_depsgraph_get(), origin, direction
+        )
+        if not hit:
+            self.report({"WARNING"}, "no surface under the cursor")
+            return {"CANCELLED"}
+        sun = export.shaft_suns(context.scene)[0]
+        add_world_constraint(sun.data.crepuscular, location)
+        self.report({"INFO"}, f"3D constraint at {tuple(round(v, 3) for v in location)}")
+        return {"FINISHED"}
+
+
 # Panels ---------------------------------------------------------------------------------
 
 
@@ -328,6 +396,8 @@ class CREPUSCULAR_PT_sun_tf(SunPanel, bpy.types.Panel):
                 box.prop(constraint, "color")
                 box.prop(constraint, "use_world_point")
                 box.prop(constraint, "world_point" if constraint.use_world_point else "position")
+        if layer.kind == "diffusion":
+            column.operator(CREPUSCULAR_OT_pick_constraint.bl_idname, icon="EYEDROPPER")
         if layer.kind in {"gradient", "diffusion"}:
             row = column.row(align=True)
             row.operator(CREPUSCULAR_OT_tf_item_add.bl_idname, icon="ADD")
@@ -399,6 +469,7 @@ CLASSES = (
     CREPUSCULAR_OT_tf_layer_move,
     CREPUSCULAR_OT_tf_item_add,
     CREPUSCULAR_OT_tf_item_remove,
+    CREPUSCULAR_OT_pick_constraint,
     CREPUSCULAR_UL_tf_layers,
     CREPUSCULAR_PT_sun,
     CREPUSCULAR_PT_sun_occluders,

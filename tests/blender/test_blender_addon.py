@@ -471,6 +471,28 @@ def test_render_layers_operator_writes_the_layers(addon: ModuleType, tmp_path: P
     assert again["volume.R"].mean() < 0.5 * channels["volume.R"].mean()
 
 
+def test_world_constraints_follow_the_frame(addon: ModuleType, tmp_path: Path) -> None:
+    """A 3D TF constraint (what 'pick in viewport' adds) takes V̄ and depth from the pixel
+    where its point appears; a point the camera cannot see is an error naming it."""
+    scene = _basic_scene()
+    settings = scene.objects["Sun"].data.crepuscular
+    settings.tf_mode = "color"
+    blender_scenes.add_quad(scene, "Wall", [(-9, 5, -3), (9, 5, -3), (9, 5, 9), (-9, 5, 9)])
+    plain = tmp_path / "plain.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(plain)) == {"FINISHED"}
+    constraint = addon.ui.add_world_constraint(settings, (0.0, 5.0, 2.0))  # on the wall
+    constraint.color = (1.0, 0.0, 0.0, 1.0)
+    assert settings.use_tf
+    assert settings.tf_layers[settings.active_tf_layer].kind == "diffusion"
+    red = tmp_path / "red.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(red)) == {"FINISHED"}
+    before, after = crepuscular.read_exr(plain), crepuscular.read_exr(red)
+    assert after["volume.G"].mean() < 0.2 * before["volume.G"].mean()  # all red now
+    constraint.world_point = (0.0, -30.0, 3.0)  # behind the camera
+    with pytest.raises(RuntimeError, match=r"world_point"):
+        bpy.ops.crepuscular.render_layers(filepath=str(red))
+
+
 def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> None:
     path = str(tmp_path / "x.exr")
     scene = bpy.context.scene
