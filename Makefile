@@ -11,8 +11,10 @@ export PATH := $(VIRTUAL_ENV)/bin:$(PATH)
 
 .PHONY: demo test system-deps build wheel addon rust-test python-test lint bench clean
 
-demo: build
+demo: build $(VENV)/.test-deps
 	$(CLI) demo --out-dir out/demo
+	$(PYTHON) blender_addon/build_extension.py $(WHEEL_DIR) out/addon
+	$(PYTHON) examples/blender_demo.py out/demo/blender
 
 test: system-deps $(VENV)/.test-deps lint rust-test wheel addon python-test
 

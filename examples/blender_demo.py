@@ -32,11 +32,11 @@ def build(out: Path) -> bpy.types.Scene:
     blender_scenes.setup_cycles(scene, width=480, height=270, samples=16)
     scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.2
     scene.cycles.max_bounces = 2
-    blender_scenes.add_camera(scene, blender_scenes.look_at((9, -8, 5), (0, 0, 1.5)), lens=28)
-    sun = blender_scenes.add_sun(scene, (0.0, 0.34, -0.94), strength=4.0)
+    blender_scenes.add_camera(scene, blender_scenes.look_at((-10, 9, 2.5), (0, 0, 3.0)), lens=28)
+    sun = blender_scenes.add_sun(scene, (-0.45, 0.35, -0.8), strength=4.0)
     settings = sun.data.crepuscular
     settings.shadow_map_size, settings.max_distance = 1024, 40.0
-    grey = blender_scenes.black_material(0.6)
+    grey = blender_scenes.black_material(0.15)
     blender_scenes.add_quad(
         scene, "Ground", [(-20, -20, 0), (20, -20, 0), (20, 20, 0), (-20, 20, 0)], grey
     )
@@ -46,7 +46,7 @@ def build(out: Path) -> bpy.types.Scene:
     bpy.context.active_object.data.materials.append(grey)
     fog = np.diag([8.0, 8.0, 4.0, 1.0])
     fog[:3, 3] = [0.0, 0.0, 4.0]
-    material = blender_scenes.volume_material("scatter", Color=(1, 1, 1, 1), Density=0.06)
+    material = blender_scenes.volume_material("scatter", Color=(1, 1, 1, 1), Density=0.1, Anisotropy=0.5)
     blender_scenes.add_fog_box(scene, fog, material)
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.filepath = str(out / "torus_")
