@@ -63,6 +63,8 @@ class PreviewController:
         self.result: PreviewResult | None = None
         self.error = ""
         self.cancelled = 0
+        #: The running update's fraction done, as the core reports it.
+        self.progress = 0.0
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
 
@@ -114,13 +116,15 @@ class PreviewController:
             daemon=True,
         )
         self._thread = thread
+        self.progress = 0.0
         thread.start()
         return True
 
     def _work(self, generation: int, kwargs: dict[str, Any]) -> None:
-        def progress(_fraction: float) -> None:
+        def progress(fraction: float) -> None:
             if self.generation != generation:
                 raise Superseded
+            self.progress = fraction
 
         start = time.perf_counter()
         try:

@@ -137,6 +137,9 @@ def volume_image(width: int, height: int) -> bpy.types.Image:
     image = bpy.data.images.get(IMAGE_NAME)
     if image is None:
         image = bpy.data.images.new(IMAGE_NAME, width, height, alpha=True, float_buffer=True)
+        # Generated pixels are not saved: a file opened without the add-on regenerates them
+        # transparent, and the composite is the plain beauty.
+        image.generated_color = (0.0, 0.0, 0.0, 0.0)
         image.colorspace_settings.name = _scene_linear_name()
         image.alpha_mode = "PREMUL"
     elif tuple(image.size) != (width, height):
@@ -382,7 +385,20 @@ def register() -> None:
         getattr(bpy.app.handlers, name).append(handler)
 
 
+def mute_compositor_nodes() -> None:
+    """Mutes the group in every scene, so that nothing composites a stale layer while the
+    add-on is off (registration turns it back on at the next render)."""
+    if not isinstance(bpy.data, bpy.types.BlendData):
+        return  # restricted while Blender loads or resets; nothing to reach then
+    for scene in bpy.data.scenes:
+        tree = scene.compositing_node_group
+        node = tree.nodes.get(NODE_NAME) if tree is not None else None
+        if node is not None:
+            node.mute = True
+
+
 def unregister() -> None:
+    mute_compositor_nodes()
     for name, handler in reversed(HANDLERS):
         handlers = getattr(bpy.app.handlers, name)
         while handler in handlers:

@@ -46,7 +46,9 @@ def build(out: Path) -> bpy.types.Scene:
     bpy.context.active_object.data.materials.append(grey)
     fog = np.diag([8.0, 8.0, 4.0, 1.0])
     fog[:3, 3] = [0.0, 0.0, 4.0]
-    material = blender_scenes.volume_material("scatter", Color=(1, 1, 1, 1), Density=0.1, Anisotropy=0.5)
+    material = blender_scenes.volume_material(
+        "scatter", Color=(1, 1, 1, 1), Density=0.1, Anisotropy=0.5
+    )
     blender_scenes.add_fog_box(scene, fog, material)
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.filepath = str(out / "torus_")

@@ -85,6 +85,9 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
     ]
     assert len(ours) == len(render.HANDLERS)
     assert bpy.app.timers.is_registered(preview._tick)
+    scene = _basic_scene()  # enabling shafts wires the compositor group
+    node = scene.compositing_node_group.nodes[render.NODE_NAME]
+    assert not node.mute
     classes = [
         cls.__name__
         for module in (addon.properties, addon.render, addon.ui)
@@ -117,6 +120,8 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
             ):
                 assert not _registered(base, name), name
         assert not hasattr(bpy.types, "CREPUSCULAR_OT_render_layers")
+        # The group stays (it is the user's data) but composites nothing stale.
+        assert node.mute
     finally:
         blender_scenes.enable_addon()
     assert _registered(bpy.types.Operator, "CREPUSCULAR_OT_render_layers")
@@ -595,11 +600,12 @@ def test_preview_cancels_superseded_work(addon: ModuleType) -> None:
     assert controller.step(scene, depsgraph)
     time.sleep(0.2)
     assert controller.busy  # a slow update is running in the background
+    assert controller.progress < 0.5
     sun.steps = 8
     controller.mark_dirty()
     started = time.monotonic()
     controller.cancel()  # what a newer request does first
-    assert time.monotonic() - started < 1.0
+    assert time.monotonic() - started < 3.0
     assert controller.cancelled == 1
     assert controller.result is None
     controller.mark_dirty()
