@@ -188,7 +188,7 @@ class CrepuscularLight(PropertyGroup):
         "match the beauty's antialiasing (no halo at silhouettes)",
         min=1,
         max=8,
-        default=3,
+        default=2,
         update=_tag_preview,
     )
     max_distance: FloatProperty(

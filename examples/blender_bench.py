@@ -90,6 +90,8 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--width", type=int, default=1920)
     parser.add_argument("--height", type=int, default=1080)
+    parser.add_argument("--edge-samples", type=int, default=None)
+    parser.add_argument("--method", default="minmax")
     args = parser.parse_args()
     addon = blender_scenes.install_addon()
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -99,12 +101,17 @@ def main() -> None:
     export, render = addon.export, addon.render
     triangles = len(export.export_geometry(depsgraph).triangles)
     settings = scene.objects["Sun"].data.crepuscular
+    settings.method = args.method
+    if args.edge_samples is not None:
+        settings.edge_samples = args.edge_samples
     print(
         f"tree scene: {triangles} triangles, {args.width}x{args.height}, "
         f"{settings.method}, shadow map {settings.shadow_map_size}, "
         f"edge samples {settings.edge_samples}, {os.cpu_count()} CPUs"
     )
 
+    t_cold = median_time(lambda: export.frame_inputs(scene, depsgraph), args.runs)
+    print(f"export without the cache: {t_cold:.3f} s")
     cache = export.GeometryCache()
     export.frame_inputs(scene, depsgraph, cache=cache)  # warm the static-geometry cache
     t_export = median_time(lambda: export.frame_inputs(scene, depsgraph, cache=cache), args.runs)
