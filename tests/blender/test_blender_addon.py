@@ -588,6 +588,22 @@ def test_preview_updates_debounced_off_the_main_thread(addon: ModuleType) -> Non
     assert not controller.step(scene, depsgraph, now=time.monotonic() + 1.0)
 
 
+def test_preview_timer_follows_frame_changes(addon: ModuleType) -> None:
+    """The registered timer callback and the frame handler, driven by hand (timers do not
+    run in background mode)."""
+    scene = _basic_scene(64, 36)
+    scene.crepuscular.preview = True
+    controller = addon.preview.CONTROLLER
+    controller.dirty = False
+    scene.frame_set(5)  # the viewport depsgraph's frame change marks it
+    assert controller.dirty
+    controller.last_change -= 1.0  # as if the debounce time had passed
+    assert addon.preview._tick() == addon.preview.TICK
+    controller.wait()
+    assert controller.result is not None
+    assert controller.result.volume.shape == (18, 32, 4)
+
+
 def test_preview_cancels_superseded_work(addon: ModuleType) -> None:
     scene = _basic_scene(1280, 720)
     scene.crepuscular.preview = True
