@@ -234,6 +234,11 @@ def column_major(matrix: Any) -> list[float]:
 def render_size(scene: bpy.types.Scene, divisor: int = 1) -> tuple[int, int]:
     """The render's pixel size, as Blender computes it, divided for previews."""
     render = scene.render
+    if render.use_border:
+        raise ExportError(
+            "scene.render.use_border: render regions are not supported; the layers cover "
+            "the whole frame"
+        )
     if not math.isclose(render.pixel_aspect_x, render.pixel_aspect_y):
         raise ExportError(
             "scene.render.pixel_aspect_x/y: non-square pixels are not supported "

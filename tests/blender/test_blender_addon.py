@@ -520,6 +520,10 @@ def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> Non
     with pytest.raises(RuntimeError, match=r"camera\.width"):
         bpy.ops.crepuscular.render_layers(filepath=path)
     scene.render.resolution_x = 64
+    scene.render.use_border = True
+    with pytest.raises(RuntimeError, match=r"use_border"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    scene.render.use_border = False
     scene.camera.data.type = "PANO"
     with pytest.raises(RuntimeError, match="pano"):
         bpy.ops.crepuscular.render_layers(filepath=path)
