@@ -449,6 +449,8 @@ class CREPUSCULAR_PT_scene(bpy.types.Panel):
             layout.prop(settings, "anisotropy")
         layout.separator()
         layout.prop(settings, "composite")
+        if settings.composite and not context.scene.render.use_compositing:
+            layout.label(text="Compositing is off in Post Processing: no composite", icon="ERROR")
         layout.prop(settings, "write_layers")
         layout.prop(settings, "preview")
         row = layout.row()
