@@ -281,6 +281,12 @@ class CrepuscularLight(PropertyGroup):
     tf_resolution: IntProperty(name="Resolution", min=2, max=4096, default=256, update=_tag_preview)
     tf_layers: CollectionProperty(type=CrepuscularTfLayer)
     active_tf_layer: IntProperty(default=0)
+    tf_image: PointerProperty(
+        name="Baked TF",
+        type=bpy.types.Image,
+        description="The TF baked by 'Bake TF to Image': V̄ left to right, depth bottom to "
+        "top, premultiplied. Paint on it in the Image Editor and use it as an Image layer",
+    )
 
 
 CASTS = [

@@ -218,6 +218,27 @@ def _image_from_source(source: dict[str, Any], path: str) -> bpy.types.Image:
     return image
 
 
+def bake_tf_image(settings: Any, *, time: float, name: str) -> bpy.types.Image:
+    """Bakes a lamp's TF stack at `time` seconds into the float Image `TF <name>` (created
+    or resized), stores it in `settings.tf_image`, and returns it."""
+    style = style_from_light(settings, time=time, hole_objects=[], name=name)
+    if "tf" not in style:
+        raise StyleError(f"{name}.crepuscular.use_tf: the transfer function is off")
+    texels = crepuscular.bake_tf(style, time=time)
+    size = texels.shape[0]
+    image = settings.tf_image
+    if image is None:
+        image = bpy.data.images.new(f"TF {name}", size, size, alpha=True, float_buffer=True)
+        settings.tf_image = image
+    elif tuple(image.size) != (size, size):
+        image.scale(size, size)
+    image.alpha_mode = "PREMUL"
+    # Row j of the texture is depth u rising, as Blender stores rows bottom up.
+    image.pixels.foreach_set(np.ascontiguousarray(texels, dtype=np.float32).ravel())
+    image.update()
+    return image
+
+
 def save_preset(settings: Any, path: str | os.PathLike[str], *, name: str = "light") -> None:
     """Writes a lamp's style as a preset file (validated by the core before writing)."""
     style = style_from_light(settings, time=0.0, hole_objects=[], name=name)

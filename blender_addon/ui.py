@@ -11,7 +11,7 @@ import crepuscular
 
 from . import preview
 from .properties import TF_KINDS
-from .style import StyleError, apply_preset, save_preset
+from .style import StyleError, apply_preset, bake_tf_image, save_preset
 
 
 def _sun_settings(context: bpy.types.Context):
@@ -63,6 +63,32 @@ class CREPUSCULAR_OT_save_preset(bpy.types.Operator, ExportHelper):
         except (StyleError, crepuscular.CrepuscularError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class CREPUSCULAR_OT_bake_tf(bpy.types.Operator):
+    """Bake this sun's TF stack at the current frame into an Image datablock, to view it
+    and paint on it in the Image Editor"""
+
+    bl_idname = "crepuscular.bake_tf"
+    bl_label = "Bake TF to Image"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return _sun_settings(context) is not None
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        light, scene = context.light, context.scene
+        fps = scene.render.fps / scene.render.fps_base
+        try:
+            image = bake_tf_image(
+                light.crepuscular, time=scene.frame_current / fps, name=light.name
+            )
+        except (StyleError, crepuscular.CrepuscularError) as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"baked the TF into image '{image.name}'")
         return {"FINISHED"}
 
 
@@ -366,6 +392,10 @@ class CREPUSCULAR_PT_sun_tf(SunPanel, bpy.types.Panel):
         buttons.operator(
             CREPUSCULAR_OT_tf_layer_move.bl_idname, text="", icon="TRIA_DOWN"
         ).direction = "DOWN"
+        row = layout.row(align=True)
+        row.operator(CREPUSCULAR_OT_bake_tf.bl_idname, icon="IMAGE_DATA")
+        if settings.tf_image is not None:
+            row.label(text=settings.tf_image.name)
         if not 0 <= settings.active_tf_layer < len(settings.tf_layers):
             return
         layer = settings.tf_layers[settings.active_tf_layer]
@@ -465,6 +495,7 @@ class CREPUSCULAR_PT_scene(bpy.types.Panel):
 
 CLASSES = (
     CREPUSCULAR_OT_load_preset,
+    CREPUSCULAR_OT_bake_tf,
     CREPUSCULAR_OT_save_preset,
     CREPUSCULAR_OT_tf_layer_add,
     CREPUSCULAR_OT_tf_layer_remove,

@@ -184,6 +184,36 @@ def test_presets_load_and_save_in_the_preset_format(
     assert json.dumps(again, sort_keys=True) == json.dumps(original, sort_keys=True)
 
 
+def test_tf_bakes_into_an_image_to_paint_on(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    light = scene.objects["Sun"].data
+    settings = light.crepuscular
+    with (
+        bpy.context.temp_override(light=light),
+        pytest.raises(RuntimeError, match="use_tf"),
+    ):
+        bpy.ops.crepuscular.bake_tf()
+    addon.style.apply_preset(settings, PRESETS / "alarm.json")
+    with bpy.context.temp_override(light=light):
+        assert bpy.ops.crepuscular.bake_tf() == {"FINISHED"}
+    image = settings.tf_image
+    assert tuple(image.size) == (256, 256)
+    pixels = np.empty(256 * 256 * 4, dtype=np.float32)
+    image.pixels.foreach_get(pixels)
+    expected = crepuscular.bake_tf(PRESETS / "alarm.json")
+    np.testing.assert_allclose(pixels.reshape(256, 256, 4), expected, atol=1e-6)
+    # Painted pixels come back as an image layer of the stack.
+    pixels.reshape(256, 256, 4)[:, :128] = [0.0, 0.0, 1.0, 1.0]
+    image.pixels.foreach_set(pixels)
+    layer = settings.tf_layers.add()
+    layer.kind, layer.image = "image", image
+    style = addon.style.style_from_light(settings, time=0.0, hole_objects=[])
+    repainted = crepuscular.bake_tf(style)
+    assert repainted[100, 20, 2] == pytest.approx(1.0)  # painted blue over the left half
+    assert repainted[100, 20, 0] == pytest.approx(0.0)
+    np.testing.assert_allclose(repainted[:, 200], expected[:, 200], atol=1e-3)
+
+
 def test_bad_presets_name_the_field(addon: ModuleType, tmp_path: Path) -> None:
     scene = _basic_scene()
     settings = scene.objects["Sun"].data.crepuscular
