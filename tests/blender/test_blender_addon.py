@@ -214,6 +214,34 @@ def test_tf_bakes_into_an_image_to_paint_on(addon: ModuleType, tmp_path: Path) -
     np.testing.assert_allclose(repainted[:, 200], expected[:, 200], atol=1e-3)
 
 
+def test_tf_stack_operators_edit_the_stack(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    light = scene.objects["Sun"].data
+    settings = light.crepuscular
+    with bpy.context.temp_override(light=light):
+        assert not bpy.ops.crepuscular.tf_layer_remove.poll()
+        for kind in ("solid", "gradient", "diffusion"):
+            assert bpy.ops.crepuscular.tf_layer_add(kind=kind) == {"FINISHED"}
+        assert [layer.kind for layer in settings.tf_layers] == ["solid", "gradient", "diffusion"]
+        assert len(settings.tf_layers[1].stops) == 2  # a new gradient runs black to white
+        assert settings.active_tf_layer == 2
+        assert bpy.ops.crepuscular.tf_item_add() == {"FINISHED"}
+        assert len(settings.tf_layers[2].constraints) == 1
+        assert bpy.ops.crepuscular.tf_layer_move(direction="DOWN") == {"FINISHED"}
+        assert [layer.kind for layer in settings.tf_layers] == ["solid", "diffusion", "gradient"]
+        assert settings.active_tf_layer == 1
+        assert bpy.ops.crepuscular.tf_item_remove() == {"FINISHED"}
+        assert len(settings.tf_layers[1].constraints) == 0
+        assert bpy.ops.crepuscular.tf_item_remove() == {"CANCELLED"}
+        assert bpy.ops.crepuscular.tf_layer_remove() == {"FINISHED"}
+        assert [layer.kind for layer in settings.tf_layers] == ["solid", "gradient"]
+        settings.use_tf = True
+        path = tmp_path / "stack.json"
+        assert bpy.ops.crepuscular.save_preset(filepath=str(path)) == {"FINISHED"}
+    saved = crepuscular.load_style(path)
+    assert [layer["kind"] for layer in saved["tf"]["layers"]] == ["solid", "gradient"]
+
+
 def test_bad_presets_name_the_field(addon: ModuleType, tmp_path: Path) -> None:
     scene = _basic_scene()
     settings = scene.objects["Sun"].data.crepuscular
