@@ -448,44 +448,95 @@ def frame_inputs(
     scene: bpy.types.Scene,
     depsgraph: bpy.types.Depsgraph,
     *,
+    sun: bpy.types.Object | None = None,
     cache: GeometryCache | None = None,
     divisor: int = 1,
     preview: bool = False,
 ) -> FrameInputs:
-    """The `render_arrays` arguments for the scene's current frame in `depsgraph`."""
+    """The `render_arrays` arguments of one sun (default: the first with shafts, by name)
+    for the scene's current frame in `depsgraph`."""
     from .style import style_from_light
 
-    suns = shaft_suns(scene)
-    if not suns:
-        raise ExportError(
-            "no sun lamp has Stylized Shafts enabled (light.crepuscular.enabled on a SUN)"
-        )
-    notes = []
-    if len(suns) > 1:
-        notes.append(f"several suns have shafts; only '{suns[0].name}' is rendered")
-    sun = suns[0].evaluated_get(depsgraph)
+    if sun is None:
+        suns = shaft_suns(scene)
+        if not suns:
+            raise ExportError(
+                "no sun lamp has Stylized Shafts enabled (light.crepuscular.enabled on a SUN)"
+            )
+        sun = suns[0]
+    notes: list[str] = []
+    evaluated = sun.evaluated_get(depsgraph)
     camera = camera_dict(scene, depsgraph, divisor)
     medium, medium_notes = medium_dict(scene, depsgraph)
     notes += medium_notes
     fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None
     exclude = {fog.name_full} if fog is not None else set()
     geometry = export_geometry(depsgraph, cache=cache, exclude=exclude)
-    settings = sun.data.crepuscular
+    settings = evaluated.data.crepuscular
     fps = scene.render.fps / scene.render.fps_base
     style = style_from_light(
         settings,
         time=depsgraph.scene.frame_current / fps,
         hole_objects=geometry.hole_ids,
-        name=f"bpy.data.lights['{sun.data.original.name}']",
+        name=f"bpy.data.lights['{evaluated.data.original.name}']",
     )
     kwargs = {
         "positions": geometry.positions,
         "triangles": geometry.triangles,
         "object_ids": geometry.object_ids,
         "camera": camera,
-        "sun": sun_dict(sun),
+        "sun": sun_dict(evaluated),
         "medium": medium,
         "settings": settings_dict(settings, preview=preview),
         "style": style,
     }
-    return FrameInputs(kwargs, suns[0].name, notes, geometry)
+    return FrameInputs(kwargs, sun.name, notes, geometry)
+
+
+def all_frame_inputs(
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph,
+    *,
+    cache: GeometryCache | None = None,
+    divisor: int = 1,
+    preview: bool = False,
+) -> list[FrameInputs]:
+    """`frame_inputs` of every sun with shafts, by name; an error names the missing sun."""
+    suns = shaft_suns(scene)
+    if not suns:
+        raise ExportError(
+            "no sun lamp has Stylized Shafts enabled (light.crepuscular.enabled on a SUN)"
+        )
+    return [
+        frame_inputs(scene, depsgraph, sun=sun, cache=cache, divisor=divisor, preview=preview)
+        for sun in suns
+    ]
+
+
+def render_suns(
+    inputs: list[FrameInputs], progress: Any = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Renders every sun's layers and sums their in-scattered light.
+
+    The volume's alpha (1 − transmittance to the first surface) and the depth do not depend
+    on the light, so they are the first sun's; `visibility` is the first sun's too.
+    Returns (volume, visibility, depth).
+    """
+    import crepuscular
+
+    if not inputs:
+        raise ExportError("no sun lamp has Stylized Shafts enabled")
+
+    def render(index: int) -> crepuscular.Layers:
+        def scaled(fraction: float) -> object:
+            return progress((index + fraction) / len(inputs))
+
+        return crepuscular.render_arrays(
+            **inputs[index].kwargs, progress=None if progress is None else scaled
+        )
+
+    first = render(0)
+    volume = np.array(first.volume, dtype=np.float32)
+    for index in range(1, len(inputs)):
+        volume[..., :3] += render(index).volume[..., :3]
+    return volume, first.visibility, first.depth

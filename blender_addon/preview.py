@@ -98,7 +98,7 @@ class PreviewController:
             self.generation += 1
             generation = self.generation
         try:
-            inputs = export.frame_inputs(
+            inputs = export.all_frame_inputs(
                 scene,
                 depsgraph,
                 cache=self.cache,
@@ -111,7 +111,7 @@ class PreviewController:
         self.error = ""
         thread = threading.Thread(
             target=self._work,
-            args=(generation, inputs.kwargs),
+            args=(generation, inputs),
             name="crepuscular-preview",
             daemon=True,
         )
@@ -120,7 +120,7 @@ class PreviewController:
         thread.start()
         return True
 
-    def _work(self, generation: int, kwargs: dict[str, Any]) -> None:
+    def _work(self, generation: int, inputs: list[export.FrameInputs]) -> None:
         def progress(fraction: float) -> None:
             if self.generation != generation:
                 raise Superseded
@@ -128,7 +128,7 @@ class PreviewController:
 
         start = time.perf_counter()
         try:
-            layers = crepuscular.render_arrays(**kwargs, progress=progress)
+            volume, _, _ = export.render_suns(inputs, progress)
         except Superseded:
             with self._lock:
                 self.cancelled += 1
@@ -138,9 +138,7 @@ class PreviewController:
                 if generation == self.generation:
                     self.error = str(error)
             return
-        result = PreviewResult(
-            generation, layers.volume, to_display(layers.volume), time.perf_counter() - start
-        )
+        result = PreviewResult(generation, volume, to_display(volume), time.perf_counter() - start)
         with self._lock:
             if generation == self.generation:
                 self.result = result

@@ -92,15 +92,17 @@ def render_layers(
     progress: crepuscular.ProgressCallback | None = None,
 ) -> tuple[crepuscular.Layers, export.FrameInputs]:
     """Exports the frame in `depsgraph` and renders its layers at the render's size, with
-    the volume layer filtered like the beauty's pixels."""
-    inputs = export.frame_inputs(scene, depsgraph, cache=CACHE)
-    layers = crepuscular.render_arrays(**inputs.kwargs, progress=progress)
-    settings = inputs.kwargs["settings"]
-    volume = match_pixel_filter(layers.volume, pixel_filter_width(scene), settings["supersampling"])
-    layers = crepuscular.Layers(
-        layers.width, layers.height, volume, layers.visibility, layers.depth
-    )
-    return layers, inputs
+    the volume layer filtered like the beauty's pixels. Several suns with shafts add their
+    light (see `export.render_suns`); the first one's inputs are returned, with every
+    sun's notes."""
+    inputs = export.all_frame_inputs(scene, depsgraph, cache=CACHE)
+    volume, visibility, depth = export.render_suns(inputs, progress)
+    settings = inputs[0].kwargs["settings"]
+    volume = match_pixel_filter(volume, pixel_filter_width(scene), settings["supersampling"])
+    height, width = depth.shape
+    for entry in inputs[1:]:
+        inputs[0].notes.extend(note for note in entry.notes if note not in inputs[0].notes)
+    return crepuscular.Layers(width, height, volume, visibility, depth), inputs[0]
 
 
 def layers_path(scene: bpy.types.Scene, frame: int) -> str:

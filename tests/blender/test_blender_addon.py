@@ -556,6 +556,33 @@ def test_world_constraints_follow_the_frame(addon: ModuleType, tmp_path: Path) -
         bpy.ops.crepuscular.render_layers(filepath=str(red))
 
 
+def test_several_suns_add_their_light(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    second = blender_scenes.add_sun(scene, (-0.4, 0.1, -1.0), strength=1.5)
+    second.name = "Sun.2"
+    second.data.crepuscular.shadow_map_size = 256
+    second.data.crepuscular.edge_samples = 1
+    first = scene.objects["Sun"]
+    paths = {}
+    for name, enabled in (
+        ("both", (True, True)),
+        ("first", (True, False)),
+        ("second", (False, True)),
+    ):
+        first.data.crepuscular.enabled, second.data.crepuscular.enabled = enabled
+        paths[name] = tmp_path / f"{name}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(paths[name])) == {"FINISHED"}
+    both, one, two = (volume_of(paths[n]) for n in ("both", "first", "second"))
+    np.testing.assert_allclose(both[..., :3], one[..., :3] + two[..., :3], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(both[..., 3], one[..., 3])  # transmittance is the medium's
+    assert two[..., :3].mean() > 0.1 * one[..., :3].mean()
+
+
+def volume_of(path: Path) -> np.ndarray:
+    channels = crepuscular.read_exr(path)
+    return np.stack([channels[f"volume.{c}"] for c in "RGBA"], axis=-1)
+
+
 def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> None:
     path = str(tmp_path / "x.exr")
     scene = bpy.context.scene
