@@ -132,16 +132,15 @@ def available_memory() -> int | None:
         return None
 
 
-def _check_memory(vertices: int, triangles: int, obj: bpy.types.Object) -> None:
-    # Checked every million vertices, so that the check itself costs nothing.
-    if vertices < 1_000_000 or vertices % 1_000_000 > 100_000:
+def _check_memory(vertices: int, triangles: int, name: str) -> None:
+    if vertices < 1_000_000:
         return
     need = vertices * BYTES_PER_VERTEX + triangles * BYTES_PER_TRIANGLE
     free = available_memory()
     if free is not None and need > free:
         raise ExportError(
             f"geometry too large for memory: {vertices} vertices and {triangles} triangles "
-            f"so far (at object '{obj.original.name}') need about {need / 2**30:.1f} GiB, "
+            f"so far (at object '{name}') need about {need / 2**30:.1f} GiB, "
             f"{free / 2**30:.1f} GiB are free"
         )
 
@@ -172,44 +171,58 @@ def export_geometry(
     renders are left out too. `exclude` holds original object names (the fog box).
     """
     render_mode = depsgraph.mode == "RENDER"
+    names: dict[str, int] = {}
+    holes: set[int] = set()
+    # Decisions per (object, instancer) and meshes per evaluated mesh, so that thousands
+    # of particle or geometry-nodes instances of one mesh cost one lookup each; their
+    # matrices are then applied in one batch per mesh.
+    decisions: dict[tuple[str, str | None], int | None] = {}
+    meshes: dict[int, MeshArrays | None] = {}
+    groups: dict[tuple[int, int], list[Any]] = {}
+    for instance in depsgraph.object_instances:
+        obj = instance.object
+        if obj.type not in GEOMETRY_TYPES:
+            continue
+        parent = instance.parent if instance.is_instance else None
+        key = (obj.original.name_full, None if parent is None else parent.original.name_full)
+        object_id = decisions.get(key, -1)
+        if object_id == -1:
+            object_id = _decide(obj, parent, render_mode, exclude, names, holes)
+            decisions[key] = object_id
+        if object_id is None:
+            continue
+        pointer = obj.data.as_pointer() if obj.type == "MESH" else obj.as_pointer()
+        if pointer not in meshes:
+            meshes[pointer] = _object_arrays(obj, cache)
+        arrays = meshes[pointer]
+        if arrays is None or len(arrays.triangles) == 0:
+            continue
+        groups.setdefault((pointer, object_id), []).append(instance.matrix_world.copy())
     positions: list[np.ndarray] = []
     triangles: list[np.ndarray] = []
     ids: list[np.ndarray] = []
-    names: dict[str, int] = {}
-    holes: set[int] = set()
     base = 0
-    for instance in depsgraph.object_instances:
-        obj = instance.object
-        if obj.type not in GEOMETRY_TYPES or obj.original.name_full in exclude:
+    triangle_total = 0
+    for (pointer, object_id), matrices in groups.items():
+        arrays = meshes[pointer]
+        if arrays is None:  # never grouped; keeps the type checker informed
             continue
-        parent = instance.parent if instance.is_instance else None
-        chain = [obj] if parent is None else [obj, parent]
-        choices = [_casts(o) for o in chain]
-        if False in choices:
-            continue
-        if True not in choices and not all(o.visible_shadow for o in chain):
-            continue
-        if not render_mode and any(_hidden_in_render(o.original) for o in chain):
-            continue
-        arrays = _object_arrays(obj, cache)
-        if arrays is None or len(arrays.triangles) == 0:
-            continue
-        if base + len(arrays.positions) > MAX_VERTICES:
+        count, vertices = len(matrices), len(arrays.positions)
+        if base + count * vertices > MAX_VERTICES:
             raise ExportError(
                 f"geometry too large: more than {MAX_VERTICES} vertices by object "
-                f"'{obj.original.name}' (the core indexes vertices with 32 bits)"
+                f"'{_name_of(names, object_id)}' (the core indexes vertices with 32 bits)"
             )
-        _check_memory(base + len(arrays.positions), sum(len(t) for t in triangles), obj)
-        matrix = np.array(instance.matrix_world, dtype=np.float64)
-        world = arrays.positions @ matrix[:3, :3].T + matrix[:3, 3]
-        owner = chain[-1].original
-        object_id = names.setdefault(owner.name_full, len(names) + 1)
-        if any(o.original.crepuscular.takes_holes for o in chain):
-            holes.add(object_id)
-        positions.append(world.astype(np.float32))
-        triangles.append(arrays.triangles + np.uint32(base))
-        ids.append(np.full(len(arrays.triangles), object_id, dtype=np.uint32))
-        base += len(arrays.positions)
+        triangle_total += count * len(arrays.triangles)
+        _check_memory(base + count * vertices, triangle_total, _name_of(names, object_id))
+        stack = np.array(matrices, dtype=np.float64).reshape(count, 4, 4)
+        world = np.einsum("kij,nj->kni", stack[:, :3, :3], arrays.positions.astype(np.float64))
+        world += stack[:, None, :3, 3]
+        offsets = base + vertices * np.arange(count, dtype=np.uint32)
+        positions.append(world.reshape(-1, 3).astype(np.float32))
+        triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
+        ids.append(np.full(count * len(arrays.triangles), object_id, dtype=np.uint32))
+        base += count * vertices
     if not positions:
         return Geometry(
             np.zeros((0, 3), np.float32),
@@ -220,11 +233,41 @@ def export_geometry(
         )
     return Geometry(
         np.ascontiguousarray(np.concatenate(positions)),
-        np.ascontiguousarray(np.concatenate(triangles)),
+        np.ascontiguousarray(np.concatenate(triangles), dtype=np.uint32),
         np.ascontiguousarray(np.concatenate(ids)),
         sorted(holes),
         {v: k for k, v in names.items()},
     )
+
+
+def _name_of(names: dict[str, int], object_id: int) -> str:
+    return next((name for name, i in names.items() if i == object_id), "?")
+
+
+def _decide(
+    obj: bpy.types.Object,
+    parent: bpy.types.Object | None,
+    render_mode: bool,
+    exclude: set[str] | frozenset[str],
+    names: dict[str, int],
+    holes: set[int],
+) -> int | None:
+    """The object id of an (object, instancer) pair, or None when it does not cast."""
+    if obj.original.name_full in exclude:
+        return None
+    chain = [obj] if parent is None else [obj, parent]
+    choices = [_casts(o) for o in chain]
+    if False in choices:
+        return None
+    if True not in choices and not all(o.visible_shadow for o in chain):
+        return None
+    if not render_mode and any(_hidden_in_render(o.original) for o in chain):
+        return None
+    owner = chain[-1].original
+    object_id = names.setdefault(owner.name_full, len(names) + 1)
+    if any(o.original.crepuscular.takes_holes for o in chain):
+        holes.add(object_id)
+    return object_id
 
 
 def column_major(matrix: Any) -> list[float]:
