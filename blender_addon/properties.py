@@ -50,7 +50,14 @@ def _lights_update(self: PropertyGroup, context: bpy.types.Context) -> None:
     from . import render
 
     if context is not None and context.scene is not None:
-        render.sync_scene(context.scene)
+        from . import export
+
+        try:
+            render.sync_scene(context.scene)
+        except export.ExportError as error:
+            # Shown in the panels and logged; the next render tries again.
+            context.scene.crepuscular.last_error = str(error)
+            render.log(str(error))
     _tag_preview(self, context)
 
 

@@ -171,7 +171,8 @@ def composite_group() -> bpy.types.NodeTree:
     source.location = (-400, 0)
     volume = nodes.new("CompositorNodeImage")
     volume.name = volume.label = "Volume Layer"
-    volume.image = volume_image(*export.render_size(bpy.context.scene))
+    # Any size: each render resizes the image to its own.
+    volume.image = volume_image(64, 64)
     volume.location = (-400, -200)
     over = nodes.new("CompositorNodeAlphaOver")
     over.name = over.label = "Premultiplied Over"

@@ -643,6 +643,29 @@ def test_enabling_shafts_wires_the_compositor(addon: ModuleType) -> None:
     assert len([n for n in tree.nodes if n.name.startswith(addon.render.NODE_NAME)]) == 1
 
 
+def test_the_group_goes_in_front_of_an_existing_compositor_output(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    tree = bpy.data.node_groups.new("Artist Comp", "CompositorNodeTree")
+    tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    layers = tree.nodes.new("CompositorNodeRLayers")
+    glare = tree.nodes.new("CompositorNodeGlare")
+    output = tree.nodes.new("NodeGroupOutput")
+    tree.links.new(layers.outputs["Image"], glare.inputs["Image"])
+    tree.links.new(glare.outputs["Image"], output.inputs[0])
+    scene.compositing_node_group = tree
+    _basic_scene()
+    node = tree.nodes[addon.render.NODE_NAME]
+    assert node.inputs[0].links[0].from_node == glare  # the artist's work stays upstream
+    assert output.inputs[0].links[0].from_node == node
+    # A tree with no output to composite in front of: a report, no exception.
+    broken = bpy.data.node_groups.new("No Output", "CompositorNodeTree")
+    scene.compositing_node_group = broken
+    sun = scene.objects["Sun"].data.crepuscular
+    sun.enabled = False
+    sun.enabled = True
+    assert "No Output" in scene.crepuscular.last_error
+
+
 # Viewport preview -----------------------------------------------------------------------
 
 
