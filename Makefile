@@ -9,12 +9,14 @@ CLI         := target/release/crepuscular
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(VIRTUAL_ENV)/bin:$(PATH)
 
-.PHONY: demo test system-deps build wheel usd-package rust-test python-test lint bench clean
+.PHONY: demo test system-deps build wheel addon usd-package rust-test python-test lint bench clean
 
-demo: build
+demo: build $(VENV)/.test-deps
 	$(CLI) demo --out-dir out/demo
+	$(PYTHON) blender_addon/build_extension.py $(WHEEL_DIR) out/addon
+	$(PYTHON) examples/blender_demo.py out/demo/blender
 
-test: system-deps $(VENV)/.test-deps lint rust-test wheel python-test
+test: system-deps $(VENV)/.test-deps lint rust-test wheel addon python-test
 
 system-deps:
 	@.ci/system-deps
@@ -46,8 +48,12 @@ usd-package: $(VENV)/.test-deps
 lint: $(VENV)/.test-deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets --release -- -D warnings
-	ruff check core/python tests examples usd
-	ruff format --check core/python tests examples usd
+	ruff check core/python tests examples usd blender_addon
+	ruff format --check core/python tests examples usd blender_addon
+
+# The Blender extension zip (add-on sources, manifest and the wheel above) in out/addon/.
+addon: wheel
+	$(PYTHON) blender_addon/build_extension.py $(WHEEL_DIR) out/addon
 
 rust-test:
 	$(CARGO) test -p crepuscular --release

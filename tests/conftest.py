@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
+import atexit
 import copy
+import os
+import shutil
+import tempfile
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+
+# Blender keeps installed extensions and preferences in its user resource folder. Point it at
+# a temporary one before bpy is first imported (here or in a subprocess, which inherits it),
+# so that tests never read or change a real user configuration.
+if "CREPUSCULAR_TEST_BLENDER_USER" not in os.environ:
+    _blender_user = tempfile.mkdtemp(prefix="crepuscular-blender-user-")
+    atexit.register(shutil.rmtree, _blender_user, ignore_errors=True)
+    os.environ["CREPUSCULAR_TEST_BLENDER_USER"] = _blender_user
+    os.environ["BLENDER_USER_RESOURCES"] = _blender_user
 
 #: Camera-to-world, column-major: no rotation (looking down -Z), placed at (0, 1.5, 6).
 CAMERA_AT_0_1_6 = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 1.5, 6, 1]

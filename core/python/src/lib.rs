@@ -17,7 +17,7 @@ use crepuscular::style::STYLE_VERSION;
 use crepuscular::{
     CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene, Style,
 };
-use numpy::{PyReadonlyArray1, PyReadonlyArray2};
+use numpy::{PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
@@ -135,6 +135,29 @@ fn normalize_style_json(py: Python<'_>, style_json: &str) -> PyResult<String> {
         .map_err(to_py_err)
 }
 
+/// Bakes a style preset's transfer function at `time` into its texture.
+///
+/// Returns `(size, size, 4)` premultiplied linear RGBA; row `j` holds `u = (j + 0.5)/size`
+/// (depth rising), column `i` holds `V̄ = (i + 0.5)/size`.
+#[pyfunction]
+#[pyo3(signature = (style_json, /, *, time=0.0))]
+fn bake_tf<'py>(py: Python<'py>, style_json: &str, time: f32) -> PyResult<Bound<'py, PyAny>> {
+    let texture = py
+        .detach(|| {
+            let style = Style::from_json(style_json)?;
+            let tf = style
+                .tf
+                .ok_or_else(|| Error::invalid("style.tf", "the style has no transfer function"))?;
+            tf.bake(time)
+        })
+        .map_err(to_py_err)?;
+    let size = texture.size() as usize;
+    let flat: Vec<f32> = texture.texels().iter().flatten().copied().collect();
+    Ok(numpy::PyArray1::from_vec(py, flat)
+        .reshape([size, size, 4])?
+        .into_any())
+}
+
 /// The frame-wide parts of a render, borrowed.
 struct Parts<'a> {
     camera: &'a Camera,
@@ -200,6 +223,7 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(render_arrays, module)?)?;
     module.add_function(wrap_pyfunction!(normalize_scene_json, module)?)?;
     module.add_function(wrap_pyfunction!(normalize_style_json, module)?)?;
+    module.add_function(wrap_pyfunction!(bake_tf, module)?)?;
     module.add("STYLE_VERSION", STYLE_VERSION)?;
     module.add_function(wrap_pyfunction!(files::builtin_scene_json, module)?)?;
     module.add_function(wrap_pyfunction!(files::builtin_scene_names, module)?)?;

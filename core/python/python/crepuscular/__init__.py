@@ -40,6 +40,7 @@ __all__ = [
     "SceneLike",
     "StyleLike",
     "__version__",
+    "bake_tf",
     "builtin_scene",
     "builtin_scene_names",
     "composite",
@@ -163,6 +164,19 @@ def load_style(style: StyleLike) -> dict[str, Any]:
     """
     result: dict[str, Any] = json.loads(_core.normalize_style_json(_convert.scene_json(style)))
     return result
+
+
+def bake_tf(style: StyleLike, *, time: float = 0.0) -> npt.NDArray[np.float32]:
+    """Bakes a style's transfer function at `time` (seconds, for key frames).
+
+    Returns (size, size, 4) premultiplied linear RGBA, row j at normalized depth
+    u = (j + 0.5)/size (rising) and column i at V̄ = (i + 0.5)/size. A style without `tf`
+    raises `InvalidInputError` naming "style.tf".
+    """
+    json_text = _style_json(style)
+    if json_text is None:
+        raise TypeError("style must be a preset path, a mapping or JSON text, not None")
+    return _core.bake_tf(json_text, time=float(time))
 
 
 def _style_json(style: StyleLike | None) -> str | None:

@@ -1,0 +1,585 @@
+"""The evaluated depsgraph to the core's inputs: world-space triangles with object ids,
+camera, sun, medium, render settings and style, ready for `crepuscular.render_arrays`.
+
+Geometry comes from `depsgraph.object_instances`, so modifiers, geometry-nodes output,
+collection and particle instances, curves and text (as their evaluated meshes) all count.
+Vertices and triangles are read with `foreach_get` into numpy. Object-space triangles of
+static meshes (no modifiers, no shape keys) are cached across frames, keyed by the mesh, and
+only their matrices are applied again; `GeometryCache.invalidate` drops what changed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import bpy
+import numpy as np
+
+#: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
+#: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
+GEOMETRY_TYPES = {"MESH", "META"}
+#: Rec. 709 luminance weights, as Blender's default scene-linear space.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+class ExportError(ValueError):
+    """The scene cannot be exported; the message names the object or setting at fault."""
+
+
+@dataclass
+class MeshArrays:
+    """Object-space vertices (N, 3) float32 and triangles (M, 3) uint32 of one mesh."""
+
+    positions: np.ndarray
+    triangles: np.ndarray
+
+
+@dataclass
+class GeometryCache:
+    """Object-space triangles of static meshes, reused across frames."""
+
+    meshes: dict[str, MeshArrays] = field(default_factory=dict)
+    hits: int = 0
+    misses: int = 0
+
+    def invalidate(self, names: set[str] | None = None) -> None:
+        """Drops the entries of these mesh names, or everything when `names` is None."""
+        if names is None:
+            self.meshes.clear()
+        else:
+            for name in names:
+                self.meshes.pop(name, None)
+
+
+@dataclass
+class Geometry:
+    positions: np.ndarray
+    triangles: np.ndarray
+    object_ids: np.ndarray
+    #: Object ids that take noise holes.
+    hole_ids: list[int]
+    #: Object id -> original object name, for messages and tests.
+    names: dict[int, str]
+
+
+@dataclass
+class FrameInputs:
+    """Everything one `render_arrays` call takes, plus what to tell the user."""
+
+    kwargs: dict[str, Any]
+    sun: str
+    notes: list[str]
+    geometry: Geometry
+
+
+def mesh_arrays(mesh: bpy.types.Mesh) -> MeshArrays:
+    """A mesh's vertices and loop triangles, read with `foreach_get`."""
+    positions = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", positions)
+    triangles = np.empty(len(mesh.loop_triangles) * 3, dtype=np.uint32)
+    mesh.loop_triangles.foreach_get("vertices", triangles)
+    return MeshArrays(positions.reshape(-1, 3), triangles.reshape(-1, 3))
+
+
+def _static_key(obj: bpy.types.Object) -> str | None:
+    """The cache key of an evaluated object whose mesh is its original data, else None."""
+    original = obj.original
+    if obj.type != "MESH" or original.type != "MESH" or len(original.modifiers) > 0:
+        return None
+    data = original.data
+    if data.shape_keys is not None or data.animation_data is not None:
+        return None
+    return data.name_full
+
+
+def _object_arrays(obj: bpy.types.Object, cache: GeometryCache | None) -> MeshArrays | None:
+    key = _static_key(obj) if cache is not None else None
+    if key is not None and cache is not None:
+        cached = cache.meshes.get(key)
+        if cached is not None and len(cached.positions) == len(obj.data.vertices):
+            cache.hits += 1
+            return cached
+    if obj.type == "MESH":
+        arrays = mesh_arrays(obj.data)
+    else:
+        mesh = obj.to_mesh()
+        try:
+            arrays = None if mesh is None else mesh_arrays(mesh)
+        finally:
+            obj.to_mesh_clear()
+    if key is not None and cache is not None and arrays is not None:
+        cache.misses += 1
+        cache.meshes[key] = arrays
+    return arrays
+
+
+#: The core's vertex indices are 32-bit.
+MAX_VERTICES = 2**32 - 1
+#: Bytes the export and the core hold per vertex and per triangle, about (world positions,
+#: a copy while concatenating, indices and object ids, and the core's own copies).
+BYTES_PER_VERTEX = 3 * 4 * 3
+BYTES_PER_TRIANGLE = (3 * 4 + 4) * 3
+
+
+def available_memory() -> int | None:
+    """Physical memory available now, in bytes, where the system says (Linux)."""
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(vertices: int, triangles: int, name: str) -> None:
+    if vertices < 1_000_000:
+        return
+    need = vertices * BYTES_PER_VERTEX + triangles * BYTES_PER_TRIANGLE
+    free = available_memory()
+    if free is not None and need > free:
+        raise ExportError(
+            f"geometry too large for memory: {vertices} vertices and {triangles} triangles "
+            f"so far (at object '{name}') need about {need / 2**30:.1f} GiB, "
+            f"{free / 2**30:.1f} GiB are free"
+        )
+
+
+def _hidden_in_render(obj: bpy.types.Object) -> bool:
+    """Render visibility for a viewport depsgraph: the object or a collection hides it."""
+    if obj.hide_render:
+        return True
+    return bool(obj.users_collection) and all(c.hide_render for c in obj.users_collection)
+
+
+def _casts(obj: bpy.types.Object) -> bool | None:
+    """The object's own choice: True/False when forced, None to follow ray visibility."""
+    mode = obj.original.crepuscular.casts_shafts
+    return None if mode == "auto" else mode == "on"
+
+
+def export_geometry(
+    depsgraph: bpy.types.Depsgraph,
+    *,
+    cache: GeometryCache | None = None,
+    exclude: set[str] | frozenset[str] = frozenset(),
+) -> Geometry:
+    """World-space triangles of everything that casts shafts in `depsgraph`.
+
+    An instance casts unless it or its instancer is set to Off; set to Auto, it follows
+    Blender's Shadow ray visibility of both. With a viewport depsgraph, objects hidden in
+    renders are left out too. `exclude` holds original object names (the fog box).
+    """
+    render_mode = depsgraph.mode == "RENDER"
+    names: dict[str, int] = {}
+    holes: set[int] = set()
+    # Decisions per (object, instancer) and meshes per evaluated mesh, so that thousands
+    # of particle or geometry-nodes instances of one mesh cost one lookup each; their
+    # matrices are then applied in one batch per mesh.
+    decisions: dict[tuple[str, str | None], int | None] = {}
+    meshes: dict[int, MeshArrays | None] = {}
+    groups: dict[tuple[int, int], list[Any]] = {}
+    for instance in depsgraph.object_instances:
+        obj = instance.object
+        if obj.type not in GEOMETRY_TYPES:
+            continue
+        parent = instance.parent if instance.is_instance else None
+        key = (obj.original.name_full, None if parent is None else parent.original.name_full)
+        object_id = decisions.get(key, -1)
+        if object_id == -1:
+            object_id = _decide(obj, parent, render_mode, exclude, names, holes)
+            decisions[key] = object_id
+        if object_id is None:
+            continue
+        pointer = obj.data.as_pointer() if obj.type == "MESH" else obj.as_pointer()
+        if pointer not in meshes:
+            meshes[pointer] = _object_arrays(obj, cache)
+        arrays = meshes[pointer]
+        if arrays is None or len(arrays.triangles) == 0:
+            continue
+        groups.setdefault((pointer, object_id), []).append(instance.matrix_world.copy())
+    positions: list[np.ndarray] = []
+    triangles: list[np.ndarray] = []
+    ids: list[np.ndarray] = []
+    base = 0
+    triangle_total = 0
+    for (pointer, object_id), matrices in groups.items():
+        arrays = meshes[pointer]
+        if arrays is None:  # never grouped; keeps the type checker informed
+            continue
+        count, vertices = len(matrices), len(arrays.positions)
+        if base + count * vertices > MAX_VERTICES:
+            raise ExportError(
+                f"geometry too large: more than {MAX_VERTICES} vertices by object "
+                f"'{_name_of(names, object_id)}' (the core indexes vertices with 32 bits)"
+            )
+        triangle_total += count * len(arrays.triangles)
+        _check_memory(base + count * vertices, triangle_total, _name_of(names, object_id))
+        stack = np.array(matrices, dtype=np.float64).reshape(count, 4, 4)
+        world = np.einsum("kij,nj->kni", stack[:, :3, :3], arrays.positions.astype(np.float64))
+        world += stack[:, None, :3, 3]
+        offsets = base + vertices * np.arange(count, dtype=np.uint32)
+        positions.append(world.reshape(-1, 3).astype(np.float32))
+        triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
+        ids.append(np.full(count * len(arrays.triangles), object_id, dtype=np.uint32))
+        base += count * vertices
+    if not positions:
+        return Geometry(
+            np.zeros((0, 3), np.float32),
+            np.zeros((0, 3), np.uint32),
+            np.zeros(0, np.uint32),
+            [],
+            {},
+        )
+    return Geometry(
+        np.ascontiguousarray(np.concatenate(positions)),
+        np.ascontiguousarray(np.concatenate(triangles), dtype=np.uint32),
+        np.ascontiguousarray(np.concatenate(ids)),
+        sorted(holes),
+        {v: k for k, v in names.items()},
+    )
+
+
+def _name_of(names: dict[str, int], object_id: int) -> str:
+    return next((name for name, i in names.items() if i == object_id), "?")
+
+
+def _decide(
+    obj: bpy.types.Object,
+    parent: bpy.types.Object | None,
+    render_mode: bool,
+    exclude: set[str] | frozenset[str],
+    names: dict[str, int],
+    holes: set[int],
+) -> int | None:
+    """The object id of an (object, instancer) pair, or None when it does not cast."""
+    if obj.original.name_full in exclude:
+        return None
+    chain = [obj] if parent is None else [obj, parent]
+    choices = [_casts(o) for o in chain]
+    if False in choices:
+        return None
+    if True not in choices and not all(o.visible_shadow for o in chain):
+        return None
+    if not render_mode and any(_hidden_in_render(o.original) for o in chain):
+        return None
+    owner = chain[-1].original
+    object_id = names.setdefault(owner.name_full, len(names) + 1)
+    if any(o.original.crepuscular.takes_holes for o in chain):
+        holes.add(object_id)
+    return object_id
+
+
+def column_major(matrix: Any) -> list[float]:
+    return [float(v) for v in np.array(matrix, dtype=np.float64).T.ravel()]
+
+
+def render_size(scene: bpy.types.Scene, divisor: int = 1) -> tuple[int, int]:
+    """The render's pixel size, as Blender computes it, divided for previews."""
+    render = scene.render
+    if render.use_border:
+        raise ExportError(
+            "scene.render.use_border: render regions are not supported; the layers cover "
+            "the whole frame"
+        )
+    if not math.isclose(render.pixel_aspect_x, render.pixel_aspect_y):
+        raise ExportError(
+            "scene.render.pixel_aspect_x/y: non-square pixels are not supported "
+            f"({render.pixel_aspect_x} x {render.pixel_aspect_y})"
+        )
+    width = render.resolution_x * render.resolution_percentage // 100
+    height = render.resolution_y * render.resolution_percentage // 100
+    return max(1, width // divisor), max(1, height // divisor)
+
+
+def camera_dict(
+    scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph, divisor: int = 1
+) -> dict[str, Any]:
+    """The scene camera in the core's terms (sensor fit, shift, clip, orthographic)."""
+    if scene.camera is None:
+        raise ExportError(f"scene '{scene.name}' has no camera (scene.camera)")
+    obj = scene.camera.evaluated_get(depsgraph)
+    if obj.type != "CAMERA":
+        raise ExportError(f"scene.camera: '{obj.name}' is a {obj.type}, not a camera")
+    matrix = np.array(obj.matrix_world, dtype=np.float64)
+    # Blender renders with the camera matrix normalized: scale does not change the view.
+    for axis in range(3):
+        length = np.linalg.norm(matrix[:3, axis])
+        if length == 0 or not np.isfinite(length):
+            raise ExportError(f"camera '{obj.name}': its matrix has a zero or non-finite axis")
+        matrix[:3, axis] /= length
+    data = obj.data
+    fit = data.sensor_fit.lower()
+    if data.type == "PERSP":
+        projection: dict[str, Any] = {
+            "kind": "perspective",
+            "focal_length": float(data.lens),
+            "sensor_width": float(data.sensor_width),
+            "sensor_height": float(data.sensor_height),
+            "sensor_fit": fit,
+            "shift_x": float(data.shift_x),
+            "shift_y": float(data.shift_y),
+        }
+    elif data.type == "ORTHO":
+        projection = {
+            "kind": "orthographic",
+            "ortho_scale": float(data.ortho_scale),
+            "sensor_fit": fit,
+            "shift_x": float(data.shift_x),
+            "shift_y": float(data.shift_y),
+        }
+    else:
+        raise ExportError(
+            f"camera '{data.name}': {data.type.lower()} cameras are not supported "
+            "(perspective or orthographic only)"
+        )
+    width, height = render_size(scene, divisor)
+    return {
+        "world_from_camera": column_major(matrix),
+        "projection": projection,
+        "clip_start": float(data.clip_start),
+        "clip_end": float(data.clip_end),
+        "width": width,
+        "height": height,
+    }
+
+
+def shaft_suns(scene: bpy.types.Scene) -> list[bpy.types.Object]:
+    """Sun lamps in the scene with shafts enabled, by name."""
+    suns = [
+        obj
+        for obj in scene.objects
+        if obj.type == "LIGHT" and obj.data.type == "SUN" and obj.data.crepuscular.enabled
+    ]
+    return sorted(suns, key=lambda obj: obj.name)
+
+
+def sun_dict(sun: bpy.types.Object) -> dict[str, Any]:
+    """Direction (the lamp's -Z), colour, strength and angle of an evaluated sun."""
+    matrix = np.array(sun.matrix_world, dtype=np.float64)
+    direction = -matrix[:3, 2]
+    norm = np.linalg.norm(direction)
+    if norm == 0 or not np.isfinite(norm):
+        raise ExportError(f"sun '{sun.name}': its matrix has no usable -Z axis")
+    light = sun.data
+    return {
+        "direction": (direction / norm).tolist(),
+        "color": [float(c) for c in light.color],
+        "strength": float(light.energy),
+        "angular_diameter": float(light.angle),
+    }
+
+
+def _constant(node: bpy.types.Node, name: str, where: str) -> Any:
+    socket = node.inputs[name]
+    if socket.is_linked:
+        raise ExportError(
+            f"{where}: input '{name}' of '{node.name}' must be a constant, not linked"
+        )
+    return socket.default_value
+
+
+def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[dict, list[str]]:
+    """The medium of a fog object: a box mesh with a Volume Scatter or Principled Volume.
+
+    The box is the object's matrix times its bounds. Coefficients are read as Cycles reads
+    them: Volume Scatter has σs = σt = color·density per channel; Principled Volume has
+    σs = color·density and σt = (color + (1 − color)(1 − √absorption))·density. Where σt is
+    coloured, its Rec. 709 luminance is used, and a note says so.
+    """
+    where = f"fog object '{fog.name}'"
+    evaluated = fog.evaluated_get(depsgraph)
+    if evaluated.type != "MESH":
+        raise ExportError(f"{where}: must be a mesh box, not a {evaluated.type}")
+    arrays = mesh_arrays(evaluated.data)
+    if len(arrays.positions) == 0:
+        raise ExportError(f"{where}: the mesh is empty")
+    low, high = arrays.positions.min(axis=0), arrays.positions.max(axis=0)
+    span = np.maximum(high - low, 1e-12)
+    relative = (arrays.positions - low) / span
+    if np.any(np.minimum(relative, 1 - relative) > 1e-4):
+        raise ExportError(
+            f"{where}: must be a box (every vertex on a corner of its bounds); "
+            "other shapes cannot be mapped exactly"
+        )
+    if np.any(high - low <= 0):
+        raise ExportError(f"{where}: the box is flat")
+    cube = np.diag([*((high - low) / 2), 1.0])
+    cube[:3, 3] = (high + low) / 2
+    world_from_cube = np.array(evaluated.matrix_world, dtype=np.float64) @ cube
+    material = evaluated.active_material
+    if material is None or material.node_tree is None:
+        raise ExportError(f"{where}: needs a material with a volume shader")
+    output = material.node_tree.get_output_node("CYCLES")
+    if output is None or not output.inputs["Volume"].is_linked:
+        raise ExportError(f"{where}: material '{material.name}' has no Volume output link")
+    node = output.inputs["Volume"].links[0].from_node
+    where = f"{where}, material '{material.name}'"
+    color = np.array(_constant(node, "Color", where)[:3], dtype=np.float64)
+    density = max(float(_constant(node, "Density", where)), 0.0)
+    anisotropy = float(_constant(node, "Anisotropy", where))
+    notes = []
+    if node.bl_idname == "ShaderNodeVolumeScatter":
+        phase = getattr(node, "phase", "HENYEY_GREENSTEIN")
+        if phase != "HENYEY_GREENSTEIN":
+            raise ExportError(f"{where}: phase '{phase}' is not supported (Henyey-Greenstein)")
+        scattering = np.maximum(color, 0) * density
+        extinction = scattering
+    elif node.bl_idname == "ShaderNodeVolumePrincipled":
+        absorption = np.array(_constant(node, "Absorption Color", where)[:3], dtype=np.float64)
+        color = np.maximum(color, 0)
+        scattering = color * density
+        extinction = (
+            color + np.maximum(1 - color, 0) * np.maximum(1 - np.sqrt(np.maximum(absorption, 0)), 0)
+        ) * density
+        for name in ("Emission Strength", "Blackbody Intensity"):
+            if float(_constant(node, name, where)) != 0:
+                notes.append(f"{name} of '{node.name}' is ignored: shafts have no emission")
+    else:
+        raise ExportError(
+            f"{where}: the volume shader is '{node.bl_idname}'; use Volume Scatter or "
+            "Principled Volume"
+        )
+    sigma_t = float(LUMINANCE @ extinction)
+    if not np.allclose(extinction, extinction[0], rtol=1e-6, atol=0):
+        notes.append(
+            "Cycles' extinction here is coloured "
+            f"({', '.join(f'{v:.4g}' for v in extinction)}); crepuscular uses its luminance "
+            f"{sigma_t:.4g}"
+        )
+    albedo = scattering / sigma_t if sigma_t > 0 else np.zeros(3)
+    return {
+        "extinction": sigma_t,
+        "albedo": albedo.tolist(),
+        "anisotropy": anisotropy,
+        "extent": {"kind": "box", "world_from_cube": column_major(world_from_cube)},
+    }, notes
+
+
+def medium_dict(
+    scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph
+) -> tuple[dict[str, Any], list[str]]:
+    settings = scene.crepuscular
+    if settings.medium_source == "fog_object":
+        if settings.fog_object is None:
+            raise ExportError(
+                "scene.crepuscular.fog_object: the medium comes from a fog object, but none is set"
+            )
+        return fog_medium(settings.fog_object, depsgraph)
+    return {
+        "extinction": float(settings.extinction),
+        "albedo": [float(v) for v in settings.albedo],
+        "anisotropy": float(settings.anisotropy),
+    }, []
+
+
+def settings_dict(light: Any, *, preview: bool = False) -> dict[str, Any]:
+    downsample = int(light.downsample)
+    return {
+        "method": light.method,
+        "shadow_map_size": int(light.shadow_map_size),
+        "bases": int(light.bases),
+        "steps": int(light.steps),
+        "max_distance": float(light.max_distance),
+        "downsample": 1 if preview else downsample,
+        # The core upsamples a downsampled frame along full-size depth edges instead.
+        "supersampling": 1 if preview or downsample > 1 else int(light.edge_samples),
+    }
+
+
+def frame_inputs(
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph,
+    *,
+    sun: bpy.types.Object | None = None,
+    cache: GeometryCache | None = None,
+    divisor: int = 1,
+    preview: bool = False,
+) -> FrameInputs:
+    """The `render_arrays` arguments of one sun (default: the first with shafts, by name)
+    for the scene's current frame in `depsgraph`."""
+    from .style import style_from_light
+
+    if sun is None:
+        suns = shaft_suns(scene)
+        if not suns:
+            raise ExportError(
+                "no sun lamp has Stylized Shafts enabled (light.crepuscular.enabled on a SUN)"
+            )
+        sun = suns[0]
+    notes: list[str] = []
+    evaluated = sun.evaluated_get(depsgraph)
+    camera = camera_dict(scene, depsgraph, divisor)
+    medium, medium_notes = medium_dict(scene, depsgraph)
+    notes += medium_notes
+    fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None
+    exclude = {fog.name_full} if fog is not None else set()
+    geometry = export_geometry(depsgraph, cache=cache, exclude=exclude)
+    settings = evaluated.data.crepuscular
+    fps = scene.render.fps / scene.render.fps_base
+    style = style_from_light(
+        settings,
+        time=depsgraph.scene.frame_current / fps,
+        hole_objects=geometry.hole_ids,
+        name=f"bpy.data.lights['{evaluated.data.original.name}']",
+    )
+    kwargs = {
+        "positions": geometry.positions,
+        "triangles": geometry.triangles,
+        "object_ids": geometry.object_ids,
+        "camera": camera,
+        "sun": sun_dict(evaluated),
+        "medium": medium,
+        "settings": settings_dict(settings, preview=preview),
+        "style": style,
+    }
+    return FrameInputs(kwargs, sun.name, notes, geometry)
+
+
+def all_frame_inputs(
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph,
+    *,
+    cache: GeometryCache | None = None,
+    divisor: int = 1,
+    preview: bool = False,
+) -> list[FrameInputs]:
+    """`frame_inputs` of every sun with shafts, by name; an error names the missing sun."""
+    suns = shaft_suns(scene)
+    if not suns:
+        raise ExportError(
+            "no sun lamp has Stylized Shafts enabled (light.crepuscular.enabled on a SUN)"
+        )
+    return [
+        frame_inputs(scene, depsgraph, sun=sun, cache=cache, divisor=divisor, preview=preview)
+        for sun in suns
+    ]
+
+
+def render_suns(
+    inputs: list[FrameInputs], progress: Any = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Renders every sun's layers and sums their in-scattered light.
+
+    The volume's alpha (1 − transmittance to the first surface) and the depth do not depend
+    on the light, so they are the first sun's; `visibility` is the first sun's too.
+    Returns (volume, visibility, depth).
+    """
+    import crepuscular
+
+    if not inputs:
+        raise ExportError("no sun lamp has Stylized Shafts enabled")
+
+    def render(index: int) -> crepuscular.Layers:
+        def scaled(fraction: float) -> object:
+            return progress((index + fraction) / len(inputs))
+
+        return crepuscular.render_arrays(
+            **inputs[index].kwargs, progress=None if progress is None else scaled
+        )
+
+    first = render(0)
+    volume = np.array(first.volume, dtype=np.float32)
+    for index in range(1, len(inputs)):
+        volume[..., :3] += render(index).volume[..., :3]
+    return volume, first.visibility, first.depth

@@ -1,0 +1,199 @@
+"""Cycles renders for the Blender tests, run in a subprocess so that render state never
+leaks between tests: `python blender_job.py '<json spec>'`. The extension must already be
+installed in the user resources this process inherits; it is enabled here, and every scene
+is built and exported through it."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import blender_scenes
+
+
+def _render(scene: Any, path: Path, *, animation: bool = False) -> None:
+    scene.render.filepath = str(path)
+    if animation:
+        bpy.ops.render.render(animation=True)
+    else:
+        bpy.ops.render.render(write_still=True)
+
+
+def fog_scene(spec: dict[str, Any]) -> Any:
+    """The fog box lit through a slotted roof, as in the Cycles reference scene."""
+    scene = bpy.context.scene
+    blender_scenes.setup_cycles(
+        scene, width=spec["width"], height=spec["height"], samples=spec["samples"]
+    )
+    scene.cycles.filter_width = 0.01
+    blender_scenes.add_camera(scene, blender_scenes.look_at((-9, -7, 3.5), (0, 0, 2.2)))
+    sun = blender_scenes.add_sun(scene, (0.35, 0.2, -1.0), strength=3.0, enabled=False)
+    settings = sun.data.crepuscular
+    settings.method, settings.steps, settings.shadow_map_size = "reference", 2048, 2048
+    settings.edge_samples, settings.max_distance = 1, 60.0
+    fog = np.diag([4.0, 3.0, 2.5, 1.0])
+    fog[:3, 3] = [0.0, 0.0, 2.5]
+    material = blender_scenes.volume_material(
+        "scatter", Color=(1, 1, 1, 1), Density=0.35, Anisotropy=0.3
+    )
+    blender_scenes.add_fog_box(scene, fog, material)
+    black = blender_scenes.black_material(0.0)
+    blender_scenes.add_quad(
+        scene, "roof_a", [(-6, -5, 6), (0, -5, 6), (0, 5, 6), (-6, 5, 6)], black
+    )
+    blender_scenes.add_quad(
+        scene, "roof_b", [(0.6, -5, 6), (1.6, -5, 6), (1.6, 5, 6), (0.6, 5, 6)], black
+    )
+    return scene
+
+
+def job_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """Black surfaces: Cycles with its own fog box (shafts off), and our layers of the same
+    scene through the operator. Grey variant: a grey backdrop added, Cycles again, then F12
+    with shafts on, which composites over a beauty that hides the fog object."""
+    scene = fog_scene(spec)
+    _render(scene, out / "cycles_black.exr")
+    sun = scene.objects["Sun"]
+    sun.data.crepuscular.enabled = True
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "layers.exr")) == {"FINISHED"}
+    sun.data.crepuscular.enabled = False
+    # A grey backdrop outside the box, lit straight by the sun and seen through the fog.
+    grey = blender_scenes.black_material(0.5)
+    blender_scenes.add_quad(
+        scene, "backdrop", [(6, -8, -1), (6, 8, -1), (8, 8, 9), (8, -8, 9)], grey
+    )
+    _render(scene, out / "cycles_grey.exr")
+    sun.data.crepuscular.enabled = True
+    scene.crepuscular.write_layers = False
+    _render(scene, out / "composite_grey.exr")
+    fog = scene.crepuscular.fog_object
+    assert fog.visible_camera, "the fog object was not restored"
+    assert fog.visible_shadow, "the fog object was not restored"
+
+
+def shaft_scene(spec: dict[str, Any]) -> Any:
+    """A grey ground and a cube under a sun with shafts, in an unbounded medium."""
+    scene = bpy.context.scene
+    blender_scenes.setup_cycles(
+        scene, width=spec["width"], height=spec["height"], samples=spec["samples"]
+    )
+    world = scene.world.node_tree.nodes["Background"]
+    world.inputs["Strength"].default_value = 0.3
+    blender_scenes.add_camera(scene, blender_scenes.look_at((0, -12, 4), (0, 0, 2)), lens=35)
+    sun = blender_scenes.add_sun(scene, (0.3, 0.4, -1.0), strength=3.0)
+    settings = sun.data.crepuscular
+    settings.shadow_map_size, settings.edge_samples = 512, 2
+    scene.crepuscular.extinction = 0.08
+    grey = blender_scenes.black_material(0.5)
+    blender_scenes.add_quad(
+        scene, "ground", [(-20, -20, 0), (20, -20, 0), (20, 20, 0), (-20, 20, 0)], grey
+    )
+    bpy.ops.mesh.primitive_cube_add(size=2, location=(0, 0, 4))
+    cube = bpy.context.active_object
+    cube.data.materials.append(grey)
+    return scene
+
+
+def job_composite(spec: dict[str, Any], out: Path) -> None:
+    scene = shaft_scene(spec)
+    sun = scene.objects["Sun"].data.crepuscular
+    sun.enabled = False
+    _render(scene, out / "beauty.exr")
+    sun.enabled = True
+    _render(scene, out / "composite.exr")
+    # Cycles' Depth pass, and our depth sampled at pixel centres like it.
+    scene.view_layers[0].use_pass_z = True
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.crepuscular.composite = scene.crepuscular.write_layers = False
+    _render(scene, out / "passes.exr")
+    sun.edge_samples = 1
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "centres.exr")) == {"FINISHED"}
+
+
+def job_animation(spec: dict[str, Any], out: Path) -> None:
+    scene = shaft_scene(spec)
+    scene.frame_start, scene.frame_end = 1, 3
+    settings = scene.objects["Sun"].data.crepuscular
+    settings.use_closing = True
+    for frame, radius in ((1, 0.0), (3, 3.0)):
+        settings.closing_radius = radius
+        settings.keyframe_insert("closing_radius", frame=frame)
+    camera = scene.camera
+    for frame, x in ((1, 0.0), (3, 3.0)):
+        camera.location.x = x
+        camera.keyframe_insert("location", frame=frame)
+    # The cube gets a hole the closing fills as the radius grows.
+    cube = scene.objects["Cube"]
+    cube.scale = (2.0, 2.0, 0.1)
+    hole = cube.modifiers.new("Hole", "BOOLEAN")
+    bpy.ops.mesh.primitive_cube_add(size=0.8, location=(0, 0, 4))
+    cutter = bpy.context.active_object
+    cutter.hide_render = True
+    hole.object = cutter
+    settings.enabled = False
+    _render(scene, out / "beauty_", animation=True)
+    settings.enabled = True
+    _render(scene, out / "shot_", animation=True)
+    # The scripting operator at each frame, for comparison with what the renders wrote.
+    for frame in (1, 2, 3):
+        scene.frame_set(frame)
+        path = out / f"operator_{frame}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+
+
+def job_silhouette(spec: dict[str, Any], out: Path) -> None:
+    """A flat, rotated occluder against the sky seen by an orthographic camera: the layers'
+    alpha at its edges against the beauty's alpha there."""
+    scene = bpy.context.scene
+    blender_scenes.setup_cycles(
+        scene, width=spec["width"], height=spec["height"], samples=spec["samples"]
+    )
+    scene.render.film_transparent = True
+    camera = blender_scenes.add_camera(scene, np.eye(4))
+    camera.matrix_world = Matrix.Translation((0, -10, 0)) @ Matrix.Rotation(np.pi / 2, 4, "X")
+    camera.data.type = "ORTHO"
+    camera.data.ortho_scale = 10.0
+    quad = blender_scenes.add_quad(
+        scene,
+        "card",
+        [(-2, 0, -1.5), (2, 0, -1.5), (2, 0, 1.5), (-2, 0, 1.5)],
+        blender_scenes.black_material(0.5),
+    )
+    quad.rotation_euler = (0.0, np.radians(23.0), 0.0)
+    sun = blender_scenes.add_sun(scene, (1.0, 0.3, -0.5), strength=2.0, enabled=False)
+    settings = sun.data.crepuscular
+    settings.shadow_map_size, settings.max_distance = 256, 40.0
+    scene.crepuscular.extinction = 0.05
+    _render(scene, out / "beauty.exr")
+    settings.enabled = True
+    for samples in spec["edge_samples"]:
+        settings.edge_samples = samples
+        path = out / f"layers_{samples}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+
+
+JOBS = {
+    "fidelity": job_fidelity,
+    "composite": job_composite,
+    "animation": job_animation,
+    "silhouette": job_silhouette,
+}
+
+
+def main() -> None:
+    spec = json.loads(sys.argv[1])
+    blender_scenes.reset()
+    out = Path(spec["out"])
+    out.mkdir(parents=True, exist_ok=True)
+    JOBS[spec["job"]](spec, out)
+
+
+if __name__ == "__main__":
+    main()

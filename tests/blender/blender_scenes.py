@@ -1,0 +1,199 @@
+"""Shared by the Blender tests and their Cycles subprocesses: installing and enabling the
+extension from its zip, and building small scenes (camera, sun, fog box, occluders)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+ADDON_MODULE = "bl_ext.user_default.crepuscular"
+
+
+def addon_zip() -> Path:
+    """The extension zip, built as `make addon` builds it (from the wheel in `dist/`), so
+    that the tests always install the current sources."""
+    built = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "blender_addon" / "build_extension.py"),
+            str(ROOT / "dist"),
+            str(ROOT / "out" / "addon"),
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return Path(built.stdout.strip().splitlines()[-1])
+
+
+def install_addon() -> ModuleType:
+    """Installs and enables the zip with Blender's own extension operator."""
+    import bpy
+
+    result = bpy.ops.extensions.package_install_files(
+        filepath=str(addon_zip()), repo="user_default", enable_on_install=True
+    )
+    assert result == {"FINISHED"}, result
+    return sys.modules[ADDON_MODULE]
+
+
+def enable_addon() -> ModuleType:
+    """Enables the installed extension (after a factory reset disabled it)."""
+    import addon_utils
+
+    module = addon_utils.enable(ADDON_MODULE, default_set=True, handle_error=_raise)
+    assert module is not None, f"{ADDON_MODULE} did not enable"
+    return module
+
+
+def _raise(error: BaseException) -> None:
+    raise error
+
+
+def reset() -> ModuleType:
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return enable_addon()
+
+
+def look_at(eye: Any, target: Any, up: Any = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world for a camera at `eye` looking at `target`."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    back = (eye - target) / np.linalg.norm(eye - target)
+    right = np.cross(up, back)
+    right /= np.linalg.norm(right)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = (
+        right,
+        np.cross(back, right),
+        back,
+        eye,
+    )
+    return matrix
+
+
+def sun_matrix(travel: Any) -> np.ndarray:
+    """A sun lamp whose -Z axis is the travel direction."""
+    back = -np.asarray(travel, float) / np.linalg.norm(travel)
+    right = np.cross([0.0, 1.0, 0.0], back)
+    right /= np.linalg.norm(right)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2] = right, np.cross(back, right), back
+    return matrix
+
+
+def add_camera(scene: Any, matrix: Any, *, lens: float = 50.0) -> Any:
+    import bpy
+    from mathutils import Matrix
+
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(camera)
+    camera.data.lens = lens
+    camera.data.sensor_width = 36.0
+    camera.data.clip_start = 0.1
+    camera.data.clip_end = 100.0
+    camera.matrix_world = Matrix(np.asarray(matrix).tolist())
+    scene.camera = camera
+    return camera
+
+
+def add_sun(scene: Any, travel: Any, *, strength: float = 3.0, enabled: bool = True) -> Any:
+    import bpy
+    from mathutils import Matrix
+
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", type="SUN"))
+    scene.collection.objects.link(sun)
+    sun.data.energy = strength
+    sun.data.angle = 0.0
+    sun.matrix_world = Matrix(sun_matrix(travel).tolist())
+    sun.data.crepuscular.enabled = enabled
+    return sun
+
+
+def volume_material(kind: str = "scatter", **inputs: Any) -> Any:
+    """A material whose volume output is a Volume Scatter or Principled Volume."""
+    import bpy
+
+    material = bpy.data.materials.new(f"Fog {kind}")
+    nodes = material.node_tree.nodes
+    for node in list(nodes):
+        if node.bl_idname != "ShaderNodeOutputMaterial":
+            nodes.remove(node)
+    node_type = "ShaderNodeVolumeScatter" if kind == "scatter" else "ShaderNodeVolumePrincipled"
+    shader = nodes.new(node_type)
+    for name, value in inputs.items():
+        shader.inputs[name].default_value = value
+    output = next(n for n in nodes if n.bl_idname == "ShaderNodeOutputMaterial")
+    material.node_tree.links.new(shader.outputs["Volume"], output.inputs["Volume"])
+    return material
+
+
+def add_fog_box(scene: Any, matrix: Any, material: Any) -> Any:
+    """Blender's default cube (vertices at ±1) placed by `matrix`, with `material`."""
+    import bpy
+    from mathutils import Matrix
+
+    mesh = bpy.data.meshes.new("Fog")
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    mesh.from_pydata(corners, [], faces)
+    fog = bpy.data.objects.new("Fog", mesh)
+    scene.collection.objects.link(fog)
+    fog.matrix_world = Matrix(np.asarray(matrix).tolist())
+    fog.data.materials.append(material)
+    scene.crepuscular.medium_source = "fog_object"
+    scene.crepuscular.fog_object = fog
+    return fog
+
+
+def black_material(value: float = 0.0) -> Any:
+    import bpy
+
+    material = bpy.data.materials.new(f"Grey {value}")
+    bsdf = material.node_tree.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (value, value, value, 1.0)
+    bsdf.inputs["Specular IOR Level"].default_value = 0.0
+    return material
+
+
+def add_quad(scene: Any, name: str, vertices: Any, material: Any = None) -> Any:
+    import bpy
+
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata([tuple(v) for v in vertices], [], [[0, 1, 2, 3]])
+    obj = bpy.data.objects.new(name, mesh)
+    if material is not None:
+        obj.data.materials.append(material)
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def setup_cycles(scene: Any, *, width: int, height: int, samples: int) -> None:
+    import bpy
+
+    world = bpy.data.worlds.new("World")
+    world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+    scene.world = world
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.max_bounces = 0
+    scene.cycles.volume_bounces = 0
+    scene.cycles.seed = 1
+    scene.render.resolution_x = width
+    scene.render.resolution_y = height
+    scene.render.resolution_percentage = 100
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    settings.color_mode = "RGBA"

@@ -1,0 +1,751 @@
+"""The extension under real Blender, in this process: install from the zip, symmetric
+unregister, settings, presets, depsgraph export, the fog-object mapping, the scripting
+operator, bad input, and the viewport preview's update logic."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+import crepuscular
+
+bpy = pytest.importorskip("bpy")
+
+import blender_scenes  # noqa: E402
+from mathutils import Matrix, Vector  # noqa: E402
+
+PRESETS = blender_scenes.ROOT / "examples" / "presets"
+
+
+def _basic_scene(width: int = 64, height: int = 36) -> bpy.types.Scene:
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    blender_scenes.add_camera(scene, blender_scenes.look_at((0, -12, 3), (0, 0, 2)), lens=35)
+    sun = blender_scenes.add_sun(scene, (0.2, 0.3, -1.0))
+    sun.data.crepuscular.shadow_map_size = 256
+    sun.data.crepuscular.edge_samples = 1
+    mesh = bpy.data.meshes.new("Roof")
+    mesh.from_pydata([(-4, -4, 6), (4, -4, 6), (4, 4, 6), (-4, 4, 6)], [], [[0, 1, 2, 3]])
+    roof = bpy.data.objects.new("Roof", mesh)
+    scene.collection.objects.link(roof)
+    scene.crepuscular.extinction = 0.1
+    return scene
+
+
+# Packaging ------------------------------------------------------------------------------
+
+
+def test_installed_from_the_zip_with_its_bundled_wheel(installed: ModuleType) -> None:
+    extensions = Path(bpy.utils.user_resource("EXTENSIONS"))
+    assert Path(installed.__file__).is_relative_to(extensions / "user_default" / "crepuscular")
+    assert str(extensions).startswith(os.environ["CREPUSCULAR_TEST_BLENDER_USER"])
+    cores = list((extensions / ".local").glob("lib/python*/site-packages/crepuscular/_core*.so"))
+    assert len(cores) == 1, "the manifest's wheel was not installed"
+    site = cores[0].parent.parent
+    # The installed wheel imports on its own, ahead of any other copy.
+    found = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            f"import sys; sys.path.insert(0, {str(site)!r}); import crepuscular; "
+            "print(crepuscular.__file__, crepuscular.__version__)",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.split()
+    assert Path(found[0]).is_relative_to(site)
+    assert found[1] == crepuscular.__version__
+    assert bpy.ops.crepuscular.render_layers.get_rna_type().identifier
+
+
+def _registered(owner: type, name: str) -> bool:
+    return owner.bl_rna_get_subclass_py(name) is not None
+
+
+def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
+    import addon_utils
+
+    preview, render = addon.preview, addon.render
+    handler_lists = [name for name, _ in render.HANDLERS]
+    ours = [
+        h
+        for name in handler_lists
+        for h in getattr(bpy.app.handlers, name)
+        if h.__module__.startswith(blender_scenes.ADDON_MODULE)
+    ]
+    assert len(ours) == len(render.HANDLERS)
+    assert bpy.app.timers.is_registered(preview._tick)
+    scene = _basic_scene()  # enabling shafts wires the compositor group
+    node = scene.compositing_node_group.nodes[render.NODE_NAME]
+    assert not node.mute
+    classes = [
+        cls.__name__
+        for module in (addon.properties, addon.render, addon.ui)
+        for cls in module.CLASSES
+    ]
+    addon_utils.disable(blender_scenes.ADDON_MODULE, default_set=True)
+    try:
+        for name in dir(bpy.app.handlers):
+            handlers = getattr(bpy.app.handlers, name)
+            if isinstance(handlers, list):
+                leftover = [
+                    h
+                    for h in handlers
+                    if getattr(h, "__module__", "").startswith(blender_scenes.ADDON_MODULE)
+                ]
+                assert not leftover, (name, leftover)
+        assert not bpy.app.timers.is_registered(preview._tick)
+        assert preview._DRAW_HANDLE == []
+        assert preview.CONTROLLER.result is None
+        assert not preview.CONTROLLER.busy
+        for owner in (bpy.types.Light, bpy.types.Object, bpy.types.Scene):
+            assert "crepuscular" not in owner.bl_rna.properties
+            assert not hasattr(owner, "crepuscular")
+        for name in classes:
+            for base in (
+                bpy.types.PropertyGroup,
+                bpy.types.Operator,
+                bpy.types.Panel,
+                bpy.types.UIList,
+            ):
+                assert not _registered(base, name), name
+        assert not hasattr(bpy.types, "CREPUSCULAR_OT_render_layers")
+        # The group stays (it is the user's data) but composites nothing stale.
+        assert node.mute
+    finally:
+        blender_scenes.enable_addon()
+    assert _registered(bpy.types.Operator, "CREPUSCULAR_OT_render_layers")
+
+
+# Settings and presets -------------------------------------------------------------------
+
+
+def test_settings_are_saved_in_the_blend_and_animatable(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    light = scene.objects["Sun"].data
+    settings = light.crepuscular
+    settings.use_closing = True
+    for frame, radius in ((1, 0.2), (11, 2.2)):
+        settings.closing_radius = radius
+        settings.keyframe_insert("closing_radius", frame=frame)
+    settings.method = "reference"
+    layer = settings.tf_layers.add()
+    layer.kind, layer.color = "solid", (1.0, 0.5, 0.25, 1.0)
+    scene.objects["Roof"].crepuscular.takes_holes = True
+    scene.crepuscular.extinction = 0.123
+    path = tmp_path / "saved.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    blender_scenes.reset()
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    scene = bpy.context.scene
+    light = bpy.data.lights["Sun"]
+    assert light.crepuscular.method == "reference"
+    assert light.crepuscular.tf_layers[0].color[:] == pytest.approx((1.0, 0.5, 0.25, 1.0))
+    assert bpy.data.objects["Roof"].crepuscular.takes_holes
+    assert scene.crepuscular.extinction == pytest.approx(0.123)
+    assert bpy.data.objects["Camera"].crepuscular.casts_shafts == "auto"
+    assert light.animation_data is not None
+    assert light.animation_data.action is not None
+    scene.frame_set(1)
+    assert light.crepuscular.closing_radius == pytest.approx(0.2)
+    scene.frame_set(11)
+    assert light.crepuscular.closing_radius == pytest.approx(2.2)
+    scene.frame_set(6)
+    assert 0.2 < light.crepuscular.closing_radius < 2.2
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["alarm.json", "hole-filled-torus.json", "holes-in-tree.json", "extruded-colonnade.json"],
+)
+def test_presets_load_and_save_in_the_preset_format(
+    addon: ModuleType, tmp_path: Path, name: str
+) -> None:
+    scene = _basic_scene()
+    light = scene.objects["Sun"].data
+    addon.style.apply_preset(light.crepuscular, PRESETS / name)
+    saved = tmp_path / name
+    addon.style.save_preset(light.crepuscular, saved)
+    original = crepuscular.load_style(PRESETS / name)
+    again = crepuscular.load_style(saved)
+    for style in (original, again):
+        if "holes" in style:
+            style["holes"].pop("objects")  # in Blender, objects are marked instead
+    assert json.dumps(again, sort_keys=True) == json.dumps(original, sort_keys=True)
+
+
+def test_tf_bakes_into_an_image_to_paint_on(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    light = scene.objects["Sun"].data
+    settings = light.crepuscular
+    with (
+        bpy.context.temp_override(light=light),
+        pytest.raises(RuntimeError, match="use_tf"),
+    ):
+        bpy.ops.crepuscular.bake_tf()
+    addon.style.apply_preset(settings, PRESETS / "alarm.json")
+    with bpy.context.temp_override(light=light):
+        assert bpy.ops.crepuscular.bake_tf() == {"FINISHED"}
+    image = settings.tf_image
+    assert tuple(image.size) == (256, 256)
+    pixels = np.empty(256 * 256 * 4, dtype=np.float32)
+    image.pixels.foreach_get(pixels)
+    expected = crepuscular.bake_tf(PRESETS / "alarm.json")
+    np.testing.assert_allclose(pixels.reshape(256, 256, 4), expected, atol=1e-6)
+    # Painted pixels come back as an image layer of the stack.
+    pixels.reshape(256, 256, 4)[:, :128] = [0.0, 0.0, 1.0, 1.0]
+    image.pixels.foreach_set(pixels)
+    layer = settings.tf_layers.add()
+    layer.kind, layer.image = "image", image
+    style = addon.style.style_from_light(settings, time=0.0, hole_objects=[])
+    repainted = crepuscular.bake_tf(style)
+    assert repainted[100, 20, 2] == pytest.approx(1.0)  # painted blue over the left half
+    assert repainted[100, 20, 0] == pytest.approx(0.0)
+    np.testing.assert_allclose(repainted[:, 200], expected[:, 200], atol=1e-3)
+
+
+def test_tf_stack_operators_edit_the_stack(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    light = scene.objects["Sun"].data
+    settings = light.crepuscular
+    with bpy.context.temp_override(light=light):
+        assert not bpy.ops.crepuscular.tf_layer_remove.poll()
+        for kind in ("solid", "gradient", "diffusion"):
+            assert bpy.ops.crepuscular.tf_layer_add(kind=kind) == {"FINISHED"}
+        assert [layer.kind for layer in settings.tf_layers] == ["solid", "gradient", "diffusion"]
+        assert len(settings.tf_layers[1].stops) == 2  # a new gradient runs black to white
+        assert settings.active_tf_layer == 2
+        assert bpy.ops.crepuscular.tf_item_add() == {"FINISHED"}
+        assert len(settings.tf_layers[2].constraints) == 1
+        assert bpy.ops.crepuscular.tf_layer_move(direction="DOWN") == {"FINISHED"}
+        assert [layer.kind for layer in settings.tf_layers] == ["solid", "diffusion", "gradient"]
+        assert settings.active_tf_layer == 1
+        assert bpy.ops.crepuscular.tf_item_remove() == {"FINISHED"}
+        assert len(settings.tf_layers[1].constraints) == 0
+        assert bpy.ops.crepuscular.tf_item_remove() == {"CANCELLED"}
+        assert bpy.ops.crepuscular.tf_layer_remove() == {"FINISHED"}
+        assert [layer.kind for layer in settings.tf_layers] == ["solid", "gradient"]
+        settings.use_tf = True
+        path = tmp_path / "stack.json"
+        assert bpy.ops.crepuscular.save_preset(filepath=str(path)) == {"FINISHED"}
+    saved = crepuscular.load_style(path)
+    assert [layer["kind"] for layer in saved["tf"]["layers"]] == ["solid", "gradient"]
+
+
+def test_bad_presets_name_the_field(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    settings = scene.objects["Sun"].data.crepuscular
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"version": 1, "closing": {"radius": -1.0}}))
+    with pytest.raises(crepuscular.InvalidInputError, match=r"style\.closing\.radius"):
+        addon.style.apply_preset(settings, bad)
+    bad.write_text(json.dumps({"version": 1, "closing": {"radios": 1.0}}))
+    with pytest.raises(crepuscular.CrepuscularError, match="radios"):
+        addon.style.apply_preset(settings, bad)
+    with (
+        bpy.context.temp_override(light=settings.id_data),
+        pytest.raises(RuntimeError, match="radios"),
+    ):
+        bpy.ops.crepuscular.load_preset(filepath=str(bad))
+
+
+# Export ---------------------------------------------------------------------------------
+
+
+def _geometry_nodes_instancer(scene: bpy.types.Scene) -> bpy.types.Object:
+    """A geometry-nodes object: 4 points on a line, a cube instanced on each."""
+    tree = bpy.data.node_groups.new("Instancer", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    line = tree.nodes.new("GeometryNodeMeshLine")
+    line.inputs["Count"].default_value = 4
+    cube = tree.nodes.new("GeometryNodeMeshCube")
+    cube.inputs["Size"].default_value = (0.5, 0.5, 0.5)
+    instance = tree.nodes.new("GeometryNodeInstanceOnPoints")
+    output = tree.nodes.new("NodeGroupOutput")
+    tree.links.new(line.outputs["Mesh"], instance.inputs["Points"])
+    tree.links.new(cube.outputs["Mesh"], instance.inputs["Instance"])
+    tree.links.new(instance.outputs["Instances"], output.inputs[0])
+    obj = bpy.data.objects.new("GN", bpy.data.meshes.new("GN"))
+    scene.collection.objects.link(obj)
+    obj.modifiers.new("Nodes", "NODES").node_group = tree
+    obj.location = (5, 0, 0)
+    return obj
+
+
+def _particle_emitter(scene: bpy.types.Scene, leaf: bpy.types.Object) -> bpy.types.Object:
+    bpy.ops.mesh.primitive_plane_add(size=4, location=(0, 5, 0))
+    emitter = bpy.context.active_object
+    emitter.modifiers.new("Leaves", "PARTICLE_SYSTEM")
+    particles = emitter.particle_systems[0].settings
+    particles.type = "HAIR"
+    particles.count = 5
+    particles.render_type = "OBJECT"
+    particles.instance_object = leaf
+    emitter.show_instancer_for_render = True
+    return emitter
+
+
+def _instance_bounds(depsgraph: bpy.types.Depsgraph, names: set[str]) -> np.ndarray:
+    """World bounds of Blender's evaluated instances, from their bounding boxes."""
+    corners = []
+    for instance in depsgraph.object_instances:
+        if instance.object.original.name in names:
+            matrix = instance.matrix_world
+            corners += [matrix @ Vector(c) for c in instance.object.bound_box]
+    points = np.array(corners)
+    return np.stack([points.min(axis=0), points.max(axis=0)])
+
+
+def test_export_matches_blenders_evaluated_meshes(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    bpy.ops.mesh.primitive_cube_add(size=1, location=(-5, 0, 0))
+    arrayed = bpy.context.active_object
+    arrayed.modifiers.new("Array", "ARRAY").count = 3  # 3 cubes: 36 triangles
+    gn = _geometry_nodes_instancer(scene)  # 4 instanced cubes: 48 triangles
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.2, location=(0, 0, 8))
+    leaf = bpy.context.active_object  # 20 triangles, and 5 particle copies
+    emitter = _particle_emitter(scene, leaf)  # 2 triangles of the plane itself
+    text = bpy.data.objects.new("Text", bpy.data.curves.new("Text", "FONT"))
+    text.data.body = "Hi"
+    text.data.extrude = 0.1
+    scene.collection.objects.link(text)
+    hidden = bpy.data.objects.new("Hidden", bpy.data.meshes.new("Hidden"))
+    hidden.data.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [[0, 1, 2]])
+    hidden.hide_render = True
+    scene.collection.objects.link(hidden)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    text_mesh = text.evaluated_get(depsgraph).to_mesh()
+    text_triangles = len(text_mesh.loop_triangles)
+    text.evaluated_get(depsgraph).to_mesh_clear()
+    assert text_triangles > 20
+
+    geometry = addon.export.export_geometry(depsgraph)
+    per_object = {
+        name: int(np.sum(geometry.object_ids == object_id))
+        for object_id, name in geometry.names.items()
+    }
+    # Instances count under their instancer: the emitter holds its plane and 5 leaves.
+    assert per_object == {
+        arrayed.name: 36,
+        gn.name: 48,
+        leaf.name: 20,
+        emitter.name: 2 + 5 * 20,
+        text.name: text_triangles,
+    }
+    names = {arrayed.name, gn.name, leaf.name, emitter.name, text.name}
+    expected = _instance_bounds(depsgraph, names)
+    ours = np.stack([geometry.positions.min(axis=0), geometry.positions.max(axis=0)])
+    np.testing.assert_allclose(ours, expected, atol=1e-4)
+    assert geometry.triangles.max() < len(geometry.positions)
+
+    # Shadow ray visibility decides on Auto; On and Off override it.
+    arrayed.visible_shadow = False
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert arrayed.name not in addon.export.export_geometry(depsgraph).names.values()
+    arrayed.crepuscular.casts_shafts = "on"
+    assert arrayed.name in addon.export.export_geometry(depsgraph).names.values()
+    text.crepuscular.casts_shafts = "off"
+    assert text.name not in addon.export.export_geometry(depsgraph).names.values()
+
+
+def test_static_geometry_is_cached_and_invalidated(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    bpy.ops.mesh.primitive_cube_add(size=2)
+    cube = bpy.context.active_object
+    cache = addon.export.GeometryCache()
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    first = addon.export.export_geometry(depsgraph, cache=cache)
+    assert (cache.misses, cache.hits) == (1, 0)
+    cube.location.x = 3.0  # moves: the cached object-space mesh is reused
+    scene.frame_set(scene.frame_current)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    moved = addon.export.export_geometry(depsgraph, cache=cache)
+    assert (cache.misses, cache.hits) == (1, 1)
+    np.testing.assert_allclose(
+        moved.positions, first.positions + np.array([3.0, 0.0, 0.0]), atol=1e-6
+    )
+    # An edit reaches the depsgraph handler, which drops the entry.
+    addon.render.CACHE.meshes.update(cache.meshes)
+    cube.data.vertices[0].co.z = 5.0
+    cube.data.update()
+    bpy.context.evaluated_depsgraph_get().update()
+    assert cube.data.name_full not in addon.render.CACHE.meshes
+    cache.invalidate({cube.data.name_full})
+    edited = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), cache=cache)
+    assert edited.positions[:, 2].max() == pytest.approx(5.0)
+
+
+def _plane_distance(
+    camera: bpy.types.Object, scene: bpy.types.Scene, x: float, y: float, plane_y: float
+) -> float:
+    """Blender's own view ray through image point (x, y) in [0, 1]² (y up), intersected
+    with the plane Y = plane_y; returns the distance along the ray."""
+    frame = camera.data.view_frame(scene=scene)  # top right, bottom right, bottom left, top left
+    bottom_left, bottom_right, top_left = frame[2], frame[1], frame[3]
+    local = bottom_left + (bottom_right - bottom_left) * x + (top_left - bottom_left) * y
+    matrix = camera.matrix_world.normalized()
+    if camera.data.type == "ORTHO":
+        origin = matrix @ Vector((local.x, local.y, 0.0))
+        direction = (matrix.to_3x3() @ Vector((0, 0, -1))).normalized()
+    else:
+        origin = matrix.translation
+        direction = ((matrix @ local) - origin).normalized()
+    t = (plane_y - origin.y) / direction.y
+    return float(t)
+
+
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+def test_camera_matches_blenders_projection(addon: ModuleType, kind: str) -> None:
+    scene = bpy.context.scene
+    width, height = 40, 30
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    camera = blender_scenes.add_camera(scene, np.eye(4))
+    camera.matrix_world = (
+        Matrix.Translation((0.3, -10.0, 0.5))
+        @ Matrix.Rotation(np.radians(92.0), 4, "X")
+        @ Matrix.Rotation(np.radians(4.0), 4, "Y")
+        @ Matrix.Scale(2.0, 4)
+    )
+    camera.data.sensor_fit = "VERTICAL"
+    camera.data.sensor_height = 20.0
+    camera.data.shift_x, camera.data.shift_y = 0.1, -0.05
+    if kind == "orthographic":
+        camera.data.type = "ORTHO"
+        camera.data.ortho_scale = 6.0
+    blender_scenes.add_sun(scene, (0.0, 0.2, -1.0))
+    wall = bpy.data.meshes.new("Wall")
+    wall.from_pydata([(-50, 5, -50), (50, 5, -50), (50, 5, 50), (-50, 5, 50)], [], [[0, 1, 2, 3]])
+    scene.collection.objects.link(bpy.data.objects.new("Wall", wall))
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    inputs = addon.export.frame_inputs(scene, depsgraph)
+    inputs.kwargs["settings"].update(steps=4, supersampling=1, max_distance=200.0)
+    layers = crepuscular.render_arrays(**inputs.kwargs)
+    assert layers.depth.shape == (height, width)
+    for row, column in ((0, 0), (height - 1, width - 1), (7, 31), (22, 3)):
+        x, y = (column + 0.5) / width, 1.0 - (row + 0.5) / height
+        expected = _plane_distance(camera, scene, x, y, 5.0)
+        assert layers.depth[row, column] == pytest.approx(expected, rel=2e-4), (row, column)
+
+
+def test_fog_object_maps_as_cycles_reads_it(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    matrix = (
+        Matrix.Translation((1, 2, 3)) @ Matrix.Rotation(0.4, 4, "Z") @ Matrix.Diagonal((4, 3, 2, 1))
+    )
+    scatter = blender_scenes.volume_material(
+        "scatter", Color=(0.5, 0.5, 0.5, 1.0), Density=0.8, Anisotropy=0.3
+    )
+    fog = blender_scenes.add_fog_box(scene, matrix, scatter)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    medium, notes = addon.export.medium_dict(scene, depsgraph)
+    assert medium["extinction"] == pytest.approx(0.4)  # sigma_t = color * density
+    assert medium["albedo"] == pytest.approx([1.0, 1.0, 1.0])  # sigma_s = sigma_t
+    assert medium["anisotropy"] == pytest.approx(0.3)
+    world = np.array(medium["extent"]["world_from_cube"]).reshape(4, 4).T
+    np.testing.assert_allclose(world, np.array(matrix), atol=1e-6)
+    assert notes == []
+    # Bounds that are not the unit cube move into the matrix.
+    for vertex in fog.data.vertices:
+        vertex.co = vertex.co * 0.5 + Vector((1.0, 0.0, 0.0))
+    fog.data.update()
+    medium, _ = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+    world = np.array(medium["extent"]["world_from_cube"]).reshape(4, 4).T
+    expected = np.array(matrix @ Matrix.Translation((1, 0, 0)) @ Matrix.Scale(0.5, 4))
+    np.testing.assert_allclose(world, expected, atol=1e-6)
+
+    # Principled Volume defaults: colour 0.5, no absorption colour, so sigma_t = density.
+    fog.data.materials[0] = blender_scenes.volume_material("principled", Density=2.0)
+    medium, _ = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+    assert medium["extinction"] == pytest.approx(2.0)
+    assert medium["albedo"] == pytest.approx([0.5, 0.5, 0.5])
+
+    # Coloured extinction: its luminance, and a note that says so.
+    fog.data.materials[0] = blender_scenes.volume_material(
+        "scatter", Color=(1.0, 0.5, 0.25, 1.0), Density=1.0
+    )
+    medium, notes = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+    luminance = 0.2126 * 1.0 + 0.7152 * 0.5 + 0.0722 * 0.25
+    assert medium["extinction"] == pytest.approx(luminance)
+    assert medium["albedo"] == pytest.approx(np.array([1.0, 0.5, 0.25]) / luminance)
+    assert any("luminance" in note for note in notes)
+
+
+def test_fog_objects_that_cannot_map_are_named(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    material = blender_scenes.volume_material("scatter", Density=1.0)
+    fog = blender_scenes.add_fog_box(scene, np.eye(4), material)
+    texture = material.node_tree.nodes.new("ShaderNodeTexNoise")
+    scatter = material.node_tree.nodes["Volume Scatter"]
+    link = material.node_tree.links.new(texture.outputs["Fac"], scatter.inputs["Density"])
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    with pytest.raises(addon.export.ExportError, match=r"'Density'.*constant"):
+        addon.export.medium_dict(scene, depsgraph)
+    material.node_tree.links.remove(link)
+    bpy.ops.mesh.primitive_uv_sphere_add()
+    scene.crepuscular.fog_object = bpy.context.active_object
+    bpy.context.active_object.data.materials.append(material)
+    with pytest.raises(addon.export.ExportError, match="must be a box"):
+        addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+    scene.crepuscular.fog_object = None
+    with pytest.raises(addon.export.ExportError, match="fog_object"):
+        addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+    del fog
+
+
+# The scripting contract -----------------------------------------------------------------
+
+
+def test_render_layers_operator_writes_the_layers(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    path = tmp_path / "layers.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+    channels = crepuscular.read_exr(path)
+    assert sorted(channels) == [
+        "depth",
+        "visibility",
+        "volume.A",
+        "volume.B",
+        "volume.G",
+        "volume.R",
+    ]
+    assert channels["volume.A"].shape == (36, 64)
+    lit = channels["visibility"]
+    assert 0.05 < lit.mean() < 0.95  # the roof shadows part of the fog, not all of it
+    # A style setting changes the shafts; the depth layer never changes.
+    settings = scene.objects["Sun"].data.crepuscular
+    settings.use_tf = True
+    layer = settings.tf_layers.add()
+    layer.kind, layer.color = "solid", (0.2, 0.2, 0.2, 1.0)
+    styled = tmp_path / "styled.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(styled)) == {"FINISHED"}
+    again = crepuscular.read_exr(styled)
+    np.testing.assert_array_equal(again["depth"], channels["depth"])
+    assert again["volume.R"].mean() < 0.5 * channels["volume.R"].mean()
+
+
+def test_world_constraints_follow_the_frame(addon: ModuleType, tmp_path: Path) -> None:
+    """A 3D TF constraint (what 'pick in viewport' adds) takes V̄ and depth from the pixel
+    where its point appears; a point the camera cannot see is an error naming it."""
+    scene = _basic_scene()
+    settings = scene.objects["Sun"].data.crepuscular
+    settings.tf_mode = "color"
+    blender_scenes.add_quad(scene, "Wall", [(-9, 5, -3), (9, 5, -3), (9, 5, 9), (-9, 5, 9)])
+    plain = tmp_path / "plain.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(plain)) == {"FINISHED"}
+    constraint = addon.ui.add_world_constraint(settings, (0.0, 5.0, 2.0))  # on the wall
+    constraint.color = (1.0, 0.0, 0.0, 1.0)
+    assert settings.use_tf
+    assert settings.tf_layers[settings.active_tf_layer].kind == "diffusion"
+    red = tmp_path / "red.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(red)) == {"FINISHED"}
+    before, after = crepuscular.read_exr(plain), crepuscular.read_exr(red)
+    assert after["volume.G"].mean() < 0.2 * before["volume.G"].mean()  # all red now
+    constraint.world_point = (0.0, -30.0, 3.0)  # behind the camera
+    with pytest.raises(RuntimeError, match=r"world_point"):
+        bpy.ops.crepuscular.render_layers(filepath=str(red))
+
+
+def test_several_suns_add_their_light(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    second = blender_scenes.add_sun(scene, (-0.4, 0.1, -1.0), strength=1.5)
+    second.name = "Sun.2"
+    second.data.crepuscular.shadow_map_size = 256
+    second.data.crepuscular.edge_samples = 1
+    first = scene.objects["Sun"]
+    paths = {}
+    for name, enabled in (
+        ("both", (True, True)),
+        ("first", (True, False)),
+        ("second", (False, True)),
+    ):
+        first.data.crepuscular.enabled, second.data.crepuscular.enabled = enabled
+        paths[name] = tmp_path / f"{name}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(paths[name])) == {"FINISHED"}
+    both, one, two = (volume_of(paths[n]) for n in ("both", "first", "second"))
+    np.testing.assert_allclose(both[..., :3], one[..., :3] + two[..., :3], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(both[..., 3], one[..., 3])  # transmittance is the medium's
+    assert two[..., :3].mean() > 0.1 * one[..., :3].mean()
+
+
+def volume_of(path: Path) -> np.ndarray:
+    channels = crepuscular.read_exr(path)
+    return np.stack([channels[f"volume.{c}"] for c in "RGBA"], axis=-1)
+
+
+def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> None:
+    path = str(tmp_path / "x.exr")
+    scene = bpy.context.scene
+    blender_scenes.add_sun(scene, (0, 0, -1))
+    with pytest.raises(RuntimeError, match="no camera"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    assert "no camera" in scene.crepuscular.last_error
+    scene = _basic_scene()
+    for obj in [o for o in scene.objects if o.type == "LIGHT"]:
+        obj.data.crepuscular.enabled = False
+    with pytest.raises(RuntimeError, match="no sun lamp has Stylized Shafts"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    sun = scene.objects["Sun"].data.crepuscular
+    sun.enabled = True
+    sun.method, sun.bases = "prefiltered", 5
+    with pytest.raises(RuntimeError, match=r"render\.bases"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    sun.method = "minmax"
+    scene.render.resolution_x = 20000
+    with pytest.raises(RuntimeError, match=r"camera\.width"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    scene.render.resolution_x = 64
+    scene.render.use_border = True
+    with pytest.raises(RuntimeError, match=r"use_border"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    scene.render.use_border = False
+    scene.camera.data.type = "PANO"
+    with pytest.raises(RuntimeError, match="pano"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    assert not os.path.exists(path)
+
+
+def test_layers_are_named_next_to_the_render_output(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    scene.render.filepath = "//renders/shot_"
+    path = addon.render.layers_path(scene, 12)
+    assert path.endswith(os.path.join("renders", "shot_crepuscular_0012.exr"))
+    scene.render.filepath = "/tmp/frames/"
+    assert addon.render.layers_path(scene, 3) == "/tmp/frames/crepuscular_0003.exr"
+    scene.render.filepath = "/tmp/frames/still.png"
+    assert addon.render.layers_path(scene, 3) == "/tmp/frames/still_crepuscular_0003.exr"
+
+
+def test_enabling_shafts_wires_the_compositor(addon: ModuleType) -> None:
+    scene = _basic_scene()
+    tree = scene.compositing_node_group
+    assert tree is not None
+    node = tree.nodes[addon.render.NODE_NAME]
+    assert node.node_tree.name == "Crepuscular Composite"
+    assert not node.mute
+    output = next(n for n in tree.nodes if n.bl_idname == "NodeGroupOutput")
+    assert output.inputs[0].links[0].from_node == node
+    assert node.inputs[0].links[0].from_node.bl_idname == "CompositorNodeRLayers"
+    scene.objects["Sun"].data.crepuscular.enabled = False
+    assert node.mute
+    scene.objects["Sun"].data.crepuscular.enabled = True
+    assert not node.mute
+    assert len([n for n in tree.nodes if n.name.startswith(addon.render.NODE_NAME)]) == 1
+
+
+def test_the_group_goes_in_front_of_an_existing_compositor_output(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    tree = bpy.data.node_groups.new("Artist Comp", "CompositorNodeTree")
+    tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    layers = tree.nodes.new("CompositorNodeRLayers")
+    glare = tree.nodes.new("CompositorNodeGlare")
+    output = tree.nodes.new("NodeGroupOutput")
+    tree.links.new(layers.outputs["Image"], glare.inputs["Image"])
+    tree.links.new(glare.outputs["Image"], output.inputs[0])
+    scene.compositing_node_group = tree
+    _basic_scene()
+    node = tree.nodes[addon.render.NODE_NAME]
+    assert node.inputs[0].links[0].from_node == glare  # the artist's work stays upstream
+    assert output.inputs[0].links[0].from_node == node
+    # A tree with no output to composite in front of: a report, no exception.
+    broken = bpy.data.node_groups.new("No Output", "CompositorNodeTree")
+    scene.compositing_node_group = broken
+    sun = scene.objects["Sun"].data.crepuscular
+    sun.enabled = False
+    sun.enabled = True
+    assert "No Output" in scene.crepuscular.last_error
+
+
+# Viewport preview -----------------------------------------------------------------------
+
+
+def test_preview_updates_debounced_off_the_main_thread(addon: ModuleType) -> None:
+    scene = _basic_scene(64, 36)
+    scene.crepuscular.preview = True
+    controller = addon.preview.PreviewController(debounce=0.2)
+    controller.mark_dirty()
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert not controller.step(scene, depsgraph, now=controller.last_change + 0.1)
+    assert controller.step(scene, depsgraph, now=controller.last_change + 0.3)
+    controller.wait()
+    assert controller.result is not None
+    assert controller.error == ""
+    assert controller.result.volume.shape == (18, 32, 4)  # half resolution
+    assert controller.result.display.shape == (18, 32, 4)
+    first = controller.result
+    assert not controller.step(scene, depsgraph)  # nothing changed
+    # A setting change reaches the shared controller through the property update.
+    addon.preview.CONTROLLER.dirty = False
+    scene.objects["Sun"].data.crepuscular.closing_radius = 1.0
+    assert addon.preview.CONTROLLER.dirty
+    scene.crepuscular.preview_scale = "4"
+    controller.mark_dirty()
+    assert controller.step(scene, depsgraph, now=time.monotonic() + 1.0)
+    controller.wait()
+    assert controller.result.generation > first.generation
+    assert controller.result.volume.shape == (9, 16, 4)
+    # Preview off: nothing runs.
+    scene.crepuscular.preview = False
+    controller.mark_dirty()
+    assert not controller.step(scene, depsgraph, now=time.monotonic() + 1.0)
+
+
+def test_preview_timer_follows_frame_changes(addon: ModuleType) -> None:
+    """The registered timer callback and the frame handler, driven by hand (timers do not
+    run in background mode)."""
+    scene = _basic_scene(64, 36)
+    scene.crepuscular.preview = True
+    controller = addon.preview.CONTROLLER
+    controller.dirty = False
+    scene.frame_set(5)  # the viewport depsgraph's frame change marks it
+    assert controller.dirty
+    controller.last_change -= 1.0  # as if the debounce time had passed
+    assert addon.preview._tick() == addon.preview.TICK
+    controller.wait()
+    assert controller.result is not None
+    assert controller.result.volume.shape == (18, 32, 4)
+
+
+def test_preview_cancels_superseded_work(addon: ModuleType) -> None:
+    scene = _basic_scene(1280, 720)
+    scene.crepuscular.preview = True
+    scene.crepuscular.preview_scale = "2"
+    sun = scene.objects["Sun"].data.crepuscular
+    sun.method, sun.steps = "reference", 3000
+    controller = addon.preview.PreviewController(debounce=0.0)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    controller.mark_dirty()
+    assert controller.step(scene, depsgraph)
+    time.sleep(0.2)
+    assert controller.busy  # a slow update is running in the background
+    assert controller.progress < 0.5
+    sun.steps = 8
+    controller.mark_dirty()
+    started = time.monotonic()
+    controller.cancel()  # what a newer request does first
+    assert time.monotonic() - started < 3.0
+    assert controller.cancelled == 1
+    assert controller.result is None
+    controller.mark_dirty()
+    assert controller.step(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
+    controller.wait()
+    assert controller.result is not None
+
+
+def test_preview_reports_errors_without_raising(addon: ModuleType) -> None:
+    scene = bpy.context.scene
+    scene.crepuscular.preview = True
+    controller = addon.preview.PreviewController(debounce=0.0)
+    controller.mark_dirty()
+    assert not controller.step(scene, bpy.context.evaluated_depsgraph_get())
+    assert "no sun lamp" in controller.error

@@ -1,0 +1,163 @@
+"""F12 and animation renders with real Cycles, each job in a subprocess (see blender_job.py):
+the composite in the render output, the layer EXRs written next to it, per-frame evaluation,
+edges against the sky, and fidelity against Cycles' own fog box.
+
+Cycles renders are kept tiny (at most 96 by 54) so that the whole set runs in well under a
+minute on two cores."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+import crepuscular
+
+pytest.importorskip("bpy")
+
+JOB = Path(__file__).resolve().parent / "blender_job.py"
+
+
+def run_job(out: Path, job: str, **spec: Any) -> float:
+    """Runs one job; returns its wall time in seconds."""
+    started = time.perf_counter()
+    result = subprocess.run(
+        [sys.executable, str(JOB), json.dumps({"job": job, "out": str(out), **spec})],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return time.perf_counter() - started
+
+
+def rgba(path: Path) -> np.ndarray:
+    channels = crepuscular.read_exr(path)
+    return np.stack([channels[c] for c in "RGBA"], axis=-1)
+
+
+def volume(path: Path) -> np.ndarray:
+    channels = crepuscular.read_exr(path)
+    return np.stack([channels[f"volume.{c}"] for c in "RGBA"], axis=-1)
+
+
+def test_f12_composites_the_layers_over_the_beauty(installed: ModuleType, tmp_path: Path) -> None:
+    run_job(tmp_path, "composite", width=64, height=36, samples=8)
+    beauty = rgba(tmp_path / "beauty.exr")
+    composite = rgba(tmp_path / "composite.exr")
+    layers = volume(tmp_path / "composite_crepuscular_0001.exr")
+    assert layers.shape == beauty.shape == (36, 64, 4)
+    assert layers[..., 3].max() > 0.3
+    assert layers[..., :3].max() > 0.01
+    # Premultiplied over, in scene-linear (the EXR holds values before the view transform).
+    expected = layers + (1.0 - layers[..., 3:4]) * beauty
+    np.testing.assert_allclose(composite, expected, rtol=1e-4, atol=1e-5)
+    assert np.abs(composite - beauty).mean() > 0.01
+
+
+def test_depth_matches_cycles_depth_pass(installed: ModuleType, tmp_path: Path) -> None:
+    run_job(tmp_path, "composite", width=64, height=36, samples=4)
+    planar = crepuscular.read_exr(tmp_path / "passes.exr")["ViewLayer.Depth.Z"]
+    ours = crepuscular.read_exr(tmp_path / "centres.exr")["depth"]
+    # Cycles writes z-depth along the view axis; ours is the distance along the ray.
+    # 35 mm lens, 36 mm sensor fitted to the 64 pixel width.
+    pixel = 36.0 / 35.0 / 64
+    xs = (np.arange(64) + 0.5 - 32) * pixel
+    ys = (18 - (np.arange(36) + 0.5)) * pixel
+    stretch = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+    surface = planar < 1e9
+    # Away from silhouettes, where Cycles' single depth sample may land on either side.
+    smooth = np.ones_like(surface)
+    for axis in (0, 1):
+        curvature = np.roll(planar, 1, axis) + np.roll(planar, -1, axis) - 2 * planar
+        smooth &= np.abs(curvature) < 0.01 * planar
+    compared = surface & smooth
+    assert compared.sum() > 0.5 * surface.sum()
+    np.testing.assert_allclose(ours[compared], (planar * stretch)[compared], rtol=2e-3)
+    assert np.all(ours[~surface] == pytest.approx(100.0))  # background: max distance
+
+
+def test_animation_renders_every_frame_composited(installed: ModuleType, tmp_path: Path) -> None:
+    run_job(tmp_path, "animation", width=64, height=36, samples=4)
+    shots = [rgba(tmp_path / f"shot_{f:04d}.exr") for f in (1, 2, 3)]
+    beauties = [rgba(tmp_path / f"beauty_{f:04d}.exr") for f in (1, 2, 3)]
+    layers = [crepuscular.read_exr(tmp_path / f"shot_crepuscular_{f:04d}.exr") for f in (1, 2, 3)]
+    for shot, beauty, channels in zip(shots, beauties, layers, strict=True):
+        vol = np.stack([channels[f"volume.{c}"] for c in "RGBA"], axis=-1)
+        np.testing.assert_allclose(shot, vol + (1 - vol[..., 3:4]) * beauty, rtol=1e-4, atol=1e-5)
+    # Each frame's layers are that frame's: the operator at the same frame agrees.
+    for frame, channels in zip((1, 2, 3), layers, strict=True):
+        again = crepuscular.read_exr(tmp_path / f"operator_{frame}.exr")
+        for name in ("volume.R", "volume.A", "visibility", "depth"):
+            np.testing.assert_allclose(channels[name], again[name], rtol=1e-4, atol=1e-5)
+    # The camera moves (depth changes) and the closing fills the hole's shaft (visibility).
+    assert np.abs(layers[0]["depth"] - layers[2]["depth"]).max() > 0.1
+    assert not np.array_equal(layers[0]["visibility"], layers[1]["visibility"])
+    assert not np.array_equal(shots[0], shots[2])
+
+
+def test_silhouettes_match_the_beauty_alpha(installed: ModuleType, tmp_path: Path) -> None:
+    run_job(tmp_path, "silhouette", width=96, height=54, samples=32, edge_samples=[1, 4])
+    beauty_alpha = rgba(tmp_path / "beauty.exr")[..., 3]
+    edges = (beauty_alpha > 0.03) & (beauty_alpha < 0.97)
+    assert edges.sum() > 40, "the card has no edge pixels"
+    errors = {}
+    for samples in (1, 4):
+        alpha = volume(tmp_path / f"layers_{samples}.exr")[..., 3]
+        # Orthographic: the card's pixels share one alpha and the sky's another.
+        inside = np.median(alpha[beauty_alpha > 0.999])
+        sky = np.median(alpha[beauty_alpha < 0.001])
+        assert sky > inside + 0.3
+        sky_share = (alpha - inside) / (sky - inside)
+        errors[samples] = float(np.abs(sky_share - (1 - beauty_alpha))[edges].mean())
+    # With edge samples, the layer's alpha edge follows the beauty's coverage (no halo,
+    # no stair steps); one sample per pixel shows both.
+    assert errors[4] < 0.04, errors
+    assert errors[1] > 2.5 * errors[4], errors
+
+
+SAMPLES = 256
+
+
+@pytest.fixture(scope="module")
+def fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    out = tmp_path_factory.mktemp("fidelity")
+    seconds = run_job(out, "fidelity", width=96, height=54, samples=SAMPLES)
+    print(f"fidelity job: 2 Cycles renders at {SAMPLES} spp, 96x54, {seconds:.1f} s in all")
+    return {"out": out, "seconds": seconds}
+
+
+def test_fog_object_matches_cycles(fidelity: dict[str, Any]) -> None:
+    """Black surfaces and world, no bounces: Cycles' image is the in-scattered light alone.
+    The medium, box, camera and sun all come through the add-on's export."""
+    out = fidelity["out"]
+    ours = volume(out / "layers.exr")[..., :3]
+    cycles = rgba(out / "cycles_black.exr")[..., :3]
+    assert cycles.mean() > 1e-3, "Cycles rendered a black image"
+    luminance = ours.mean(axis=-1)
+    lit = luminance > 0
+    assert np.ptp(luminance[lit]) > 0.5 * luminance[lit].max()  # shadow, shaft and open sky
+    # Whole-image mean: Monte Carlo noise averages out, so this is tight.
+    assert ours.mean() == pytest.approx(cycles.mean(), rel=0.02)
+    # Per pixel: mean absolute difference within 3% of the mean, noise included.
+    relative = np.abs(ours - cycles).mean() / cycles.mean()
+    assert relative < 0.03, relative
+
+
+def test_grey_surfaces_composite_like_cycles(fidelity: dict[str, Any]) -> None:
+    """F12 with shafts on hides the fog object and composites: it matches Cycles' own fog."""
+    out = fidelity["out"]
+    cycles = rgba(out / "cycles_grey.exr")[..., :3]
+    composite = rgba(out / "composite_grey.exr")[..., :3]
+    black = rgba(out / "cycles_black.exr")[..., :3]
+    assert cycles.mean() > 1.5 * black.mean(), "the grey backdrop is not in view"
+    assert composite.mean() == pytest.approx(cycles.mean(), rel=0.02)
+    relative = np.abs(composite - cycles).mean() / cycles.mean()
+    assert relative < 0.03, relative
