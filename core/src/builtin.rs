@@ -17,10 +17,10 @@ use rand_pcg::Pcg64;
 
 use crate::error::{Error, Result};
 use crate::mesh_builder::{Arch, MeshBuilder};
-use crate::style::Style;
 use crate::scene::{
     Camera, Extent, Medium, Mesh, Method, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
+use crate::style::Style;
 
 /// Names accepted by [`builtin_scene`].
 pub const BUILTIN_SCENES: [&str; 4] = ["torus", "tree", "plane", "colonnade"];

@@ -152,8 +152,22 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     render_timed(frame, control).map(|(layers, _)| layers)
 }
 
-/// [`render`], also reporting how long each stage took.
+/// [`render`], also reporting how long each stage took. Runs on the backend that
+/// `render.backend` selects; a Vulkan failure falls back to the CPU with one message on
+/// standard error.
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+    if let Some(device) = crate::backend::vulkan_device(frame.settings.backend) {
+        match crate::gpu::frame::render_timed(&device, frame, control) {
+            Ok((layers, times, _)) => return Ok((layers, times)),
+            Err(Error::Gpu(err)) => crate::backend::report_fallback(&err),
+            Err(other) => return Err(other),
+        }
+    }
+    render_timed_cpu(frame, control)
+}
+
+/// [`render_timed`] on the CPU backend, the oracle.
+pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     let (mut layers, mut times) = scatter_timed(frame, control)?;
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();
@@ -169,7 +183,10 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
 }
 
 /// Everything up to the per-pixel layers: depth maps, occluder manipulation, scattering.
-fn scatter_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+pub(crate) fn scatter_timed(
+    frame: &Frame,
+    control: &RenderControl,
+) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
     let mut clock = std::time::Instant::now();
     let mut lap = || {
@@ -319,7 +336,7 @@ pub(crate) struct SurfaceDistances {
 }
 
 impl SurfaceDistances {
-    fn new(camera: &CameraModel, frame: &Frame) -> Self {
+    pub(crate) fn new(camera: &CameraModel, frame: &Frame) -> Self {
         match frame.camera_depth {
             Some(given) => Self::from_given(camera, given),
             None => Self::rasterized(camera, frame),

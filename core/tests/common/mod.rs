@@ -4,8 +4,8 @@
 use crepuscular::scene::{
     Camera, Extent, Medium, Mesh, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
-use glam::{Mat4, Vec3};
 use crepuscular::Style;
+use glam::{Mat4, Vec3};
 
 /// An axis-aligned rectangle at height `z` covering [x0, x1] × [y0, y1].
 pub fn horizontal_quad(object_id: u32, x0: f32, x1: f32, y0: f32, y1: f32, z: f32) -> Mesh {

@@ -1,0 +1,184 @@
+//! One frame on the Vulkan backend. Ported stages run on the GPU; the others run on the
+//! CPU exactly as in the CPU backend:
+//!
+//! | stage | where |
+//! |---|---|
+//! | shadow map and camera depth rasterization | CPU |
+//! | hole filling (2D closing and the other morphology operations) | GPU |
+//! | silhouette enhancement, hole creation | CPU |
+//! | reference ray march | GPU |
+//! | rectification, min-max and prefiltered scattering | CPU |
+//! | upsampling of downsampled evaluation | CPU |
+//! | transfer function: baking | CPU; application | GPU |
+
+use std::sync::Arc;
+
+use super::device::Device;
+use super::march::{self, MarchInputs};
+use crate::camera::CameraModel;
+use crate::control::RenderControl;
+use crate::error::Result;
+use crate::layers::Layers;
+use crate::morphology::MorphologyDesc;
+use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
+use crate::scene::Method;
+use crate::shadow_map::ShadowMap;
+use crate::style::Style;
+use crate::upsample::{joint_bilateral, reduced_size};
+
+/// GPU timestamps of the stages that ran on the GPU, in milliseconds, and the names of
+/// the stages that ran on the CPU.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GpuTimes {
+    pub hole_filling: Option<f64>,
+    pub ray_march: Option<f64>,
+    pub transfer_function: Option<f64>,
+    pub cpu_stages: Vec<&'static str>,
+}
+
+impl GpuTimes {
+    /// The GPU stages' total.
+    pub fn total(&self) -> f64 {
+        [self.hole_filling, self.ray_march, self.transfer_function]
+            .into_iter()
+            .flatten()
+            .sum()
+    }
+}
+
+/// Renders `frame` with the ported stages on `device`.
+pub fn render_timed(
+    device: &Arc<Device>,
+    frame: &Frame,
+    control: &RenderControl,
+) -> Result<(Layers, StageTimes, GpuTimes)> {
+    frame.validate()?;
+    let mut gpu = GpuTimes::default();
+    let camera = CameraModel::new(frame.camera);
+    let (mut layers, mut times) = if frame.settings.method == Method::Reference {
+        march_frame(device, frame, &camera, control, &mut gpu)?
+    } else {
+        gpu.cpu_stages = vec![
+            "shadow map",
+            "occluder manipulation",
+            "camera depth",
+            "rectification",
+            frame.settings.method.name(),
+        ];
+        scatter_timed(frame, control)?
+    };
+    if frame.style.tf.is_some() {
+        let started = std::time::Instant::now();
+        let light = frame.sun.irradiance() * frame.medium.albedo;
+        if let Some((texture, settings)) =
+            frame
+                .style
+                .bake_transfer_function(&layers, &camera, light.to_array())?
+        {
+            gpu.transfer_function =
+                super::transfer::apply(device, &mut layers, &texture, &settings)?;
+        }
+        times.transfer_function = started.elapsed().as_secs_f64();
+        gpu.cpu_stages.push("transfer-function baking");
+    }
+    Ok((layers, times, gpu))
+}
+
+fn march_frame(
+    device: &Arc<Device>,
+    frame: &Frame,
+    camera: &CameraModel,
+    control: &RenderControl,
+    gpu: &mut GpuTimes,
+) -> Result<(Layers, StageTimes)> {
+    let mut times = StageTimes::default();
+    let mut clock = std::time::Instant::now();
+    let mut lap = || {
+        let now = std::time::Instant::now();
+        let seconds = (now - clock).as_secs_f64();
+        clock = now;
+        seconds
+    };
+    let rows = reduced_size(frame.camera.height, frame.settings.downsample);
+    control.begin(rows as u64);
+    control.check()?;
+    let mut shadow = ShadowMap::build(
+        camera,
+        frame.sun,
+        frame.medium,
+        frame.settings,
+        &frame.geometry,
+    );
+    gpu.cpu_stages.push("shadow map");
+    control.check()?;
+    times.shadow_map = lap();
+    if frame.style.manipulates_occluders() {
+        shadow = manipulate_occluders(device, frame.style, shadow, camera, gpu)?;
+        times.occluders = lap();
+    }
+    let surfaces = SurfaceDistances::new(camera, frame);
+    gpu.cpu_stages.push("camera depth");
+    times.camera_depth = lap();
+    control.check()?;
+    let (layers, ms) = march::march(
+        device,
+        &MarchInputs {
+            camera,
+            shadow: &shadow,
+            sun: frame.sun,
+            medium: frame.medium,
+            settings: frame.settings,
+            surfaces: &surfaces.distances,
+            supersampling: surfaces.supersampling,
+        },
+    )?;
+    gpu.ray_march = ms;
+    let stride = frame.settings.downsample;
+    let layers = if stride > 1 {
+        gpu.cpu_stages.push("upsampling");
+        let max_distance = frame.settings.max_distance;
+        let depth: Vec<f32> = surfaces
+            .distances
+            .iter()
+            .map(|&d| if d.is_finite() { d } else { max_distance })
+            .collect();
+        joint_bilateral(&layers, &depth, camera.width, camera.height, stride)
+    } else {
+        layers
+    };
+    control.advance(rows as u64);
+    control.check()?;
+    times.shading = lap();
+    Ok((layers, times))
+}
+
+/// The style's occluder operators in the CPU's order: the 2D morphology on the GPU, then
+/// silhouettes and holes on the CPU.
+fn manipulate_occluders(
+    device: &Arc<Device>,
+    style: &Style,
+    mut shadow: ShadowMap,
+    camera: &CameraModel,
+    gpu: &mut GpuTimes,
+) -> Result<ShadowMap> {
+    if let Some(closing) = &style.closing {
+        let radius = closing
+            .radius_texels
+            .unwrap_or((closing.radius as f64 / shadow.texel_size) as f32);
+        if radius > 0.0 {
+            let desc = MorphologyDesc::new(closing.operation, closing.kernel, radius);
+            let (depth, ms) = super::morphology::apply(device, &shadow.depth, shadow.size, &desc)?;
+            shadow.depth = depth;
+            gpu.hole_filling = ms;
+        }
+    }
+    let rest = Style {
+        closing: None,
+        ..style.clone()
+    };
+    if rest.manipulates_occluders() {
+        gpu.cpu_stages.push("silhouettes and hole creation");
+        shadow = rest.scattering_map(&shadow, camera)?;
+    }
+    Ok(shadow)
+}
