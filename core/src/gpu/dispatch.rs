@@ -29,8 +29,7 @@ pub fn groups_2d(
     Ok(groups)
 }
 
-/// Workgroups covering `items` in one dimension, folded into a second dimension when
-/// one axis would exceed the device's limit is not needed: the shaders index with x only.
+/// Workgroups covering `items` along x, checked against the device's limit.
 pub fn groups_1d(items: u32, local: u32, max_groups: [u32; 3]) -> GpuResult<[u32; 3]> {
     let groups = group_count(items, local);
     if groups > max_groups[0] {

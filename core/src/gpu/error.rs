@@ -12,6 +12,10 @@ pub enum GpuError {
     #[error("no usable Vulkan device: {0}")]
     NoDevice(String),
 
+    /// An earlier attempt to open a device failed, for the reason given.
+    #[error("{0}")]
+    Unavailable(String),
+
     /// A Vulkan call returned an error.
     #[error("{call} failed: {result}")]
     Vulkan {

@@ -43,6 +43,6 @@ pub fn shared_device(policy: DevicePolicy) -> GpuResult<Arc<Device>> {
     let entry = guard.get_or_insert_with(|| Device::new(policy).map_err(|err| err.to_string()));
     match entry {
         Ok(device) => Ok(device.clone()),
-        Err(reason) => Err(GpuError::NoDevice(reason.clone())),
+        Err(reason) => Err(GpuError::Unavailable(reason.clone())),
     }
 }

@@ -1,0 +1,332 @@
+//! The Vulkan backend against the CPU oracle, stage by stage and for whole frames of the
+//! built-in scenes, on whatever Vulkan device there is (lavapipe in CI). Without a Vulkan
+//! loader or device every test prints why it skips and passes.
+//!
+//! Errors are measured per layer as the mean relative error Σ|gpu − cpu| / Σ|cpu| (bound
+//! 1e-3) and the largest absolute difference (bounds stated per test).
+
+use std::sync::Arc;
+
+use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
+use crepuscular::camera::CameraModel;
+use crepuscular::gpu::{self, Device, DeviceKind, DevicePolicy};
+use crepuscular::morphology::{self, KernelShape, MorphologyDesc, MorphologyOp};
+use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
+use crepuscular::scene::{Extent, Scene};
+use crepuscular::shadow_map::ShadowMap;
+use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
+use crepuscular::{Layers, RenderControl, Style};
+
+const MEAN_RELATIVE: f64 = 1e-3;
+
+fn device(test: &str) -> Option<Arc<Device>> {
+    match gpu::shared_device(DevicePolicy::Any) {
+        Ok(device) => Some(device),
+        Err(err) => {
+            eprintln!("skipping {test}: {err}");
+            None
+        }
+    }
+}
+
+/// (mean relative error, max absolute error).
+fn compare(gpu: &[f32], cpu: &[f32]) -> (f64, f64) {
+    assert_eq!(gpu.len(), cpu.len());
+    let (mut diff, mut total, mut max) = (0.0f64, 0.0f64, 0.0f64);
+    for (&g, &c) in gpu.iter().zip(cpu) {
+        assert!(g.is_finite() == c.is_finite(), "finite {g} against {c}");
+        if !c.is_finite() {
+            assert_eq!(g, c);
+            continue;
+        }
+        let d = (g as f64 - c as f64).abs();
+        diff += d;
+        total += (c as f64).abs();
+        max = max.max(d);
+    }
+    (if total > 0.0 { diff / total } else { diff }, max)
+}
+
+/// Checks every layer; `volume_abs` bounds the volume layer's largest absolute error
+/// relative to its largest value, `visibility_abs` the visibility's.
+fn check_layers(label: &str, gpu: &Layers, cpu: &Layers, volume_abs: f64, visibility_abs: f64) {
+    assert_eq!((gpu.width, gpu.height), (cpu.width, cpu.height), "{label}");
+    let peak = cpu.volume.iter().fold(0.0f32, |m, v| m.max(v.abs())) as f64;
+    let layers = [
+        (
+            "volume",
+            &gpu.volume,
+            &cpu.volume,
+            volume_abs * peak.max(1e-30),
+        ),
+        (
+            "visibility",
+            &gpu.visibility,
+            &cpu.visibility,
+            visibility_abs,
+        ),
+        ("depth", &gpu.depth, &cpu.depth, 1e-4 * 1000.0),
+    ];
+    for (name, g, c, bound) in layers {
+        let (mean, max) = compare(g, c);
+        eprintln!("{label} {name}: mean relative error {mean:.2e}, max abs error {max:.3e}");
+        assert!(
+            mean <= MEAN_RELATIVE,
+            "{label} {name}: mean relative error {mean:.3e}"
+        );
+        assert!(
+            max <= bound,
+            "{label} {name}: max abs error {max:.3e} > {bound:.3e}"
+        );
+    }
+}
+
+/// A built-in scene at a size lavapipe renders quickly.
+fn small(name: &str) -> Scene {
+    let mut scene = builtin_scene(name).unwrap();
+    scene.camera.width = 128;
+    scene.camera.height = 72;
+    scene.render.shadow_map_size = 256;
+    scene.render.steps = 128;
+    scene
+}
+
+fn render_both(device: &Arc<Device>, scene: &Scene) -> (Layers, Layers, gpu::frame::GpuTimes) {
+    let geometry = FlatGeometry::from_scene(scene);
+    let frame = Frame {
+        camera: &scene.camera,
+        sun: &scene.sun,
+        medium: &scene.medium,
+        settings: &scene.render,
+        geometry: geometry.view(),
+        camera_depth: None,
+        style: &scene.style,
+    };
+    let control = RenderControl::new();
+    let (cpu, _) = render_timed_cpu(&frame, &control).unwrap();
+    let (gpu, _, times) = gpu::frame::render_timed(device, &frame, &control).unwrap();
+    (gpu, cpu, times)
+}
+
+fn stylized() -> Style {
+    Style::from_json(
+        r#"{
+        "version": 1,
+        "closing": { "operation": "close", "kernel": "disk", "radius": 0.4 },
+        "tf": {
+            "mode": "color",
+            "depth_range": { "near": 0.0, "far": 60.0 },
+            "layers": [{
+                "kind": "gradient",
+                "shape": { "kind": "linear", "from": [0.0, 0.0], "to": [1.0, 1.0] },
+                "stops": [
+                    { "position": 0.0, "color": [0.2, 0.1, 0.9, 0.3] },
+                    { "position": 1.0, "color": [1.0, 0.6, 0.1, 0.9] }
+                ]
+            }]
+        }
+    }"#,
+    )
+    .unwrap()
+}
+
+/// The reference ray march alone: every built-in scene in its physical style. Visibility
+/// is a step function sampled at 128 points per ray; f32 against f64 positions may move
+/// a sample across an occluder's edge, so a pixel's visibility may differ by a few steps
+/// (bound 0.05) and its radiance by a few percent of the image's peak (bound 0.05).
+#[test]
+fn reference_march_matches_the_cpu_on_the_builtin_scenes() {
+    let Some(device) = device("the reference march parity test") else {
+        return;
+    };
+    for name in BUILTIN_SCENES {
+        let scene = small(name);
+        let (gpu, cpu, times) = render_both(&device, &scene);
+        assert!(times.ray_march.is_some() || device.physical.timestamp_valid_bits == 0);
+        check_layers(&format!("march {name}"), &gpu, &cpu, 0.05, 0.05);
+    }
+}
+
+/// The march through a `box` medium, with supersampling, and at half resolution.
+#[test]
+fn reference_march_matches_in_a_box_supersampled_and_downsampled() {
+    let Some(device) = device("the box/supersampling march parity test") else {
+        return;
+    };
+    let mut boxed = small("torus");
+    boxed.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::new(6.0, 5.0, 3.0),
+            glam::Quat::from_rotation_z(0.3),
+            glam::Vec3::new(0.0, 0.0, 2.0),
+        ),
+    };
+    let (gpu, cpu, _) = render_both(&device, &boxed);
+    check_layers("march torus in a box", &gpu, &cpu, 0.05, 0.05);
+    let mut supersampled = small("colonnade");
+    supersampled.render.supersampling = 2;
+    let (gpu, cpu, _) = render_both(&device, &supersampled);
+    check_layers("march colonnade 2×2 samples", &gpu, &cpu, 0.05, 0.05);
+    let mut downsampled = small("tree");
+    downsampled.render.downsample = 2;
+    let (gpu, cpu, _) = render_both(&device, &downsampled);
+    check_layers("march tree at 1/2", &gpu, &cpu, 0.05, 0.05);
+}
+
+/// Hole filling: minimum and maximum are exact, so the GPU must equal the CPU bit for
+/// bit (max abs error 0) for every operation and kernel.
+#[test]
+fn morphology_equals_the_cpu_exactly() {
+    let Some(device) = device("the morphology parity test") else {
+        return;
+    };
+    for name in BUILTIN_SCENES {
+        let scene = small(name);
+        let camera = CameraModel::new(&scene.camera);
+        let geometry = FlatGeometry::from_scene(&scene);
+        let shadow = ShadowMap::build(
+            &camera,
+            &scene.sun,
+            &scene.medium,
+            &scene.render,
+            &geometry.view(),
+        );
+        for (op, shape, radius) in [
+            (MorphologyOp::Close, KernelShape::Disk, 4.5),
+            (MorphologyOp::Open, KernelShape::Disk, 2.0),
+            (MorphologyOp::Close, KernelShape::Box, 3.7),
+            (MorphologyOp::Dilate, KernelShape::Box, 1.0),
+            (MorphologyOp::Erode, KernelShape::Disk, 0.0),
+        ] {
+            let desc = MorphologyDesc::new(op, shape, radius);
+            let cpu = morphology::apply(&shadow.depth, shadow.size, &desc).unwrap();
+            let (gpu, _) =
+                gpu::morphology::apply(&device, &shadow.depth, shadow.size, &desc).unwrap();
+            let differing = gpu
+                .iter()
+                .zip(&cpu)
+                .filter(|(g, c)| g.to_bits() != c.to_bits())
+                .count();
+            eprintln!("morphology {name} {desc:?}: {differing} texels differ");
+            assert_eq!(differing, 0, "{name} {desc:?}");
+        }
+    }
+}
+
+/// The TF application alone, on CPU-rendered layers: colour mode under a full light and
+/// under a light without blue (channels mixed), and monochrome. Bilinear weights are
+/// applied to the TF before (CPU) or after (GPU) the rule, which is the same in exact
+/// arithmetic: max abs error 1e-5 of the peak radiance.
+#[test]
+fn transfer_function_matches_the_cpu() {
+    let Some(device) = device("the transfer-function parity test") else {
+        return;
+    };
+    let scene = small("colonnade");
+    let geometry = FlatGeometry::from_scene(&scene);
+    let frame = Frame {
+        camera: &scene.camera,
+        sun: &scene.sun,
+        medium: &scene.medium,
+        settings: &scene.render,
+        geometry: geometry.view(),
+        camera_depth: None,
+        style: &scene.style,
+    };
+    let (layers, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
+    let texels: Vec<[f32; 4]> = (0..16 * 16)
+        .map(|i| {
+            let (x, y) = ((i % 16) as f32 / 15.0, (i / 16) as f32 / 15.0);
+            [x, 0.5 * y, 1.0 - x * y, 0.2 + 0.7 * x]
+        })
+        .collect();
+    let texture = TfTexture::from_texels(16, texels).unwrap();
+    let range = DepthRange {
+        near: 1.0,
+        far: 40.0,
+    };
+    for (mode, light) in [
+        (TfMode::Color, [1.0, 0.9, 0.8]),
+        (TfMode::Color, [1.0, 0.5, 0.0]),
+        (TfMode::Monochrome, [1.0, 0.9, 0.8]),
+    ] {
+        let settings = ApplySettings {
+            mode,
+            depth_range: range,
+            light_color: light,
+        };
+        let mut cpu = layers.clone();
+        transfer_function::apply_to_layers(&mut cpu, &texture, &settings).unwrap();
+        let mut gpu_layers = layers.clone();
+        gpu::transfer::apply(&device, &mut gpu_layers, &texture, &settings).unwrap();
+        check_layers(
+            &format!("TF {mode:?} {light:?}"),
+            &gpu_layers,
+            &cpu,
+            1e-5,
+            0.0,
+        );
+    }
+}
+
+/// Whole stylized frames (GPU hole filling, march and TF; CPU rasterization and baking)
+/// of the four built-in scenes. Bounds as for the march alone.
+#[test]
+fn stylized_frames_match_the_cpu_on_the_builtin_scenes() {
+    let Some(device) = device("the full-frame parity test") else {
+        return;
+    };
+    for name in BUILTIN_SCENES {
+        let mut scene = small(name);
+        scene.style = stylized();
+        let (gpu, cpu, times) = render_both(&device, &scene);
+        if device.physical.timestamp_valid_bits > 0 {
+            assert!(times.hole_filling.is_some() && times.ray_march.is_some());
+            assert!(times.transfer_function.is_some());
+        }
+        check_layers(&format!("frame {name}"), &gpu, &cpu, 0.05, 0.05);
+    }
+}
+
+/// `auto` takes real GPUs only: whatever this machine has, the device it opens is never a
+/// CPU implementation; and a list holding only lavapipe gives none.
+#[test]
+fn auto_never_picks_a_cpu_device() {
+    use crepuscular::gpu::physical_device::choose_device;
+    assert_eq!(
+        choose_device(&[DeviceKind::Cpu], DevicePolicy::HardwareOnly),
+        None
+    );
+    assert_eq!(
+        choose_device(
+            &[DeviceKind::Cpu, DeviceKind::Integrated],
+            DevicePolicy::HardwareOnly
+        ),
+        Some(1)
+    );
+    match gpu::shared_device(DevicePolicy::HardwareOnly) {
+        Ok(device) => assert_ne!(device.physical.kind, DeviceKind::Cpu),
+        Err(err) => eprintln!("auto takes the CPU backend here: {err}"),
+    }
+}
+
+/// Explicit `vulkan` without a usable driver renders on the CPU after exactly one message.
+#[test]
+fn a_missing_driver_falls_back_to_the_cpu_with_one_message() {
+    let out = std::env::temp_dir().join(format!("crepuscular-fallback-{}.exr", std::process::id()));
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_crepuscular"))
+        .args([
+            "render", "--scene", "torus", "--width", "32", "--height", "18", "--steps", "16",
+        ])
+        .args(["--sm-size", "64", "--backend", "vulkan", "--out"])
+        .arg(&out)
+        .env("VK_DRIVER_FILES", "/nonexistent/icd.json")
+        .env("VK_ICD_FILENAMES", "/nonexistent/icd.json")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let _ = std::fs::remove_file(&out);
+    assert!(output.status.success(), "{stderr}");
+    let messages = stderr.matches("rendering on the CPU instead").count();
+    assert_eq!(messages, 1, "{stderr}");
+}
