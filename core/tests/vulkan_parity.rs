@@ -21,7 +21,10 @@ const MEAN_RELATIVE: f64 = 1e-3;
 
 fn device(test: &str) -> Option<Arc<Device>> {
     match gpu::shared_device(DevicePolicy::Any) {
-        Ok(device) => Some(device),
+        Ok(device) => {
+            eprintln!("{test} on {}", device.describe());
+            Some(device)
+        }
         Err(err) => {
             eprintln!("skipping {test}: {err}");
             None

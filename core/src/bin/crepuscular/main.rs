@@ -1,6 +1,7 @@
 //! `crepuscular`: render scenes to layer EXRs, export built-in scenes, and benchmark.
 
 mod bench;
+mod gpu_bench;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
