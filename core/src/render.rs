@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::layers::Layers;
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
-use crate::prefiltered::{Prefiltered, PrefilteredDesc};
+use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
 use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
@@ -168,7 +168,7 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
 
 /// [`render_timed`] on the CPU backend, the oracle.
 pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
-    let (mut layers, mut times) = scatter_timed(frame, control)?;
+    let (mut layers, mut times) = scatter_timed(frame, control, &CpuPrefixSums)?;
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();
         let light = frame.sun.irradiance() * frame.medium.albedo;
@@ -183,9 +183,11 @@ pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layer
 }
 
 /// Everything up to the per-pixel layers: depth maps, occluder manipulation, scattering.
+/// `prefix` computes prefiltering's filtered basis (on the CPU or a GPU).
 pub(crate) fn scatter_timed(
     frame: &Frame,
     control: &RenderControl,
+    prefix: &dyn PrefixSums,
 ) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
     let mut clock = std::time::Instant::now();
@@ -287,14 +289,15 @@ pub(crate) fn scatter_timed(
         Method::Prefiltered => {
             // Every epipole ahead of the camera, however far off the image.
             let ahead: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
-            prefiltered = Prefiltered::build(
+            prefiltered = Prefiltered::build_with(
                 &map,
                 &camera,
                 &ahead,
                 &PrefilteredDesc::from_settings(frame.settings),
                 frame.sun,
                 frame.medium,
-            );
+                prefix,
+            )?;
             times.structure_bytes = prefiltered.memory_bytes();
             let method = &prefiltered;
             Box::new(move |ray, t0, t1| {

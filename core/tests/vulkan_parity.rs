@@ -9,10 +9,14 @@ use std::sync::Arc;
 
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
+use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::gpu::{self, Device, DeviceKind, DevicePolicy};
 use crepuscular::morphology::{self, KernelShape, MorphologyDesc, MorphologyOp};
+use crepuscular::prefiltered::{
+    CpuPrefixSums, FilteredBasis, Prefiltered, PrefilteredDesc, PrefixPlan, PrefixSums,
+};
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
-use crepuscular::scene::{Extent, Scene};
+use crepuscular::scene::{BasisStorage, Extent, Method, Scene};
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
 use crepuscular::{Layers, RenderControl, Style};
@@ -332,4 +336,116 @@ fn a_missing_driver_falls_back_to_the_cpu_with_one_message() {
     assert!(output.status.success(), "{stderr}");
     let messages = stderr.matches("rendering on the CPU instead").count();
     assert_eq!(messages, 1, "{stderr}");
+}
+
+/// The frame's rectified map of a scene and the prefix-sum plan prefiltering builds on it.
+fn prefix_plan(scene: &Scene) -> PrefixPlan {
+    let camera = CameraModel::new(&scene.camera);
+    let geometry = FlatGeometry::from_scene(scene);
+    let shadow = ShadowMap::build(
+        &camera,
+        &scene.sun,
+        &scene.medium,
+        &scene.render,
+        &geometry.view(),
+    );
+    let light_travel = scene.sun.direction.as_dvec3().normalize();
+    let map = EpipolarMap::rectify(
+        &camera,
+        &shadow,
+        &geometry.view(),
+        light_travel,
+        scene.render.max_distance as f64,
+        scene.render.rectification,
+        &RectifyDesc::prefiltered(scene.render.epipolar_slices),
+    )
+    .unwrap()
+    .expect("the built-in views can be rectified");
+    let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+    Prefiltered::prefix_plan(
+        &map,
+        &camera,
+        &epipoles,
+        &PrefilteredDesc::from_settings(&scene.render),
+        &scene.sun,
+        &scene.medium,
+    )
+}
+
+/// Prefiltering's basis computation and prefix sums: the GPU sums in the CPU's order
+/// without contraction, so snorm16 values may differ by at most one step (1/32767) where
+/// a sum lands on a rounding boundary, and f32 values by 1e-6 (relative to 1, the
+/// basis' range).
+#[test]
+fn prefix_sums_match_the_cpu() {
+    let Some(device) = device("the prefix-sum parity test") else {
+        return;
+    };
+    let gpu_sums = gpu::prefix::GpuPrefixSums::new(&device);
+    for name in BUILTIN_SCENES {
+        for (storage, bases) in [(BasisStorage::Snorm16, 32), (BasisStorage::F32, 16)] {
+            let mut scene = small(name);
+            scene.render.method = Method::Prefiltered;
+            scene.render.basis_storage = storage;
+            scene.render.bases = bases;
+            let plan = prefix_plan(&scene);
+            let cpu = CpuPrefixSums.prefix_sums(&plan).unwrap();
+            let gpu = gpu_sums.prefix_sums(&plan).unwrap();
+            let (differing, max) = match (&gpu, &cpu) {
+                (FilteredBasis::Snorm16(g), FilteredBasis::Snorm16(c)) => {
+                    assert_eq!(g.len(), c.len());
+                    let diffs = g.iter().zip(c).map(|(a, b)| (*a as i32 - *b as i32).abs());
+                    let (mut count, mut max) = (0, 0);
+                    for d in diffs {
+                        count += (d != 0) as usize;
+                        max = max.max(d);
+                    }
+                    (count, max as f64 / 32767.0)
+                }
+                (FilteredBasis::F32(g), FilteredBasis::F32(c)) => {
+                    assert_eq!(g.len(), c.len());
+                    let count = g.iter().zip(c).filter(|(a, b)| a != b).count();
+                    let max = g
+                        .iter()
+                        .zip(c)
+                        .map(|(a, b)| (a - b).abs() as f64)
+                        .fold(0.0, f64::max);
+                    (count, max)
+                }
+                _ => panic!("storage differs"),
+            };
+            let values = plan.total_rows * plan.stride;
+            eprintln!(
+                "prefix sums {name} {storage:?} M={bases}: {differing} of {values} values differ, \
+                 max abs error {max:.2e}"
+            );
+            let bound = match storage {
+                BasisStorage::Snorm16 => 1.0 / 32767.0 + 1e-12,
+                BasisStorage::F32 => 1e-6,
+            };
+            assert!(max <= bound, "{name} {storage:?}: {max:.3e}");
+            assert!(
+                differing * 1000 <= values,
+                "{name}: {differing} of {values} differ"
+            );
+        }
+    }
+}
+
+/// Whole prefiltered frames with the prefix sums on the GPU (planning and per-pixel
+/// evaluation on the CPU): the same bounds as the march.
+#[test]
+fn prefiltered_frames_match_the_cpu_on_the_builtin_scenes() {
+    let Some(device) = device("the prefiltered-frame parity test") else {
+        return;
+    };
+    for name in BUILTIN_SCENES {
+        let mut scene = small(name);
+        scene.render.method = Method::Prefiltered;
+        let (gpu, cpu, times) = render_both(&device, &scene);
+        if device.physical.timestamp_valid_bits > 0 {
+            assert!(times.prefix_sums.is_some());
+        }
+        check_layers(&format!("prefiltered {name}"), &gpu, &cpu, 0.05, 0.05);
+    }
 }

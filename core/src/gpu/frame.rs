@@ -7,7 +7,9 @@
 //! | hole filling (2D closing and the other morphology operations) | GPU |
 //! | silhouette enhancement, hole creation | CPU |
 //! | reference ray march | GPU |
-//! | rectification, min-max and prefiltered scattering | CPU |
+//! | rectification, min-max scattering | CPU |
+//! | prefiltered: planning (frames, bands, weights) and per-pixel evaluation | CPU |
+//! | prefiltered: basis computation and per-band prefix sums | GPU |
 //! | upsampling of downsampled evaluation | CPU |
 //! | transfer function: baking | CPU; application | GPU |
 
@@ -15,11 +17,13 @@ use std::sync::Arc;
 
 use super::device::Device;
 use super::march::{self, MarchInputs};
+use super::prefix::GpuPrefixSums;
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::error::Result;
 use crate::layers::Layers;
 use crate::morphology::MorphologyDesc;
+use crate::prefiltered::CpuPrefixSums;
 use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
@@ -32,6 +36,8 @@ use crate::upsample::{joint_bilateral, reduced_size};
 pub struct GpuTimes {
     pub hole_filling: Option<f64>,
     pub ray_march: Option<f64>,
+    /// Prefiltering's basis computation and prefix sums.
+    pub prefix_sums: Option<f64>,
     pub transfer_function: Option<f64>,
     pub cpu_stages: Vec<&'static str>,
 }
@@ -39,10 +45,15 @@ pub struct GpuTimes {
 impl GpuTimes {
     /// The GPU stages' total.
     pub fn total(&self) -> f64 {
-        [self.hole_filling, self.ray_march, self.transfer_function]
-            .into_iter()
-            .flatten()
-            .sum()
+        [
+            self.hole_filling,
+            self.ray_march,
+            self.prefix_sums,
+            self.transfer_function,
+        ]
+        .into_iter()
+        .flatten()
+        .sum()
     }
 }
 
@@ -58,14 +69,21 @@ pub fn render_timed(
     let (mut layers, mut times) = if frame.settings.method == Method::Reference {
         march_frame(device, frame, &camera, control, &mut gpu)?
     } else {
-        gpu.cpu_stages = vec![
-            "shadow map",
-            "occluder manipulation",
-            "camera depth",
-            "rectification",
-            frame.settings.method.name(),
-        ];
-        scatter_timed(frame, control)?
+        gpu.cpu_stages = vec!["shadow map", "camera depth", "rectification"];
+        if frame.style.manipulates_occluders() {
+            gpu.cpu_stages.push("occluder manipulation");
+        }
+        if frame.settings.method == Method::Prefiltered {
+            gpu.cpu_stages
+                .push("prefiltered planning and per-pixel evaluation");
+            let prefix = GpuPrefixSums::new(device);
+            let result = scatter_timed(frame, control, &prefix)?;
+            gpu.prefix_sums = prefix.milliseconds();
+            result
+        } else {
+            gpu.cpu_stages.push(frame.settings.method.name());
+            scatter_timed(frame, control, &CpuPrefixSums)?
+        }
     };
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();

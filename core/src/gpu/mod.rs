@@ -5,7 +5,7 @@
 //! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
 //! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
 //! [`query`] (timestamps), [`dispatch`] (workgroup counts and parameter packing), and
-//! one per ported stage: [`march`], [`morphology`], [`transfer`].
+//! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`].
 
 pub mod barrier;
 pub mod buffer;
@@ -19,6 +19,7 @@ pub mod instance;
 pub mod march;
 pub mod morphology;
 pub mod physical_device;
+pub mod prefix;
 pub mod query;
 pub mod shader;
 pub mod transfer;

@@ -11,6 +11,7 @@ pub enum Shader {
     March,
     Morphology,
     Transfer,
+    Prefix,
 }
 
 impl Shader {
@@ -19,6 +20,7 @@ impl Shader {
             Shader::March => "march",
             Shader::Morphology => "morphology",
             Shader::Transfer => "transfer",
+            Shader::Prefix => "prefix",
         }
     }
 
@@ -27,6 +29,7 @@ impl Shader {
             Shader::March => include_bytes!(concat!(env!("OUT_DIR"), "/march.spv")),
             Shader::Morphology => include_bytes!(concat!(env!("OUT_DIR"), "/morphology.spv")),
             Shader::Transfer => include_bytes!(concat!(env!("OUT_DIR"), "/transfer.spv")),
+            Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.spv")),
         }
     }
 
@@ -68,7 +71,12 @@ mod tests {
 
     #[test]
     fn every_shader_is_embedded_as_spirv() {
-        for shader in [Shader::March, Shader::Morphology, Shader::Transfer] {
+        for shader in [
+            Shader::March,
+            Shader::Morphology,
+            Shader::Transfer,
+            Shader::Prefix,
+        ] {
             let words = shader.words().unwrap();
             assert_eq!(
                 words[0],

@@ -8,7 +8,7 @@ use crepuscular::builtin::builtin_scene;
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
 use crepuscular::gpu::Device;
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
-use crepuscular::scene::Scene;
+use crepuscular::scene::{Method, Scene};
 use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
 
 use crate::bench::{median, peak_memory};
@@ -35,9 +35,11 @@ const BENCH_STYLE: &str = r#"{
 
 struct Row {
     scene: String,
+    method: &'static str,
     look: &'static str,
     hole_filling: Option<f64>,
     march: Option<f64>,
+    prefix: Option<f64>,
     transfer: Option<f64>,
     gpu_total: f64,
     /// CPU-side work of the Vulkan path (rasterization, baking), median ms.
@@ -99,6 +101,11 @@ pub fn run(
             scene.style = style.clone();
             looks.push(("stylized", scene));
         }
+        if overrides.method.is_none() {
+            let mut scene = base.clone();
+            scene.render.method = Method::Prefiltered;
+            looks.push(("physical", scene));
+        }
         for (look, scene) in looks {
             let geometry = FlatGeometry::from_scene(&scene);
             let frame = frame_of(&scene, &geometry);
@@ -122,9 +129,11 @@ pub fn run(
             };
             let row = Row {
                 scene: name.clone(),
+                method: scene.render.method.name(),
                 look,
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
                 march: median_option(&gpu, |t| t.ray_march),
+                prefix: median_option(&gpu, |t| t.prefix_sums),
                 transfer: median_option(&gpu, |t| t.transfer_function),
                 gpu_total: median_of(gpu.iter().map(GpuTimes::total)),
                 cpu_side: median_of(cpu_side.into_iter()),
@@ -133,8 +142,8 @@ pub fn run(
                 cpu_stages: gpu[0].cpu_stages.clone(),
             };
             eprintln!(
-                "{name} {look}: GPU {:.3} ms, frame {:.1} ms",
-                row.gpu_total, row.frame
+                "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms",
+                row.method, row.gpu_total, row.frame
             );
             rows.push(row);
         }
@@ -151,11 +160,13 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         device.describe()
     );
     println!(
-        "{:<10} {:<9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
+        "method",
         "look",
         "holes",
         "march",
+        "prefix",
         "TF",
         "GPU sum",
         "CPU side",
@@ -168,24 +179,35 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     );
     for row in rows {
         let cpu = row.cpu.as_ref();
-        let speed_up = match (cpu, row.march) {
-            (Some((stages, _)), Some(march)) if march > 0.0 => {
+        let speed_up = match (cpu, row.march, row.prefix) {
+            (Some((stages, _)), Some(march), _) if march > 0.0 => {
                 format!("{:.1}×", stages.shading * 1e3 / march)
+            }
+            (Some((stages, _)), None, Some(prefix)) if prefix > 0.0 => {
+                format!("{:.1}×", stages.prepare * 1e3 / prefix)
             }
             _ => "-".to_owned(),
         };
+        let march_column = if row.prefix.is_some() {
+            // The CPU's time for the stage the GPU ran: building the filtered basis.
+            cpu.map(|(s, _)| s.prepare * 1e3)
+        } else {
+            cpu.map(|(s, _)| s.shading * 1e3)
+        };
         println!(
-            "{:<10} {:<9} {:>9} {:>9} {:>9} {:>9.3} {:>9.1} {:>9.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
+            row.method,
             row.look,
             ms(row.hole_filling),
             ms(row.march),
+            ms(row.prefix),
             ms(row.transfer),
             row.gpu_total,
             row.cpu_side,
             row.frame,
             cpu_ms(cpu.map(|(s, _)| s.occluders * 1e3).filter(|v| *v > 0.0)),
-            cpu_ms(cpu.map(|(s, _)| s.shading * 1e3)),
+            cpu_ms(march_column),
             cpu_ms(cpu.map(|(s, _)| s.transfer_function * 1e3).filter(|v| *v > 0.0)),
             cpu_ms(cpu.map(|(_, frame)| *frame)),
             speed_up,
@@ -195,15 +217,16 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.sort();
     on_cpu.dedup();
     println!(
-        "\nholes = hole filling (2D closing), march = reference ray march, TF = transfer-function \
-         application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
+        "\nholes = hole filling (2D closing), march = reference ray march, prefix = prefiltering's \
+         basis computation and prefix sums (its `cpu march` column is the CPU's basis build), \
+         TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `CPU side` = shadow map + camera depth \
          rasterization. Stages the Vulkan path still runs on the CPU: {}.",
         on_cpu.join(", ")
     );
     println!(
-        "{} runs per row after one warm-up; reference at {} steps; speed-up = CPU march / GPU \
-         march; CPU columns from one run with {} threads; peak resident memory {}",
+        "{} runs per row after one warm-up; reference at {} steps; speed-up = CPU / GPU for \
+         march or prefix; CPU columns from one run with {} threads; peak resident memory {}",
         runs,
         overrides.steps.unwrap_or(1024),
         rayon::current_num_threads(),
