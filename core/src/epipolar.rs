@@ -158,6 +158,38 @@ impl RaySlice {
     }
 }
 
+/// How slices lie, for [`MapGeometry`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MapLayout {
+    Radial,
+    Parallel,
+    Projective,
+}
+
+/// [`EpipolarMap`]'s geometry as plain numbers: what [`EpipolarMap::locate`],
+/// [`EpipolarMap::neighbours`], [`EpipolarMap::order_key`] and
+/// [`EpipolarMap::sample_coordinate`] compute with.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapGeometry {
+    pub layout: MapLayout,
+    /// Radial slices that go all the way round (an epipole in the image).
+    pub full_circle: bool,
+    /// Samples uniform in 1/s (projective maps) rather than in s.
+    pub reciprocal_spacing: bool,
+    pub spacing_first: f64,
+    pub spacing_step: f64,
+    /// The slice coordinate's origin and step: an angle (radial), an offset (parallel) or
+    /// a tangent (projective).
+    pub first: f64,
+    pub step: f64,
+    /// Parallel slices: their direction, normal, and the shared depth slope.
+    pub along: DVec2,
+    pub normal: DVec2,
+    pub slope: f64,
+    /// texel_from_world (radial, parallel) or view_from_world (projective).
+    pub from_world: glam::DMat4,
+}
+
 /// The rectified shadow map: `slices` rows of `samples` values of K. Sample i of every
 /// slice covers [`EpipolarMap::sample_interval`]`(i)` of s.
 #[derive(Clone, Debug)]
@@ -642,6 +674,65 @@ impl EpipolarMap {
             return None;
         };
         (hi > lo).then_some((lo, hi))
+    }
+
+    /// The map's layout and spacing as plain numbers, for backends that locate rays
+    /// themselves (see [`MapGeometry`]).
+    pub fn geometry(&self) -> MapGeometry {
+        let (reciprocal_spacing, spacing_first, spacing_step) = match self.spacing {
+            Spacing::Uniform { first, step } => (false, first, step),
+            Spacing::Reciprocal { first, step } => (true, first, step),
+        };
+        let mut geometry = MapGeometry {
+            layout: MapLayout::Radial,
+            full_circle: false,
+            reciprocal_spacing,
+            spacing_first,
+            spacing_step,
+            first: 0.0,
+            step: 1.0,
+            along: DVec2::X,
+            normal: DVec2::Y,
+            slope: 0.0,
+            from_world: self.texel_from_world,
+        };
+        match self.layout {
+            Layout::Radial {
+                first_angle,
+                angle_step,
+                full_circle,
+                ..
+            } => {
+                geometry.full_circle = full_circle;
+                geometry.first = first_angle;
+                geometry.step = angle_step;
+            }
+            Layout::Parallel {
+                direction,
+                normal,
+                first_offset,
+                offset_step,
+                slope,
+            } => {
+                geometry.layout = MapLayout::Parallel;
+                geometry.first = first_offset;
+                geometry.step = offset_step;
+                geometry.along = direction;
+                geometry.normal = normal;
+                geometry.slope = slope;
+            }
+            Layout::Projective {
+                view_from_world,
+                first_tan,
+                tan_step,
+            } => {
+                geometry.layout = MapLayout::Projective;
+                geometry.first = first_tan;
+                geometry.step = tan_step;
+                geometry.from_world = view_from_world;
+            }
+        }
+        geometry
     }
 
     pub fn row(&self, slice: u32) -> &[f32] {

@@ -514,7 +514,57 @@ impl<'a> PrefilteredPlan<'a> {
     }
 }
 
+/// A [`Prefiltered`]'s tables as plain numbers, for backends that evaluate pixels.
+pub struct PrefilteredTables<'b> {
+    /// Values per basis and coefficient row.
+    pub stride: usize,
+    /// Per slice: the warp's knots, then log₂ of its fastest ray's speed.
+    pub frames: Vec<([f64; KNOTS], f64)>,
+    /// Per slice: (first band, band count).
+    pub slice_bands: Vec<[u32; 2]>,
+    /// Per band: (first row, rows).
+    pub bands: Vec<[u32; 2]>,
+    pub basis: &'b FilteredBasis,
+    /// Cumulative weight per row.
+    pub weight: &'b [f32],
+    /// Row e: the coefficients at warped key e / [`TABLE_STEPS`].
+    pub coefficients: &'static [f32],
+    pub near_plane_correction: bool,
+}
+
+/// Quantiles kept per slice, and the tables' resolution over warped keys; see the
+/// private constants they equal.
+pub const WARP_KNOTS: usize = KNOTS;
+pub const COEFFICIENT_STEPS: usize = TABLE_STEPS;
+/// Warped keys of a slice's rays lie this far inside [0, 1].
+pub const WARP_MARGIN: f64 = RAY_MARGIN;
+
 impl<'a> Prefiltered<'a> {
+    pub fn tables(&self) -> PrefilteredTables<'_> {
+        PrefilteredTables {
+            stride: self.stride,
+            frames: self
+                .frames
+                .iter()
+                .map(|f| (f.knots, f.log2_fastest))
+                .collect(),
+            slice_bands: self
+                .slice_bands
+                .iter()
+                .map(|b| [b.first, b.count])
+                .collect(),
+            bands: self
+                .bands
+                .iter()
+                .map(|b| [b.first_row as u32, b.rows as u32])
+                .collect(),
+            basis: &self.basis,
+            weight: &self.weight,
+            coefficients: &self.tables.coefficients,
+            near_plane_correction: self.near_plane_correction,
+        }
+    }
+
     pub fn memory_bytes(&self) -> usize {
         let basis = match &self.basis {
             FilteredBasis::F32(values) => std::mem::size_of_val(values.as_slice()),

@@ -16,7 +16,9 @@ use crepuscular::prefiltered::{
     CpuPrefixSums, FilteredBasis, Prefiltered, PrefilteredDesc, PrefixPlan, PrefixSums,
 };
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
-use crepuscular::scene::{BasisStorage, Extent, Method, Scene};
+use crepuscular::scene::{
+    BasisStorage, Extent, Method, Projection, Rectification, Scene, SensorFit,
+};
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
 use crepuscular::{Layers, RenderControl, Style};
@@ -444,8 +446,62 @@ fn prefiltered_frames_match_the_cpu_on_the_builtin_scenes() {
         scene.render.method = Method::Prefiltered;
         let (gpu, cpu, times) = render_both(&device, &scene);
         if device.physical.timestamp_valid_bits > 0 {
-            assert!(times.prefix_sums.is_some());
+            assert!(times.prefix_sums.is_some() && times.prefiltered.is_some());
         }
         check_layers(&format!("prefiltered {name}"), &gpu, &cpu, 0.05, 0.05);
+    }
+}
+
+/// Prefiltered evaluation across layouts and storage: a `box` medium, forced epipolar and
+/// projective rectification, f32 storage at M = 16, an orthographic camera (parallel
+/// slices), and 2×2 supersampling. Bounds as for the march.
+#[test]
+fn prefiltered_evaluation_matches_across_layouts() {
+    let Some(device) = device("the prefiltered-layout parity test") else {
+        return;
+    };
+    let prefiltered = |name: &str| {
+        let mut scene = small(name);
+        scene.render.method = Method::Prefiltered;
+        scene
+    };
+    let mut variants = Vec::new();
+    let mut boxed = prefiltered("torus");
+    boxed.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::new(6.0, 5.0, 3.0),
+            glam::Quat::from_rotation_z(0.3),
+            glam::Vec3::new(0.0, 0.0, 2.0),
+        ),
+    };
+    variants.push(("torus in a box", boxed));
+    let mut epipolar = prefiltered("colonnade");
+    epipolar.render.rectification = Rectification::Epipolar;
+    epipolar.render.basis_storage = BasisStorage::F32;
+    epipolar.render.bases = 16;
+    variants.push(("colonnade epipolar f32 M=16", epipolar));
+    let mut projective = prefiltered("torus");
+    projective.render.rectification = Rectification::Projective;
+    variants.push(("torus projective", projective));
+    let mut orthographic = prefiltered("plane");
+    orthographic.camera.projection = Projection::Orthographic {
+        ortho_scale: 30.0,
+        sensor_fit: SensorFit::Auto,
+        shift_x: 0.0,
+        shift_y: 0.0,
+    };
+    variants.push(("plane orthographic", orthographic));
+    let mut supersampled = prefiltered("tree");
+    supersampled.render.supersampling = 2;
+    variants.push(("tree 2×2 samples", supersampled));
+    for (label, scene) in variants {
+        let (gpu, cpu, times) = render_both(&device, &scene);
+        if device.physical.timestamp_valid_bits > 0 {
+            assert!(
+                times.prefiltered.is_some(),
+                "{label}: not evaluated on the GPU"
+            );
+        }
+        check_layers(&format!("prefiltered {label}"), &gpu, &cpu, 0.05, 0.05);
     }
 }

@@ -8,8 +8,8 @@
 //! | silhouette enhancement, hole creation | CPU |
 //! | reference ray march | GPU |
 //! | rectification, min-max scattering | CPU |
-//! | prefiltered: planning (frames, bands, weights) and per-pixel evaluation | CPU |
-//! | prefiltered: basis computation and per-band prefix sums | GPU |
+//! | prefiltered: planning (frames, bands, weights) | CPU |
+//! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation | GPU |
 //! | upsampling of downsampled evaluation | CPU |
 //! | transfer function: baking | CPU; application | GPU |
 
@@ -20,10 +20,11 @@ use super::march::{self, MarchInputs};
 use super::prefix::GpuPrefixSums;
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
+use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
 use crate::layers::Layers;
 use crate::morphology::MorphologyDesc;
-use crate::prefiltered::CpuPrefixSums;
+use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc};
 use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
@@ -38,6 +39,8 @@ pub struct GpuTimes {
     pub ray_march: Option<f64>,
     /// Prefiltering's basis computation and prefix sums.
     pub prefix_sums: Option<f64>,
+    /// Prefiltering's per-pixel evaluation (with the reference near epipoles).
+    pub prefiltered: Option<f64>,
     pub transfer_function: Option<f64>,
     pub cpu_stages: Vec<&'static str>,
 }
@@ -49,6 +52,7 @@ impl GpuTimes {
             self.hole_filling,
             self.ray_march,
             self.prefix_sums,
+            self.prefiltered,
             self.transfer_function,
         ]
         .into_iter()
@@ -66,24 +70,15 @@ pub fn render_timed(
     frame.validate()?;
     let mut gpu = GpuTimes::default();
     let camera = CameraModel::new(frame.camera);
-    let (mut layers, mut times) = if frame.settings.method == Method::Reference {
-        march_frame(device, frame, &camera, control, &mut gpu)?
+    let (mut layers, mut times) = if frame.settings.method != Method::MinMax {
+        gpu_frame(device, frame, &camera, control, &mut gpu)?
     } else {
         gpu.cpu_stages = vec!["shadow map", "camera depth", "rectification"];
         if frame.style.manipulates_occluders() {
             gpu.cpu_stages.push("occluder manipulation");
         }
-        if frame.settings.method == Method::Prefiltered {
-            gpu.cpu_stages
-                .push("prefiltered planning and per-pixel evaluation");
-            let prefix = GpuPrefixSums::new(device);
-            let result = scatter_timed(frame, control, &prefix)?;
-            gpu.prefix_sums = prefix.milliseconds();
-            result
-        } else {
-            gpu.cpu_stages.push(frame.settings.method.name());
-            scatter_timed(frame, control, &CpuPrefixSums)?
-        }
+        gpu.cpu_stages.push(frame.settings.method.name());
+        scatter_timed(frame, control, &CpuPrefixSums)?
     };
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();
@@ -102,7 +97,8 @@ pub fn render_timed(
     Ok((layers, times, gpu))
 }
 
-fn march_frame(
+/// The reference or the prefiltered method with their per-pixel work on the GPU.
+fn gpu_frame(
     device: &Arc<Device>,
     frame: &Frame,
     camera: &CameraModel,
@@ -138,19 +134,63 @@ fn march_frame(
     gpu.cpu_stages.push("camera depth");
     times.camera_depth = lap();
     control.check()?;
-    let (layers, ms) = march::march(
-        device,
-        &MarchInputs {
-            camera,
-            shadow: &shadow,
-            sun: frame.sun,
-            medium: frame.medium,
-            settings: frame.settings,
-            surfaces: &surfaces.distances,
-            supersampling: surfaces.supersampling,
-        },
-    )?;
-    gpu.ray_march = ms;
+    let inputs = MarchInputs {
+        camera,
+        shadow: &shadow,
+        sun: frame.sun,
+        medium: frame.medium,
+        settings: frame.settings,
+        surfaces: &surfaces.distances,
+        supersampling: surfaces.supersampling,
+    };
+    let map = match frame.settings.method {
+        Method::Prefiltered => {
+            gpu.cpu_stages.push("rectification");
+            EpipolarMap::rectify(
+                camera,
+                &shadow,
+                &frame.geometry,
+                frame.sun.direction.as_dvec3().normalize(),
+                frame.settings.max_distance as f64,
+                frame.settings.rectification,
+                &RectifyDesc::prefiltered(frame.settings.epipolar_slices),
+            )?
+        }
+        _ => None,
+    };
+    times.rectify = lap();
+    // Rectification is undefined for an orthographic camera looking straight along the
+    // light; the reference handles that view, as on the CPU.
+    let (layers, ms) = match &map {
+        None => march::march(device, &inputs)?,
+        Some(map) => {
+            gpu.cpu_stages
+                .push("prefiltered planning (frames, bands, weights)");
+            let block = frame.settings.epipole_block as f64;
+            let epipoles: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, block).collect();
+            let ahead: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, f64::INFINITY).collect();
+            let prefix = GpuPrefixSums::new(device);
+            let prefiltered = Prefiltered::build_with(
+                map,
+                camera,
+                &ahead,
+                &PrefilteredDesc::from_settings(frame.settings),
+                frame.sun,
+                frame.medium,
+                &prefix,
+            )?;
+            gpu.prefix_sums = prefix.milliseconds();
+            times.structure_bytes = prefiltered.memory_bytes();
+            times.rectified_bytes = map.memory_bytes();
+            times.prepare = lap();
+            super::prefiltered::shade(device, &inputs, map, &prefiltered, &epipoles, block)?
+        }
+    };
+    if map.is_some() {
+        gpu.prefiltered = ms;
+    } else {
+        gpu.ray_march = ms;
+    }
     let stride = frame.settings.downsample;
     let layers = if stride > 1 {
         gpu.cpu_stages.push("upsampling");

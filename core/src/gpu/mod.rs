@@ -5,7 +5,8 @@
 //! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
 //! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
 //! [`query`] (timestamps), [`dispatch`] (workgroup counts and parameter packing), and
-//! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`].
+//! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`],
+//! [`prefiltered`].
 
 pub mod barrier;
 pub mod buffer;
@@ -19,6 +20,7 @@ pub mod instance;
 pub mod march;
 pub mod morphology;
 pub mod physical_device;
+pub mod prefiltered;
 pub mod prefix;
 pub mod query;
 pub mod shader;

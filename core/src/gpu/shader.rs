@@ -12,6 +12,7 @@ pub enum Shader {
     Morphology,
     Transfer,
     Prefix,
+    Prefiltered,
 }
 
 impl Shader {
@@ -21,6 +22,7 @@ impl Shader {
             Shader::Morphology => "morphology",
             Shader::Transfer => "transfer",
             Shader::Prefix => "prefix",
+            Shader::Prefiltered => "prefiltered",
         }
     }
 
@@ -30,6 +32,7 @@ impl Shader {
             Shader::Morphology => include_bytes!(concat!(env!("OUT_DIR"), "/morphology.spv")),
             Shader::Transfer => include_bytes!(concat!(env!("OUT_DIR"), "/transfer.spv")),
             Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.spv")),
+            Shader::Prefiltered => include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.spv")),
         }
     }
 
@@ -76,6 +79,7 @@ mod tests {
             Shader::Morphology,
             Shader::Transfer,
             Shader::Prefix,
+            Shader::Prefiltered,
         ] {
             let words = shader.words().unwrap();
             assert_eq!(
