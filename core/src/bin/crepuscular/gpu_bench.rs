@@ -117,7 +117,7 @@ pub fn run(
                 let started = std::time::Instant::now();
                 let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
                 wall.push(started.elapsed().as_secs_f64() * 1e3);
-                cpu_side.push((stages.shadow_map + stages.camera_depth) * 1e3);
+                cpu_side.push((stages.shadow_map + stages.camera_depth + stages.rectify) * 1e3);
                 gpu.push(times);
             }
             let cpu = if compare_cpu {
@@ -132,7 +132,7 @@ pub fn run(
                 method: scene.render.method.name(),
                 look,
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
-                march: median_option(&gpu, |t| t.ray_march),
+                march: median_option(&gpu, |t| t.ray_march.or(t.prefiltered)),
                 prefix: median_option(&gpu, |t| t.prefix_sums),
                 transfer: median_option(&gpu, |t| t.transfer_function),
                 gpu_total: median_of(gpu.iter().map(GpuTimes::total)),
@@ -165,35 +165,27 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         "method",
         "look",
         "holes",
-        "march",
+        "shade",
         "prefix",
         "TF",
         "GPU sum",
         "CPU side",
         "frame",
         "cpu holes",
-        "cpu march",
+        "cpu shade",
         "cpu TF",
         "cpu frame",
         "speed-up"
     );
     for row in rows {
         let cpu = row.cpu.as_ref();
-        let speed_up = match (cpu, row.march, row.prefix) {
-            (Some((stages, _)), Some(march), _) if march > 0.0 => {
-                format!("{:.1}×", stages.shading * 1e3 / march)
-            }
-            (Some((stages, _)), None, Some(prefix)) if prefix > 0.0 => {
-                format!("{:.1}×", stages.prepare * 1e3 / prefix)
+        let speed_up = match (cpu, row.march) {
+            (Some((stages, _)), Some(shade)) if shade > 0.0 => {
+                format!("{:.1}×", stages.shading * 1e3 / shade)
             }
             _ => "-".to_owned(),
         };
-        let march_column = if row.prefix.is_some() {
-            // The CPU's time for the stage the GPU ran: building the filtered basis.
-            cpu.map(|(s, _)| s.prepare * 1e3)
-        } else {
-            cpu.map(|(s, _)| s.shading * 1e3)
-        };
+        let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
             "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
@@ -217,16 +209,16 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.sort();
     on_cpu.dedup();
     println!(
-        "\nholes = hole filling (2D closing), march = reference ray march, prefix = prefiltering's \
-         basis computation and prefix sums (its `cpu march` column is the CPU's basis build), \
-         TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
+        "\nholes = hole filling (2D closing); shade = per-pixel scattering (the reference march, or \
+         prefiltered evaluation with the reference near on-screen epipoles); prefix = \
+         prefiltering's basis computation and prefix sums; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `CPU side` = shadow map + camera depth \
-         rasterization. Stages the Vulkan path still runs on the CPU: {}.",
+         rasterization + rectification. Stages the Vulkan path still runs on the CPU: {}.",
         on_cpu.join(", ")
     );
     println!(
-        "{} runs per row after one warm-up; reference at {} steps; speed-up = CPU / GPU for \
-         march or prefix; CPU columns from one run with {} threads; peak resident memory {}",
+        "{} runs per row after one warm-up; reference at {} steps; speed-up = cpu shade / GPU \
+         shade; CPU columns from one run with {} threads; peak resident memory {}",
         runs,
         overrides.steps.unwrap_or(1024),
         rayon::current_num_threads(),
