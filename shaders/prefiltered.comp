@@ -43,8 +43,9 @@ layout(std430, binding = 7) readonly buffer Frames { float frames[]; };
 layout(std430, binding = 8) readonly buffer SliceBands { uvec2 slice_bands[]; };
 layout(std430, binding = 9) readonly buffer Bands { uvec2 bands[]; };
 layout(std430, binding = 10) readonly buffer Weight { float weight[]; };
-layout(std430, binding = 11) readonly buffer Basis { uint basis[]; };
-layout(std430, binding = 12) readonly buffer Coefficients { float coefficients[]; };
+// Rows are whole lanes of 8 values: 16 bytes of snorm16 or 32 of f32, read as uvec4.
+layout(std430, binding = 11) readonly buffer Basis { uvec4 basis4[]; };
+layout(std430, binding = 12) readonly buffer Coefficients { vec4 coefficients4[]; };
 
 const float TAU = 6.28318530717959;
 
@@ -129,15 +130,6 @@ void boundary(float x, uint rows, out uint lower, out float fraction) {
     fraction = lower == last ? 0.0 : clamped - float(lower);
 }
 
-float stored(uint row, uint lane) {
-    if (q.snorm == 0u) {
-        return uintBitsToFloat(basis[row * q.stride + lane]);
-    }
-    uint word = basis[(row * q.stride + lane) >> 1];
-    int value = (lane & 1u) == 0u ? int(word << 16) >> 16 : int(word) >> 16;
-    return float(value) * (1.0 / 32767.0);
-}
-
 // Weighted average visibility between boundary positions x0 < x1; false where a band
 // holds no weight there (the CPU then takes the ray as lit).
 bool average(vec4 located, float key, float x0, float x1, out float visibility) {
@@ -216,14 +208,31 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
         }
         float z = warp(slice, key);
         uint coefficient_row = uint(z * TABLE_STEPS + 0.5);
+        // Σ_r factor_r · ⟨basis row r, coefficients⟩, four lanes at a time.
         float dot_ = 0.0;
-        for (uint lane = 0u; lane < q.stride; ++lane) {
-            float c = coefficients[coefficient_row * q.stride + lane];
-            float blended = 0.0;
-            for (uint r = 0u; r < count; ++r) {
-                blended += factors[r] * stored(rows[r], lane);
+        uint quads = q.stride / 4u;
+        uint coefficient_base = coefficient_row * quads;
+        if (q.snorm != 0u) {
+            uint octets = q.stride / 8u;
+            for (uint c = 0u; c < octets; ++c) {
+                vec4 low = vec4(0.0);
+                vec4 high = vec4(0.0);
+                for (uint r = 0u; r < count; ++r) {
+                    uvec4 w = basis4[rows[r] * octets + c];
+                    low += factors[r] * vec4(unpackSnorm2x16(w.x), unpackSnorm2x16(w.y));
+                    high += factors[r] * vec4(unpackSnorm2x16(w.z), unpackSnorm2x16(w.w));
+                }
+                dot_ += dot(low, coefficients4[coefficient_base + 2u * c]);
+                dot_ += dot(high, coefficients4[coefficient_base + 2u * c + 1u]);
             }
-            dot_ += blended * c;
+        } else {
+            for (uint c = 0u; c < quads; ++c) {
+                vec4 blended = vec4(0.0);
+                for (uint r = 0u; r < count; ++r) {
+                    blended += factors[r] * uintBitsToFloat(basis4[rows[r] * quads + c]);
+                }
+                dot_ += dot(blended, coefficients4[coefficient_base + c]);
+            }
         }
         visibility += clamp(0.5 * shares + dot_, 0.0, shares);
     }

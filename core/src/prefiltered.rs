@@ -404,8 +404,8 @@ impl PrefixPlan {
     }
 }
 
-/// A [`Prefiltered`] but for its filtered basis.
-struct PrefilteredPlan<'a> {
+/// A [`Prefiltered`] but for its filtered basis: the planning on the rectified map.
+pub struct PrefilteredPlan<'a> {
     map: &'a EpipolarMap,
     prefix: PrefixPlan,
     kernels: Kernels,
@@ -420,7 +420,9 @@ struct PrefilteredPlan<'a> {
 }
 
 impl<'a> PrefilteredPlan<'a> {
-    fn new(
+    /// Everything [`Prefiltered::build`] computes before the prefix sums; backends that
+    /// keep the filtered basis to themselves evaluate pixels from this and their own copy.
+    pub fn new(
         map: &'a EpipolarMap,
         camera: &CameraModel,
         epipoles: &[[f64; 2]],
@@ -482,7 +484,7 @@ impl<'a> PrefilteredPlan<'a> {
         }
     }
 
-    fn finish(self, basis: FilteredBasis) -> Prefiltered<'a> {
+    pub fn finish(self, basis: FilteredBasis) -> Prefiltered<'a> {
         let PrefilteredPlan {
             map,
             prefix,
@@ -524,7 +526,6 @@ pub struct PrefilteredTables<'b> {
     pub slice_bands: Vec<[u32; 2]>,
     /// Per band: (first row, rows).
     pub bands: Vec<[u32; 2]>,
-    pub basis: &'b FilteredBasis,
     /// Cumulative weight per row.
     pub weight: &'b [f32],
     /// Row e: the coefficients at warped key e / [`TABLE_STEPS`].
@@ -539,10 +540,16 @@ pub const COEFFICIENT_STEPS: usize = TABLE_STEPS;
 /// Warped keys of a slice's rays lie this far inside [0, 1].
 pub const WARP_MARGIN: f64 = RAY_MARGIN;
 
-impl<'a> Prefiltered<'a> {
+impl<'a> PrefilteredPlan<'a> {
+    /// What the prefix sums read.
+    pub fn prefix(&self) -> &PrefixPlan {
+        &self.prefix
+    }
+
+    /// Everything per-pixel evaluation reads besides the filtered basis.
     pub fn tables(&self) -> PrefilteredTables<'_> {
         PrefilteredTables {
-            stride: self.stride,
+            stride: self.prefix.stride,
             frames: self
                 .frames
                 .iter()
@@ -558,13 +565,14 @@ impl<'a> Prefiltered<'a> {
                 .iter()
                 .map(|b| [b.first_row as u32, b.rows as u32])
                 .collect(),
-            basis: &self.basis,
             weight: &self.weight,
             coefficients: &self.tables.coefficients,
             near_plane_correction: self.near_plane_correction,
         }
     }
+}
 
+impl<'a> Prefiltered<'a> {
     pub fn memory_bytes(&self) -> usize {
         let basis = match &self.basis {
             FilteredBasis::F32(values) => std::mem::size_of_val(values.as_slice()),

@@ -17,14 +17,13 @@ use std::sync::Arc;
 
 use super::device::Device;
 use super::march::{self, MarchInputs};
-use super::prefix::GpuPrefixSums;
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
 use crate::layers::Layers;
 use crate::morphology::MorphologyDesc;
-use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc};
+use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
 use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
@@ -169,21 +168,31 @@ fn gpu_frame(
             let block = frame.settings.epipole_block as f64;
             let epipoles: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, block).collect();
             let ahead: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, f64::INFINITY).collect();
-            let prefix = GpuPrefixSums::new(device);
-            let prefiltered = Prefiltered::build_with(
+            let plan = PrefilteredPlan::new(
                 map,
                 camera,
                 &ahead,
                 &PrefilteredDesc::from_settings(frame.settings),
                 frame.sun,
                 frame.medium,
-                &prefix,
-            )?;
-            gpu.prefix_sums = prefix.milliseconds();
-            times.structure_bytes = prefiltered.memory_bytes();
+            );
+            // The filtered basis stays on the device: evaluation reads it there.
+            let (basis, ms) = super::prefix::resident(device, plan.prefix())?;
+            gpu.prefix_sums = ms;
+            let tables = plan.tables();
+            times.structure_bytes = basis.size() as usize + std::mem::size_of_val(tables.weight);
             times.rectified_bytes = map.memory_bytes();
             times.prepare = lap();
-            super::prefiltered::shade(device, &inputs, map, &prefiltered, &epipoles, block)?
+            super::prefiltered::shade(
+                device,
+                &inputs,
+                map,
+                &tables,
+                plan.prefix().storage,
+                &basis,
+                &epipoles,
+                block,
+            )?
         }
     };
     if map.is_some() {

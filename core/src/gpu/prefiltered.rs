@@ -5,6 +5,7 @@
 use std::sync::Arc;
 
 use super::barrier::Access;
+use super::buffer::Buffer;
 use super::command::Recorder;
 use super::compute_pipeline::ComputePipelineDesc;
 use super::device::Device;
@@ -12,9 +13,11 @@ use super::dispatch::{groups_2d, Std430};
 use super::error::{GpuError, GpuResult};
 use super::march::{march_params, surface_values, MarchInputs};
 use super::shader::Shader;
+use crate::basis_kernels::LANES;
 use crate::epipolar::{EpipolarMap, MapLayout};
 use crate::layers::Layers;
-use crate::prefiltered::{FilteredBasis, Prefiltered, WARP_KNOTS};
+use crate::prefiltered::{PrefilteredTables, WARP_KNOTS};
+use crate::scene::BasisStorage;
 use crate::upsample::reduced_size;
 
 pub const STAGE: &str = "prefiltered evaluation";
@@ -23,7 +26,8 @@ const LOCAL: [u32; 2] = [8, 8];
 /// The shader's `PrefilteredParams` block.
 pub fn prefiltered_params(
     map: &EpipolarMap,
-    prefiltered: &Prefiltered,
+    tables: &PrefilteredTables,
+    storage: BasisStorage,
     epipoles: &[[f64; 2]],
     block: f64,
 ) -> GpuResult<Vec<u8>> {
@@ -34,7 +38,6 @@ pub fn prefiltered_params(
         )));
     }
     let g = map.geometry();
-    let tables = prefiltered.tables();
     let mut e = [0.0f32; 4];
     for (i, epipole) in epipoles.iter().enumerate() {
         e[2 * i] = epipole[0] as f32;
@@ -45,7 +48,7 @@ pub fn prefiltered_params(
         MapLayout::Parallel => 1,
         MapLayout::Projective => 2,
     };
-    let snorm = matches!(tables.basis, FilteredBasis::Snorm16(_));
+    let snorm = storage == BasisStorage::Snorm16;
     Ok(Std430::new()
         .mat4(g.from_world.to_cols_array().map(|v| v as f32))
         .vec4(e)
@@ -74,36 +77,31 @@ pub fn prefiltered_params(
         .finish())
 }
 
-/// The filtered basis as the shader reads it: f32 bits, or snorm16 pairs per word.
-pub fn basis_words(basis: &FilteredBasis) -> Vec<u32> {
-    match basis {
-        FilteredBasis::F32(values) => values.iter().map(|v| v.to_bits()).collect(),
-        FilteredBasis::Snorm16(values) => values
-            .chunks(2)
-            .map(|pair| {
-                let low = pair[0] as u16 as u32;
-                let high = pair.get(1).map_or(0, |&v| v as u16 as u32);
-                low | (high << 16)
-            })
-            .collect(),
-    }
-}
-
-/// Evaluates every output pixel; returns the layers and the dispatch's GPU time.
+/// Evaluates every output pixel from the plan's tables and the filtered basis already on
+/// the device (as [`super::prefix::resident`] leaves it); returns the layers and the
+/// dispatch's GPU time.
+#[allow(clippy::too_many_arguments)]
 pub fn shade(
     device: &Arc<Device>,
     inputs: &MarchInputs,
     map: &EpipolarMap,
-    prefiltered: &Prefiltered,
+    tables: &PrefilteredTables,
+    storage: BasisStorage,
+    basis: &Buffer,
     epipoles: &[[f64; 2]],
     block: f64,
 ) -> GpuResult<(Layers, Option<f64>)> {
+    if tables.stride % LANES != 0 {
+        return Err(GpuError::Unsupported(format!(
+            "basis rows of {} values (whole lanes of {LANES} expected)",
+            tables.stride
+        )));
+    }
     let stride = inputs.settings.downsample;
     let width = reduced_size(inputs.camera.width, stride);
     let height = reduced_size(inputs.camera.height, stride);
     let pixels = width as u64 * height as u64;
     let groups = groups_2d(width, height, LOCAL, device.physical.max_workgroup_count)?;
-    let tables = prefiltered.tables();
     let frames: Vec<f32> = tables
         .frames
         .iter()
@@ -126,14 +124,13 @@ pub fn shade(
         let visibility = rec.storage(pixels * 4, "visibility layer")?;
         let depth = rec.storage(pixels * 4, "depth layer")?;
         let pf = rec.upload(
-            &prefiltered_params(map, prefiltered, epipoles, block)?,
+            &prefiltered_params(map, tables, storage, epipoles, block)?,
             "prefiltered parameters",
         )?;
         let frames = rec.upload(&frames, "slice frames")?;
         let slice_bands = rec.upload(&slice_bands, "slice bands")?;
         let bands = rec.upload(&bands, "bands")?;
         let weight = rec.upload(tables.weight, "cumulative weights")?;
-        let basis = rec.upload(&basis_words(tables.basis), "filtered basis")?;
         let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
         let desc = ComputePipelineDesc::new(Shader::Prefiltered, 13);
@@ -152,7 +149,7 @@ pub fn shade(
                     &slice_bands,
                     &bands,
                     &weight,
-                    &basis,
+                    basis,
                     &coefficients,
                 ],
                 &[],
@@ -178,14 +175,55 @@ pub fn shade(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::builtin::builtin_scene;
+    use crate::camera::CameraModel;
+    use crate::epipolar::RectifyDesc;
+    use crate::prefiltered::{PrefilteredDesc, PrefilteredPlan};
+    use crate::render::FlatGeometry;
+    use crate::shadow_map::ShadowMap;
 
     #[test]
-    fn snorm_pairs_pack_low_half_first() {
-        let words = basis_words(&FilteredBasis::Snorm16(vec![-1, 2, 3]));
-        assert_eq!(words, vec![0x0002_FFFF, 0x0000_0003]);
-        assert_eq!(
-            basis_words(&FilteredBasis::F32(vec![0.5])),
-            vec![0.5f32.to_bits()]
+    fn params_carry_the_layout_the_epipoles_and_the_storage() {
+        let mut scene = builtin_scene("torus").unwrap();
+        scene.camera.width = 64;
+        scene.camera.height = 36;
+        scene.render.shadow_map_size = 128;
+        let camera = CameraModel::new(&scene.camera);
+        let geometry = FlatGeometry::from_scene(&scene);
+        let shadow = ShadowMap::build(
+            &camera,
+            &scene.sun,
+            &scene.medium,
+            &scene.render,
+            &geometry.view(),
         );
+        let map = EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &geometry.view(),
+            scene.sun.direction.as_dvec3().normalize(),
+            scene.render.max_distance as f64,
+            crate::scene::Rectification::Epipolar,
+            &RectifyDesc::prefiltered(0),
+        )
+        .unwrap()
+        .unwrap();
+        let desc = PrefilteredDesc::from_settings(&scene.render);
+        let plan = PrefilteredPlan::new(&map, &camera, &[], &desc, &scene.sun, &scene.medium);
+        let tables = plan.tables();
+        let epipoles = [[10.0, 20.0]];
+        let bytes =
+            prefiltered_params(&map, &tables, BasisStorage::Snorm16, &epipoles, 16.0).unwrap();
+        let word = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
+        let float = |o: usize| f32::from_bits(word(o));
+        assert_eq!(bytes.len(), 160);
+        assert_eq!((float(64), float(68)), (10.0, 20.0));
+        assert_eq!(float(116), 16.0, "block");
+        assert_eq!(word(120), 0, "radial layout");
+        assert_eq!(word(132), map.slices);
+        assert_eq!(word(140), tables.stride as u32);
+        assert_eq!(word(144), 1, "snorm");
+        assert_eq!(word(148), 1, "one epipole");
+        assert!(prefiltered_params(&map, &tables, BasisStorage::F32, &[[0.0; 2]; 3], 1.0).is_err());
     }
 }

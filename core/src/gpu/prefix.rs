@@ -5,6 +5,7 @@
 use std::sync::{Arc, Mutex};
 
 use super::barrier::Access;
+use super::buffer::Buffer;
 use super::command::Recorder;
 use super::compute_pipeline::ComputePipelineDesc;
 use super::device::Device;
@@ -82,7 +83,19 @@ impl GpuPrefixSums {
     }
 
     fn run(&self, plan: &PrefixPlan) -> GpuResult<FilteredBasis> {
-        let device = &self.device;
+        let (basis, ms) = resident(&self.device, plan)?;
+        *self.milliseconds.lock().unwrap_or_else(|p| p.into_inner()) = ms;
+        let mut rec = Recorder::new(&self.device, STAGE, 0, 0)?;
+        let back = rec.download(&basis, "filtered basis read-back")?;
+        let done = rec.submit_and_wait()?;
+        Ok(unpack(&done.read::<u32>(back)?, plan.storage))
+    }
+}
+
+/// Computes the filtered basis into a device buffer that stays there (packed as
+/// [`unpack`] reads it); also returns the GPU time in milliseconds.
+pub fn resident(device: &Arc<Device>, plan: &PrefixPlan) -> GpuResult<(Buffer, Option<f64>)> {
+    let run = || {
         let bytes = basis_bytes(plan);
         if bytes > device.physical.max_storage_buffer_range as u64 {
             return Err(GpuError::Unsupported(format!(
@@ -121,11 +134,10 @@ impl GpuPrefixSums {
                 groups,
             )
         })?;
-        let back = rec.download(&basis, "filtered basis read-back")?;
         let done = rec.submit_and_wait()?;
-        *self.milliseconds.lock().unwrap_or_else(|p| p.into_inner()) = done.milliseconds(STAGE);
-        Ok(unpack(&done.read::<u32>(back)?, plan.storage))
-    }
+        Ok((basis, done.milliseconds(STAGE)))
+    };
+    run().map_err(|err: GpuError| err.in_stage(STAGE))
 }
 
 impl PrefixSums for GpuPrefixSums {
