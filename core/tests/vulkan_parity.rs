@@ -21,6 +21,7 @@ use crepuscular::scene::{
 };
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
+use crepuscular::upsample::{self, reduced_size, sample_pixel};
 use crepuscular::{Layers, RenderControl, Style};
 
 const MEAN_RELATIVE: f64 = 1e-3;
@@ -510,5 +511,87 @@ fn prefiltered_evaluation_matches_across_layouts() {
             );
         }
         check_layers(&format!("prefiltered {label}"), &gpu, &cpu, 0.05, 0.05);
+    }
+}
+
+/// Joint-bilateral upsampling alone, on low-resolution samples of CPU-rendered layers
+/// (every second and fourth pixel) guided by their full-size depth: the same arithmetic
+/// in f32, so max abs error 1e-5 of the peak radiance and 1e-5 in visibility.
+#[test]
+fn upsampling_matches_the_cpu() {
+    let Some(device) = device("the upsampling parity test") else {
+        return;
+    };
+    for name in BUILTIN_SCENES {
+        let scene = small(name);
+        let geometry = FlatGeometry::from_scene(&scene);
+        let frame = Frame {
+            camera: &scene.camera,
+            sun: &scene.sun,
+            medium: &scene.medium,
+            settings: &scene.render,
+            geometry: geometry.view(),
+            camera_depth: None,
+            style: &scene.style,
+        };
+        let (full, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
+        for factor in [2, 4] {
+            let (lw, lh) = (
+                reduced_size(full.width, factor),
+                reduced_size(full.height, factor),
+            );
+            let mut low = Layers::new(lw, lh);
+            for j in 0..lh {
+                for i in 0..lw {
+                    let x = sample_pixel(i, factor, full.width);
+                    let y = sample_pixel(j, factor, full.height);
+                    let (k, f) = ((j * lw + i) as usize, (y * full.width + x) as usize);
+                    low.volume[k * 4..k * 4 + 4].copy_from_slice(&full.volume[f * 4..f * 4 + 4]);
+                    low.visibility[k] = full.visibility[f];
+                    low.depth[k] = full.depth[f];
+                }
+            }
+            let cpu = upsample::joint_bilateral(&low, &full.depth, full.width, full.height, factor);
+            let (gpu, _) = gpu::upsample::joint_bilateral(
+                &device,
+                &low,
+                &full.depth,
+                full.width,
+                full.height,
+                factor,
+            )
+            .unwrap();
+            check_layers(
+                &format!("upsampling {name} 1/{factor}"),
+                &gpu,
+                &cpu,
+                1e-5,
+                1e-5,
+            );
+        }
+    }
+}
+
+/// A downsampled prefiltered frame: evaluation and upsampling on the GPU.
+#[test]
+fn downsampled_prefiltered_frames_match_the_cpu() {
+    let Some(device) = device("the downsampled prefiltered parity test") else {
+        return;
+    };
+    for name in ["torus", "colonnade"] {
+        let mut scene = small(name);
+        scene.render.method = Method::Prefiltered;
+        scene.render.downsample = 2;
+        let (gpu, cpu, times) = render_both(&device, &scene);
+        if device.physical.timestamp_valid_bits > 0 {
+            assert!(times.upsampling.is_some());
+        }
+        check_layers(
+            &format!("prefiltered {name} at 1/2"),
+            &gpu,
+            &cpu,
+            0.05,
+            0.05,
+        );
     }
 }

@@ -10,7 +10,7 @@
 //! | rectification, min-max scattering | CPU |
 //! | prefiltered: planning (frames, bands, weights) | CPU |
 //! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation | GPU |
-//! | upsampling of downsampled evaluation | CPU |
+//! | upsampling of downsampled evaluation | GPU |
 //! | transfer function: baking | CPU; application | GPU |
 
 use std::sync::Arc;
@@ -28,7 +28,7 @@ use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
 use crate::style::Style;
-use crate::upsample::{joint_bilateral, reduced_size};
+use crate::upsample::reduced_size;
 
 /// GPU timestamps of the stages that ran on the GPU, in milliseconds, and the names of
 /// the stages that ran on the CPU.
@@ -40,6 +40,8 @@ pub struct GpuTimes {
     pub prefix_sums: Option<f64>,
     /// Prefiltering's per-pixel evaluation (with the reference near epipoles).
     pub prefiltered: Option<f64>,
+    /// Joint-bilateral upsampling of downsampled evaluation.
+    pub upsampling: Option<f64>,
     pub transfer_function: Option<f64>,
     pub cpu_stages: Vec<&'static str>,
 }
@@ -52,6 +54,7 @@ impl GpuTimes {
             self.ray_march,
             self.prefix_sums,
             self.prefiltered,
+            self.upsampling,
             self.transfer_function,
         ]
         .into_iter()
@@ -202,14 +205,22 @@ fn gpu_frame(
     }
     let stride = frame.settings.downsample;
     let layers = if stride > 1 {
-        gpu.cpu_stages.push("upsampling");
         let max_distance = frame.settings.max_distance;
         let depth: Vec<f32> = surfaces
             .distances
             .iter()
             .map(|&d| if d.is_finite() { d } else { max_distance })
             .collect();
-        joint_bilateral(&layers, &depth, camera.width, camera.height, stride)
+        let (layers, ms) = super::upsample::joint_bilateral(
+            device,
+            &layers,
+            &depth,
+            camera.width,
+            camera.height,
+            stride,
+        )?;
+        gpu.upsampling = ms;
+        layers
     } else {
         layers
     };

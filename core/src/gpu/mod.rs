@@ -6,7 +6,7 @@
 //! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
 //! [`query`] (timestamps), [`dispatch`] (workgroup counts and parameter packing), and
 //! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`],
-//! [`prefiltered`].
+//! [`prefiltered`], [`upsample`].
 
 pub mod barrier;
 pub mod buffer;
@@ -25,6 +25,7 @@ pub mod prefix;
 pub mod query;
 pub mod shader;
 pub mod transfer;
+pub mod upsample;
 
 use std::sync::{Arc, Mutex};
 

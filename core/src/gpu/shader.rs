@@ -13,6 +13,7 @@ pub enum Shader {
     Transfer,
     Prefix,
     Prefiltered,
+    Upsample,
 }
 
 impl Shader {
@@ -23,6 +24,7 @@ impl Shader {
             Shader::Transfer => "transfer",
             Shader::Prefix => "prefix",
             Shader::Prefiltered => "prefiltered",
+            Shader::Upsample => "upsample",
         }
     }
 
@@ -33,6 +35,7 @@ impl Shader {
             Shader::Transfer => include_bytes!(concat!(env!("OUT_DIR"), "/transfer.spv")),
             Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.spv")),
             Shader::Prefiltered => include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.spv")),
+            Shader::Upsample => include_bytes!(concat!(env!("OUT_DIR"), "/upsample.spv")),
         }
     }
 
@@ -80,6 +83,7 @@ mod tests {
             Shader::Transfer,
             Shader::Prefix,
             Shader::Prefiltered,
+            Shader::Upsample,
         ] {
             let words = shader.words().unwrap();
             assert_eq!(

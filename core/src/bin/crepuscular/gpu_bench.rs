@@ -40,6 +40,7 @@ struct Row {
     hole_filling: Option<f64>,
     march: Option<f64>,
     prefix: Option<f64>,
+    upsampling: Option<f64>,
     transfer: Option<f64>,
     gpu_total: f64,
     /// CPU-side work of the Vulkan path (rasterization, baking), median ms.
@@ -104,7 +105,11 @@ pub fn run(
         if overrides.method.is_none() {
             let mut scene = base.clone();
             scene.render.method = Method::Prefiltered;
-            looks.push(("physical", scene));
+            looks.push(("physical", scene.clone()));
+            if overrides.downsample.is_none() && scene.render.supersampling == 1 {
+                scene.render.downsample = 2;
+                looks.push(("phys. 1/2", scene));
+            }
         }
         for (look, scene) in looks {
             let geometry = FlatGeometry::from_scene(&scene);
@@ -134,6 +139,7 @@ pub fn run(
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
                 march: median_option(&gpu, |t| t.ray_march.or(t.prefiltered)),
                 prefix: median_option(&gpu, |t| t.prefix_sums),
+                upsampling: median_option(&gpu, |t| t.upsampling),
                 transfer: median_option(&gpu, |t| t.transfer_function),
                 gpu_total: median_of(gpu.iter().map(GpuTimes::total)),
                 cpu_side: median_of(cpu_side.into_iter()),
@@ -160,13 +166,14 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         device.describe()
     );
     println!(
-        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
         "method",
         "look",
         "holes",
         "shade",
         "prefix",
+        "up",
         "TF",
         "GPU sum",
         "CPU side",
@@ -187,13 +194,14 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         };
         let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
-            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
             row.method,
             row.look,
             ms(row.hole_filling),
             ms(row.march),
             ms(row.prefix),
+            ms(row.upsampling),
             ms(row.transfer),
             row.gpu_total,
             row.cpu_side,
@@ -211,7 +219,8 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     println!(
         "\nholes = hole filling (2D closing); shade = per-pixel scattering (the reference march, or \
          prefiltered evaluation with the reference near on-screen epipoles); prefix = \
-         prefiltering's basis computation and prefix sums; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
+         prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
+         evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `CPU side` = shadow map + camera depth \
          rasterization + rectification. Stages the Vulkan path still runs on the CPU: {}.",
         on_cpu.join(", ")
