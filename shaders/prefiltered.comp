@@ -160,9 +160,10 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
         uint j = min(uint(position), range.y - 1u);
         float band_fraction = position - float(j);
         uint next = min(j + 1u, range.y - 1u);
-        uint rows[8];
-        float factors[8];
-        uint count = 0u;
+        // Two bands × two ends × two boundaries, in fixed slots (factor 0 when unused) so
+        // that the compiler keeps them in registers.
+        uint rows[8] = uint[8](0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
+        float factors[8] = float[8](0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         float shares = 0.0;
         for (uint k = 0u; k < 2u; ++k) {
             uint band_index = range.x + (k == 0u ? j : next);
@@ -199,9 +200,9 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
                     if (b == 0u || part == 0.0) {
                         continue;
                     }
-                    rows[count] = first_row + b;
-                    factors[count] = sign_ * scale * part * weight[first_row + b];
-                    count += 1u;
+                    uint slot = k * 4u + e * 2u + h;
+                    rows[slot] = first_row + b;
+                    factors[slot] = sign_ * scale * part * weight[first_row + b];
                 }
             }
             shares += share * band_share;
@@ -217,10 +218,12 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
             for (uint c = 0u; c < octets; ++c) {
                 vec4 low = vec4(0.0);
                 vec4 high = vec4(0.0);
-                for (uint r = 0u; r < count; ++r) {
-                    uvec4 w = basis4[rows[r] * octets + c];
-                    low += factors[r] * vec4(unpackSnorm2x16(w.x), unpackSnorm2x16(w.y));
-                    high += factors[r] * vec4(unpackSnorm2x16(w.z), unpackSnorm2x16(w.w));
+                for (uint r = 0u; r < 8u; ++r) {
+                    if (factors[r] != 0.0) {
+                        uvec4 w = basis4[rows[r] * octets + c];
+                        low += factors[r] * vec4(unpackSnorm2x16(w.x), unpackSnorm2x16(w.y));
+                        high += factors[r] * vec4(unpackSnorm2x16(w.z), unpackSnorm2x16(w.w));
+                    }
                 }
                 dot_ += dot(low, coefficients4[coefficient_base + 2u * c]);
                 dot_ += dot(high, coefficients4[coefficient_base + 2u * c + 1u]);
@@ -228,8 +231,10 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
         } else {
             for (uint c = 0u; c < quads; ++c) {
                 vec4 blended = vec4(0.0);
-                for (uint r = 0u; r < count; ++r) {
-                    blended += factors[r] * uintBitsToFloat(basis4[rows[r] * quads + c]);
+                for (uint r = 0u; r < 8u; ++r) {
+                    if (factors[r] != 0.0) {
+                        blended += factors[r] * uintBitsToFloat(basis4[rows[r] * quads + c]);
+                    }
                 }
                 dot_ += dot(blended, coefficients4[coefficient_base + c]);
             }

@@ -17,7 +17,8 @@ layout(std430, binding = 0) readonly buffer Bands { uvec2 bands[]; }; // (first 
 layout(std430, binding = 1) readonly buffer Entries { uint entries[]; };
 layout(std430, binding = 2) readonly buffer Weights { float weights[]; };
 layout(std430, binding = 3) readonly buffer Scales { float scales[]; };
-layout(std430, binding = 4) readonly buffer Table { float table[]; };
+// Rows of the basis table in pairs of lanes (rows hold an even number of values).
+layout(std430, binding = 4) readonly buffer Table { vec2 table2[]; };
 layout(std430, binding = 5) writeonly buffer Basis { uint basis[]; };
 
 // Round half away from zero after clamping to ±1, as BasisValue::store for i16.
@@ -47,21 +48,31 @@ void main() {
     uint first_row = b.x;
     uint samples = b.y - 1u;
     uint offset = first_row - band;
-    uint lane = 2u * pair;
+    uint pairs = pc.stride / 2u;
     store(first_row, pair, 0.0, 0.0);
-    precise float s0 = 0.0;
-    precise float s1 = 0.0;
-    for (uint i = 0u; i < samples; ++i) {
+    precise vec2 sum = vec2(0.0);
+    // Four samples at a time: their loads are independent of the running sum, so they are
+    // issued together; the sum itself runs sample by sample, as on the CPU.
+    uint i = 0u;
+    for (; i + 4u <= samples; i += 4u) {
         uint k = offset + i;
-        uint entry = entries[k];
-        float w = weights[k];
-        float scale = scales[k];
-        precise float a0 = w * table[entry * pc.stride + lane];
-        precise float a1 = w * table[entry * pc.stride + lane + 1u];
-        s0 = s0 + a0;
-        s1 = s1 + a1;
-        precise float v0 = s0 * scale;
-        precise float v1 = s1 * scale;
-        store(first_row + 1u + i, pair, v0, v1);
+        uvec4 entry = uvec4(entries[k], entries[k + 1u], entries[k + 2u], entries[k + 3u]);
+        vec4 w = vec4(weights[k], weights[k + 1u], weights[k + 2u], weights[k + 3u]);
+        vec4 scale = vec4(scales[k], scales[k + 1u], scales[k + 2u], scales[k + 3u]);
+        vec2 t[4] = vec2[4](table2[entry.x * pairs + pair], table2[entry.y * pairs + pair],
+                            table2[entry.z * pairs + pair], table2[entry.w * pairs + pair]);
+        for (uint j = 0u; j < 4u; ++j) {
+            precise vec2 added = w[j] * t[j];
+            sum = sum + added;
+            precise vec2 value = sum * scale[j];
+            store(first_row + 1u + i + j, pair, value.x, value.y);
+        }
+    }
+    for (; i < samples; ++i) {
+        uint k = offset + i;
+        precise vec2 added = weights[k] * table2[entries[k] * pairs + pair];
+        sum = sum + added;
+        precise vec2 value = sum * scales[k];
+        store(first_row + 1u + i, pair, value.x, value.y);
     }
 }
