@@ -7,7 +7,8 @@
 //! | hole filling (2D closing and the other morphology operations) | GPU |
 //! | silhouette enhancement, hole creation | CPU |
 //! | reference ray march | GPU |
-//! | rectification, min-max scattering | CPU |
+//! | epipolar rectification (resampling) for `prefiltered` | GPU |
+//! | projective rectification (rasterized), min-max scattering | CPU |
 //! | prefiltered: planning (frames, bands, weights) | CPU |
 //! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation | GPU |
 //! | upsampling of downsampled evaluation | GPU |
@@ -17,6 +18,7 @@ use std::sync::Arc;
 
 use super::device::Device;
 use super::march::{self, MarchInputs};
+use super::rectify::GpuResampler;
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
@@ -36,6 +38,8 @@ use crate::upsample::reduced_size;
 pub struct GpuTimes {
     pub hole_filling: Option<f64>,
     pub ray_march: Option<f64>,
+    /// Epipolar rectification (resampling the shadow map along slices).
+    pub rectification: Option<f64>,
     /// Prefiltering's basis computation and prefix sums.
     pub prefix_sums: Option<f64>,
     /// Prefiltering's per-pixel evaluation (with the reference near epipoles).
@@ -52,6 +56,7 @@ impl GpuTimes {
         [
             self.hole_filling,
             self.ray_march,
+            self.rectification,
             self.prefix_sums,
             self.prefiltered,
             self.upsampling,
@@ -147,8 +152,8 @@ fn gpu_frame(
     };
     let map = match frame.settings.method {
         Method::Prefiltered => {
-            gpu.cpu_stages.push("rectification");
-            EpipolarMap::rectify(
+            let resampler = GpuResampler::new(device);
+            let map = EpipolarMap::rectify_with(
                 camera,
                 &shadow,
                 &frame.geometry,
@@ -156,7 +161,13 @@ fn gpu_frame(
                 frame.settings.max_distance as f64,
                 frame.settings.rectification,
                 &RectifyDesc::prefiltered(frame.settings.epipolar_slices),
-            )?
+                &resampler,
+            )?;
+            gpu.rectification = resampler.milliseconds();
+            if map.as_ref().is_some_and(EpipolarMap::is_projective) {
+                gpu.cpu_stages.push("projective rectification (rasterized)");
+            }
+            map
         }
         _ => None,
     };

@@ -6,7 +6,7 @@
 //! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
 //! [`query`] (timestamps), [`dispatch`] (workgroup counts and parameter packing), and
 //! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`],
-//! [`prefiltered`], [`upsample`].
+//! [`prefiltered`], [`upsample`], [`rectify`].
 
 pub mod barrier;
 pub mod buffer;
@@ -23,6 +23,7 @@ pub mod physical_device;
 pub mod prefiltered;
 pub mod prefix;
 pub mod query;
+pub mod rectify;
 pub mod shader;
 pub mod transfer;
 pub mod upsample;

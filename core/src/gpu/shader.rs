@@ -14,6 +14,7 @@ pub enum Shader {
     Prefix,
     Prefiltered,
     Upsample,
+    Rectify,
 }
 
 impl Shader {
@@ -25,6 +26,7 @@ impl Shader {
             Shader::Prefix => "prefix",
             Shader::Prefiltered => "prefiltered",
             Shader::Upsample => "upsample",
+            Shader::Rectify => "rectify",
         }
     }
 
@@ -36,6 +38,7 @@ impl Shader {
             Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.spv")),
             Shader::Prefiltered => include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.spv")),
             Shader::Upsample => include_bytes!(concat!(env!("OUT_DIR"), "/upsample.spv")),
+            Shader::Rectify => include_bytes!(concat!(env!("OUT_DIR"), "/rectify.spv")),
         }
     }
 
@@ -84,6 +87,7 @@ mod tests {
             Shader::Prefix,
             Shader::Prefiltered,
             Shader::Upsample,
+            Shader::Rectify,
         ] {
             let words = shader.words().unwrap();
             assert_eq!(

@@ -39,6 +39,7 @@ struct Row {
     look: &'static str,
     hole_filling: Option<f64>,
     march: Option<f64>,
+    rectify: Option<f64>,
     prefix: Option<f64>,
     upsampling: Option<f64>,
     transfer: Option<f64>,
@@ -138,6 +139,7 @@ pub fn run(
                 look,
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
                 march: median_option(&gpu, |t| t.ray_march.or(t.prefiltered)),
+                rectify: median_option(&gpu, |t| t.rectification),
                 prefix: median_option(&gpu, |t| t.prefix_sums),
                 upsampling: median_option(&gpu, |t| t.upsampling),
                 transfer: median_option(&gpu, |t| t.transfer_function),
@@ -166,11 +168,12 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         device.describe()
     );
     println!(
-        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
         "method",
         "look",
         "holes",
+        "rect",
         "shade",
         "prefix",
         "up",
@@ -194,11 +197,12 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         };
         let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
-            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
             row.method,
             row.look,
             ms(row.hole_filling),
+            ms(row.rectify),
             ms(row.march),
             ms(row.prefix),
             ms(row.upsampling),
@@ -217,12 +221,12 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.sort();
     on_cpu.dedup();
     println!(
-        "\nholes = hole filling (2D closing); shade = per-pixel scattering (the reference march, or \
+        "\nholes = hole filling (2D closing); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
          prefiltered evaluation with the reference near on-screen epipoles); prefix = \
          prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
          evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `CPU side` = shadow map + camera depth \
-         rasterization + rectification. Stages the Vulkan path still runs on the CPU: {}.",
+         rasterization + rectification (its wall time, with the GPU's). Stages the Vulkan path still runs on the CPU: {}.",
         on_cpu.join(", ")
     );
     println!(
