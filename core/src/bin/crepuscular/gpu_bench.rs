@@ -119,10 +119,12 @@ pub fn run(
             let mut gpu = Vec::new();
             let mut cpu_side = Vec::new();
             let mut wall = Vec::new();
+            let mut walls: Vec<StageTimes> = Vec::new();
             for _ in 0..runs {
                 let started = std::time::Instant::now();
                 let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
                 wall.push(started.elapsed().as_secs_f64() * 1e3);
+                walls.push(stages);
                 cpu_side.push((stages.shadow_map + stages.camera_depth + stages.rectify) * 1e3);
                 gpu.push(times);
             }
@@ -149,9 +151,22 @@ pub fn run(
                 cpu,
                 cpu_stages: gpu[0].cpu_stages.clone(),
             };
+            // Where the frame's wall time goes (GPU stages include their copies here).
+            let wall_of = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
             eprintln!(
-                "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms",
-                row.method, row.gpu_total, row.frame
+                "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms; wall ms: shadow map {:.1}, \
+                 occluders {:.1}, camera depth {:.1}, rectify {:.1}, prepare {:.1}, shading {:.1}, \
+                 TF {:.1}",
+                row.method,
+                row.gpu_total,
+                row.frame,
+                wall_of(|s| s.shadow_map),
+                wall_of(|s| s.occluders),
+                wall_of(|s| s.camera_depth),
+                wall_of(|s| s.rectify),
+                wall_of(|s| s.prepare),
+                wall_of(|s| s.shading),
+                wall_of(|s| s.transfer_function),
             );
             rows.push(row);
         }
