@@ -69,6 +69,15 @@ float average_visibility(float t_start, float t_end) {
     return float(lit_steps) / float(n);
 }
 
+// V̄: in-scattering over what it would be unshadowed (reference.rs, weighted_visibility).
+// A ray lit at every step has exactly 1, as on the CPU, whatever order the GPU sums in.
+float weighted_visibility(float scattering, float unshadowed, bool shadowed, float t_start, float t_end) {
+    if (!(unshadowed > 0.0)) {
+        return average_visibility(t_start, t_end);
+    }
+    return shadowed ? clamp(scattering / unshadowed, 0.0, 1.0) : 1.0;
+}
+
 // x: scattering, y: alpha, z: visibility.
 vec3 march_unbounded(float t_start, float t_end) {
     uint n = p.steps;
@@ -77,17 +86,19 @@ vec3 march_unbounded(float t_start, float t_end) {
     float decay = exp(-sigma * dt);
     float per_step = integral_exp(sigma, dt);
     float transmittance = 1.0;
-    float scattering = 0.0;
-    float unshadowed = 0.0;
+    precise float scattering = 0.0;
+    precise float unshadowed = 0.0;
+    bool shadowed = false;
     for (uint i = 0; i < n; ++i) {
         if (lit(t_start + (float(i) + 0.5) * dt)) {
             scattering += transmittance;
+        } else {
+            shadowed = true;
         }
         unshadowed += transmittance;
         transmittance *= decay;
     }
-    float visibility = unshadowed > 0.0 ? clamp(scattering / unshadowed, 0.0, 1.0)
-                                        : average_visibility(t_start, t_end);
+    float visibility = weighted_visibility(scattering, unshadowed, shadowed, t_start, t_end);
     return vec3(scattering * per_step, -expm1_accurate(-sigma * (t_end - t_start)), visibility);
 }
 
@@ -135,8 +146,9 @@ vec3 march_box(float t_start, float t_end) {
     float dt = (b - a) / float(n);
     float sigma = p.extinction;
     float depth_before = sunward_depth(cube_origin + cube_step * a);
-    float scattering = 0.0;
-    float unshadowed = 0.0;
+    precise float scattering = 0.0;
+    precise float unshadowed = 0.0;
+    bool shadowed = false;
     for (uint i = 0; i < n; ++i) {
         float t0 = a + float(i) * dt;
         float depth_after = sunward_depth(cube_origin + cube_step * (t0 + dt));
@@ -144,12 +156,13 @@ vec3 march_box(float t_start, float t_end) {
         float step_weight = exp(-sigma * (depth_before + t0 - a)) * integral_exp(sigma * (1.0 + slope), dt);
         if (lit(t0 + 0.5 * dt)) {
             scattering += step_weight;
+        } else {
+            shadowed = true;
         }
         unshadowed += step_weight;
         depth_before = depth_after;
     }
-    float visibility = unshadowed > 0.0 ? clamp(scattering / unshadowed, 0.0, 1.0)
-                                        : average_visibility(t_start, t_end);
+    float visibility = weighted_visibility(scattering, unshadowed, shadowed, t_start, t_end);
     return vec3(scattering, -expm1_accurate(-sigma * (b - a)), visibility);
 }
 
