@@ -602,3 +602,31 @@ def test_background_camera_depth(scene: dict[str, Any], depth_kind: str) -> None
     layers = render(scene, camera_depth=background, depth_kind=depth_kind)  # type: ignore[arg-type]
     _check_layers(layers, 64, 36)
     np.testing.assert_allclose(layers.depth, scene["render"]["max_distance"], rtol=1e-5)
+
+
+# --- backends ----------------------------------------------------------------------------
+
+
+def test_backend_setting_selects_vulkan_or_cpu_with_matching_layers(
+    scene: dict[str, Any],
+) -> None:
+    # `vulkan` runs on any Vulkan device (lavapipe in CI) and falls back to the CPU with a
+    # message where there is none, so both renders must agree either way.
+    layers = {}
+    for backend in ("cpu", "vulkan", "auto"):
+        variant = json.loads(json.dumps(scene))
+        variant.setdefault("render", {})["backend"] = backend
+        layers[backend] = render(variant)
+    cpu = layers["cpu"]
+    for backend in ("vulkan", "auto"):
+        other = layers[backend]
+        assert other.volume.shape == cpu.volume.shape
+        error = np.abs(other.volume - cpu.volume).sum() / max(np.abs(cpu.volume).sum(), 1e-30)
+        assert error <= 1e-3, (backend, error)
+        np.testing.assert_allclose(other.depth, cpu.depth, rtol=1e-6)
+
+
+def test_unknown_backend_is_named(scene: dict[str, Any]) -> None:
+    scene.setdefault("render", {})["backend"] = "cuda"
+    with raises_invalid("render.backend", "cuda"):
+        validate_scene(scene)

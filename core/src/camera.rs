@@ -23,6 +23,22 @@ impl Ray {
     }
 }
 
+/// Camera-space ray origin and unnormalized direction as `v[0] + px·v[1] + py·v[2]`; the
+/// direction's length is the ray's `distance_per_depth`, and `world_from_camera` maps both
+/// to the world.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayTerms {
+    pub origin: [DVec3; 3],
+    pub direction: [DVec3; 3],
+}
+
+impl RayTerms {
+    pub fn at(&self, px: f64, py: f64) -> (DVec3, DVec3) {
+        let affine = |v: &[DVec3; 3]| v[0] + v[1] * px + v[2] * py;
+        (affine(&self.origin), affine(&self.direction))
+    }
+}
+
 /// A camera prepared for ray generation and rasterization.
 #[derive(Clone, Debug)]
 pub struct CameraModel {
@@ -132,6 +148,25 @@ impl CameraModel {
         }
     }
 
+    /// Ray generation as affine functions of continuous pixel coordinates, in camera
+    /// space, for backends that generate rays themselves.
+    pub fn ray_terms(&self) -> RayTerms {
+        let [x0, y0] = self.plane_origin;
+        let s = self.plane_per_pixel;
+        let (dx, dy) = (DVec3::new(s, 0.0, 0.0), DVec3::new(0.0, -s, 0.0));
+        if self.perspective {
+            RayTerms {
+                origin: [DVec3::ZERO; 3],
+                direction: [DVec3::new(x0, y0, -1.0), dx, dy],
+            }
+        } else {
+            RayTerms {
+                origin: [DVec3::new(x0, y0, 0.0), dx, dy],
+                direction: [DVec3::NEG_Z, DVec3::ZERO, DVec3::ZERO],
+            }
+        }
+    }
+
     /// World position of the camera (for orthographic cameras, the view-plane centre).
     pub fn position(&self) -> DVec3 {
         self.world_from_camera.transform_point3(DVec3::ZERO)
@@ -228,6 +263,31 @@ mod tests {
         let centre = model.ray(100.0, 50.0).direction;
         // Shift 0.5 moves the centre by half the sensor width: x = 18/50 at unit depth.
         assert!((centre.x / -centre.z - 18.0 / 50.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn ray_terms_generate_the_same_rays() {
+        for projection in [
+            perspective(SensorFit::Auto, 0.1),
+            Projection::Orthographic {
+                ortho_scale: 5.0,
+                sensor_fit: SensorFit::Vertical,
+                shift_x: 0.2,
+                shift_y: -0.1,
+            },
+        ] {
+            let model = CameraModel::new(&camera(projection, 320, 200));
+            let terms = model.ray_terms();
+            for (px, py) in [(0.0, 0.0), (160.5, 99.25), (319.5, 199.5)] {
+                let ray = model.ray(px, py);
+                let (origin, direction) = terms.at(px, py);
+                let world_origin = model.world_from_camera.transform_point3(origin);
+                let world_direction = model.world_from_camera.transform_vector3(direction);
+                assert!((world_origin - ray.origin).length() < 1e-12);
+                assert!((world_direction.normalize() - ray.direction).length() < 1e-12);
+                assert!((direction.length() - ray.distance_per_depth).abs() < 1e-12);
+            }
+        }
     }
 
     #[test]

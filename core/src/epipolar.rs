@@ -158,6 +158,57 @@ impl RaySlice {
     }
 }
 
+/// Fills an epipolar map's values from the shadow map: the CPU's loop or a GPU's.
+pub trait Resampler {
+    /// Fills `map.values` (the layout is set), slice by slice.
+    fn resample(&self, map: &mut EpipolarMap, shadow: &ShadowMap) -> Result<()>;
+}
+
+/// The CPU backend's resampling.
+pub struct CpuResampler;
+
+impl Resampler for CpuResampler {
+    fn resample(&self, map: &mut EpipolarMap, shadow: &ShadowMap) -> Result<()> {
+        map.resample(shadow);
+        Ok(())
+    }
+}
+
+/// How slices lie, for [`MapGeometry`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MapLayout {
+    Radial,
+    Parallel,
+    Projective,
+}
+
+/// [`EpipolarMap`]'s geometry as plain numbers: what [`EpipolarMap::locate`],
+/// [`EpipolarMap::neighbours`], [`EpipolarMap::order_key`] and
+/// [`EpipolarMap::sample_coordinate`] compute with.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapGeometry {
+    pub layout: MapLayout,
+    /// Radial slices that go all the way round (an epipole in the image).
+    pub full_circle: bool,
+    /// Samples uniform in 1/s (projective maps) rather than in s.
+    pub reciprocal_spacing: bool,
+    pub spacing_first: f64,
+    pub spacing_step: f64,
+    /// The slice coordinate's origin and step: an angle (radial), an offset (parallel) or
+    /// a tangent (projective).
+    pub first: f64,
+    pub step: f64,
+    /// Parallel slices: their direction, normal, and the shared depth slope.
+    pub along: DVec2,
+    pub normal: DVec2,
+    pub slope: f64,
+    /// Radial slices: the epipole (texels) and the camera's light depth.
+    pub epipole: DVec2,
+    pub camera_depth: f64,
+    /// texel_from_world (radial, parallel) or view_from_world (projective).
+    pub from_world: glam::DMat4,
+}
+
 /// The rectified shadow map: `slices` rows of `samples` values of K. Sample i of every
 /// slice covers [`EpipolarMap::sample_interval`]`(i)` of s.
 #[derive(Clone, Debug)]
@@ -182,6 +233,35 @@ impl EpipolarMap {
     /// camera looks exactly along the light (an orthographic camera whose rays all
     /// project to points), where rectification is undefined.
     pub fn build(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
+        let mut map = Self::layout_for(camera, shadow, desc)?;
+        map.resample(shadow);
+        Some(map)
+    }
+
+    /// [`EpipolarMap::build`] with the resampling done by `resampler` (another backend).
+    pub fn build_with(
+        camera: &CameraModel,
+        shadow: &ShadowMap,
+        desc: &RectifyDesc,
+        resampler: &dyn Resampler,
+    ) -> Result<Option<Self>> {
+        let Some(mut map) = Self::layout_for(camera, shadow, desc) else {
+            return Ok(None);
+        };
+        resampler.resample(&mut map, shadow)?;
+        if map.values.len() != map.slices as usize * map.samples as usize {
+            return Err(crate::error::Error::Internal(format!(
+                "resampling returned {} values for {}×{} samples",
+                map.values.len(),
+                map.slices,
+                map.samples
+            )));
+        }
+        Ok(Some(map))
+    }
+
+    /// The map's layout and spacing for `desc`, its values not yet sampled (zeros).
+    fn layout_for(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
         let texel_from_world = shadow.texel_from_world;
         let size = shadow.size as f64;
         let corners = [
@@ -280,7 +360,6 @@ impl EpipolarMap {
             bound_factors: Vec::new(),
         };
         map.bound_factors = map.compute_bound_factors();
-        map.resample(shadow);
         Some(map)
     }
 
@@ -298,6 +377,30 @@ impl EpipolarMap {
         rectification: Rectification,
         desc: &RectifyDesc,
     ) -> Result<Option<Self>> {
+        Self::rectify_with(
+            camera,
+            shadow,
+            geometry,
+            light_travel,
+            reach,
+            rectification,
+            desc,
+            &CpuResampler,
+        )
+    }
+
+    /// [`EpipolarMap::rectify`] with epipolar maps resampled by `resampler`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn rectify_with(
+        camera: &CameraModel,
+        shadow: &ShadowMap,
+        geometry: &Geometry,
+        light_travel: DVec3,
+        reach: f64,
+        rectification: Rectification,
+        desc: &RectifyDesc,
+        resampler: &dyn Resampler,
+    ) -> Result<Option<Self>> {
         let grid = choose(
             rectification,
             camera,
@@ -306,10 +409,10 @@ impl EpipolarMap {
             desc,
             shadow.texel_size,
         )?;
-        Ok(match grid {
-            Some(grid) => Some(Self::build_projective(&grid, shadow, geometry)),
-            None => Self::build(camera, shadow, desc),
-        })
+        match grid {
+            Some(grid) => Ok(Some(Self::build_projective(&grid, shadow, geometry))),
+            None => Self::build_with(camera, shadow, desc, resampler),
+        }
     }
 
     /// Rasterizes `geometry` straight into the projective map `grid`. K per sample is the
@@ -642,6 +745,70 @@ impl EpipolarMap {
             return None;
         };
         (hi > lo).then_some((lo, hi))
+    }
+
+    /// The map's layout and spacing as plain numbers, for backends that locate rays
+    /// themselves (see [`MapGeometry`]).
+    pub fn geometry(&self) -> MapGeometry {
+        let (reciprocal_spacing, spacing_first, spacing_step) = match self.spacing {
+            Spacing::Uniform { first, step } => (false, first, step),
+            Spacing::Reciprocal { first, step } => (true, first, step),
+        };
+        let mut geometry = MapGeometry {
+            layout: MapLayout::Radial,
+            full_circle: false,
+            reciprocal_spacing,
+            spacing_first,
+            spacing_step,
+            first: 0.0,
+            step: 1.0,
+            along: DVec2::X,
+            normal: DVec2::Y,
+            slope: 0.0,
+            epipole: DVec2::ZERO,
+            camera_depth: 0.0,
+            from_world: self.texel_from_world,
+        };
+        match self.layout {
+            Layout::Radial {
+                epipole,
+                camera_depth,
+                first_angle,
+                angle_step,
+                full_circle,
+            } => {
+                geometry.epipole = epipole;
+                geometry.camera_depth = camera_depth;
+                geometry.full_circle = full_circle;
+                geometry.first = first_angle;
+                geometry.step = angle_step;
+            }
+            Layout::Parallel {
+                direction,
+                normal,
+                first_offset,
+                offset_step,
+                slope,
+            } => {
+                geometry.layout = MapLayout::Parallel;
+                geometry.first = first_offset;
+                geometry.step = offset_step;
+                geometry.along = direction;
+                geometry.normal = normal;
+                geometry.slope = slope;
+            }
+            Layout::Projective {
+                view_from_world,
+                first_tan,
+                tan_step,
+            } => {
+                geometry.layout = MapLayout::Projective;
+                geometry.first = first_tan;
+                geometry.step = tan_step;
+                geometry.from_world = view_from_world;
+            }
+        }
+        geometry
     }
 
     pub fn row(&self, slice: u32) -> &[f32] {

@@ -32,6 +32,10 @@ pub enum Error {
     #[error("render cancelled")]
     Cancelled,
 
+    /// The Vulkan backend failed; hosts fall back to the CPU backend.
+    #[error("Vulkan backend: {0}")]
+    Gpu(#[from] crate::gpu::GpuError),
+
     /// A bug: a worker panicked. The panic was caught so that the host keeps running.
     #[error("internal error: {0}")]
     Internal(String),

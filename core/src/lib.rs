@@ -3,6 +3,7 @@
 //! The core turns a [`Scene`] into per-pixel [`Layers`]: it rasterizes the light's shadow
 //! map and the camera depth, then integrates single scattering along every view ray.
 
+pub mod backend;
 pub mod basis_kernels;
 pub mod builtin;
 pub mod camera;
@@ -12,6 +13,7 @@ pub mod diffusion;
 pub mod epipolar;
 pub mod error;
 pub mod exr_file;
+pub mod gpu;
 pub mod holes;
 pub mod layers;
 pub mod mesh_builder;
@@ -32,6 +34,7 @@ pub mod style;
 pub mod transfer_function;
 pub mod upsample;
 
+pub use backend::Backend;
 pub use builtin::{builtin_scene, BUILTIN_SCENES};
 pub use control::RenderControl;
 pub use error::{Error, Result};

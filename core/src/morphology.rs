@@ -94,7 +94,7 @@ impl MorphologyDesc {
         }
     }
 
-    fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         let radius = self.radius_texels;
         if !radius.is_finite() || radius < 0.0 {
             return Err(Error::invalid(

@@ -30,6 +30,7 @@ use rayon::prelude::*;
 use crate::basis_kernels::{padded, BasisValue, Kernels};
 use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
+use crate::error::{Error, Result};
 use crate::reference::{integral_exp, medium_segment, BoxMedium, RaySample};
 use crate::scene::{BasisStorage, Medium, RenderSettings, Sun};
 
@@ -254,8 +255,10 @@ fn harmonics(z: f64, frequencies: usize, out: &mut [f64]) {
     }
 }
 
-/// The filtered basis in the precision the settings ask for.
-enum FilteredBasis {
+/// The filtered basis in the precision the settings ask for: per band, `rows` rows of
+/// [`PrefixPlan::stride`] values.
+#[derive(Clone, Debug, PartialEq)]
+pub enum FilteredBasis {
     F32(Vec<f32>),
     Snorm16(Vec<i16>),
 }
@@ -271,48 +274,232 @@ impl<'a> Prefiltered<'a> {
         sun: &Sun,
         medium: &Medium,
     ) -> Self {
+        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium);
+        let basis = plan.prefix.sums_on_cpu(plan.kernels);
+        plan.finish(basis)
+    }
+
+    /// What [`Prefiltered::build`] hands its prefix sums, for other backends and tests.
+    pub fn prefix_plan(
+        map: &'a EpipolarMap,
+        camera: &CameraModel,
+        epipoles: &[[f64; 2]],
+        desc: &PrefilteredDesc,
+        sun: &Sun,
+        medium: &Medium,
+    ) -> PrefixPlan {
+        PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium).prefix
+    }
+
+    /// [`Prefiltered::build`] with the prefix sums computed by `prefix` (another backend).
+    pub fn build_with(
+        map: &'a EpipolarMap,
+        camera: &CameraModel,
+        epipoles: &[[f64; 2]],
+        desc: &PrefilteredDesc,
+        sun: &Sun,
+        medium: &Medium,
+        prefix: &dyn PrefixSums,
+    ) -> Result<Self> {
+        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium);
+        let basis = prefix.prefix_sums(&plan.prefix)?;
+        let expected = plan.prefix.total_rows * plan.prefix.stride;
+        let got = match &basis {
+            FilteredBasis::F32(values) => values.len(),
+            FilteredBasis::Snorm16(values) => values.len(),
+        };
+        if got != expected {
+            return Err(Error::Internal(format!(
+                "prefix sums returned {got} values, expected {expected}"
+            )));
+        }
+        Ok(plan.finish(basis))
+    }
+}
+
+/// Computes the filtered basis from a [`PrefixPlan`]: the CPU's kernels or a GPU.
+pub trait PrefixSums {
+    fn prefix_sums(&self, plan: &PrefixPlan) -> Result<FilteredBasis>;
+}
+
+/// The CPU backend's prefix sums.
+pub struct CpuPrefixSums;
+
+impl PrefixSums for CpuPrefixSums {
+    fn prefix_sums(&self, plan: &PrefixPlan) -> Result<FilteredBasis> {
+        Ok(plan.sums_on_cpu(Kernels::detect()))
+    }
+}
+
+/// One band's rows in a [`PrefixPlan`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PrefixBand {
+    /// Its first row (the empty prefix, all zeros) in the filtered basis.
+    pub first_row: usize,
+    /// Rows including the empty prefix: `rows − 1` samples.
+    pub rows: usize,
+}
+
+impl PrefixBand {
+    /// Where band `index`'s samples start in the plan's per-sample arrays.
+    pub fn sample_offset(&self, index: usize) -> usize {
+        self.first_row - index
+    }
+}
+
+/// Everything the weighted prefix sums of the basis read (Eq. 4.8–4.12), laid out for any
+/// backend. Band b's sample i adds `weights[k]` × basis-table row `entries[k]` (with
+/// k = sample offset + i) to a running sum, and its output row `first_row + 1 + i` is that
+/// sum × `scales[k]`, stored as `storage` says.
+#[derive(Clone, Debug)]
+pub struct PrefixPlan {
+    pub storage: BasisStorage,
+    /// Values per row: 2·(M/2) padded to whole lanes.
+    pub stride: usize,
+    pub total_rows: usize,
+    pub bands: Vec<PrefixBand>,
+    pub entries: Vec<u32>,
+    pub weights: Vec<f32>,
+    pub scales: Vec<f32>,
+    /// The basis table: row e holds the basis at warped key e / TABLE_STEPS.
+    pub table: &'static [f32],
+}
+
+impl PrefixPlan {
+    fn sums_on_cpu(&self, kernels: Kernels) -> FilteredBasis {
+        fn fill<T: BasisValue>(plan: &PrefixPlan, kernels: Kernels, basis: &mut [T]) {
+            let row = plan.stride;
+            let mut parts = Vec::with_capacity(plan.bands.len());
+            let mut rest = basis;
+            for (index, band) in plan.bands.iter().enumerate() {
+                let (part, tail) = rest.split_at_mut(band.rows * row);
+                rest = tail;
+                parts.push((index, band, part));
+            }
+            parts.into_par_iter().for_each(|(index, band, part)| {
+                let samples = band.sample_offset(index)..band.sample_offset(index) + band.rows - 1;
+                part[..row].fill(T::default());
+                kernels.prefix_sums(
+                    plan.table,
+                    &plan.entries[samples.clone()],
+                    &plan.weights[samples.clone()],
+                    &plan.scales[samples],
+                    &mut part[row..],
+                );
+            });
+        }
+        let values = self.total_rows * self.stride;
+        match self.storage {
+            BasisStorage::F32 => {
+                let mut basis = vec![0.0f32; values];
+                fill(self, kernels, &mut basis);
+                FilteredBasis::F32(basis)
+            }
+            BasisStorage::Snorm16 => {
+                let mut basis = vec![0i16; values];
+                fill(self, kernels, &mut basis);
+                FilteredBasis::Snorm16(basis)
+            }
+        }
+    }
+}
+
+/// A [`Prefiltered`] but for its filtered basis: the planning on the rectified map.
+pub struct PrefilteredPlan<'a> {
+    map: &'a EpipolarMap,
+    prefix: PrefixPlan,
+    kernels: Kernels,
+    tables: &'static Tables,
+    frames: Vec<SliceFrame>,
+    slice_bands: Vec<SliceBands>,
+    bands: Vec<Band>,
+    weight: Vec<f32>,
+    extinction: f64,
+    near_plane_correction: bool,
+    box_medium: Option<BoxMedium>,
+}
+
+impl<'a> PrefilteredPlan<'a> {
+    /// Everything [`Prefiltered::build`] computes before the prefix sums; backends that
+    /// keep the filtered basis to themselves evaluate pixels from this and their own copy.
+    pub fn new(
+        map: &'a EpipolarMap,
+        camera: &CameraModel,
+        epipoles: &[[f64; 2]],
+        desc: &PrefilteredDesc,
+        sun: &Sun,
+        medium: &Medium,
+    ) -> Self {
         let frequencies = (desc.bases / 2) as usize;
         let row = padded(2 * frequencies);
-        let kernels = Kernels::detect();
         let extinction = medium.extinction as f64;
         let tables = Tables::get(frequencies);
         let frames = slice_frames(map, camera, epipoles, desc.epipole_block);
         let (slice_bands, bands) = plan_bands(map, &frames, extinction, desc.max_distance);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         let mut weight = vec![0.0f32; total_rows];
-        let basis = match desc.storage {
-            BasisStorage::F32 => {
-                let mut basis = vec![0.0f32; total_rows * row];
-                filter_slices(
-                    map,
-                    &frames,
-                    &slice_bands,
-                    &bands,
-                    tables,
-                    extinction,
-                    kernels,
-                    &mut basis,
-                    &mut weight,
-                );
-                FilteredBasis::F32(basis)
-            }
-            BasisStorage::Snorm16 => {
-                let mut basis = vec![0i16; total_rows * row];
-                filter_slices(
-                    map,
-                    &frames,
-                    &slice_bands,
-                    &bands,
-                    tables,
-                    extinction,
-                    kernels,
-                    &mut basis,
-                    &mut weight,
-                );
-                FilteredBasis::Snorm16(basis)
-            }
+        let samples_total = total_rows - bands.len();
+        let mut entries = vec![0u32; samples_total];
+        let mut weights = vec![0.0f32; samples_total];
+        let mut scales = vec![0.0f32; samples_total];
+        plan_slices(
+            map,
+            &frames,
+            &slice_bands,
+            &bands,
+            extinction,
+            &mut entries,
+            &mut weights,
+            &mut scales,
+            &mut weight,
+        );
+        let prefix = PrefixPlan {
+            storage: desc.storage,
+            stride: row,
+            total_rows,
+            bands: bands
+                .iter()
+                .map(|b| PrefixBand {
+                    first_row: b.first_row,
+                    rows: b.rows,
+                })
+                .collect(),
+            entries,
+            weights,
+            scales,
+            table: &tables.basis,
         };
         Self {
+            map,
+            prefix,
+            kernels: Kernels::detect(),
+            tables,
+            frames,
+            slice_bands,
+            bands,
+            weight,
+            extinction,
+            near_plane_correction: desc.near_plane_correction,
+            box_medium: BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize()),
+        }
+    }
+
+    pub fn finish(self, basis: FilteredBasis) -> Prefiltered<'a> {
+        let PrefilteredPlan {
+            map,
+            prefix,
+            kernels,
+            tables,
+            frames,
+            slice_bands,
+            bands,
+            weight,
+            extinction,
+            near_plane_correction,
+            box_medium,
+        } = self;
+        let row = prefix.stride;
+        Prefiltered {
             map,
             stride: row,
             kernels,
@@ -323,11 +510,69 @@ impl<'a> Prefiltered<'a> {
             basis,
             weight,
             extinction,
-            near_plane_correction: desc.near_plane_correction,
-            box_medium: BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize()),
+            near_plane_correction,
+            box_medium,
         }
     }
+}
 
+/// A [`Prefiltered`]'s tables as plain numbers, for backends that evaluate pixels.
+pub struct PrefilteredTables<'b> {
+    /// Values per basis and coefficient row.
+    pub stride: usize,
+    /// Per slice: the warp's knots, then log₂ of its fastest ray's speed.
+    pub frames: Vec<([f64; KNOTS], f64)>,
+    /// Per slice: (first band, band count).
+    pub slice_bands: Vec<[u32; 2]>,
+    /// Per band: (first row, rows).
+    pub bands: Vec<[u32; 2]>,
+    /// Cumulative weight per row.
+    pub weight: &'b [f32],
+    /// Row e: the coefficients at warped key e / [`TABLE_STEPS`].
+    pub coefficients: &'static [f32],
+    pub near_plane_correction: bool,
+}
+
+/// Quantiles kept per slice, and the tables' resolution over warped keys; see the
+/// private constants they equal.
+pub const WARP_KNOTS: usize = KNOTS;
+pub const COEFFICIENT_STEPS: usize = TABLE_STEPS;
+/// Warped keys of a slice's rays lie this far inside [0, 1].
+pub const WARP_MARGIN: f64 = RAY_MARGIN;
+
+impl<'a> PrefilteredPlan<'a> {
+    /// What the prefix sums read.
+    pub fn prefix(&self) -> &PrefixPlan {
+        &self.prefix
+    }
+
+    /// Everything per-pixel evaluation reads besides the filtered basis.
+    pub fn tables(&self) -> PrefilteredTables<'_> {
+        PrefilteredTables {
+            stride: self.prefix.stride,
+            frames: self
+                .frames
+                .iter()
+                .map(|f| (f.knots, f.log2_fastest))
+                .collect(),
+            slice_bands: self
+                .slice_bands
+                .iter()
+                .map(|b| [b.first, b.count])
+                .collect(),
+            bands: self
+                .bands
+                .iter()
+                .map(|b| [b.first_row as u32, b.rows as u32])
+                .collect(),
+            weight: &self.weight,
+            coefficients: &self.tables.coefficients,
+            near_plane_correction: self.near_plane_correction,
+        }
+    }
+}
+
+impl<'a> Prefiltered<'a> {
     pub fn memory_bytes(&self) -> usize {
         let basis = match &self.basis {
             FilteredBasis::F32(values) => std::mem::size_of_val(values.as_slice()),
@@ -504,83 +749,88 @@ fn plan_bands(
     (slice_bands, bands)
 }
 
-/// Fills every slice's bands, in parallel over slices.
+/// Fills every band's per-sample inputs of the prefix sums and the cumulative weights, in
+/// parallel over slices. A slice's bands are contiguous, in rows and in samples.
 #[allow(clippy::too_many_arguments)]
-fn filter_slices<T: BasisValue>(
+fn plan_slices(
     map: &EpipolarMap,
     frames: &[SliceFrame],
     slice_bands: &[SliceBands],
     bands: &[Band],
-    tables: &Tables,
     extinction: f64,
-    kernels: Kernels,
-    basis: &mut [T],
+    entries: &mut [u32],
+    weights: &mut [f32],
+    scales: &mut [f32],
     weight: &mut [f32],
 ) {
-    let row = basis.len() / weight.len().max(1);
     let samples = map.samples as usize;
-    // Each slice's bands are contiguous: hand every slice its own part of the tables.
     let mut parts = Vec::with_capacity(frames.len());
-    let (mut basis_rest, mut weight_rest) = (basis, weight);
+    let (mut entries_rest, mut weights_rest, mut scales_rest, mut weight_rest) =
+        (entries, weights, scales, weight);
     for (slice, range) in slice_bands.iter().enumerate() {
         let own = &bands[range.first as usize..(range.first + range.count) as usize];
         let rows: usize = own.iter().map(|b| b.rows).sum();
-        let (basis_part, b_rest) = basis_rest.split_at_mut(rows * row);
-        let (weight_part, w_rest) = weight_rest.split_at_mut(rows);
-        (basis_rest, weight_rest) = (b_rest, w_rest);
-        parts.push((slice, own, basis_part, weight_part));
+        let sampled = rows - own.len();
+        let (entries_part, e_rest) = entries_rest.split_at_mut(sampled);
+        let (weights_part, w_rest) = weights_rest.split_at_mut(sampled);
+        let (scales_part, s_rest) = scales_rest.split_at_mut(sampled);
+        let (weight_part, t_rest) = weight_rest.split_at_mut(rows);
+        (entries_rest, weights_rest, scales_rest, weight_rest) = (e_rest, w_rest, s_rest, t_rest);
+        parts.push((
+            slice,
+            own,
+            entries_part,
+            weights_part,
+            scales_part,
+            weight_part,
+        ));
     }
-    parts
-        .into_par_iter()
-        .for_each(|(slice, own, basis_part, weight_part)| {
+    parts.into_par_iter().for_each(
+        |(slice, own, entries_part, weights_part, scales_part, weight_part)| {
             let frame = &frames[slice];
-            let entries: Vec<u32> = map
+            let slice_entries: Vec<u32> = map
                 .row(slice as u32)
                 .iter()
                 .map(|&value| Tables::index(frame.warp(map.order_key(value as f64))) as u32)
                 .collect();
-            let mut offset = 0;
+            let (mut sample, mut row) = (0, 0);
             for band in own {
-                let rows = band.rows;
-                filter_band(
+                let count = band.rows - 1;
+                debug_assert!(count <= samples);
+                entries_part[sample..sample + count].copy_from_slice(&slice_entries[..count]);
+                band_weights(
                     map,
                     frame.origin,
                     band.rate,
                     extinction,
-                    kernels,
-                    &entries[..(rows - 1).min(samples)],
-                    &tables.basis,
-                    &mut basis_part[offset * row..(offset + rows) * row],
-                    &mut weight_part[offset..offset + rows],
+                    &mut weights_part[sample..sample + count],
+                    &mut scales_part[sample..sample + count],
+                    &mut weight_part[row..row + band.rows],
                 );
-                offset += rows;
+                sample += count;
+                row += band.rows;
             }
-        });
+        },
+    );
 }
 
-/// Weighted, normalized prefix sums of the basis over one band: boundary 0 is empty and
-/// boundary i + 1 follows sample i. Weights are the reference ray's transmittance
-/// integral over each sample, ∫ σ e^(−σt) dt, which is uniform as σ → 0.
-#[allow(clippy::too_many_arguments)]
-fn filter_band<T: BasisValue>(
+/// One band's sample weights, the scales that normalize its prefix sums, and its
+/// cumulative weight per boundary (boundary 0 is empty, boundary i + 1 follows sample i).
+/// Weights are the reference ray's transmittance integral over each sample,
+/// ∫ σ e^(−σt) dt, which is uniform as σ → 0.
+fn band_weights(
     map: &EpipolarMap,
     origin: f64,
     rate: f64,
     extinction: f64,
-    kernels: Kernels,
-    entries: &[u32],
-    table: &[f32],
-    basis: &mut [T],
+    weights: &mut [f32],
+    scales: &mut [f32],
     weight: &mut [f32],
 ) {
-    let row = basis.len() / weight.len();
-    basis[..row].fill(T::default());
     weight[0] = 0.0;
     let depth_of = |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
     // Past the depth cap, every sample keeps the weight it would have at the cap.
     let flat_per_s = (-MAX_REFERENCE_DEPTH).exp() * extinction / rate;
-    let mut weights = vec![1.0f32; entries.len()];
-    let mut scales = vec![0.0f32; entries.len()];
     // Between the origin and the depth cap, evenly spaced samples each multiply the
     // transmittance by the same factor: one exp per band rather than one per sample.
     // Others (a projective map's) take each sample's own interval: the cross-ratio weights.
@@ -616,7 +866,6 @@ fn filter_band<T: BasisValue>(
         *scale = (1.0 / total) as f32;
         weight[i + 1] = total as f32;
     }
-    kernels.prefix_sums(table, entries, &weights, &scales, &mut basis[row..]);
 }
 
 /// One ray sampled for a slice's frame.

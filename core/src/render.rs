@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::layers::Layers;
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
-use crate::prefiltered::{Prefiltered, PrefilteredDesc};
+use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
 use crate::raster::{rasterize, RasterDesc};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
@@ -152,9 +152,23 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
     render_timed(frame, control).map(|(layers, _)| layers)
 }
 
-/// [`render`], also reporting how long each stage took.
+/// [`render`], also reporting how long each stage took. Runs on the backend that
+/// `render.backend` selects; a Vulkan failure falls back to the CPU with one message on
+/// standard error.
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
-    let (mut layers, mut times) = scatter_timed(frame, control)?;
+    if let Some(device) = crate::backend::vulkan_device(frame.settings.backend) {
+        match crate::gpu::frame::render_timed(&device, frame, control) {
+            Ok((layers, times, _)) => return Ok((layers, times)),
+            Err(Error::Gpu(err)) => crate::backend::report_fallback(&err),
+            Err(other) => return Err(other),
+        }
+    }
+    render_timed_cpu(frame, control)
+}
+
+/// [`render_timed`] on the CPU backend, the oracle.
+pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+    let (mut layers, mut times) = scatter_timed(frame, control, &CpuPrefixSums)?;
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();
         let light = frame.sun.irradiance() * frame.medium.albedo;
@@ -169,7 +183,12 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
 }
 
 /// Everything up to the per-pixel layers: depth maps, occluder manipulation, scattering.
-fn scatter_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+/// `prefix` computes prefiltering's filtered basis (on the CPU or a GPU).
+pub(crate) fn scatter_timed(
+    frame: &Frame,
+    control: &RenderControl,
+    prefix: &dyn PrefixSums,
+) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
     let mut clock = std::time::Instant::now();
     let mut lap = || {
@@ -270,14 +289,15 @@ fn scatter_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, Stag
         Method::Prefiltered => {
             // Every epipole ahead of the camera, however far off the image.
             let ahead: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
-            prefiltered = Prefiltered::build(
+            prefiltered = Prefiltered::build_with(
                 &map,
                 &camera,
                 &ahead,
                 &PrefilteredDesc::from_settings(frame.settings),
                 frame.sun,
                 frame.medium,
-            );
+                prefix,
+            )?;
             times.structure_bytes = prefiltered.memory_bytes();
             let method = &prefiltered;
             Box::new(move |ray, t0, t1| {
@@ -319,7 +339,7 @@ pub(crate) struct SurfaceDistances {
 }
 
 impl SurfaceDistances {
-    fn new(camera: &CameraModel, frame: &Frame) -> Self {
+    pub(crate) fn new(camera: &CameraModel, frame: &Frame) -> Self {
         match frame.camera_depth {
             Some(given) => Self::from_given(camera, given),
             None => Self::rasterized(camera, frame),

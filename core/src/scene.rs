@@ -7,6 +7,7 @@
 use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 
+use crate::backend::Backend;
 use crate::error::{Error, Result};
 use crate::style::Style;
 
@@ -331,6 +332,9 @@ pub struct RenderSettings {
     pub basis_storage: BasisStorage,
     /// Fast methods: how the shadow map is rectified.
     pub rectification: Rectification,
+    /// Where the frame is computed: `auto` (a GPU if there is one), `cpu` or `vulkan`.
+    #[serde(skip_serializing_if = "Backend::is_auto")]
+    pub backend: Backend,
 }
 
 /// How the prefiltered method stores its filtered basis. It is normalized to [−1, 1],
@@ -360,6 +364,7 @@ impl Default for RenderSettings {
             near_plane_correction: true,
             basis_storage: BasisStorage::default(),
             rectification: Rectification::default(),
+            backend: Backend::default(),
         }
     }
 }

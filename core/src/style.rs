@@ -24,7 +24,7 @@ use crate::morphology::{self, KernelShape, MorphologyDesc, MorphologyOp};
 use crate::scene::parse_json_at;
 use crate::shadow_map::ShadowMap;
 use crate::silhouette::{self, Epipole, SilhouetteDesc, SilhouetteOp};
-use crate::transfer_function::{self, ProjectedPoint, TransferFunction};
+use crate::transfer_function::{self, ApplySettings, ProjectedPoint, TfTexture, TransferFunction};
 
 /// The style-preset version this build reads and writes.
 pub const STYLE_VERSION: u32 = 1;
@@ -231,13 +231,28 @@ impl Style {
         camera: &CameraModel,
         light_color: [f32; 3],
     ) -> Result<()> {
-        let Some(tf) = &self.tf else {
+        let Some((texture, settings)) = self.bake_transfer_function(layers, camera, light_color)?
+        else {
             return Ok(());
+        };
+        transfer_function::apply_to_layers(layers, &texture, &settings)
+    }
+
+    /// The transfer function baked for this frame (its world constraints resolved against
+    /// `layers`) with the settings that apply it, if there is one.
+    pub fn bake_transfer_function(
+        &self,
+        layers: &Layers,
+        camera: &CameraModel,
+        light_color: [f32; 3],
+    ) -> Result<Option<(TfTexture, ApplySettings)>> {
+        let Some(tf) = &self.tf else {
+            return Ok(None);
         };
         let mut tf = tf.clone();
         tf.resolve_world_constraints(|point| locate(layers, camera, point))?;
         let texture = tf.bake(self.time)?;
-        transfer_function::apply_to_layers(layers, &texture, &tf.apply_settings(light_color))
+        Ok(Some((texture, tf.apply_settings(light_color))))
     }
 }
 

@@ -1262,6 +1262,15 @@ impl PerLight {
     }
 }
 
+/// `M` of `K = M·L` as a full matrix (rows), for backends that apply the colour rule
+/// themselves.
+pub fn per_light_matrix(light_color: [f32; 3]) -> [[f32; 3]; 3] {
+    match PerLight::new(light_color) {
+        PerLight::Diagonal(d) => [[d[0], 0.0, 0.0], [0.0, d[1], 0.0], [0.0, 0.0, d[2]]],
+        PerLight::Matrix(m) => m,
+    }
+}
+
 /// Applies `texture` to premultiplied `volume` RGBA in place, reading the `visibility` and
 /// `depth` layers of the same `width`-pixel rows; see the module docs for the rule. Rows run
 /// in parallel and each pixel is computed alone, so the result does not depend on the

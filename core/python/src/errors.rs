@@ -121,7 +121,7 @@ pub fn to_py_err(err: Error) -> PyErr {
             }
             Error::Io { path, source } => file_error(py, &message, &path, source.raw_os_error()),
             Error::Cancelled => Ok(CancelledError::new_err(message)),
-            Error::Internal(_) => Ok(CrepuscularError::new_err(message)),
+            Error::Internal(_) | Error::Gpu(_) => Ok(CrepuscularError::new_err(message)),
         };
         // Building the exception itself can only fail on interpreter trouble (out of memory);
         // the error from that attempt is then the more useful one to raise.

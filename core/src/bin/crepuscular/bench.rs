@@ -2,10 +2,13 @@
 //! built-in scenes, measured side by side in one run so that ratios are meaningful on
 //! noisy machines.
 
+use std::sync::Arc;
+
 use clap::Args;
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
+use crepuscular::gpu::Device;
 use crepuscular::scene::{Method, Scene};
-use crepuscular::{render_scene_timed, RenderControl, Result};
+use crepuscular::{render_scene_timed, Backend, Error, RenderControl, Result};
 
 use crate::{style_bench, Overrides};
 
@@ -25,8 +28,25 @@ pub struct BenchArgs {
     /// transfer function on its rendered layers.
     #[arg(long)]
     stylize: bool,
+    /// With `--backend vulkan`: skip the CPU backend's run of each frame beside the GPU's.
+    #[arg(long)]
+    no_cpu: bool,
     #[command(flatten)]
     overrides: Overrides,
+}
+
+/// The device a GPU bench runs on: `None` for the CPU table (the default, and `auto`
+/// without a GPU). An explicit `vulkan` that cannot open a device is an error here,
+/// since timing the CPU in its place would mislabel the numbers.
+fn bench_device(backend: Option<Backend>) -> Result<Option<Arc<Device>>> {
+    match backend {
+        None | Some(Backend::Cpu) => Ok(None),
+        Some(Backend::Auto) => Ok(crepuscular::backend::vulkan_device(Backend::Auto)),
+        Some(Backend::Vulkan) => Ok(Some(
+            crepuscular::gpu::shared_device(crepuscular::gpu::DevicePolicy::Any)
+                .map_err(Error::Gpu)?,
+        )),
+    }
 }
 
 /// One timed configuration.
@@ -148,6 +168,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     overrides.sm_size.get_or_insert(1024);
     overrides.steps.get_or_insert(1024);
     let runs = args.runs.max(1);
+    if let Some(device) = bench_device(overrides.backend)? {
+        return crate::gpu_bench::run(&device, &names, &overrides, runs, !args.no_cpu);
+    }
     let (names, variants) = if args.scaling {
         (names[..1].to_vec(), scaling_variants())
     } else {
@@ -167,6 +190,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     for name in &names {
         let mut base = builtin_scene(name)?;
         overrides.apply(&mut base)?;
+        base.render.backend = Backend::Cpu;
         for variant in &variants {
             let mut scene = base.clone();
             variant.apply(&mut scene);
@@ -306,7 +330,7 @@ pub fn print_demo_table(rows: &[DemoRow]) {
 }
 
 /// Peak resident set size of this process, from the kernel's accounting.
-fn peak_memory() -> String {
+pub fn peak_memory() -> String {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|status| {

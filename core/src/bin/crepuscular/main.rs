@@ -3,6 +3,7 @@
 mod bench;
 mod gallery;
 mod style_bench;
+mod gpu_bench;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -13,7 +14,7 @@ use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::exr_file::{write_layers, Precision};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
 use crepuscular::scene::{Method, Rectification, Scene};
-use crepuscular::{render_scene, Error, Layers, RenderControl, Result, Style};
+use crepuscular::{render_scene, Backend, Error, Layers, RenderControl, Result, Style};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Parser)]
@@ -83,6 +84,10 @@ pub struct Overrides {
     /// A style preset (JSON) replacing the scene's style.
     #[arg(long)]
     style: Option<PathBuf>,
+    /// Where to compute: auto (a GPU if there is one), cpu, or vulkan (any Vulkan device,
+    /// software ones included). Falls back to the CPU with a message when Vulkan fails.
+    #[arg(long)]
+    backend: Option<Backend>,
 }
 
 impl Overrides {
@@ -113,6 +118,9 @@ impl Overrides {
         }
         if let Some(factor) = self.downsample {
             scene.render.downsample = factor;
+        }
+        if let Some(backend) = self.backend {
+            scene.render.backend = backend;
         }
         Ok(())
     }

@@ -1,0 +1,255 @@
+//! `crepuscular bench --backend vulkan`: per-stage GPU timestamps of the Vulkan backend on
+//! the built-in scenes, physically based and stylized, next to the CPU backend's times
+//! for the same frames.
+
+use std::sync::Arc;
+
+use crepuscular::builtin::builtin_scene;
+use crepuscular::gpu::frame::{render_timed, GpuTimes};
+use crepuscular::gpu::Device;
+use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
+use crepuscular::scene::{Method, Scene};
+use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
+
+use crate::bench::{median, peak_memory};
+use crate::Overrides;
+
+/// The stylized rows' look when no `--style` is given: a disk closing of 0.25 scene units
+/// and a colour TF over (V̄, depth).
+const BENCH_STYLE: &str = r#"{
+  "version": 1,
+  "closing": { "operation": "close", "kernel": "disk", "radius": 0.25 },
+  "tf": {
+    "mode": "color",
+    "depth_range": { "near": 0.0, "far": 60.0 },
+    "layers": [{
+      "kind": "gradient",
+      "shape": { "kind": "linear", "from": [0.0, 0.0], "to": [1.0, 1.0] },
+      "stops": [
+        { "position": 0.0, "color": [0.2, 0.1, 0.9, 0.5] },
+        { "position": 1.0, "color": [1.0, 0.6, 0.1, 1.0] }
+      ]
+    }]
+  }
+}"#;
+
+struct Row {
+    scene: String,
+    method: &'static str,
+    look: &'static str,
+    hole_filling: Option<f64>,
+    march: Option<f64>,
+    rectify: Option<f64>,
+    prefix: Option<f64>,
+    upsampling: Option<f64>,
+    transfer: Option<f64>,
+    gpu_total: f64,
+    /// CPU-side work of the Vulkan path (rasterization, baking), median ms.
+    cpu_side: f64,
+    frame: f64,
+    cpu: Option<(StageTimes, f64)>,
+    cpu_stages: Vec<&'static str>,
+}
+
+fn frame_of<'a>(scene: &'a Scene, geometry: &'a FlatGeometry) -> Frame<'a> {
+    Frame {
+        camera: &scene.camera,
+        sun: &scene.sun,
+        medium: &scene.medium,
+        settings: &scene.render,
+        geometry: geometry.view(),
+        camera_depth: None,
+        style: &scene.style,
+    }
+}
+
+fn median_of(values: impl Iterator<Item = f64>) -> f64 {
+    let mut values: Vec<f64> = values.collect();
+    values.sort_by(f64::total_cmp);
+    median(&values)
+}
+
+fn median_option(times: &[GpuTimes], of: fn(&GpuTimes) -> Option<f64>) -> Option<f64> {
+    let values: Vec<f64> = times.iter().filter_map(of).collect();
+    (!values.is_empty()).then(|| median_of(values.into_iter()))
+}
+
+pub fn run(
+    device: &Arc<Device>,
+    names: &[String],
+    overrides: &Overrides,
+    runs: usize,
+    compare_cpu: bool,
+) -> Result<()> {
+    let stylized = match &overrides.style {
+        Some(_) => None,
+        None => Some(Style::from_json(BENCH_STYLE)?),
+    };
+    let mut rows = Vec::new();
+    for name in names {
+        let mut base = builtin_scene(name)?;
+        overrides.apply(&mut base)?;
+        base.render.backend = Backend::Vulkan;
+        let mut looks = vec![(
+            if overrides.style.is_some() {
+                "--style"
+            } else {
+                "physical"
+            },
+            base.clone(),
+        )];
+        if let Some(style) = &stylized {
+            let mut scene = base.clone();
+            scene.style = style.clone();
+            looks.push(("stylized", scene));
+        }
+        if overrides.method.is_none() {
+            let mut scene = base.clone();
+            scene.render.method = Method::Prefiltered;
+            looks.push(("physical", scene.clone()));
+            if overrides.downsample.is_none() && scene.render.supersampling == 1 {
+                scene.render.downsample = 2;
+                looks.push(("phys. 1/2", scene));
+            }
+        }
+        for (look, scene) in looks {
+            let geometry = FlatGeometry::from_scene(&scene);
+            let frame = frame_of(&scene, &geometry);
+            render_timed(device, &frame, &RenderControl::new())?;
+            let mut gpu = Vec::new();
+            let mut cpu_side = Vec::new();
+            let mut wall = Vec::new();
+            let mut walls: Vec<StageTimes> = Vec::new();
+            for _ in 0..runs {
+                let started = std::time::Instant::now();
+                let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
+                wall.push(started.elapsed().as_secs_f64() * 1e3);
+                walls.push(stages);
+                cpu_side.push((stages.shadow_map + stages.camera_depth + stages.rectify) * 1e3);
+                gpu.push(times);
+            }
+            let cpu = if compare_cpu {
+                let started = std::time::Instant::now();
+                let (_, stages) = render_timed_cpu(&frame, &RenderControl::new())?;
+                Some((stages, started.elapsed().as_secs_f64() * 1e3))
+            } else {
+                None
+            };
+            let row = Row {
+                scene: name.clone(),
+                method: scene.render.method.name(),
+                look,
+                hole_filling: median_option(&gpu, |t| t.hole_filling),
+                march: median_option(&gpu, |t| t.ray_march.or(t.prefiltered)),
+                rectify: median_option(&gpu, |t| t.rectification),
+                prefix: median_option(&gpu, |t| t.prefix_sums),
+                upsampling: median_option(&gpu, |t| t.upsampling),
+                transfer: median_option(&gpu, |t| t.transfer_function),
+                gpu_total: median_of(gpu.iter().map(GpuTimes::total)),
+                cpu_side: median_of(cpu_side.into_iter()),
+                frame: median_of(wall.into_iter()),
+                cpu,
+                cpu_stages: gpu[0].cpu_stages.clone(),
+            };
+            // Where the frame's wall time goes (GPU stages include their copies here).
+            let wall_of = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
+            eprintln!(
+                "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms; wall ms: shadow map {:.1}, \
+                 occluders {:.1}, camera depth {:.1}, rectify {:.1}, prepare {:.1}, shading {:.1}, \
+                 TF {:.1}",
+                row.method,
+                row.gpu_total,
+                row.frame,
+                wall_of(|s| s.shadow_map),
+                wall_of(|s| s.occluders),
+                wall_of(|s| s.camera_depth),
+                wall_of(|s| s.rectify),
+                wall_of(|s| s.prepare),
+                wall_of(|s| s.shading),
+                wall_of(|s| s.transfer_function),
+            );
+            rows.push(row);
+        }
+    }
+    print_table(device, &rows, overrides, runs);
+    Ok(())
+}
+
+fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize) {
+    let ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
+    let cpu_ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.1}"));
+    println!(
+        "\nVulkan backend on {}; GPU columns are timestamp medians in ms",
+        device.describe()
+    );
+    println!(
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "scene",
+        "method",
+        "look",
+        "holes",
+        "rect",
+        "shade",
+        "prefix",
+        "up",
+        "TF",
+        "GPU sum",
+        "CPU side",
+        "frame",
+        "cpu holes",
+        "cpu shade",
+        "cpu TF",
+        "cpu frame",
+        "speed-up"
+    );
+    for row in rows {
+        let cpu = row.cpu.as_ref();
+        let speed_up = match (cpu, row.march) {
+            (Some((stages, _)), Some(shade)) if shade > 0.0 => {
+                format!("{:.1}×", stages.shading * 1e3 / shade)
+            }
+            _ => "-".to_owned(),
+        };
+        let march_column = cpu.map(|(s, _)| s.shading * 1e3);
+        println!(
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            row.scene,
+            row.method,
+            row.look,
+            ms(row.hole_filling),
+            ms(row.rectify),
+            ms(row.march),
+            ms(row.prefix),
+            ms(row.upsampling),
+            ms(row.transfer),
+            row.gpu_total,
+            row.cpu_side,
+            row.frame,
+            cpu_ms(cpu.map(|(s, _)| s.occluders * 1e3).filter(|v| *v > 0.0)),
+            cpu_ms(march_column),
+            cpu_ms(cpu.map(|(s, _)| s.transfer_function * 1e3).filter(|v| *v > 0.0)),
+            cpu_ms(cpu.map(|(_, frame)| *frame)),
+            speed_up,
+        );
+    }
+    let mut on_cpu: Vec<&str> = rows.iter().flat_map(|r| r.cpu_stages.clone()).collect();
+    on_cpu.sort();
+    on_cpu.dedup();
+    println!(
+        "\nholes = hole filling (2D closing); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
+         prefiltered evaluation with the reference near on-screen epipoles); prefix = \
+         prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
+         evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
+         wall time of the whole Vulkan-path frame. `CPU side` = shadow map + camera depth \
+         rasterization + rectification (its wall time, with the GPU's). Stages the Vulkan path still runs on the CPU: {}.",
+        on_cpu.join(", ")
+    );
+    println!(
+        "{} runs per row after one warm-up; reference at {} steps; speed-up = cpu shade / GPU \
+         shade; CPU columns from one run with {} threads; peak resident memory {}",
+        runs,
+        overrides.steps.unwrap_or(1024),
+        rayon::current_num_threads(),
+        peak_memory()
+    );
+}

@@ -1,0 +1,133 @@
+//! The logical device: one compute queue, the memory allocator, and the cache of compute
+//! pipelines. Shared as `Arc<Device>`; everything created from it is destroyed first.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+
+use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
+use super::error::{GpuError, GpuResult, VkContext};
+use super::instance::{Instance, InstanceDesc};
+use super::physical_device::{DevicePolicy, PhysicalDevice};
+
+pub struct Device {
+    pub raw: ash::Device,
+    pub physical: PhysicalDevice,
+    pub queue: vk::Queue,
+    /// Submissions to the queue need external synchronisation.
+    queue_lock: Mutex<()>,
+    /// `None` only while the device is being dropped.
+    allocator: Mutex<Option<Allocator>>,
+    pipelines: Mutex<HashMap<ComputePipelineDesc, Arc<ComputePipeline>>>,
+    /// Declared last: dropped after the device is destroyed.
+    pub instance: Instance,
+}
+
+impl Device {
+    /// Loads Vulkan and opens the device that `policy` picks.
+    pub fn new(policy: DevicePolicy) -> GpuResult<Arc<Device>> {
+        let instance = Instance::new(&InstanceDesc::headless())?;
+        let physical = PhysicalDevice::select(&instance, policy)?;
+        let priorities = [1.0f32];
+        let queue_info = vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(physical.queue_family)
+            .queue_priorities(&priorities);
+        let info =
+            vk::DeviceCreateInfo::default().queue_create_infos(std::slice::from_ref(&queue_info));
+        // SAFETY: `physical.raw` belongs to `instance`; `info` outlives the call.
+        let raw = unsafe { instance.raw.create_device(physical.raw, &info, None) }
+            .call("vkCreateDevice")?;
+        // SAFETY: the queue family and index were requested above.
+        let queue = unsafe { raw.get_device_queue(physical.queue_family, 0) };
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.raw.clone(),
+            device: raw.clone(),
+            physical_device: physical.raw,
+            debug_settings: Default::default(),
+            buffer_device_address: false,
+            allocation_sizes: Default::default(),
+        });
+        let allocator = match allocator {
+            Ok(allocator) => allocator,
+            Err(source) => {
+                // SAFETY: nothing was created from the device yet.
+                unsafe { raw.destroy_device(None) };
+                return Err(GpuError::Allocation {
+                    what: "the allocator".to_owned(),
+                    source,
+                });
+            }
+        };
+        Ok(Arc::new(Device {
+            raw,
+            physical,
+            queue,
+            queue_lock: Mutex::new(()),
+            allocator: Mutex::new(Some(allocator)),
+            pipelines: Mutex::new(HashMap::new()),
+            instance,
+        }))
+    }
+
+    /// Runs `f` with the allocator.
+    pub(crate) fn with_allocator<T>(
+        &self,
+        f: impl FnOnce(&mut Allocator) -> GpuResult<T>,
+    ) -> GpuResult<T> {
+        let mut guard = lock(&self.allocator);
+        match guard.as_mut() {
+            Some(allocator) => f(allocator),
+            None => Err(GpuError::Unsupported(
+                "the device is shutting down".to_owned(),
+            )),
+        }
+    }
+
+    pub(crate) fn queue_guard(&self) -> MutexGuard<'_, ()> {
+        lock(&self.queue_lock)
+    }
+
+    /// The pipeline for `desc`, created on first use.
+    pub fn pipeline(&self, desc: &ComputePipelineDesc) -> GpuResult<Arc<ComputePipeline>> {
+        let mut pipelines = lock(&self.pipelines);
+        if let Some(pipeline) = pipelines.get(desc) {
+            return Ok(pipeline.clone());
+        }
+        let pipeline = Arc::new(ComputePipeline::new(&self.raw, desc)?);
+        pipelines.insert(*desc, pipeline.clone());
+        Ok(pipeline)
+    }
+
+    /// A line naming the device, for messages and bench output.
+    pub fn describe(&self) -> String {
+        format!("{} ({})", self.physical.name, self.physical.kind.name())
+    }
+}
+
+/// A poisoned lock only means another thread panicked while holding it; the data it
+/// guards (handles) stay valid.
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl Drop for Device {
+    fn drop(&mut self) {
+        // SAFETY: no other reference to the device exists any more (we are in its Drop),
+        // so nothing is recording or submitting; waiting lets queued work finish.
+        unsafe {
+            let _ = self.raw.device_wait_idle();
+        }
+        for (_, pipeline) in lock(&self.pipelines).drain() {
+            pipeline.destroy(&self.raw);
+        }
+        // The allocator frees its memory blocks through the device, so it goes first.
+        drop(lock(&self.allocator).take());
+        // SAFETY: every child object is destroyed above or by its owner's Drop, which
+        // holds an `Arc<Device>` and so ran before this.
+        unsafe { self.raw.destroy_device(None) };
+    }
+}

@@ -1,0 +1,273 @@
+//! One frame on the Vulkan backend. Ported stages run on the GPU; the others run on the
+//! CPU exactly as in the CPU backend:
+//!
+//! | stage | where |
+//! |---|---|
+//! | shadow map and camera depth rasterization | CPU |
+//! | hole filling (2D closing and the other morphology operations) | GPU |
+//! | silhouette enhancement, hole creation | CPU |
+//! | reference ray march | GPU |
+//! | epipolar rectification (resampling) for `prefiltered` | GPU |
+//! | projective rectification (rasterized), min-max scattering | CPU |
+//! | prefiltered: planning (frames, bands, weights) | CPU |
+//! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation | GPU |
+//! | upsampling of downsampled evaluation | GPU |
+//! | transfer function: baking | CPU; application | GPU |
+
+use std::sync::Arc;
+
+use super::device::Device;
+use super::march::{self, MarchInputs};
+use super::rectify::GpuResampler;
+use crate::camera::CameraModel;
+use crate::control::RenderControl;
+use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
+use crate::error::Result;
+use crate::layers::Layers;
+use crate::morphology::MorphologyDesc;
+use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
+use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
+use crate::scene::Method;
+use crate::shadow_map::ShadowMap;
+use crate::style::Style;
+use crate::upsample::reduced_size;
+
+/// GPU timestamps of the stages that ran on the GPU, in milliseconds, and the names of
+/// the stages that ran on the CPU.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GpuTimes {
+    pub hole_filling: Option<f64>,
+    pub ray_march: Option<f64>,
+    /// Epipolar rectification (resampling the shadow map along slices).
+    pub rectification: Option<f64>,
+    /// Prefiltering's basis computation and prefix sums.
+    pub prefix_sums: Option<f64>,
+    /// Prefiltering's per-pixel evaluation (with the reference near epipoles).
+    pub prefiltered: Option<f64>,
+    /// Joint-bilateral upsampling of downsampled evaluation.
+    pub upsampling: Option<f64>,
+    pub transfer_function: Option<f64>,
+    pub cpu_stages: Vec<&'static str>,
+}
+
+impl GpuTimes {
+    /// The GPU stages' total.
+    pub fn total(&self) -> f64 {
+        [
+            self.hole_filling,
+            self.ray_march,
+            self.rectification,
+            self.prefix_sums,
+            self.prefiltered,
+            self.upsampling,
+            self.transfer_function,
+        ]
+        .into_iter()
+        .flatten()
+        .sum()
+    }
+}
+
+/// Renders `frame` with the ported stages on `device`.
+pub fn render_timed(
+    device: &Arc<Device>,
+    frame: &Frame,
+    control: &RenderControl,
+) -> Result<(Layers, StageTimes, GpuTimes)> {
+    frame.validate()?;
+    let mut gpu = GpuTimes::default();
+    let camera = CameraModel::new(frame.camera);
+    let (mut layers, mut times) = if frame.settings.method != Method::MinMax {
+        gpu_frame(device, frame, &camera, control, &mut gpu)?
+    } else {
+        gpu.cpu_stages = vec!["shadow map", "camera depth", "rectification"];
+        if frame.style.manipulates_occluders() {
+            gpu.cpu_stages.push("occluder manipulation");
+        }
+        gpu.cpu_stages.push(frame.settings.method.name());
+        scatter_timed(frame, control, &CpuPrefixSums)?
+    };
+    if frame.style.tf.is_some() {
+        let started = std::time::Instant::now();
+        let light = frame.sun.irradiance() * frame.medium.albedo;
+        if let Some((texture, settings)) =
+            frame
+                .style
+                .bake_transfer_function(&layers, &camera, light.to_array())?
+        {
+            gpu.transfer_function =
+                super::transfer::apply(device, &mut layers, &texture, &settings)?;
+        }
+        times.transfer_function = started.elapsed().as_secs_f64();
+        gpu.cpu_stages.push("transfer-function baking");
+    }
+    Ok((layers, times, gpu))
+}
+
+/// The reference or the prefiltered method with their per-pixel work on the GPU.
+fn gpu_frame(
+    device: &Arc<Device>,
+    frame: &Frame,
+    camera: &CameraModel,
+    control: &RenderControl,
+    gpu: &mut GpuTimes,
+) -> Result<(Layers, StageTimes)> {
+    let mut times = StageTimes::default();
+    let mut clock = std::time::Instant::now();
+    let mut lap = || {
+        let now = std::time::Instant::now();
+        let seconds = (now - clock).as_secs_f64();
+        clock = now;
+        seconds
+    };
+    let rows = reduced_size(frame.camera.height, frame.settings.downsample);
+    control.begin(rows as u64);
+    control.check()?;
+    let mut shadow = ShadowMap::build(
+        camera,
+        frame.sun,
+        frame.medium,
+        frame.settings,
+        &frame.geometry,
+    );
+    gpu.cpu_stages.push("shadow map");
+    control.check()?;
+    times.shadow_map = lap();
+    if frame.style.manipulates_occluders() {
+        shadow = manipulate_occluders(device, frame.style, shadow, camera, gpu)?;
+        times.occluders = lap();
+    }
+    let surfaces = SurfaceDistances::new(camera, frame);
+    gpu.cpu_stages.push("camera depth");
+    times.camera_depth = lap();
+    control.check()?;
+    let inputs = MarchInputs {
+        camera,
+        shadow: &shadow,
+        sun: frame.sun,
+        medium: frame.medium,
+        settings: frame.settings,
+        surfaces: &surfaces.distances,
+        supersampling: surfaces.supersampling,
+    };
+    let map = match frame.settings.method {
+        Method::Prefiltered => {
+            let resampler = GpuResampler::new(device);
+            let map = EpipolarMap::rectify_with(
+                camera,
+                &shadow,
+                &frame.geometry,
+                frame.sun.direction.as_dvec3().normalize(),
+                frame.settings.max_distance as f64,
+                frame.settings.rectification,
+                &RectifyDesc::prefiltered(frame.settings.epipolar_slices),
+                &resampler,
+            )?;
+            gpu.rectification = resampler.milliseconds();
+            if map.as_ref().is_some_and(EpipolarMap::is_projective) {
+                gpu.cpu_stages.push("projective rectification (rasterized)");
+            }
+            map
+        }
+        _ => None,
+    };
+    times.rectify = lap();
+    // Rectification is undefined for an orthographic camera looking straight along the
+    // light; the reference handles that view, as on the CPU.
+    let (layers, ms) = match &map {
+        None => march::march(device, &inputs)?,
+        Some(map) => {
+            gpu.cpu_stages
+                .push("prefiltered planning (frames, bands, weights)");
+            let block = frame.settings.epipole_block as f64;
+            let epipoles: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, block).collect();
+            let ahead: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, f64::INFINITY).collect();
+            let plan = PrefilteredPlan::new(
+                map,
+                camera,
+                &ahead,
+                &PrefilteredDesc::from_settings(frame.settings),
+                frame.sun,
+                frame.medium,
+            );
+            // The filtered basis stays on the device: evaluation reads it there.
+            let (basis, ms) = super::prefix::resident(device, plan.prefix())?;
+            gpu.prefix_sums = ms;
+            let tables = plan.tables();
+            times.structure_bytes = basis.size() as usize + std::mem::size_of_val(tables.weight);
+            times.rectified_bytes = map.memory_bytes();
+            times.prepare = lap();
+            super::prefiltered::shade(
+                device,
+                &inputs,
+                map,
+                &tables,
+                plan.prefix().storage,
+                &basis,
+                &epipoles,
+                block,
+            )?
+        }
+    };
+    if map.is_some() {
+        gpu.prefiltered = ms;
+    } else {
+        gpu.ray_march = ms;
+    }
+    let stride = frame.settings.downsample;
+    let layers = if stride > 1 {
+        let max_distance = frame.settings.max_distance;
+        let depth: Vec<f32> = surfaces
+            .distances
+            .iter()
+            .map(|&d| if d.is_finite() { d } else { max_distance })
+            .collect();
+        let (layers, ms) = super::upsample::joint_bilateral(
+            device,
+            &layers,
+            &depth,
+            camera.width,
+            camera.height,
+            stride,
+        )?;
+        gpu.upsampling = ms;
+        layers
+    } else {
+        layers
+    };
+    control.advance(rows as u64);
+    control.check()?;
+    times.shading = lap();
+    Ok((layers, times))
+}
+
+/// The style's occluder operators in the CPU's order: the 2D morphology on the GPU, then
+/// silhouettes and holes on the CPU.
+fn manipulate_occluders(
+    device: &Arc<Device>,
+    style: &Style,
+    mut shadow: ShadowMap,
+    camera: &CameraModel,
+    gpu: &mut GpuTimes,
+) -> Result<ShadowMap> {
+    if let Some(closing) = &style.closing {
+        let radius = closing
+            .radius_texels
+            .unwrap_or((closing.radius as f64 / shadow.texel_size) as f32);
+        if radius > 0.0 {
+            let desc = MorphologyDesc::new(closing.operation, closing.kernel, radius);
+            let (depth, ms) = super::morphology::apply(device, &shadow.depth, shadow.size, &desc)?;
+            shadow.depth = depth;
+            gpu.hole_filling = ms;
+        }
+    }
+    let rest = Style {
+        closing: None,
+        ..style.clone()
+    };
+    if rest.manipulates_occluders() {
+        gpu.cpu_stages.push("silhouettes and hole creation");
+        shadow = rest.scattering_map(&shadow, camera)?;
+    }
+    Ok(shadow)
+}

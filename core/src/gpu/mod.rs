@@ -1,0 +1,53 @@
+//! The Vulkan backend (ash): headless compute on a device loaded at run time, running
+//! the frame's stages from the GLSL shaders in `shaders/`. The CPU backend stays the
+//! oracle; [`frame`] says which stages run where.
+//!
+//! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
+//! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
+//! [`query`] (timestamps), [`dispatch`] (workgroup counts and parameter packing), and
+//! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`],
+//! [`prefiltered`], [`upsample`], [`rectify`].
+
+pub mod barrier;
+pub mod buffer;
+pub mod command;
+pub mod compute_pipeline;
+pub mod device;
+pub mod dispatch;
+pub mod error;
+pub mod frame;
+pub mod instance;
+pub mod march;
+pub mod morphology;
+pub mod physical_device;
+pub mod prefiltered;
+pub mod prefix;
+pub mod query;
+pub mod rectify;
+pub mod shader;
+pub mod transfer;
+pub mod upsample;
+
+use std::sync::{Arc, Mutex};
+
+pub use device::Device;
+pub use error::{GpuError, GpuResult};
+pub use physical_device::{DeviceKind, DevicePolicy};
+
+/// The process-wide device per policy, opened on first use; a failure is remembered, so
+/// that a machine without Vulkan pays for the probe once.
+pub fn shared_device(policy: DevicePolicy) -> GpuResult<Arc<Device>> {
+    type Slot = Mutex<Option<Result<Arc<Device>, String>>>;
+    static HARDWARE: Slot = Mutex::new(None);
+    static ANY: Slot = Mutex::new(None);
+    let slot = match policy {
+        DevicePolicy::HardwareOnly => &HARDWARE,
+        DevicePolicy::Any => &ANY,
+    };
+    let mut guard = slot.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let entry = guard.get_or_insert_with(|| Device::new(policy).map_err(|err| err.to_string()));
+    match entry {
+        Ok(device) => Ok(device.clone()),
+        Err(reason) => Err(GpuError::Unavailable(reason.clone())),
+    }
+}

@@ -1,0 +1,183 @@
+//! Physical devices: what each offers, and which one a backend request picks.
+
+use ash::vk;
+
+use super::error::{GpuError, GpuResult, VkContext};
+use super::instance::Instance;
+
+/// The kind of a physical device, as the driver reports it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum DeviceKind {
+    Discrete,
+    Integrated,
+    Virtual,
+    /// A software rasterizer such as Mesa's lavapipe.
+    Cpu,
+    Other,
+}
+
+impl DeviceKind {
+    pub fn from_vk(kind: vk::PhysicalDeviceType) -> Self {
+        match kind {
+            vk::PhysicalDeviceType::DISCRETE_GPU => DeviceKind::Discrete,
+            vk::PhysicalDeviceType::INTEGRATED_GPU => DeviceKind::Integrated,
+            vk::PhysicalDeviceType::VIRTUAL_GPU => DeviceKind::Virtual,
+            vk::PhysicalDeviceType::CPU => DeviceKind::Cpu,
+            _ => DeviceKind::Other,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            DeviceKind::Discrete => "discrete GPU",
+            DeviceKind::Integrated => "integrated GPU",
+            DeviceKind::Virtual => "virtual GPU",
+            DeviceKind::Cpu => "CPU implementation",
+            DeviceKind::Other => "other device",
+        }
+    }
+}
+
+/// Which devices a request accepts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum DevicePolicy {
+    /// Real GPUs only (discrete first): what `--backend auto` uses. A software
+    /// implementation is never faster than the CPU backend.
+    HardwareOnly,
+    /// Any device, real GPUs first: what an explicit `--backend vulkan` (and the parity
+    /// tests on lavapipe) use.
+    Any,
+}
+
+/// Index of the device `policy` picks among `kinds`, or `None`.
+pub fn choose_device(kinds: &[DeviceKind], policy: DevicePolicy) -> Option<usize> {
+    let rank = |kind: DeviceKind| match (kind, policy) {
+        (DeviceKind::Discrete, _) => Some(0),
+        (DeviceKind::Integrated, _) => Some(1),
+        (_, DevicePolicy::HardwareOnly) => None,
+        (DeviceKind::Virtual, DevicePolicy::Any) => Some(2),
+        (DeviceKind::Other, DevicePolicy::Any) => Some(3),
+        (DeviceKind::Cpu, DevicePolicy::Any) => Some(4),
+    };
+    kinds
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &kind)| rank(kind).map(|r| (r, i)))
+        .min()
+        .map(|(_, i)| i)
+}
+
+/// A physical device with the properties the backend uses.
+#[derive(Clone, Debug)]
+pub struct PhysicalDevice {
+    pub raw: vk::PhysicalDevice,
+    pub name: String,
+    pub kind: DeviceKind,
+    /// Nanoseconds per timestamp tick.
+    pub timestamp_period: f32,
+    /// The compute queue family and its valid timestamp bits (0: no timestamps).
+    pub queue_family: u32,
+    pub timestamp_valid_bits: u32,
+    pub max_workgroup_count: [u32; 3],
+    pub max_storage_buffer_range: u32,
+}
+
+impl PhysicalDevice {
+    /// Every device with a compute queue.
+    pub fn enumerate(instance: &Instance) -> GpuResult<Vec<PhysicalDevice>> {
+        // SAFETY: the instance is valid for the duration of these queries.
+        let raws = unsafe { instance.raw.enumerate_physical_devices() }
+            .call("vkEnumeratePhysicalDevices")?;
+        let mut devices = Vec::new();
+        for raw in raws {
+            // SAFETY: `raw` came from this instance.
+            let properties = unsafe { instance.raw.get_physical_device_properties(raw) };
+            // SAFETY: as above.
+            let families = unsafe {
+                instance
+                    .raw
+                    .get_physical_device_queue_family_properties(raw)
+            };
+            let Some((family, queue)) = families
+                .iter()
+                .enumerate()
+                .find(|(_, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+            else {
+                continue;
+            };
+            let name = properties
+                .device_name_as_c_str()
+                .map(|name| name.to_string_lossy().into_owned())
+                .unwrap_or_else(|_| "unnamed device".to_owned());
+            devices.push(PhysicalDevice {
+                raw,
+                name,
+                kind: DeviceKind::from_vk(properties.device_type),
+                timestamp_period: properties.limits.timestamp_period,
+                queue_family: family as u32,
+                timestamp_valid_bits: queue.timestamp_valid_bits,
+                max_workgroup_count: properties.limits.max_compute_work_group_count,
+                max_storage_buffer_range: properties.limits.max_storage_buffer_range,
+            });
+        }
+        Ok(devices)
+    }
+
+    /// The device `policy` picks, or an error listing what there is.
+    pub fn select(instance: &Instance, policy: DevicePolicy) -> GpuResult<PhysicalDevice> {
+        let devices = Self::enumerate(instance)?;
+        let kinds: Vec<DeviceKind> = devices.iter().map(|d| d.kind).collect();
+        match choose_device(&kinds, policy) {
+            Some(index) => Ok(devices[index].clone()),
+            None if devices.is_empty() => Err(GpuError::NoDevice(
+                "the Vulkan loader lists no device with a compute queue".to_owned(),
+            )),
+            None => Err(GpuError::NoDevice(format!(
+                "only {} present, and automatic selection takes real GPUs only",
+                devices
+                    .iter()
+                    .map(|d| format!("{} ({})", d.name, d.kind.name()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use DeviceKind::*;
+
+    #[test]
+    fn automatic_selection_never_takes_a_cpu_device() {
+        assert_eq!(choose_device(&[Cpu], DevicePolicy::HardwareOnly), None);
+        assert_eq!(
+            choose_device(&[Cpu, Virtual, Other], DevicePolicy::HardwareOnly),
+            None
+        );
+        assert_eq!(
+            choose_device(&[Cpu, Integrated], DevicePolicy::HardwareOnly),
+            Some(1)
+        );
+        assert_eq!(choose_device(&[], DevicePolicy::HardwareOnly), None);
+    }
+
+    #[test]
+    fn discrete_gpus_come_first() {
+        assert_eq!(
+            choose_device(&[Cpu, Integrated, Discrete], DevicePolicy::HardwareOnly),
+            Some(2)
+        );
+        assert_eq!(
+            choose_device(&[Integrated, Discrete, Cpu], DevicePolicy::Any),
+            Some(1)
+        );
+    }
+
+    #[test]
+    fn an_explicit_request_takes_lavapipe_when_it_is_all_there_is() {
+        assert_eq!(choose_device(&[Cpu], DevicePolicy::Any), Some(0));
+        assert_eq!(choose_device(&[Cpu, Virtual], DevicePolicy::Any), Some(1));
+    }
+}

@@ -1,0 +1,229 @@
+//! Prefiltered per-pixel evaluation on the GPU: [`crate::prefiltered::Prefiltered::march`]
+//! for every depth sample, with the reference march near on-screen epipoles and for rays
+//! along the light, averaged into pixels as the CPU frame does.
+
+use std::sync::Arc;
+
+use super::barrier::Access;
+use super::buffer::Buffer;
+use super::command::Recorder;
+use super::compute_pipeline::ComputePipelineDesc;
+use super::device::Device;
+use super::dispatch::{groups_2d, Std430};
+use super::error::{GpuError, GpuResult};
+use super::march::{march_params, surface_values, MarchInputs};
+use super::shader::Shader;
+use crate::basis_kernels::LANES;
+use crate::epipolar::{EpipolarMap, MapLayout};
+use crate::layers::Layers;
+use crate::prefiltered::{PrefilteredTables, WARP_KNOTS};
+use crate::scene::BasisStorage;
+use crate::upsample::reduced_size;
+
+pub const STAGE: &str = "prefiltered evaluation";
+const LOCAL: [u32; 2] = [8, 8];
+
+/// The shader's `PrefilteredParams` block.
+pub fn prefiltered_params(
+    map: &EpipolarMap,
+    tables: &PrefilteredTables,
+    storage: BasisStorage,
+    epipoles: &[[f64; 2]],
+    block: f64,
+) -> GpuResult<Vec<u8>> {
+    if epipoles.len() > 2 {
+        return Err(GpuError::Unsupported(format!(
+            "{} on-screen epipoles (at most 2)",
+            epipoles.len()
+        )));
+    }
+    let g = map.geometry();
+    let mut e = [0.0f32; 4];
+    for (i, epipole) in epipoles.iter().enumerate() {
+        e[2 * i] = epipole[0] as f32;
+        e[2 * i + 1] = epipole[1] as f32;
+    }
+    let layout = match g.layout {
+        MapLayout::Radial => 0,
+        MapLayout::Parallel => 1,
+        MapLayout::Projective => 2,
+    };
+    let snorm = storage == BasisStorage::Snorm16;
+    Ok(Std430::new()
+        .mat4(g.from_world.to_cols_array().map(|v| v as f32))
+        .vec4(e)
+        .vec4([
+            g.along.x as f32,
+            g.along.y as f32,
+            g.normal.x as f32,
+            g.normal.y as f32,
+        ])
+        .f32(g.first as f32)
+        .f32(g.step as f32)
+        .f32(g.slope as f32)
+        .f32(g.spacing_first as f32)
+        .f32(g.spacing_step as f32)
+        .f32(block as f32)
+        .u32(layout)
+        .u32(g.full_circle as u32)
+        .u32(g.reciprocal_spacing as u32)
+        .u32(map.slices)
+        .u32(map.samples)
+        .u32(tables.stride as u32)
+        .u32(snorm as u32)
+        .u32(epipoles.len() as u32)
+        .u32(tables.near_plane_correction as u32)
+        .u32(0)
+        .finish())
+}
+
+/// Evaluates every output pixel from the plan's tables and the filtered basis already on
+/// the device (as [`super::prefix::resident`] leaves it); returns the layers and the
+/// dispatch's GPU time.
+#[allow(clippy::too_many_arguments)]
+pub fn shade(
+    device: &Arc<Device>,
+    inputs: &MarchInputs,
+    map: &EpipolarMap,
+    tables: &PrefilteredTables,
+    storage: BasisStorage,
+    basis: &Buffer,
+    epipoles: &[[f64; 2]],
+    block: f64,
+) -> GpuResult<(Layers, Option<f64>)> {
+    if tables.stride % LANES != 0 {
+        return Err(GpuError::Unsupported(format!(
+            "basis rows of {} values (whole lanes of {LANES} expected)",
+            tables.stride
+        )));
+    }
+    let stride = inputs.settings.downsample;
+    let width = reduced_size(inputs.camera.width, stride);
+    let height = reduced_size(inputs.camera.height, stride);
+    let pixels = width as u64 * height as u64;
+    let groups = groups_2d(width, height, LOCAL, device.physical.max_workgroup_count)?;
+    let frames: Vec<f32> = tables
+        .frames
+        .iter()
+        .flat_map(|(knots, log2_fastest)| {
+            knots
+                .iter()
+                .map(|&k| k as f32)
+                .chain(std::iter::once(*log2_fastest as f32))
+        })
+        .collect();
+    debug_assert_eq!(frames.len(), tables.frames.len() * (WARP_KNOTS + 1));
+    let slice_bands: Vec<u32> = tables.slice_bands.iter().flatten().copied().collect();
+    let bands: Vec<u32> = tables.bands.iter().flatten().copied().collect();
+    let run = || -> GpuResult<(Layers, Option<f64>)> {
+        let mut rec = Recorder::new(device, STAGE, 1, 13)?;
+        let params = rec.upload(&march_params(inputs), "march parameters")?;
+        let shadow = rec.upload(&inputs.shadow.depth, "shadow map")?;
+        let surfaces = rec.upload(&surface_values(inputs.surfaces), "surface distances")?;
+        let volume = rec.storage(pixels * 16, "volume layer")?;
+        let visibility = rec.storage(pixels * 4, "visibility layer")?;
+        let depth = rec.storage(pixels * 4, "depth layer")?;
+        let pf = rec.upload(
+            &prefiltered_params(map, tables, storage, epipoles, block)?,
+            "prefiltered parameters",
+        )?;
+        let frames = rec.upload(&frames, "slice frames")?;
+        let slice_bands = rec.upload(&slice_bands, "slice bands")?;
+        let bands = rec.upload(&bands, "bands")?;
+        let weight = rec.upload(tables.weight, "cumulative weights")?;
+        let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
+        rec.barrier(Access::TransferWrite, Access::ComputeRead);
+        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 13);
+        rec.timed(STAGE, |rec| {
+            rec.dispatch(
+                &desc,
+                &[
+                    &params,
+                    &shadow,
+                    &surfaces,
+                    &volume,
+                    &visibility,
+                    &depth,
+                    &pf,
+                    &frames,
+                    &slice_bands,
+                    &bands,
+                    &weight,
+                    basis,
+                    &coefficients,
+                ],
+                &[],
+                groups,
+            )
+        })?;
+        let volume_back = rec.download(&volume, "volume read-back")?;
+        let visibility_back = rec.download(&visibility, "visibility read-back")?;
+        let depth_back = rec.download(&depth, "depth read-back")?;
+        let done = rec.submit_and_wait()?;
+        let layers = Layers {
+            width,
+            height,
+            volume: done.read(volume_back)?,
+            visibility: done.read(visibility_back)?,
+            depth: done.read(depth_back)?,
+        };
+        Ok((layers, done.milliseconds(STAGE)))
+    };
+    run().map_err(|err| err.in_stage(STAGE))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::builtin::builtin_scene;
+    use crate::camera::CameraModel;
+    use crate::epipolar::RectifyDesc;
+    use crate::prefiltered::{PrefilteredDesc, PrefilteredPlan};
+    use crate::render::FlatGeometry;
+    use crate::shadow_map::ShadowMap;
+
+    #[test]
+    fn params_carry_the_layout_the_epipoles_and_the_storage() {
+        let mut scene = builtin_scene("torus").unwrap();
+        scene.camera.width = 64;
+        scene.camera.height = 36;
+        scene.render.shadow_map_size = 128;
+        let camera = CameraModel::new(&scene.camera);
+        let geometry = FlatGeometry::from_scene(&scene);
+        let shadow = ShadowMap::build(
+            &camera,
+            &scene.sun,
+            &scene.medium,
+            &scene.render,
+            &geometry.view(),
+        );
+        let map = EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &geometry.view(),
+            scene.sun.direction.as_dvec3().normalize(),
+            scene.render.max_distance as f64,
+            crate::scene::Rectification::Epipolar,
+            &RectifyDesc::prefiltered(0),
+        )
+        .unwrap()
+        .unwrap();
+        let desc = PrefilteredDesc::from_settings(&scene.render);
+        let plan = PrefilteredPlan::new(&map, &camera, &[], &desc, &scene.sun, &scene.medium);
+        let tables = plan.tables();
+        let epipoles = [[10.0, 20.0]];
+        let bytes =
+            prefiltered_params(&map, &tables, BasisStorage::Snorm16, &epipoles, 16.0).unwrap();
+        let word = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
+        let float = |o: usize| f32::from_bits(word(o));
+        assert_eq!(bytes.len(), 160);
+        assert_eq!((float(64), float(68)), (10.0, 20.0));
+        assert_eq!(float(116), 16.0, "block");
+        assert_eq!(word(120), 0, "radial layout");
+        assert_eq!(word(132), map.slices);
+        assert_eq!(word(140), tables.stride as u32);
+        assert_eq!(word(144), 1, "snorm");
+        assert_eq!(word(148), 1, "one epipole");
+        assert!(prefiltered_params(&map, &tables, BasisStorage::F32, &[[0.0; 2]; 3], 1.0).is_err());
+    }
+}

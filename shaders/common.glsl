@@ -1,0 +1,36 @@
+// Numerics shared by the compute shaders, written to match the CPU backend's f64 helpers
+// as closely as f32 allows.
+
+const float PI = 3.14159265358979;
+const float BIG = 3.0e38;
+
+// e^x − 1 without the cancellation of exp(x) − 1 near zero (Kahan's trick).
+float expm1_accurate(float x) {
+    float u = exp(x);
+    if (u == 1.0) {
+        return x;
+    }
+    float um1 = u - 1.0;
+    if (um1 == -1.0) {
+        return -1.0;
+    }
+    return um1 * x / log(u);
+}
+
+// ∫₀ᵈ e^(−k·u) du, also for k near zero or negative.
+float integral_exp(float k, float d) {
+    float kd = k * d;
+    if (abs(kd) < 1e-4) {
+        return d * (1.0 - 0.5 * kd + kd * kd / 6.0);
+    }
+    return -expm1_accurate(-kd) / k;
+}
+
+// Clamp to [0, 1] with NaN read as 0, like the CPU's `unit`.
+float unit(float v) {
+    return isnan(v) ? 0.0 : clamp(v, 0.0, 1.0);
+}
+
+float finite_or_zero(float v) {
+    return (isnan(v) || isinf(v)) ? 0.0 : v;
+}

@@ -1,0 +1,240 @@
+// The reference ray march (core/src/reference.rs) and the per-pixel loop of the CPU frame
+// (core/src/render.rs, shade_pixels), shared by the shaders that write the layers: they
+// define `shade_sample` and call `shade_output_pixel` from main.
+#include "common.glsl"
+
+
+layout(std430, binding = 0) readonly buffer Params {
+    mat4 world_from_camera;
+    mat4 texel_from_world;
+    mat4 cube_from_world;
+    vec4 origin0;   // camera-space ray origin at pixel (0, 0), and its steps per pixel
+    vec4 origin_dx;
+    vec4 origin_dy;
+    vec4 dir0;      // camera-space (unnormalized) ray direction, likewise
+    vec4 dir_dx;
+    vec4 dir_dy;
+    vec4 tint;      // albedo · σt · E
+    vec4 light_travel;
+    vec4 towards_sun; // in cube space, per world unit
+    float clip_start;
+    float max_distance;
+    float extinction;
+    float bias;
+    float anisotropy;
+    uint isotropic;
+    uint box_medium;
+    uint steps;
+    uint width;
+    uint height;
+    uint full_width;
+    uint full_height;
+    uint stride;
+    uint supersampling;
+    uint map_size;
+    uint unused;
+} p;
+
+layout(std430, binding = 1) readonly buffer ShadowDepth { float shadow_depth[]; };
+// Ray distance to the first surface per depth sample; negative for background.
+layout(std430, binding = 2) readonly buffer Surfaces { float surfaces[]; };
+layout(std430, binding = 3) writeonly buffer Volume { vec4 volume_out[]; };
+layout(std430, binding = 4) writeonly buffer Visibility { float visibility_out[]; };
+layout(std430, binding = 5) writeonly buffer Depth { float depth_out[]; };
+
+vec3 texel_origin;
+vec3 texel_step;
+vec3 cube_origin;
+vec3 cube_step;
+
+bool lit(float t) {
+    vec3 texel = texel_origin + texel_step * t;
+    float size = float(p.map_size);
+    if (!(texel.x >= 0.0 && texel.y >= 0.0 && texel.x < size && texel.y < size)) {
+        return true;
+    }
+    uint index = uint(texel.y) * p.map_size + uint(texel.x);
+    return texel.z <= shadow_depth[index] + p.bias;
+}
+
+float average_visibility(float t_start, float t_end) {
+    uint n = p.steps;
+    float dt = (t_end - t_start) / float(n);
+    uint lit_steps = 0;
+    for (uint i = 0; i < n; ++i) {
+        if (lit(t_start + (float(i) + 0.5) * dt)) {
+            lit_steps += 1;
+        }
+    }
+    return float(lit_steps) / float(n);
+}
+
+// V̄: in-scattering over what it would be unshadowed (reference.rs, weighted_visibility).
+// A ray lit at every step has exactly 1, as on the CPU, whatever order the GPU sums in.
+float weighted_visibility(float scattering, float unshadowed, bool shadowed, float t_start, float t_end) {
+    if (!(unshadowed > 0.0)) {
+        return average_visibility(t_start, t_end);
+    }
+    return shadowed ? clamp(scattering / unshadowed, 0.0, 1.0) : 1.0;
+}
+
+// x: scattering, y: alpha, z: visibility.
+vec3 march_unbounded(float t_start, float t_end) {
+    uint n = p.steps;
+    float dt = (t_end - t_start) / float(n);
+    float sigma = p.extinction;
+    float decay = exp(-sigma * dt);
+    float per_step = integral_exp(sigma, dt);
+    float transmittance = 1.0;
+    precise float scattering = 0.0;
+    precise float unshadowed = 0.0;
+    bool shadowed = false;
+    for (uint i = 0; i < n; ++i) {
+        if (lit(t_start + (float(i) + 0.5) * dt)) {
+            scattering += transmittance;
+        } else {
+            shadowed = true;
+        }
+        unshadowed += transmittance;
+        transmittance *= decay;
+    }
+    float visibility = weighted_visibility(scattering, unshadowed, shadowed, t_start, t_end);
+    return vec3(scattering * per_step, -expm1_accurate(-sigma * (t_end - t_start)), visibility);
+}
+
+bool box_clip(out float near, out float far) {
+    near = -BIG;
+    far = BIG;
+    for (int axis = 0; axis < 3; ++axis) {
+        float o = cube_origin[axis];
+        float d = cube_step[axis];
+        if (abs(d) < 1e-30) {
+            if (abs(o) > 1.0) {
+                return false;
+            }
+            continue;
+        }
+        float t0 = (-1.0 - o) / d;
+        float t1 = (1.0 - o) / d;
+        near = max(near, min(t0, t1));
+        far = min(far, max(t0, t1));
+    }
+    return near < far;
+}
+
+float sunward_depth(vec3 cube_point) {
+    float depth = BIG;
+    for (int axis = 0; axis < 3; ++axis) {
+        float s = p.towards_sun[axis];
+        if (s != 0.0) {
+            float wall = s > 0.0 ? 1.0 : -1.0;
+            depth = min(depth, (wall - cube_point[axis]) / s);
+        }
+    }
+    return max(depth, 0.0);
+}
+
+vec3 march_box(float t_start, float t_end) {
+    float near, far;
+    bool hit = box_clip(near, far);
+    float a = max(near, t_start);
+    float b = min(far, t_end);
+    if (!hit || !(b > a)) {
+        return vec3(0.0, 0.0, average_visibility(t_start, t_end));
+    }
+    uint n = p.steps;
+    float dt = (b - a) / float(n);
+    float sigma = p.extinction;
+    float depth_before = sunward_depth(cube_origin + cube_step * a);
+    precise float scattering = 0.0;
+    precise float unshadowed = 0.0;
+    bool shadowed = false;
+    for (uint i = 0; i < n; ++i) {
+        float t0 = a + float(i) * dt;
+        float depth_after = sunward_depth(cube_origin + cube_step * (t0 + dt));
+        float slope = (depth_after - depth_before) / dt;
+        float step_weight = exp(-sigma * (depth_before + t0 - a)) * integral_exp(sigma * (1.0 + slope), dt);
+        if (lit(t0 + 0.5 * dt)) {
+            scattering += step_weight;
+        } else {
+            shadowed = true;
+        }
+        unshadowed += step_weight;
+        depth_before = depth_after;
+    }
+    float visibility = weighted_visibility(scattering, unshadowed, shadowed, t_start, t_end);
+    return vec3(scattering, -expm1_accurate(-sigma * (b - a)), visibility);
+}
+
+float phase(vec3 direction) {
+    if (p.isotropic != 0u) {
+        return 1.0 / (4.0 * PI);
+    }
+    float g = p.anisotropy;
+    float cos_theta = dot(p.light_travel.xyz, -direction);
+    float g2 = g * g;
+    float denominator = 1.0 + g2 - 2.0 * g * cos_theta;
+    return (1.0 - g2) / (4.0 * PI * denominator * sqrt(denominator));
+}
+
+
+// Sets the per-ray state the march functions read.
+void begin_ray(vec3 origin, vec3 direction) {
+    texel_origin = (p.texel_from_world * vec4(origin, 1.0)).xyz;
+    texel_step = mat3(p.texel_from_world) * direction;
+    if (p.box_medium != 0u) {
+        cube_origin = (p.cube_from_world * vec4(origin, 1.0)).xyz;
+        cube_step = mat3(p.cube_from_world) * direction;
+    }
+}
+
+// The reference march of one ray: (scattering, alpha, visibility).
+vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
+    if (!(t_end > t_start)) {
+        return vec3(0.0, 0.0, 1.0);
+    }
+    begin_ray(origin, direction);
+    return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
+}
+
+// What one depth sample contributes; defined by the shader that includes this file.
+vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end);
+
+void shade_output_pixel() {
+    uvec2 id = gl_GlobalInvocationID.xy;
+    if (id.x >= p.width || id.y >= p.height) {
+        return;
+    }
+    uint full_x = min(id.x * p.stride + p.stride / 2u, p.full_width - 1u);
+    uint full_y = min(id.y * p.stride + p.stride / 2u, p.full_height - 1u);
+    uint ss = p.supersampling;
+    uint sample_width = p.full_width * ss;
+    vec3 radiance = vec3(0.0);
+    float alpha = 0.0;
+    float visibility = 0.0;
+    float depth_sum = 0.0;
+    for (uint sy = 0; sy < ss; ++sy) {
+        for (uint sx = 0; sx < ss; ++sx) {
+            float surface = surfaces[(full_y * ss + sy) * sample_width + full_x * ss + sx];
+            bool background = surface < 0.0;
+            vec2 pixel = vec2(float(full_x), float(full_y)) + (vec2(float(sx), float(sy)) + 0.5) / float(ss);
+            vec3 origin_cam = p.origin0.xyz + pixel.x * p.origin_dx.xyz + pixel.y * p.origin_dy.xyz;
+            vec3 dir_cam = p.dir0.xyz + pixel.x * p.dir_dx.xyz + pixel.y * p.dir_dy.xyz;
+            float distance_per_depth = length(dir_cam);
+            vec3 origin = (p.world_from_camera * vec4(origin_cam, 1.0)).xyz;
+            vec3 direction = normalize(mat3(p.world_from_camera) * dir_cam);
+            float t_start = p.clip_start * distance_per_depth;
+            float t_end = background ? p.max_distance : min(surface, p.max_distance);
+            vec3 s = shade_sample(pixel, origin, direction, t_start, t_end);
+            radiance += p.tint.rgb * (s.x * phase(direction));
+            alpha += s.y;
+            visibility += s.z;
+            depth_sum += background ? p.max_distance : surface;
+        }
+    }
+    float spp = float(ss * ss);
+    uint index = id.y * p.width + id.x;
+    volume_out[index] = vec4(radiance / spp, alpha / spp);
+    visibility_out[index] = visibility / spp;
+    depth_out[index] = depth_sum / spp;
+}

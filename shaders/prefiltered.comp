@@ -1,0 +1,375 @@
+#version 450
+// Prefiltered per-pixel evaluation (core/src/prefiltered.rs, Prefiltered::march): locate
+// the ray in the rectified map, blend the filtered basis' prefix rows of the bands and
+// slices around it, and dot them with the ray's coefficients. Pixels near an on-screen
+// epipole, and rays along the light, take the reference march, as on the CPU.
+#extension GL_GOOGLE_include_directive : require
+
+layout(local_size_x = 8, local_size_y = 8) in;
+
+#include "march_common.glsl"
+
+const uint RADIAL = 0u;
+const uint PARALLEL = 1u;
+const uint PROJECTIVE = 2u;
+const uint KNOTS = 9u;
+const float TABLE_STEPS = 8192.0;
+const float WARP_MARGIN = 0.1;
+
+layout(std430, binding = 6) readonly buffer PrefilteredParams {
+    mat4 from_world;    // texel_from_world, or view_from_world for projective maps
+    vec4 epipoles;      // up to two on-screen epipoles, (x0, y0, x1, y1)
+    vec4 along_normal;  // parallel slices: direction xy, normal xy
+    float first;        // slice coordinate origin and step
+    float step;
+    float slope;
+    float spacing_first;
+    float spacing_step;
+    float block;
+    uint map_layout;
+    uint full_circle;
+    uint reciprocal_spacing;
+    uint slices;
+    uint samples;
+    uint stride;
+    uint snorm;
+    uint epipole_count;
+    uint near_plane_correction;
+    uint unused;
+} q;
+
+// Per slice: KNOTS knots, then log₂ of its fastest ray's speed.
+layout(std430, binding = 7) readonly buffer Frames { float frames[]; };
+layout(std430, binding = 8) readonly buffer SliceBands { uvec2 slice_bands[]; };
+layout(std430, binding = 9) readonly buffer Bands { uvec2 bands[]; };
+layout(std430, binding = 10) readonly buffer Weight { float weight[]; };
+// Rows are whole lanes of 8 values: 16 bytes of snorm16 or 32 of f32, read as uvec4.
+layout(std430, binding = 11) readonly buffer Basis { uvec4 basis4[]; };
+layout(std430, binding = 12) readonly buffer Coefficients { vec4 coefficients4[]; };
+
+const float TAU = 6.28318530717959;
+
+float wrap_from(float angle, float low) {
+    if (isinf(angle) || isnan(angle)) {
+        return low;
+    }
+    for (int i = 0; i < 8 && angle < low; ++i) {
+        angle += TAU;
+    }
+    for (int i = 0; i < 8 && angle >= low + TAU; ++i) {
+        angle -= TAU;
+    }
+    return angle;
+}
+
+// (slice coordinate, s at t = 0, s per unit t, threshold); false along the light.
+bool locate(vec3 origin, vec3 direction, out vec4 located) {
+    if (q.map_layout == PROJECTIVE) {
+        vec3 d = mat3(q.from_world) * direction;
+        if (!(d.x >= 1e-9)) {
+            return false;
+        }
+        located = vec4((d.y / d.x - q.first) / q.step, (q.from_world * vec4(origin, 1.0)).x, d.x, d.z / d.x);
+        return true;
+    }
+    vec3 o = (q.from_world * vec4(origin, 1.0)).xyz;
+    vec3 d = mat3(q.from_world) * direction;
+    float s_per_t = length(d.xy);
+    if (!(s_per_t >= 1e-9)) {
+        return false;
+    }
+    if (q.map_layout == RADIAL) {
+        float turns = atan(d.y, d.x) - q.first;
+        turns = q.full_circle != 0u ? wrap_from(turns, 0.0) : wrap_from(turns, -PI);
+        located = vec4(turns / q.step, 0.0, s_per_t, d.z / s_per_t);
+        return true;
+    }
+    float s_origin = dot(q.along_normal.xy, o.xy);
+    float offset = dot(q.along_normal.zw, o.xy);
+    located = vec4((offset - q.first) / q.step, s_origin, s_per_t, o.z - q.slope * s_origin);
+    return true;
+}
+
+float order_key(float value) {
+    if (q.map_layout == PARALLEL) {
+        return -value;
+    }
+    if (isinf(value)) {
+        return -sign(value);
+    }
+    return -value / (1.0 + abs(value));
+}
+
+float sample_coordinate(float s) {
+    if (q.reciprocal_spacing == 0u) {
+        return (s - q.spacing_first) / q.spacing_step;
+    }
+    return s > 0.0 ? (q.spacing_first - 1.0 / s) / q.spacing_step : -BIG;
+}
+
+float warp(uint slice, float key) {
+    uint base = slice * (KNOTS + 1u);
+    uint index = 0u;
+    for (uint i = 1u; i < KNOTS - 1u; ++i) {
+        if (frames[base + i] <= key) {
+            index += 1u;
+        }
+    }
+    float a = frames[base + index];
+    float b = frames[base + index + 1u];
+    float within = b > a ? (key - a) / (b - a) : 0.0;
+    float local = (float(index) + within) / float(KNOTS - 1u);
+    return clamp(WARP_MARGIN + (1.0 - 2.0 * WARP_MARGIN) * local, 0.0, 1.0);
+}
+
+// Lower boundary and fraction towards the next, clamped to a band of `rows` rows.
+void boundary(float x, uint rows, out uint lower, out float fraction) {
+    uint last = rows - 1u;
+    float clamped = clamp(x, 0.0, float(last));
+    lower = min(uint(clamped), last);
+    fraction = lower == last ? 0.0 : clamped - float(lower);
+}
+
+// Weighted average visibility between boundary positions x0 < x1; false where a band
+// holds no weight there (the CPU then takes the ray as lit).
+bool average(vec4 located, float key, float x0, float x1, out float visibility) {
+    visibility = 0.0;
+    float log2_rate = log2(located.z);
+    // Neighbouring slices and their shares.
+    uint last = q.slices - 1u;
+    float clamped;
+    if (q.full_circle != 0u) {
+        float count = float(q.slices);
+        float c = located.x < 0.0 ? located.x + count : (located.x >= count ? located.x - count : located.x);
+        clamped = clamp(c, 0.0, count);
+    } else {
+        clamped = clamp(located.x, 0.0, float(last));
+    }
+    uint lower_slice = min(uint(clamped), last);
+    float slice_fraction = clamped - float(lower_slice);
+    uint upper_slice = lower_slice == last ? (q.full_circle != 0u ? 0u : last) : lower_slice + 1u;
+    for (uint n = 0u; n < 2u; ++n) {
+        uint slice = n == 0u ? lower_slice : upper_slice;
+        float share = n == 0u ? 1.0 - slice_fraction : slice_fraction;
+        if (share == 0.0) {
+            continue;
+        }
+        uvec2 range = slice_bands[slice];
+        float log2_fastest = frames[slice * (KNOTS + 1u) + KNOTS];
+        float position = clamp(log2_fastest - log2_rate, 0.0, float(range.y - 1u));
+        uint j = min(uint(position), range.y - 1u);
+        float band_fraction = position - float(j);
+        uint next = min(j + 1u, range.y - 1u);
+        // Two bands × two ends × two boundaries, in fixed slots (factor 0 when unused) so
+        // that the compiler keeps them in registers.
+        uint rows[8] = uint[8](0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
+        float factors[8] = float[8](0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        float shares = 0.0;
+        for (uint k = 0u; k < 2u; ++k) {
+            uint band_index = range.x + (k == 0u ? j : next);
+            float band_share = k == 0u ? 1.0 - band_fraction : band_fraction;
+            if (band_share == 0.0) {
+                continue;
+            }
+            uvec2 band = bands[band_index];
+            uint first_row = band.x;
+            uint end_lower, start_lower;
+            float end_fraction, start_fraction;
+            boundary(x1, band.y, end_lower, end_fraction);
+            boundary(x0, band.y, start_lower, start_fraction);
+            float w_end = weight[first_row + end_lower];
+            if (end_fraction != 0.0) {
+                w_end += end_fraction * (weight[first_row + end_lower + 1u] - w_end);
+            }
+            float w_start = weight[first_row + start_lower];
+            if (start_fraction != 0.0) {
+                w_start += start_fraction * (weight[first_row + start_lower + 1u] - w_start);
+            }
+            float dw = w_end - w_start;
+            if (!(dw > 0.0)) {
+                return false;
+            }
+            float scale = share * band_share / dw;
+            for (uint e = 0u; e < 2u; ++e) {
+                uint lower = e == 0u ? end_lower : start_lower;
+                float fraction = e == 0u ? end_fraction : start_fraction;
+                float sign_ = e == 0u ? 1.0 : -1.0;
+                for (uint h = 0u; h < 2u; ++h) {
+                    uint b = lower + h;
+                    float part = h == 0u ? 1.0 - fraction : fraction;
+                    if (b == 0u || part == 0.0) {
+                        continue;
+                    }
+                    uint slot = k * 4u + e * 2u + h;
+                    rows[slot] = first_row + b;
+                    factors[slot] = sign_ * scale * part * weight[first_row + b];
+                }
+            }
+            shares += share * band_share;
+        }
+        float z = warp(slice, key);
+        uint coefficient_row = uint(z * TABLE_STEPS + 0.5);
+        // Σ_r factor_r · ⟨basis row r, coefficients⟩, four lanes at a time.
+        float dot_ = 0.0;
+        uint quads = q.stride / 4u;
+        uint coefficient_base = coefficient_row * quads;
+        if (q.snorm != 0u) {
+            uint octets = q.stride / 8u;
+            for (uint c = 0u; c < octets; ++c) {
+                vec4 low = vec4(0.0);
+                vec4 high = vec4(0.0);
+                for (uint r = 0u; r < 8u; ++r) {
+                    if (factors[r] != 0.0) {
+                        uvec4 w = basis4[rows[r] * octets + c];
+                        low += factors[r] * vec4(unpackSnorm2x16(w.x), unpackSnorm2x16(w.y));
+                        high += factors[r] * vec4(unpackSnorm2x16(w.z), unpackSnorm2x16(w.w));
+                    }
+                }
+                dot_ += dot(low, coefficients4[coefficient_base + 2u * c]);
+                dot_ += dot(high, coefficients4[coefficient_base + 2u * c + 1u]);
+            }
+        } else {
+            for (uint c = 0u; c < quads; ++c) {
+                vec4 blended = vec4(0.0);
+                for (uint r = 0u; r < 8u; ++r) {
+                    if (factors[r] != 0.0) {
+                        blended += factors[r] * uintBitsToFloat(basis4[rows[r] * quads + c]);
+                    }
+                }
+                dot_ += dot(blended, coefficients4[coefficient_base + c]);
+            }
+        }
+        visibility += clamp(0.5 * shares + dot_, 0.0, shares);
+    }
+    return true;
+}
+
+// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (the sunward
+// depth ℓ is piecewise linear), as BoxMedium::integrate. Needs begin_ray.
+float box_integrate(float t0, float t1, float a, float sigma) {
+    vec2 lines[3];
+    bool finite_line[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        float s = p.towards_sun[axis];
+        finite_line[axis] = s != 0.0;
+        if (s != 0.0) {
+            float wall = s > 0.0 ? 1.0 : -1.0;
+            lines[axis] = vec2((wall - cube_origin[axis]) / s, -cube_step[axis] / s);
+        } else {
+            lines[axis] = vec2(BIG, 0.0);
+        }
+    }
+    float cuts[5] = float[5](t0, t1, t1, t1, t1);
+    uint count = 1u;
+    for (int i = 0; i < 3; ++i) {
+        for (int k = i + 1; k < 3; ++k) {
+            if (finite_line[i] && finite_line[k] && lines[i].y != lines[k].y) {
+                float t = (lines[k].x - lines[i].x) / (lines[i].y - lines[k].y);
+                if (t > t0 && t < t1) {
+                    cuts[count] = t;
+                    count += 1u;
+                }
+            }
+        }
+    }
+    cuts[count] = t1;
+    for (uint i = 1u; i <= count; ++i) {
+        for (uint k = i; k > 0u && cuts[k - 1u] > cuts[k]; --k) {
+            float swap = cuts[k];
+            cuts[k] = cuts[k - 1u];
+            cuts[k - 1u] = swap;
+        }
+    }
+    float total = 0.0;
+    for (uint i = 0u; i < count; ++i) {
+        float p0 = cuts[i];
+        float p1 = cuts[i + 1u];
+        if (!(p1 > p0)) {
+            continue;
+        }
+        float d0 = BIG;
+        float d1 = BIG;
+        for (int axis = 0; axis < 3; ++axis) {
+            d0 = min(d0, lines[axis].x + lines[axis].y * p0);
+            d1 = min(d1, lines[axis].x + lines[axis].y * p1);
+        }
+        d0 = max(d0, 0.0);
+        d1 = max(d1, 0.0);
+        float slope = (d1 - d0) / (p1 - p0);
+        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + slope), p1 - p0);
+    }
+    return total;
+}
+
+// (scattering, alpha, visibility); `ok` false where the ray cannot be located.
+vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end, out bool ok) {
+    vec4 located;
+    ok = locate(origin, direction, located);
+    if (!ok) {
+        return vec3(0.0);
+    }
+    if (!(t_end > t_start)) {
+        return vec3(0.0, 0.0, 1.0);
+    }
+    float key = order_key(located.w);
+    float a = t_start;
+    float b = t_end;
+    bool inside = true;
+    if (p.box_medium != 0u) {
+        begin_ray(origin, direction);
+        float near, far;
+        inside = box_clip(near, far);
+        a = max(near, t_start);
+        b = min(far, t_end);
+        inside = inside && b > a;
+    }
+    float visibility;
+    if (!inside) {
+        float x0 = sample_coordinate(located.y + located.z * t_start);
+        float x1 = sample_coordinate(located.y + located.z * t_end);
+        if (!average(located, key, x0, x1, visibility)) {
+            visibility = 1.0;
+        }
+        return vec3(0.0, 0.0, visibility);
+    }
+    float from = (q.near_plane_correction != 0u || a > t_start) ? a : 0.0;
+    float x0 = sample_coordinate(located.y + located.z * from);
+    float x1 = sample_coordinate(located.y + located.z * b);
+    if (!average(located, key, x0, x1, visibility)) {
+        visibility = 1.0;
+    }
+    float sigma = p.extinction;
+    float alpha = -expm1_accurate(-sigma * (b - a));
+    float unshadowed;
+    if (p.box_medium != 0u) {
+        unshadowed = box_integrate(a, b, a, sigma);
+    } else if (sigma * (b - a) >= 1e-8) {
+        unshadowed = alpha / sigma;
+    } else {
+        unshadowed = integral_exp(sigma, b - a);
+    }
+    return vec3(visibility * unshadowed, alpha, visibility);
+}
+
+bool near_epipole(vec2 pixel) {
+    for (uint i = 0u; i < q.epipole_count; ++i) {
+        vec2 e = i == 0u ? q.epipoles.xy : q.epipoles.zw;
+        if (abs(pixel.x - e.x) <= q.block && abs(pixel.y - e.y) <= q.block) {
+            return true;
+        }
+    }
+    return false;
+}
+
+vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end) {
+    if (near_epipole(pixel)) {
+        return reference_sample(origin, direction, t_start, t_end);
+    }
+    bool ok;
+    vec3 s = prefiltered_sample(origin, direction, t_start, t_end, ok);
+    return ok ? s : reference_sample(origin, direction, t_start, t_end);
+}
+
+void main() {
+    shade_output_pixel();
+}
