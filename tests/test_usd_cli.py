@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import build_scene
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdValidation
+from scenes import build_scene
 from usd_helpers import author_stage
 
 import crepuscular

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import build_scene, flatten
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdVol, Vt
+from scenes import build_scene, flatten
 from usd_helpers import author_stage, light_matrix
 
 import crepuscular

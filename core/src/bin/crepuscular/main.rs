@@ -2,8 +2,8 @@
 
 mod bench;
 mod gallery;
-mod style_bench;
 mod gpu_bench;
+mod style_bench;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
