@@ -19,6 +19,15 @@ def _sun_settings(context: bpy.types.Context):
     return None if light is None else light.crepuscular
 
 
+def _active_tf_items(context: bpy.types.Context):
+    """The stops (gradient) or constraints (other kinds) of the active TF layer, if any."""
+    settings = _sun_settings(context)
+    if settings is None or not 0 <= settings.active_tf_layer < len(settings.tf_layers):
+        return None
+    layer = settings.tf_layers[settings.active_tf_layer]
+    return layer.stops if layer.kind == "gradient" else layer.constraints
+
+
 # Operators ------------------------------------------------------------------------------
 
 
@@ -174,13 +183,10 @@ class CREPUSCULAR_OT_tf_item_add(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        settings = _sun_settings(context)
-        return settings is not None and 0 <= settings.active_tf_layer < len(settings.tf_layers)
+        return _active_tf_items(context) is not None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        settings = context.light.crepuscular
-        layer = settings.tf_layers[settings.active_tf_layer]
-        items = layer.stops if layer.kind == "gradient" else layer.constraints
+        items = _active_tf_items(context)
         items.add()
         preview.CONTROLLER.mark_dirty()
         return {"FINISHED"}
@@ -195,13 +201,10 @@ class CREPUSCULAR_OT_tf_item_remove(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        settings = _sun_settings(context)
-        return settings is not None and 0 <= settings.active_tf_layer < len(settings.tf_layers)
+        return _active_tf_items(context) is not None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        settings = context.light.crepuscular
-        layer = settings.tf_layers[settings.active_tf_layer]
-        items = layer.stops if layer.kind == "gradient" else layer.constraints
+        items = _active_tf_items(context)
         if len(items) == 0:
             return {"CANCELLED"}
         items.remove(len(items) - 1)

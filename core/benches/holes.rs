@@ -2,7 +2,6 @@
 //! worst case: every texel is evaluated) and the `tree` scene's map with its leaves chosen.
 
 use crepuscular::holes::{HoleNoise, HolesDesc};
-use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::{builtin_scene, camera::CameraModel};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
@@ -27,15 +26,7 @@ fn covered_map() -> ShadowMap {
 
 fn tree_map() -> ShadowMap {
     let scene = builtin_scene("tree").expect("built-in scene");
-    let geometry = FlatGeometry::from_scene(&scene);
-    let camera = CameraModel::new(&scene.camera);
-    ShadowMap::build(
-        &camera,
-        &scene.sun,
-        &scene.medium,
-        &scene.render,
-        &geometry.view(),
-    )
+    ShadowMap::of_scene(&scene, &CameraModel::new(&scene.camera))
 }
 
 fn holes(c: &mut Criterion) {

@@ -104,18 +104,7 @@ pub fn render_scene(scene: &Scene, control: &RenderControl) -> Result<Layers> {
 pub fn render_scene_timed(scene: &Scene, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     scene.validate()?;
     let geometry = FlatGeometry::from_scene(scene);
-    render_timed(
-        &Frame {
-            camera: &scene.camera,
-            sun: &scene.sun,
-            medium: &scene.medium,
-            settings: &scene.render,
-            geometry: geometry.view(),
-            camera_depth: None,
-            style: &scene.style,
-        },
-        control,
-    )
+    render_timed(&Frame::of_scene(scene, &geometry), control)
 }
 
 /// Wall time of each stage of one frame, in seconds.
@@ -182,6 +171,23 @@ pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layer
     Ok((layers, times))
 }
 
+/// Wall time of consecutive stages: each lap is the time since the previous one.
+pub(crate) struct Stopwatch(std::time::Instant);
+
+impl Stopwatch {
+    pub(crate) fn start() -> Self {
+        Self(std::time::Instant::now())
+    }
+
+    /// Seconds since the start or the last lap.
+    pub(crate) fn lap(&mut self) -> f64 {
+        let now = std::time::Instant::now();
+        let seconds = (now - self.0).as_secs_f64();
+        self.0 = now;
+        seconds
+    }
+}
+
 /// Everything up to the per-pixel layers: depth maps, occluder manipulation, scattering.
 /// `prefix` computes prefiltering's filtered basis (on the CPU or a GPU).
 pub(crate) fn scatter_timed(
@@ -190,13 +196,7 @@ pub(crate) fn scatter_timed(
     prefix: &dyn PrefixSums,
 ) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
-    let mut clock = std::time::Instant::now();
-    let mut lap = || {
-        let now = std::time::Instant::now();
-        let seconds = (now - clock).as_secs_f64();
-        clock = now;
-        seconds
-    };
+    let mut stopwatch = Stopwatch::start();
     frame.validate()?;
     control.begin(reduced_size(frame.camera.height, frame.settings.downsample) as u64);
     control.check()?;
@@ -209,16 +209,16 @@ pub(crate) fn scatter_timed(
         &frame.geometry,
     );
     control.check()?;
-    times.shadow_map = lap();
+    times.shadow_map = stopwatch.lap();
     let shadow = if frame.style.manipulates_occluders() {
         let manipulated = frame.style.scattering_map(&shadow, &camera)?;
-        times.occluders = lap();
+        times.occluders = stopwatch.lap();
         manipulated
     } else {
         shadow
     };
     let surfaces = SurfaceDistances::new(&camera, frame);
-    times.camera_depth = lap();
+    times.camera_depth = stopwatch.lap();
     let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
     let tint = frame.medium.albedo.as_dvec3()
         * frame.medium.extinction as f64
@@ -259,11 +259,11 @@ pub(crate) fn scatter_timed(
             control,
             |_, ray, t0, t1| reference(ray, t0, t1),
         )?;
-        times.shading = lap();
+        times.shading = stopwatch.lap();
         return Ok((layers, times));
     };
     control.check()?;
-    times.rectify = lap();
+    times.rectify = stopwatch.lap();
     times.rectified_bytes = map.memory_bytes();
     let block = frame.settings.epipole_block as f64;
     let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, block).collect();
@@ -306,7 +306,7 @@ pub(crate) fn scatter_timed(
             })
         }
     };
-    times.prepare = lap();
+    times.prepare = stopwatch.lap();
     let layers = shade_pixels(
         &camera,
         &surfaces,
@@ -319,7 +319,7 @@ pub(crate) fn scatter_timed(
             fast(ray, t0, t1).unwrap_or_else(|| reference(ray, t0, t1))
         },
     )?;
-    times.shading = lap();
+    times.shading = stopwatch.lap();
     Ok((layers, times))
 }
 
@@ -509,7 +509,20 @@ pub(crate) fn shade_pixels(
     ))
 }
 
-impl Frame<'_> {
+impl<'a> Frame<'a> {
+    /// The frame a scene description describes, with the camera depth rasterized.
+    pub fn of_scene(scene: &'a Scene, geometry: &'a FlatGeometry) -> Self {
+        Frame {
+            camera: &scene.camera,
+            sun: &scene.sun,
+            medium: &scene.medium,
+            settings: &scene.render,
+            geometry: geometry.view(),
+            camera_depth: None,
+            style: &scene.style,
+        }
+    }
+
     /// Checks every input, naming the first offending field.
     pub fn validate(&self) -> Result<()> {
         self.camera.validate()?;

@@ -110,15 +110,7 @@ fn small(name: &str) -> Scene {
 
 fn render_both(device: &Arc<Device>, scene: &Scene) -> (Layers, Layers, gpu::frame::GpuTimes) {
     let geometry = FlatGeometry::from_scene(scene);
-    let frame = Frame {
-        camera: &scene.camera,
-        sun: &scene.sun,
-        medium: &scene.medium,
-        settings: &scene.render,
-        geometry: geometry.view(),
-        camera_depth: None,
-        style: &scene.style,
-    };
+    let frame = Frame::of_scene(scene, &geometry);
     let control = RenderControl::new();
     let (cpu, _) = render_timed_cpu(&frame, &control).unwrap();
     let (gpu, _, times) = gpu::frame::render_timed(device, &frame, &control).unwrap();
@@ -200,14 +192,7 @@ fn morphology_equals_the_cpu_exactly() {
     for name in BUILTIN_SCENES {
         let scene = small(name);
         let camera = CameraModel::new(&scene.camera);
-        let geometry = FlatGeometry::from_scene(&scene);
-        let shadow = ShadowMap::build(
-            &camera,
-            &scene.sun,
-            &scene.medium,
-            &scene.render,
-            &geometry.view(),
-        );
+        let shadow = ShadowMap::of_scene(&scene, &camera);
         for (op, shape, radius) in [
             (MorphologyOp::Close, KernelShape::Disk, 4.5),
             (MorphologyOp::Open, KernelShape::Disk, 2.0),
@@ -241,15 +226,7 @@ fn transfer_function_matches_the_cpu() {
     };
     let scene = small("colonnade");
     let geometry = FlatGeometry::from_scene(&scene);
-    let frame = Frame {
-        camera: &scene.camera,
-        sun: &scene.sun,
-        medium: &scene.medium,
-        settings: &scene.render,
-        geometry: geometry.view(),
-        camera_depth: None,
-        style: &scene.style,
-    };
+    let frame = Frame::of_scene(&scene, &geometry);
     let (layers, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
     let texels: Vec<[f32; 4]> = (0..16 * 16)
         .map(|i| {
@@ -525,15 +502,7 @@ fn upsampling_matches_the_cpu() {
     for name in BUILTIN_SCENES {
         let scene = small(name);
         let geometry = FlatGeometry::from_scene(&scene);
-        let frame = Frame {
-            camera: &scene.camera,
-            sun: &scene.sun,
-            medium: &scene.medium,
-            settings: &scene.render,
-            geometry: geometry.view(),
-            camera_depth: None,
-            style: &scene.style,
-        };
+        let frame = Frame::of_scene(&scene, &geometry);
         let (full, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
         for factor in [2, 4] {
             let (lw, lh) = (
@@ -609,14 +578,7 @@ fn rectification_matches_the_cpu() {
     for name in BUILTIN_SCENES {
         let scene = small(name);
         let camera = CameraModel::new(&scene.camera);
-        let geometry = FlatGeometry::from_scene(&scene);
-        let shadow = ShadowMap::build(
-            &camera,
-            &scene.sun,
-            &scene.medium,
-            &scene.render,
-            &geometry.view(),
-        );
+        let shadow = ShadowMap::of_scene(&scene, &camera);
         for desc in [RectifyDesc::prefiltered(0), RectifyDesc::min_max(0)] {
             let cpu = EpipolarMap::build(&camera, &shadow, &desc).expect("rectifiable view");
             let gpu = EpipolarMap::build_with(&camera, &shadow, &desc, &resampler)

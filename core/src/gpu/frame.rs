@@ -113,13 +113,7 @@ fn gpu_frame(
     gpu: &mut GpuTimes,
 ) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
-    let mut clock = std::time::Instant::now();
-    let mut lap = || {
-        let now = std::time::Instant::now();
-        let seconds = (now - clock).as_secs_f64();
-        clock = now;
-        seconds
-    };
+    let mut stopwatch = crate::render::Stopwatch::start();
     let rows = reduced_size(frame.camera.height, frame.settings.downsample);
     control.begin(rows as u64);
     control.check()?;
@@ -132,14 +126,14 @@ fn gpu_frame(
     );
     gpu.cpu_stages.push("shadow map");
     control.check()?;
-    times.shadow_map = lap();
+    times.shadow_map = stopwatch.lap();
     if frame.style.manipulates_occluders() {
         shadow = manipulate_occluders(device, frame.style, shadow, camera, gpu)?;
-        times.occluders = lap();
+        times.occluders = stopwatch.lap();
     }
     let surfaces = SurfaceDistances::new(camera, frame);
     gpu.cpu_stages.push("camera depth");
-    times.camera_depth = lap();
+    times.camera_depth = stopwatch.lap();
     control.check()?;
     let inputs = MarchInputs {
         camera,
@@ -171,7 +165,7 @@ fn gpu_frame(
         }
         _ => None,
     };
-    times.rectify = lap();
+    times.rectify = stopwatch.lap();
     // Rectification is undefined for an orthographic camera looking straight along the
     // light; the reference handles that view, as on the CPU.
     let (layers, ms) = match &map {
@@ -196,7 +190,7 @@ fn gpu_frame(
             let tables = plan.tables();
             times.structure_bytes = basis.size() as usize + std::mem::size_of_val(tables.weight);
             times.rectified_bytes = map.memory_bytes();
-            times.prepare = lap();
+            times.prepare = stopwatch.lap();
             super::prefiltered::shade(
                 device,
                 &inputs,
@@ -237,7 +231,7 @@ fn gpu_frame(
     };
     control.advance(rows as u64);
     control.check()?;
-    times.shading = lap();
+    times.shading = stopwatch.lap();
     Ok((layers, times))
 }
 

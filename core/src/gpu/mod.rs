@@ -4,9 +4,10 @@
 //!
 //! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
 //! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
-//! [`query`] (timestamps), [`dispatch`] (workgroup counts and parameter packing), and
-//! one per ported stage: [`march`], [`morphology`], [`transfer`], [`prefix`],
-//! [`prefiltered`], [`upsample`], [`rectify`].
+//! [`query`] (timestamps), [`layer_buffers`] (the layers' device buffers and read-back),
+//! [`dispatch`] (workgroup counts and parameter packing), and one per ported stage:
+//! [`march`], [`morphology`], [`transfer`], [`prefix`], [`prefiltered`], [`upsample`],
+//! [`rectify`].
 
 pub mod barrier;
 pub mod buffer;
@@ -17,6 +18,7 @@ pub mod dispatch;
 pub mod error;
 pub mod frame;
 pub mod instance;
+pub mod layer_buffers;
 pub mod march;
 pub mod morphology;
 pub mod physical_device;

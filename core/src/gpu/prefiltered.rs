@@ -11,6 +11,7 @@ use super::compute_pipeline::ComputePipelineDesc;
 use super::device::Device;
 use super::dispatch::{groups_2d, Std430};
 use super::error::{GpuError, GpuResult};
+use super::layer_buffers::LayerBuffers;
 use super::march::{march_params, surface_values, MarchInputs};
 use super::shader::Shader;
 use crate::basis_kernels::LANES;
@@ -100,7 +101,6 @@ pub fn shade(
     let stride = inputs.settings.downsample;
     let width = reduced_size(inputs.camera.width, stride);
     let height = reduced_size(inputs.camera.height, stride);
-    let pixels = width as u64 * height as u64;
     let groups = groups_2d(width, height, LOCAL, device.physical.max_workgroup_count)?;
     let frames: Vec<f32> = tables
         .frames
@@ -120,9 +120,7 @@ pub fn shade(
         let params = rec.upload(&march_params(inputs), "march parameters")?;
         let shadow = rec.upload(&inputs.shadow.depth, "shadow map")?;
         let surfaces = rec.upload(&surface_values(inputs.surfaces), "surface distances")?;
-        let volume = rec.storage(pixels * 16, "volume layer")?;
-        let visibility = rec.storage(pixels * 4, "visibility layer")?;
-        let depth = rec.storage(pixels * 4, "depth layer")?;
+        let out = LayerBuffers::new(&rec, width, height)?;
         let pf = rec.upload(
             &prefiltered_params(map, tables, storage, epipoles, block)?,
             "prefiltered parameters",
@@ -141,9 +139,9 @@ pub fn shade(
                     &params,
                     &shadow,
                     &surfaces,
-                    &volume,
-                    &visibility,
-                    &depth,
+                    &out.volume,
+                    &out.visibility,
+                    &out.depth,
                     &pf,
                     &frames,
                     &slice_bands,
@@ -156,17 +154,9 @@ pub fn shade(
                 groups,
             )
         })?;
-        let volume_back = rec.download(&volume, "volume read-back")?;
-        let visibility_back = rec.download(&visibility, "visibility read-back")?;
-        let depth_back = rec.download(&depth, "depth read-back")?;
+        let back = out.download(&mut rec)?;
         let done = rec.submit_and_wait()?;
-        let layers = Layers {
-            width,
-            height,
-            volume: done.read(volume_back)?,
-            visibility: done.read(visibility_back)?,
-            depth: done.read(depth_back)?,
-        };
+        let layers = back.read(&done)?;
         Ok((layers, done.milliseconds(STAGE)))
     };
     run().map_err(|err| err.in_stage(STAGE))

@@ -8,7 +8,7 @@ use crepuscular::builtin::builtin_scene;
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
 use crepuscular::gpu::Device;
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
-use crepuscular::scene::{Method, Scene};
+use crepuscular::scene::Method;
 use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
 
 use crate::bench::{median, peak_memory};
@@ -49,18 +49,6 @@ struct Row {
     frame: f64,
     cpu: Option<(StageTimes, f64)>,
     cpu_stages: Vec<&'static str>,
-}
-
-fn frame_of<'a>(scene: &'a Scene, geometry: &'a FlatGeometry) -> Frame<'a> {
-    Frame {
-        camera: &scene.camera,
-        sun: &scene.sun,
-        medium: &scene.medium,
-        settings: &scene.render,
-        geometry: geometry.view(),
-        camera_depth: None,
-        style: &scene.style,
-    }
 }
 
 fn median_of(values: impl Iterator<Item = f64>) -> f64 {
@@ -114,7 +102,7 @@ pub fn run(
         }
         for (look, scene) in looks {
             let geometry = FlatGeometry::from_scene(&scene);
-            let frame = frame_of(&scene, &geometry);
+            let frame = Frame::of_scene(&scene, &geometry);
             render_timed(device, &frame, &RenderControl::new())?;
             let mut gpu = Vec::new();
             let mut cpu_side = Vec::new();
