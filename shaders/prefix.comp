@@ -1,8 +1,9 @@
 #version 450
 // Prefiltering's basis computation and per-band prefix sums (core/src/prefiltered.rs,
-// basis_kernels.rs): per band, a running sum of weighted basis-table rows, each output
-// row scaled to a weighted mean and stored as f32 or 16-bit snorm. One workgroup per
-// band, one invocation per pair of lanes; sums run in the CPU's order, uncontracted.
+// basis_kernels.rs): per band, a running sum of weighted basis-table rows, a fixed number
+// of samples per output row, each output row scaled to a weighted mean and stored as f32
+// or 16-bit snorm. One workgroup per band, one invocation per pair of lanes; sums run in
+// the CPU's order, uncontracted.
 
 layout(local_size_x = 32) in;
 
@@ -10,13 +11,13 @@ layout(push_constant) uniform Push {
     uint stride;     // values per row, even
     uint snorm;      // 1: 16-bit snorm pairs packed per uint, 0: f32 bits
     uint band_count;
-    uint unused;
+    uint samples_per_row;
 } pc;
 
 layout(std430, binding = 0) readonly buffer Bands { uvec2 bands[]; }; // (first row, rows)
-layout(std430, binding = 1) readonly buffer Entries { uint entries[]; };
-layout(std430, binding = 2) readonly buffer Weights { float weights[]; };
-layout(std430, binding = 3) readonly buffer Scales { float scales[]; };
+layout(std430, binding = 1) readonly buffer Entries { uint entries[]; };   // per sample
+layout(std430, binding = 2) readonly buffer Weights { float weights[]; };  // per sample
+layout(std430, binding = 3) readonly buffer Scales { float scales[]; };    // per row
 // Rows of the basis table in pairs of lanes (rows hold an even number of values).
 layout(std430, binding = 4) readonly buffer Table { vec2 table2[]; };
 layout(std430, binding = 5) writeonly buffer Basis { uint basis[]; };
@@ -46,33 +47,32 @@ void main() {
     }
     uvec2 b = bands[band];
     uint first_row = b.x;
-    uint samples = b.y - 1u;
+    uint rows = b.y - 1u;
     uint offset = first_row - band;
     uint pairs = pc.stride / 2u;
+    uint per_row = pc.samples_per_row;
     store(first_row, pair, 0.0, 0.0);
     precise vec2 sum = vec2(0.0);
-    // Four samples at a time: their loads are independent of the running sum, so they are
-    // issued together; the sum itself runs sample by sample, as on the CPU.
-    uint i = 0u;
-    for (; i + 4u <= samples; i += 4u) {
-        uint k = offset + i;
-        uvec4 entry = uvec4(entries[k], entries[k + 1u], entries[k + 2u], entries[k + 3u]);
-        vec4 w = vec4(weights[k], weights[k + 1u], weights[k + 2u], weights[k + 3u]);
-        vec4 scale = vec4(scales[k], scales[k + 1u], scales[k + 2u], scales[k + 3u]);
-        vec2 t[4] = vec2[4](table2[entry.x * pairs + pair], table2[entry.y * pairs + pair],
-                            table2[entry.z * pairs + pair], table2[entry.w * pairs + pair]);
-        for (uint j = 0u; j < 4u; ++j) {
-            precise vec2 added = w[j] * t[j];
-            sum = sum + added;
-            precise vec2 value = sum * scale[j];
-            store(first_row + 1u + i + j, pair, value.x, value.y);
+    for (uint i = 0u; i < rows; ++i) {
+        uint k = (offset + i) * per_row;
+        // Two samples at a time: their loads are independent of the running sum, so they
+        // are issued together; the sum itself runs sample by sample, as on the CPU.
+        uint j = 0u;
+        for (; j + 2u <= per_row; j += 2u) {
+            uvec2 entry = uvec2(entries[k + j], entries[k + j + 1u]);
+            vec2 w = vec2(weights[k + j], weights[k + j + 1u]);
+            vec2 t0 = table2[entry.x * pairs + pair];
+            vec2 t1 = table2[entry.y * pairs + pair];
+            precise vec2 added0 = w.x * t0;
+            sum = sum + added0;
+            precise vec2 added1 = w.y * t1;
+            sum = sum + added1;
         }
-    }
-    for (; i < samples; ++i) {
-        uint k = offset + i;
-        precise vec2 added = weights[k] * table2[entries[k] * pairs + pair];
-        sum = sum + added;
-        precise vec2 value = sum * scales[k];
+        for (; j < per_row; ++j) {
+            precise vec2 added = weights[k + j] * table2[entries[k + j] * pairs + pair];
+            sum = sum + added;
+        }
+        precise vec2 value = sum * scales[offset + i];
         store(first_row + 1u + i, pair, value.x, value.y);
     }
 }

@@ -80,9 +80,10 @@ impl Kernels {
         }
     }
 
-    /// Running prefix sums of weighted basis rows: for each sample i,
-    /// `sums += weights[i] · table row entries[i]`, and output row i becomes
-    /// `sums · scales[i]`. Rows are padded; `out` holds one row per sample.
+    /// Running prefix sums of weighted basis rows: for each sample i, in order,
+    /// `sums += weights[i] · table row entries[i]`; after every k-th sample (k =
+    /// `entries.len() / scales.len()`, the samples per output row) output row r becomes
+    /// `sums · scales[r]`. Rows are padded; `out` holds one row per scale.
     #[inline]
     pub fn prefix_sums<T: BasisValue>(
         self,
@@ -143,16 +144,27 @@ fn prefix_sums<T: BasisValue>(
     scales: &[f32],
     out: &mut [T],
 ) {
-    let stride = out.len() / entries.len().max(1);
+    let stride = out.len() / scales.len().max(1);
+    let per_row = entries.len() / scales.len().max(1);
+    debug_assert_eq!(entries.len(), per_row * scales.len());
     let mut sums = [0.0f32; crate::prefiltered::MAX_BASES as usize];
     let sums = &mut sums[..stride];
-    for (((&entry, &weight), &scale), out) in entries
-        .iter()
-        .zip(weights)
+    for (((entries, weights), &scale), out) in entries
+        .chunks_exact(per_row.max(1))
+        .zip(weights.chunks_exact(per_row.max(1)))
         .zip(scales)
         .zip(out.chunks_exact_mut(stride))
     {
-        let values = &table[entry as usize * stride..][..stride];
+        // Chunks are never empty: the row's last sample is added and stored in one pass.
+        let last = entries.len() - 1;
+        for (&entry, &weight) in entries[..last].iter().zip(weights) {
+            let values = &table[entry as usize * stride..][..stride];
+            for (sum, &value) in sums.iter_mut().zip(values) {
+                *sum += weight * value;
+            }
+        }
+        let weight = weights[last];
+        let values = &table[entries[last] as usize * stride..][..stride];
         for ((sum, &value), out) in sums.iter_mut().zip(values).zip(out.iter_mut()) {
             *sum += weight * value;
             *out = T::store(*sum * scale);
@@ -233,22 +245,31 @@ mod tests {
         let table: Vec<f32> = (0..4 * stride)
             .map(|i| ((i % 7) as f32 - 3.0) / 3.0)
             .collect();
-        let entries = [2u32, 0, 3, 3, 1];
-        let weights = [0.5f32, 0.25, 1.0, 0.125, 2.0];
-        let scales = [1.0f32, 0.5, 0.25, 0.2, 0.1];
-        for kernels in all_kernels() {
-            let mut out = vec![0i16; entries.len() * stride];
-            kernels.prefix_sums(&table, &entries, &weights, &scales, &mut out);
-            let mut sums = vec![0.0f64; stride];
-            for (i, &entry) in entries.iter().enumerate() {
-                for k in 0..stride {
-                    sums[k] += weights[i] as f64 * table[entry as usize * stride + k] as f64;
-                    let want = (sums[k] * scales[i] as f64).clamp(-1.0, 1.0);
-                    let got = out[i * stride + k].load() * i16::SCALE;
-                    assert!(
-                        (got as f64 - want).abs() <= 0.6 / i16::MAX as f64,
-                        "{kernels:?} row {i} lane {k}"
-                    );
+        let entries = [2u32, 0, 3, 3, 1, 2];
+        let weights = [0.5f32, 0.25, 1.0, 0.125, 2.0, 0.75];
+        for per_row in [1, 2, 3] {
+            let rows = entries.len() / per_row;
+            let scales: Vec<f32> = (0..rows).map(|r| 1.0 / (r as f32 + 1.5)).collect();
+            for kernels in all_kernels() {
+                let mut out = vec![0i16; rows * stride];
+                kernels.prefix_sums(&table, &entries, &weights, &scales, &mut out);
+                let mut sums = vec![0.0f64; stride];
+                for (i, &entry) in entries.iter().enumerate() {
+                    for (k, sum) in sums.iter_mut().enumerate() {
+                        *sum += weights[i] as f64 * table[entry as usize * stride + k] as f64;
+                    }
+                    if (i + 1) % per_row != 0 {
+                        continue;
+                    }
+                    let r = i / per_row;
+                    for (k, sum) in sums.iter().enumerate() {
+                        let want = (sum * scales[r] as f64).clamp(-1.0, 1.0);
+                        let got = out[r * stride + k].load() * i16::SCALE;
+                        assert!(
+                            (got as f64 - want).abs() <= 0.6 / i16::MAX as f64,
+                            "{kernels:?}, {per_row} per row: row {r} lane {k}"
+                        );
+                    }
                 }
             }
         }

@@ -62,7 +62,7 @@ impl RectifyDesc {
             slices,
             slices_per_texel: 0.25,
             max_auto_slices: 1024,
-            samples_per_texel: 1.0,
+            samples_per_texel: 2.0,
         }
     }
 }

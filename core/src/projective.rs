@@ -253,7 +253,7 @@ impl ProjectiveGrid {
     /// [`far_column_length`](Self::far_column_length) is at most
     /// [`MAX_FAR_COLUMN_TEXELS`] × `texel_size`. With the columns of
     /// [`ProjectiveFrame::grid`] that holds, to first order, while far/near ≤
-    /// 1 + 2 × `samples_per_texel`: 3 for prefiltering, 5 for min-max.
+    /// 1 + 2 × `samples_per_texel`: 5 for both fast methods.
     pub fn is_sharp(&self, texel_size: f64) -> bool {
         self.far_column_length() <= MAX_FAR_COLUMN_TEXELS * texel_size
     }

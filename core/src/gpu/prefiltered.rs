@@ -63,7 +63,8 @@ pub fn prefiltered_params(
         .f32(g.step as f32)
         .f32(g.slope as f32)
         .f32(g.spacing_first as f32)
-        .f32(g.spacing_step as f32)
+        // Row coordinates: the map's sample coordinates over the samples per row.
+        .f32((g.spacing_step * tables.samples_per_row as f64) as f32)
         .f32(block as f32)
         .u32(layout)
         .u32(g.full_circle as u32)

@@ -47,7 +47,7 @@ fn push_constants(plan: &PrefixPlan) -> Vec<u8> {
         .u32(plan.stride as u32)
         .u32((plan.storage == BasisStorage::Snorm16) as u32)
         .u32(plan.bands.len() as u32)
-        .u32(0)
+        .u32(plan.samples_per_row as u32)
         .finish()
 }
 
