@@ -2,14 +2,15 @@
 the crepuscular core (bundled wheel) and composited over F12 and animation renders.
 
 Modules register in order and unregister in reverse: properties, render (operator and
-handlers), ui (panels and small operators), preview (timer and draw callback).
+handlers), ui (panels and small operators), preview (timer and draw callback), usd_hook
+(the USD export hook).
 """
 
 from __future__ import annotations
 
-from . import preview, properties, render, ui
+from . import preview, properties, render, ui, usd_hook
 
-MODULES = (properties, render, ui, preview)
+MODULES = (properties, render, ui, preview, usd_hook)
 
 
 def register() -> None:

@@ -1,5 +1,6 @@
-"""Builds the installable extension zip: the add-on's Python files, its manifest and the
-crepuscular wheel that maturin built.
+"""Builds the installable extension zip: the add-on's Python files, its manifest, the
+crepuscular wheel that maturin built, and the USD step's attribute table (the export hook
+authors the schema with its names; the add-on cannot import the USD package itself).
 
 Usage: python blender_addon/build_extension.py WHEEL_DIR OUT_DIR
 
@@ -17,6 +18,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 #: Files of the add-on package itself (the build script stays out of the zip).
 SOURCES = sorted(p for p in HERE.glob("*.py") if p.name != "build_extension.py")
+#: Files shared with the USD step, and their names in the add-on package.
+SHARED = {HERE.parent / "usd" / "crepuscular_usd" / "attributes.py": "usd_attributes.py"}
 
 
 def build(wheel_dir: Path, out_dir: Path) -> Path:
@@ -39,6 +42,8 @@ def build(wheel_dir: Path, out_dir: Path) -> Path:
         archive.writestr("blender_manifest.toml", manifest)
         for source in SOURCES:
             archive.write(source, source.name)
+        for source, name in SHARED.items():
+            archive.write(source, name)
         archive.write(HERE / "README.md", "README.md")
         archive.write(wheel, f"wheels/{wheel.name}")
     return target

@@ -355,17 +355,21 @@ def shaft_suns(scene: bpy.types.Scene) -> list[bpy.types.Object]:
 
 
 def sun_dict(sun: bpy.types.Object) -> dict[str, Any]:
-    """Direction (the lamp's -Z), colour, strength and angle of an evaluated sun."""
+    """Direction (the lamp's -Z), colour, strength and angle of an evaluated sun, as Cycles
+    lights with it: strength x 2^exposure, colour x blackbody colour when Temperature is on."""
     matrix = np.array(sun.matrix_world, dtype=np.float64)
     direction = -matrix[:3, 2]
     norm = np.linalg.norm(direction)
     if norm == 0 or not np.isfinite(norm):
         raise ExportError(f"sun '{sun.name}': its matrix has no usable -Z axis")
     light = sun.data
+    color = np.array(light.color, dtype=np.float64)
+    if light.use_temperature:
+        color *= np.array(light.temperature_color, dtype=np.float64)
     return {
         "direction": (direction / norm).tolist(),
-        "color": [float(c) for c in light.color],
-        "strength": float(light.energy),
+        "color": color.tolist(),
+        "strength": float(light.energy) * 2.0 ** float(light.exposure),
         "angular_diameter": float(light.angle),
     }
 

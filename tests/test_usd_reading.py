@@ -13,6 +13,7 @@ from usd_helpers import author_stage, light_matrix
 
 import crepuscular
 from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
+from crepuscular_usd.attributes import ATTRIBUTES, RELATIONSHIPS
 from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
 from crepuscular_usd.schema import API_NAME, PROPERTY_NAMES, fallback
 
@@ -323,6 +324,12 @@ def test_animated_camera_light_and_schema_change_each_frame_as_authored(tmp_path
 def test_schema_defines_exactly_the_attributes_the_reader_maps() -> None:
     definition = Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(API_NAME)
     assert set(definition.GetPropertyNames()) == set(PROPERTY_NAMES)
+    # The shared table (which the Blender add-on's export hook authors with) has the
+    # schema's value types, and its relationships are the schema's.
+    for name, attribute in ATTRIBUTES.items():
+        assert definition.GetAttributeDefinition(name).GetTypeName() == attribute.type_name, name
+    for name in RELATIONSHIPS:
+        assert definition.GetRelationshipDefinition(name), name
 
 
 def test_schema_fallbacks_are_the_renderers_defaults() -> None:
@@ -482,3 +489,6 @@ def test_distant_light_exposure_color_temperature_angle_and_visibility(tmp_path:
     layers = crepuscular.render_arrays(**off.render_kwargs())
     assert float(np.abs(layers.volume[..., :3]).max()) == 0.0
     assert float(layers.volume[..., 3].max()) > 0.0  # the medium still hides what is behind
+    # The schema's intensity scale (what Blender's exporter divides a sun's strength by).
+    stage.GetPrimAtPath("/World/Sun").GetAttribute("crepuscular:intensityScale").Set(4.0)
+    assert reader.read(Usd.TimeCode(1)).sun["strength"] == pytest.approx(4 * 2.0 * 2**1.5)

@@ -12,7 +12,7 @@ from typing import Any
 
 import bpy
 import numpy as np
-from mathutils import Matrix
+from mathutils import Matrix, Vector
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import blender_scenes
@@ -179,11 +179,105 @@ def job_silhouette(spec: dict[str, Any], out: Path) -> None:
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
 
 
+def round_trip_scene(spec: dict[str, Any]) -> Any:
+    """Meshes (one arrayed by a modifier, one that takes holes), a camera with a vertical
+    sensor fit, lens shift and clip range, a sun with exposure, colour and a styled look
+    (closing, holes, a transfer function), and a fog box."""
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = spec["width"], spec["height"]
+    scene.render.resolution_percentage = 100
+    scene.render.engine = "CYCLES"
+    # The add-on gives its volume layer the beauty's pixel filter; the USD step composites
+    # over beauties it never sees rendered and keeps its layers unfiltered. A filter this
+    # narrow is no filter, so both write the same layers.
+    scene.cycles.filter_width = 0.01
+    scene.frame_set(spec.get("frame", 1))
+    camera = blender_scenes.add_camera(scene, blender_scenes.look_at((-11, -13, 5), (0, 0, 2.5)))
+    lens = camera.data
+    lens.lens, lens.sensor_fit, lens.sensor_height = 42.0, "VERTICAL", 20.0
+    lens.shift_x, lens.shift_y, lens.clip_start, lens.clip_end = 0.06, -0.04, 0.3, 90.0
+    sun = blender_scenes.add_sun(scene, (0.35, 0.25, -1.0), strength=2.5)
+    sun.data.exposure, sun.data.color, sun.data.angle = 0.5, (1.0, 0.9, 0.75), 0.05
+    settings = sun.data.crepuscular
+    settings.shadow_map_size, settings.max_distance = 512, 60.0
+    settings.use_closing, settings.closing_radius = True, 0.3
+    settings.use_holes, settings.holes_frequency, settings.holes_threshold = True, 0.4, 0.3
+    settings.holes_pivot = (1.0, 2.0, 0.0)
+    settings.use_tf, settings.tf_mode, settings.tf_depth_far = True, "color", 40.0
+    layer = settings.tf_layers.add()
+    layer.kind, layer.shape = "gradient", "linear"
+    layer.start, layer.end = (0.0, 0.0), (0.0, 1.0)
+    for position, color in ((0.0, (1.0, 0.8, 0.6, 1.0)), (1.0, (0.4, 0.6, 1.0, 1.0))):
+        stop = layer.stops.add()
+        stop.position, stop.color = position, color
+    fog = np.diag([7.0, 6.0, 4.0, 1.0])
+    fog[:3, 3] = [0.0, 0.0, 4.0]
+    material = blender_scenes.volume_material(
+        "scatter", Color=(1, 1, 1, 1), Density=0.12, Anisotropy=0.3
+    )
+    blender_scenes.add_fog_box(scene, fog, material)
+    blender_scenes.add_quad(
+        scene, "ground", [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
+    )
+    for index, x in enumerate((-5.0, -2.2, 0.6, 3.4)):
+        slat = blender_scenes.add_quad(
+            scene, f"slat_{index}", [(x, -6, 7), (x + 2, -6, 7), (x + 2, 6, 7.5), (x, 6, 7.5)]
+        )
+        slat.crepuscular.takes_holes = index == 1
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(-3.0, 1.0, 1.5))
+    arrayed = bpy.context.active_object
+    array = arrayed.modifiers.new("Array", "ARRAY")
+    array.count, array.relative_offset_displace = 3, (1.8, 0.0, 0.4)
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.2, location=(2.5, -1.0, 2.0))
+    return scene
+
+
+def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
+    """The add-on's layers, and the same scene through Blender's USD exporter (default
+    options, and again Y up in centimetres). Animated: camera, lens, sun and closing
+    radius keyed over frames 1-3, and the fog box left out of the export."""
+    scene = round_trip_scene(spec)
+    frames = [scene.frame_current]
+    if spec["animated"]:
+        scene.frame_start, scene.frame_end = 1, 3
+        frames = [1, 2, 3]
+        camera, sun = scene.camera, scene.objects["Sun"]
+        settings = sun.data.crepuscular
+        start, aim = camera.location.copy(), sun.rotation_euler.copy()
+        keys = ((0.0, 42.0, 0.0, 0.1), (1.5, 50.0, 0.15, 0.4), (3.0, 35.0, 0.3, 0.8))
+        for frame, (shift, lens, tilt, radius) in zip(frames, keys, strict=True):
+            camera.location = start + Vector((shift, 0.0, 0.0))
+            camera.keyframe_insert("location", frame=frame)
+            camera.data.lens = lens
+            camera.data.keyframe_insert("lens", frame=frame)
+            sun.rotation_euler.y = aim.y + tilt
+            sun.keyframe_insert("rotation_euler", frame=frame)
+            settings.closing_radius = radius
+            settings.keyframe_insert("closing_radius", frame=frame)
+        scene.crepuscular.fog_object.hide_render = True  # the exporter leaves it out
+    for frame in frames:
+        scene.frame_set(frame)
+        path = out / f"blender.{frame:04d}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+    scene.frame_set(frames[0])
+    animation = {"export_animation": True} if spec["animated"] else {}
+    assert bpy.ops.wm.usd_export(filepath=str(out / "shot.usda"), **animation) == {"FINISHED"}
+    if not spec["animated"]:
+        assert bpy.ops.wm.usd_export(
+            filepath=str(out / "shot_y_up_cm.usda"),
+            convert_orientation=True,
+            export_global_up_selection="Y",
+            export_global_forward_selection="NEGATIVE_Z",
+            convert_scene_units="CENTIMETERS",
+        ) == {"FINISHED"}
+
+
 JOBS = {
     "fidelity": job_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,
+    "usd_round_trip": job_usd_round_trip,
 }
 
 

@@ -1,10 +1,13 @@
-"""Shared by the Blender tests and their Cycles subprocesses: installing and enabling the
-extension from its zip, and building small scenes (camera, sun, fog box, occluders)."""
+"""Shared by the Blender tests and their subprocesses: installing and enabling the
+extension from its zip, running a job of blender_job.py, and building small scenes
+(camera, sun, fog box, occluders)."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -13,6 +16,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 ADDON_MODULE = "bl_ext.user_default.crepuscular"
+JOB = Path(__file__).resolve().parent / "blender_job.py"
 
 
 def addon_zip() -> Path:
@@ -50,6 +54,19 @@ def enable_addon() -> ModuleType:
     module = addon_utils.enable(ADDON_MODULE, default_set=True, handle_error=_raise)
     assert module is not None, f"{ADDON_MODULE} did not enable"
     return module
+
+
+def run_job(out: Path, job: str, **spec: Any) -> float:
+    """Runs one job of blender_job.py in a subprocess; returns its wall time in seconds."""
+    started = time.perf_counter()
+    result = subprocess.run(
+        [sys.executable, str(JOB), json.dumps({"job": job, "out": str(out), **spec})],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return time.perf_counter() - started
 
 
 def _raise(error: BaseException) -> None:

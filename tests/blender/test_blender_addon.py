@@ -93,6 +93,8 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
         for module in (addon.properties, addon.render, addon.ui)
         for cls in module.CLASSES
     ]
+    (hook,) = addon.usd_hook.CLASSES
+    assert hook.is_registered
     addon_utils.disable(blender_scenes.ADDON_MODULE, default_set=True)
     try:
         for name in dir(bpy.app.handlers):
@@ -120,11 +122,13 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
             ):
                 assert not _registered(base, name), name
         assert not hasattr(bpy.types, "CREPUSCULAR_OT_render_layers")
+        assert not hook.is_registered  # the USD export hook
         # The group stays (it is the user's data) but composites nothing stale.
         assert node.mute
     finally:
-        blender_scenes.enable_addon()
+        enabled = blender_scenes.enable_addon()
     assert _registered(bpy.types.Operator, "CREPUSCULAR_OT_render_layers")
+    assert all(cls.is_registered for cls in enabled.usd_hook.CLASSES)
 
 
 # Settings and presets -------------------------------------------------------------------
@@ -436,6 +440,22 @@ def test_camera_matches_blenders_projection(addon: ModuleType, kind: str) -> Non
         x, y = (column + 0.5) / width, 1.0 - (row + 0.5) / height
         expected = _plane_distance(camera, scene, x, y, 5.0)
         assert layers.depth[row, column] == pytest.approx(expected, rel=2e-4), (row, column)
+
+
+def test_sun_is_lit_as_cycles_lights_it(addon: ModuleType) -> None:
+    """Cycles: colour x blackbody colour (Temperature on) x strength x 2^exposure."""
+    sun = blender_scenes.add_sun(bpy.context.scene, (0.0, 0.0, -1.0), strength=3.0)
+    sun.data.color = (1.0, 0.5, 0.25)
+    plain = addon.export.sun_dict(sun)
+    assert plain["strength"] == pytest.approx(3.0)
+    assert plain["color"] == pytest.approx([1.0, 0.5, 0.25])
+    sun.data.exposure = 1.5
+    sun.data.use_temperature, sun.data.temperature = True, 4000.0
+    lit = addon.export.sun_dict(sun)
+    assert lit["strength"] == pytest.approx(3.0 * 2**1.5)
+    blackbody = np.array(sun.data.temperature_color)
+    assert blackbody[0] > 1.2 * blackbody[2]  # warm
+    assert lit["color"] == pytest.approx(np.array([1.0, 0.5, 0.25]) * blackbody)
 
 
 def test_fog_object_maps_as_cycles_reads_it(addon: ModuleType) -> None:

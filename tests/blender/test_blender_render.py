@@ -7,10 +7,6 @@ minute on two cores."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -22,20 +18,7 @@ import crepuscular
 
 pytest.importorskip("bpy")
 
-JOB = Path(__file__).resolve().parent / "blender_job.py"
-
-
-def run_job(out: Path, job: str, **spec: Any) -> float:
-    """Runs one job; returns its wall time in seconds."""
-    started = time.perf_counter()
-    result = subprocess.run(
-        [sys.executable, str(JOB), json.dumps({"job": job, "out": str(out), **spec})],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    return time.perf_counter() - started
+from blender_scenes import run_job
 
 
 def rgba(path: Path) -> np.ndarray:

@@ -2,8 +2,10 @@
 
 The schema ships as `resources/plugInfo.json` + `resources/generatedSchema.usda` and is
 registered with `Plug.Registry` when this package is imported. Its attributes map one to
-one onto the renderer's scene description (`medium`, `render`) and style preset; this
-module holds that map. Lengths are authored in stage units and converted to metres here.
+one onto the renderer's scene description (`medium`, `render`, the sun's intensity scale)
+and style preset; `attributes.py` holds that map as plain data, shared with the Blender
+add-on's export hook, and this module adds the conversions. Lengths are authored in stage
+units and converted to metres here.
 """
 
 from __future__ import annotations
@@ -19,6 +21,15 @@ from typing import Any
 import numpy as np
 from pxr import Plug, Sdf, Usd, UsdGeom, UsdLux, UsdVol
 
+from crepuscular_usd.attributes import (
+    API_NAME,
+    ATTRIBUTES,
+    HOLES_OBJECTS,
+    MEDIUM_EXTENT,
+    TF_ASSET,
+    TF_JSON,
+)
+
 __all__ = [
     "API_NAME",
     "PROPERTY_NAMES",
@@ -29,13 +40,7 @@ __all__ = [
     "register",
 ]
 
-API_NAME = "CrepuscularLightAPI"
 RESOURCES = Path(__file__).resolve().parent / "resources"
-
-MEDIUM_EXTENT = "crepuscular:mediumExtent"
-HOLES_OBJECTS = "crepuscular:holes:objects"
-TF_ASSET = "crepuscular:tf:asset"
-TF_JSON = "crepuscular:tf:json"
 
 
 class SchemaError(ValueError):
@@ -84,53 +89,34 @@ def _vec3(value: Any) -> list[float]:
     return [float(c) for c in value]
 
 
+#: Conversions by USD value type, and where one attribute differs from its type's.
+_CONVERT_BY_TYPE: dict[str, Callable[[Any], Any]] = {
+    "float": float,
+    "int": int,
+    "bool": bool,
+    "token": str,
+    "color3f": _vec3,
+    "point3f": _vec3,
+}
+_CONVERT_BY_NAME: dict[str, Callable[[Any], Any]] = {
+    "crepuscular:medium:phase": _token_to_snake,
+}
+
+#: The attributes that map onto one scene-description value (the shared table in
+#: `attributes.py`, with conversions); the transfer function is read on its own.
 FIELDS: dict[str, _Field] = {
-    "crepuscular:medium:extinction": _Field(("medium", "extinction"), -1, float),
-    "crepuscular:medium:albedo": _Field(("medium", "albedo"), 0, _vec3),
-    "crepuscular:medium:anisotropy": _Field(("medium", "anisotropy"), 0, float),
-    "crepuscular:medium:phase": _Field(("medium", "phase"), 0, _token_to_snake),
-    "crepuscular:method": _Field(("render", "method"), 0, str),
-    "crepuscular:shadowMapSize": _Field(("render", "shadow_map_size"), 0, int),
-    "crepuscular:maxDistance": _Field(("render", "max_distance"), 1, float),
-    "crepuscular:steps": _Field(("render", "steps"), 0, int),
-    "crepuscular:supersampling": _Field(("render", "supersampling"), 0, int),
-    "crepuscular:shadowBias": _Field(("render", "shadow_bias"), 1, float, negative_unset=True),
-    "crepuscular:epipolarSlices": _Field(("render", "epipolar_slices"), 0, int),
-    "crepuscular:epipoleBlock": _Field(("render", "epipole_block"), 0, int),
-    "crepuscular:downsample": _Field(("render", "downsample"), 0, int),
-    "crepuscular:bases": _Field(("render", "bases"), 0, int),
-    "crepuscular:nearPlaneCorrection": _Field(("render", "near_plane_correction"), 0, bool),
-    "crepuscular:basisStorage": _Field(("render", "basis_storage"), 0, str),
-    "crepuscular:rectification": _Field(("render", "rectification"), 0, str),
-    "crepuscular:closing:enable": _Field(("style", "closing", "enable"), 0, bool),
-    "crepuscular:closing:operation": _Field(("style", "closing", "operation"), 0, str),
-    "crepuscular:closing:kernel": _Field(("style", "closing", "kernel"), 0, str),
-    "crepuscular:closing:radius": _Field(("style", "closing", "radius"), 1, float),
-    "crepuscular:closing:radiusTexels": _Field(
-        ("style", "closing", "radius_texels"), 0, float, negative_unset=True
-    ),
-    "crepuscular:silhouette:enable": _Field(("style", "silhouette", "enable"), 0, bool),
-    "crepuscular:silhouette:operation": _Field(("style", "silhouette", "operation"), 0, str),
-    "crepuscular:silhouette:length": _Field(("style", "silhouette", "length"), 1, float),
-    "crepuscular:silhouette:lengthTexels": _Field(
-        ("style", "silhouette", "length_texels"), 0, float, negative_unset=True
-    ),
-    "crepuscular:holes:enable": _Field(("style", "holes", "enable"), 0, bool),
-    "crepuscular:holes:frequency": _Field(("style", "holes", "frequency"), -1, float),
-    "crepuscular:holes:persistence": _Field(("style", "holes", "persistence"), 0, float),
-    "crepuscular:holes:octaves": _Field(("style", "holes", "octaves"), 0, int),
-    "crepuscular:holes:threshold": _Field(("style", "holes", "threshold"), 0, float),
-    "crepuscular:holes:gridSize": _Field(("style", "holes", "grid_size"), 0, int),
-    "crepuscular:holes:seed": _Field(("style", "holes", "seed"), 0, int),
-    "crepuscular:holes:time": _Field(("style", "holes", "time"), 0, float),
-    "crepuscular:holes:speed": _Field(("style", "holes", "speed"), 0, float),
-    "crepuscular:holes:warp": _Field(("style", "holes", "warp"), 0, float),
-    # A point: converted with the full stage-to-renderer transform, not just the scale.
-    "crepuscular:holes:pivot": _Field(("style", "holes", "pivot"), 0, _vec3),
+    name: _Field(
+        attribute.target,
+        attribute.length_power,
+        _CONVERT_BY_NAME.get(name, _CONVERT_BY_TYPE[attribute.type_name]),
+        attribute.negative_unset,
+    )
+    for name, attribute in ATTRIBUTES.items()
+    if attribute.target
 }
 
 #: Every property the schema defines; tests check that the definition has exactly these.
-PROPERTY_NAMES = frozenset(FIELDS) | {MEDIUM_EXTENT, HOLES_OBJECTS, TF_ASSET, TF_JSON}
+PROPERTY_NAMES = frozenset(ATTRIBUTES) | {MEDIUM_EXTENT, HOLES_OBJECTS}
 
 
 @dataclass
@@ -138,6 +124,8 @@ class LightSettings:
     """What the schema on a light says at one time code, in renderer units."""
 
     medium: dict[str, Any]
+    #: What the schema adds to the light's own attributes: `intensity_scale`.
+    sun: dict[str, Any]
     render: dict[str, Any]
     style: dict[str, Any]
     #: Prim whose bounds make the medium's box, or None for an unbounded medium.
@@ -181,7 +169,7 @@ def read_light_settings(
     transform. Raises `SchemaError` naming the attribute for unusable values.
     """
     has_api = prim.HasAPI(API_NAME)
-    groups: dict[str, dict[str, Any]] = {"medium": {}, "render": {}, "style": {}}
+    groups: dict[str, dict[str, Any]] = {"medium": {}, "sun": {}, "render": {}, "style": {}}
     for name, spec in FIELDS.items():
         raw = _value(prim, name, time, has_api)
         try:
@@ -213,6 +201,7 @@ def read_light_settings(
         style["tf"] = tf
     return LightSettings(
         medium=groups["medium"],
+        sun=groups["sun"],
         render=groups["render"],
         style=style,
         extent_prim=_single_target(prim, MEDIUM_EXTENT) if has_api else None,

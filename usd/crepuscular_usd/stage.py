@@ -202,7 +202,7 @@ class StageReader:
             time=time,
             geometry=geometry,
             camera=self.camera(time),
-            sun=self.sun(time),
+            sun=self.sun(time, intensity_scale=light.sun["intensity_scale"]),
             medium=medium,
             settings=light.render,
             style=style,
@@ -283,7 +283,9 @@ class StageReader:
             "height": height,
         }
 
-    def sun(self, time: Usd.TimeCode) -> dict[str, Any]:
+    def sun(self, time: Usd.TimeCode, *, intensity_scale: float = 1.0) -> dict[str, Any]:
+        """Direction, colour, strength and angle of the light at `time`; `intensity_scale`
+        is the schema's `crepuscular:intensityScale`."""
         light = UsdLux.DistantLight(self.light_prim)
         where = str(self.light_prim.GetPath())
         matrix = UsdGeom.Xformable(self.light_prim).ComputeLocalToWorldTransform(time)
@@ -301,9 +303,11 @@ class StageReader:
         visible = (
             UsdGeom.Imageable(self.light_prim).ComputeVisibility(time) != UsdGeom.Tokens.invisible
         )
-        strength = intensity * 2.0**exposure if visible else 0.0
+        strength = intensity * 2.0**exposure * intensity_scale if visible else 0.0
         if not (math.isfinite(strength) and strength >= 0):
-            raise StageError(f"light {where}: intensity x 2^exposure is {strength}")
+            raise StageError(
+                f"light {where}: intensity x 2^exposure x crepuscular:intensityScale is {strength}"
+            )
         return {
             "direction": [float(v) for v in direction / norm],
             "color": [float(v) for v in color],

@@ -1,0 +1,519 @@
+"""Blender's USD export hook: every sun lamp with shafts leaves its settings on the stage.
+
+On `bpy.ops.wm.usd_export`, the hook applies `CrepuscularLightAPI` to the DistantLight of
+each sun with shafts and authors what the add-on would render with, so that
+`crepuscular-usd` renders the exported stage like `bpy.ops.crepuscular.render_layers`:
+
+- the values come from the add-on's own conversion to the core's scene description
+  (`export.medium_dict`, `export.settings_dict`, `style.style_from_light`), and are authored
+  under the names of the USD step's attribute table (`usd_attributes`, the USD package's
+  `crepuscular_usd/attributes.py`, which the build copies into the zip);
+- a fog object becomes the `crepuscular:mediumExtent` target: its exported mesh, or, when it
+  was not exported, a guide `Cube` with its box; objects that take holes become the
+  `crepuscular:holes:objects` targets;
+- lengths are converted to stage units with the exporter's own transform (units and up
+  axis), read off the light's prim; the transfer function is authored in metres, as the
+  USD step reads it;
+- `crepuscular:intensityScale` restores the sun's strength, which Blender's exporter writes
+  divided by 4, and `inputs:enableColorTemperature` is re-authored with the lamp's
+  Temperature checkbox, which Blender 5.0's exporter authors as true on every light;
+- an animated export gets time samples wherever a value changes over the frame range.
+
+Errors (a fog object that cannot be mapped, a setting the core refuses) are raised: Blender
+reports them and the export operator fails.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import bpy
+import numpy as np
+
+from . import export, render
+from .style import style_from_light
+from .usd_attributes import API_NAME, ATTRIBUTES, HOLES_OBJECTS, MEDIUM_EXTENT, TF_JSON
+
+#: The exporter's attribute holding an object's name (under its custom-property namespace).
+OBJECT_NAME = "blender:object_name"
+ENABLE_COLOR_TEMPERATURE = "inputs:enableColorTemperature"
+#: Name of the guide Cube that carries a fog box the exporter left out, per sun.
+MEDIUM_PRIM = "crepuscularMedium"
+#: Stage (Y up) to renderer (Z up) rotation, as the USD step turns a Y-up stage.
+Z_UP_FROM_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+class USDExportError(RuntimeError):
+    """The hook cannot author the stage; the message says which sun or object and why."""
+
+
+# Blender's own USD bindings -------------------------------------------------------------
+
+
+def _bundled_pxr() -> Path | None:
+    """The `pxr` package in Blender's Python folder, where it has one."""
+    python = Path(bpy.utils.system_resource("PYTHON"))
+    version = f"python{sys.version_info.major}.{sys.version_info.minor}"
+    for site in (python / "lib" / version / "site-packages", python / "lib" / "site-packages"):
+        if (site / "pxr" / "__init__.py").is_file():
+            return (site / "pxr").resolve()
+    return None
+
+
+def load_blender_pxr() -> bool:
+    """Makes Blender's own USD Python bindings the `pxr` that Python imports; False when
+    there are none. Called before the hook registers.
+
+    Blender imports `pxr` itself before it runs any USD hook, and only its own bindings can
+    take its stage; with none importable at all, Blender 5.0 aborts the whole process on
+    export. Blender's Python finds them on `sys.path`; the `bpy` module installed with pip
+    bundles them without putting them there (and may find usd-core instead), so they are
+    imported here from Blender's Python folder. A `pxr` imported before stays: the hook
+    then refuses to author, naming both.
+    """
+    if "pxr" in sys.modules:
+        return True
+    bundled = _bundled_pxr()
+    if bundled is None:
+        return importlib.util.find_spec("pxr") is not None
+    found = importlib.util.find_spec("pxr")
+    if found is not None and found.origin and Path(found.origin).resolve().parent == bundled:
+        return True
+    spec = importlib.util.spec_from_file_location(
+        "pxr", bundled / "__init__.py", submodule_search_locations=[str(bundled)]
+    )
+    if spec is None or spec.loader is None:
+        return False
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["pxr"] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules["pxr"]
+        raise
+    return True
+
+
+def check_blender_pxr() -> None:
+    """Raises when the imported `pxr` is not Blender's own, which cannot take its stage."""
+    bundled = _bundled_pxr()
+    loaded = sys.modules.get("pxr")
+    if bundled is None or loaded is None:
+        return
+    location = Path(loaded.__file__ or "").resolve().parent
+    if location != bundled:
+        raise USDExportError(
+            f"the pxr module in use comes from {location}, not from Blender's own USD "
+            f"({bundled}); Blender's stage cannot be handed to another USD build. Enable "
+            "the add-on before anything imports another pxr (such as usd-core)"
+        )
+
+
+# Matrices -------------------------------------------------------------------------------
+
+
+def _numpy(gf_matrix: Any) -> np.ndarray:
+    """A Gf.Matrix4d (row vectors) as a column-vector numpy matrix."""
+    return np.array(gf_matrix, dtype=np.float64).reshape(4, 4).T
+
+
+def _gf(matrix: np.ndarray) -> Any:
+    from pxr import Gf
+
+    return Gf.Matrix4d(np.asarray(matrix, dtype=np.float64).T.tolist())
+
+
+def _world(prim: Any, time: Any) -> np.ndarray:
+    from pxr import UsdGeom
+
+    if prim.IsPseudoRoot():
+        return np.eye(4)
+    return _numpy(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time))
+
+
+def stage_from_blender(light: Any, sun: bpy.types.Object, time: Any) -> np.ndarray:
+    """The exporter's transform from Blender's world to stage space (its unit scale and up
+    axis), read off a light it exported: the prim's world matrix over the object's."""
+    from pxr import UsdGeom
+
+    blender = np.array(sun.matrix_world, dtype=np.float64)
+    if abs(np.linalg.det(blender[:3, :3])) < 1e-12:
+        raise USDExportError(f"sun '{sun.name}': its matrix is singular (zero scale)")
+    transform = _world(light, time) @ np.linalg.inv(blender)
+    scale = abs(np.linalg.det(transform[:3, :3])) ** (1.0 / 3.0)
+    rotation = transform[:3, :3] / scale
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4):
+        raise USDExportError(
+            f"sun '{sun.name}': the exported light's transform is not Blender's times a "
+            "rotation and a uniform scale"
+        )
+    # The exporter writes transforms in single precision. Its own conversions are axis
+    # swaps and 1 / metersPerUnit: snap to those, so that constant values stay constant.
+    exact = 1.0 / UsdGeom.GetStageMetersPerUnit(light.GetStage())
+    if abs(scale / exact - 1.0) < 1e-5:
+        scale = exact
+    axes = np.round(rotation)
+    if np.allclose(rotation, axes, atol=1e-5):
+        rotation = axes
+    translation = transform[:3, 3]
+    if np.all(np.abs(translation) < 1e-5 * scale):
+        translation = np.zeros(3)
+    snapped = np.eye(4)
+    snapped[:3, :3], snapped[:3, 3] = rotation * scale, translation
+    return snapped
+
+
+def renderer_from_stage(stage: Any) -> np.ndarray:
+    """Stage space to the renderer's (Z up, metres), as the USD step converts a stage."""
+    from pxr import UsdGeom
+
+    matrix = np.eye(4)
+    if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y:
+        matrix[:3, :3] = Z_UP_FROM_Y_UP
+    return np.diag([UsdGeom.GetStageMetersPerUnit(stage)] * 3 + [1.0]) @ matrix
+
+
+# Exported prims -------------------------------------------------------------------------
+
+
+class ExportedPrims:
+    """The prims the exporter wrote for each Blender object, found by the object name it
+    authors on them (`userProperties:blender:object_name`), or by prim name when that was
+    switched off."""
+
+    def __init__(self, stage: Any) -> None:
+        from pxr import Tf
+
+        self._by_object: dict[str, list[Any]] = {}
+        self._by_name: dict[str, list[Any]] = {}
+        self._tf = Tf
+        for prim in stage.Traverse():
+            self._by_name.setdefault(prim.GetName(), []).append(prim)
+            for name in prim.GetAuthoredPropertyNames():
+                if name == OBJECT_NAME or name.endswith(":" + OBJECT_NAME):
+                    value = prim.GetAttribute(name).Get()
+                    if value:
+                        self._by_object.setdefault(str(value), []).append(prim)
+
+    def of(self, obj: bpy.types.Object) -> list[Any]:
+        """Prims of `obj`: its transform, or its data prim where the two were merged."""
+        if self._by_object:
+            return self._by_object.get(obj.name, [])
+        return self._by_name.get(self._tf.MakeValidIdentifier(obj.name), [])
+
+    def data(self, obj: bpy.types.Object, schema: Any) -> list[Any]:
+        """Prims of `schema` type written for `obj`: the object's prim or its children."""
+        found = []
+        for prim in self.of(obj):
+            candidates = [prim] if prim.IsA(schema) else list(prim.GetChildren())
+            found += [c for c in candidates if c.IsA(schema) and c not in found]
+        return found
+
+
+# Values ---------------------------------------------------------------------------------
+
+
+def _camel(token: str) -> str:
+    """A scene-description value as the schema's token: `henyey_greenstein` ->
+    `henyeyGreenstein`; one-word values stay as they are."""
+    head, *rest = token.split("_")
+    return head + "".join(part.capitalize() for part in rest)
+
+
+def _lookup(sections: dict[str, dict[str, Any]], target: tuple[str, ...]) -> Any:
+    section, *path = target
+    node = sections[section]
+    if section == "style" and path[-1] == "enable":
+        return path[0] in node
+    for key in path:
+        if not isinstance(node, dict) or key not in node:
+            return None
+        node = node[key]
+    return node
+
+
+def _tf_in_metres(tf: dict[str, Any], renderer_from_blender: np.ndarray) -> dict[str, Any]:
+    """The add-on's TF (scene units) as the USD step reads it: depths in metres, 3D
+    constraint points in the renderer's space."""
+    metres = abs(np.linalg.det(renderer_from_blender[:3, :3])) ** (1.0 / 3.0)
+    tf = json.loads(json.dumps(tf))
+    tf["depth_range"] = {k: v * metres for k, v in tf["depth_range"].items()}
+    for layer in tf["layers"]:
+        for constraint in layer.get("constraints", []):
+            point = constraint.get("world_point")
+            if point is not None:
+                moved = renderer_from_blender @ np.array([*point, 1.0])
+                constraint["world_point"] = [float(v) for v in moved[:3]]
+    return tf
+
+
+def light_values(
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph,
+    sun: bpy.types.Object,
+    light: Any,
+    time: Any,
+    stage_time: float,
+) -> dict[str, Any]:
+    """Every attribute the hook authors on `light` for the depsgraph's frame, as plain
+    Python values in stage units (None where the add-on has no value)."""
+    from pxr import UsdLux
+
+    stage = light.GetStage()
+    evaluated = sun.evaluated_get(depsgraph)
+    data = evaluated.data
+    settings = data.crepuscular
+    to_stage = stage_from_blender(light, evaluated, time)
+    scale = abs(np.linalg.det(to_stage[:3, :3])) ** (1.0 / 3.0)
+    fps = scene.render.fps / scene.render.fps_base
+    seconds = depsgraph.scene.frame_current / fps
+    name = f"bpy.data.lights['{data.original.name}']"
+    style = style_from_light(settings, time=seconds, hole_objects=[], name=name)
+    medium, _notes = export.medium_dict(scene, depsgraph)
+    lux = UsdLux.LightAPI(light)
+    exported = float(lux.GetIntensityAttr().Get(time)) * 2.0 ** float(
+        lux.GetExposureAttr().Get(time)
+    )
+    strength = export.sun_dict(evaluated)["strength"]
+    sections = {
+        "medium": medium,
+        "render": export.settings_dict(settings),
+        "style": style,
+        "sun": {"intensity_scale": strength / exported if exported > 0 else 1.0},
+    }
+    values: dict[str, Any] = {}
+    for attr_name, attribute in ATTRIBUTES.items():
+        if not attribute.target:
+            continue
+        value = _lookup(sections, attribute.target)
+        if attr_name == "crepuscular:holes:time" and "holes" in style:
+            # The USD step's time is time code / timeCodesPerSecond: make up the difference.
+            value = seconds - stage_time / stage.GetTimeCodesPerSecond()
+        if value is None:
+            continue
+        if attr_name == "crepuscular:holes:pivot":
+            value = (to_stage @ np.array([*value, 1.0]))[:3]
+        elif attribute.length_power:
+            value = value * scale**attribute.length_power
+        if attribute.type_name in ("color3f", "point3f"):
+            value = tuple(float(v) for v in value)
+        elif attribute.type_name == "token":
+            value = _camel(str(value))
+        values[attr_name] = value
+    tf = style.get("tf")
+    values[TF_JSON] = (
+        json.dumps(_tf_in_metres(tf, renderer_from_stage(stage) @ to_stage), sort_keys=True)
+        if tf is not None
+        else ""
+    )
+    values[ENABLE_COLOR_TEMPERATURE] = bool(data.use_temperature)
+    return values
+
+
+def medium_box(
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph,
+    parent: Any,
+    to_stage: np.ndarray,
+    time: Any,
+) -> Any:
+    """The fog box as the local matrix (Gf) of a guide Cube under `parent`: the cube
+    [-1, 1]^3 mapped as the add-on maps it, in stage space."""
+    medium, _notes = export.medium_dict(scene, depsgraph)
+    world_from_cube = np.array(medium["extent"]["world_from_cube"], dtype=np.float64)
+    local = np.linalg.inv(_world(parent, time)) @ to_stage @ world_from_cube.reshape(4, 4).T
+    return _gf(local)
+
+
+# Authoring ------------------------------------------------------------------------------
+
+
+class _Samples:
+    """Values per time code, authored as one default when they never change."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, list[tuple[Any, Any]]] = {}
+
+    def add(self, name: str, time: Any, value: Any) -> None:
+        self.values.setdefault(name, []).append((time, value))
+
+    def author(
+        self, attribute: Any, name: str, convert: Callable[[Any], Any] = lambda v: v
+    ) -> None:
+        samples = self.values.get(name, [])
+        if not samples:
+            return
+        first = samples[0][1]
+        if len(samples) == 1 or all(value == first for _, value in samples):
+            ok = attribute.Set(convert(first))
+        else:
+            ok = all(attribute.Set(convert(value), time) for time, value in samples)
+        if not ok:
+            raise USDExportError(f"could not author {attribute.GetPath()}")
+
+
+def _value(type_name: str, value: Any) -> Any:
+    from pxr import Gf, Sdf
+
+    if type_name in ("color3f", "point3f"):
+        return Gf.Vec3f(*value)
+    if type_name == "asset":
+        return Sdf.AssetPath(value)
+    return value
+
+
+class _SunRecord:
+    """What the hook writes for one sun: its light prims and the values per frame."""
+
+    def __init__(self, sun: bpy.types.Object, lights: list[Any], fog: list[Any]) -> None:
+        self.sun = sun
+        self.lights = lights
+        #: The exported mesh prim of the fog object, when there is exactly one.
+        self.fog = fog[0] if len(fog) == 1 else None
+        self.samples = _Samples()
+        #: The fog box's matrix per frame, for a guide Cube when the fog was not exported.
+        self.box = _Samples()
+
+
+def _frames(stage: Any) -> list[int] | None:
+    """The frames of an animated export, or None for a still one."""
+    if not stage.HasAuthoredTimeCodeRange():
+        return None
+    start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
+    return list(range(math.floor(start), math.ceil(end) + 1))
+
+
+def author_shaft_settings(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
+    """Applies CrepuscularLightAPI to the DistantLight of every exported sun with shafts
+    and authors its settings; returns the light prim paths. Suns that were not exported
+    are named in the log."""
+    from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
+
+    scene = depsgraph.scene
+    prims = ExportedPrims(stage)
+    settings = scene.crepuscular
+    fog = settings.fog_object if settings.medium_source == "fog_object" else None
+    records = []
+    for sun in export.shaft_suns(scene):
+        lights = prims.data(sun, UsdLux.DistantLight)
+        if not lights:
+            render.log(f"USD export: sun '{sun.name}' has no DistantLight on the stage")
+            continue
+        fog_prims = prims.data(fog, UsdGeom.Mesh) if fog is not None else []
+        records.append(_SunRecord(sun, lights, fog_prims))
+    if not records:
+        return []
+    default = stage.GetDefaultPrim()
+    parent = default if default else stage.GetPseudoRoot()
+    frames = _frames(stage)
+    original = scene.frame_current
+    try:
+        for frame in frames or [None]:
+            if frame is not None:
+                scene.frame_current = frame
+                depsgraph.update()
+            time = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
+            stage_time = stage.GetStartTimeCode() if frame is None else float(frame)
+            for record in records:
+                for light in record.lights:
+                    values = light_values(scene, depsgraph, record.sun, light, time, stage_time)
+                    for name, value in values.items():
+                        record.samples.add(name, time, value)
+                if fog is not None and record.fog is None:
+                    to_stage = stage_from_blender(
+                        record.lights[0], record.sun.evaluated_get(depsgraph), time
+                    )
+                    box = medium_box(scene, depsgraph, parent, to_stage, time)
+                    record.box.add("transform", time, box)
+    finally:
+        if frames is not None:
+            scene.frame_current = original
+            depsgraph.update()
+
+    authored = []
+    holes = [
+        prim.GetPath()
+        for obj in scene.objects
+        if obj.crepuscular.takes_holes
+        for prim in prims.of(obj)
+    ]
+    for record in records:
+        extent: Sdf.Path | None = None
+        if record.fog is not None:
+            extent = record.fog.GetPath()
+        elif record.box.values:
+            name = Tf.MakeValidIdentifier(f"{MEDIUM_PRIM}_{record.sun.name}")
+            cube = UsdGeom.Cube.Define(stage, parent.GetPath().AppendChild(name))
+            cube.CreateSizeAttr(2.0)
+            # A guide: renderers leave it out, the USD step reads its box.
+            cube.CreatePurposeAttr(UsdGeom.Tokens.guide)
+            op = UsdGeom.Xformable(cube).AddTransformOp()
+            record.box.author(op.GetAttr(), "transform")
+            extent = cube.GetPath()
+        for light in record.lights:
+            if not light.AddAppliedSchema(API_NAME):
+                raise USDExportError(f"could not apply {API_NAME} to {light.GetPath()}")
+            for name in record.samples.values:
+                if name == ENABLE_COLOR_TEMPERATURE:
+                    attribute = UsdLux.LightAPI(light).CreateEnableColorTemperatureAttr()
+                    attribute.Clear()  # Blender's own (wrong) value, time samples included
+                    record.samples.author(attribute, name)
+                else:
+                    type_name = ATTRIBUTES[name].type_name
+                    attribute = light.CreateAttribute(
+                        name, Sdf.ValueTypeNames.Find(type_name), custom=False
+                    )
+                    record.samples.author(attribute, name, lambda v, t=type_name: _value(t, v))
+            light.CreateRelationship(MEDIUM_EXTENT, custom=False).SetTargets(
+                [extent] if extent is not None else []
+            )
+            light.CreateRelationship(HOLES_OBJECTS, custom=False).SetTargets(holes)
+            authored.append(str(light.GetPath()))
+    return authored
+
+
+class CREPUSCULAR_USDHook(bpy.types.USDHook):
+    """Applies CrepuscularLightAPI to sun lamps with shafts on USD export"""
+
+    bl_idname = "crepuscular"
+    bl_label = "Crepuscular Light Shafts"
+    bl_description = (
+        "Applies CrepuscularLightAPI to the DistantLight of every sun lamp with shafts and "
+        "authors its medium, method, quality and style, for the crepuscular-usd step"
+    )
+
+    @staticmethod
+    def on_export(export_context: Any) -> bool:
+        depsgraph = export_context.get_depsgraph()
+        if not export.shaft_suns(depsgraph.scene):
+            return True
+        check_blender_pxr()
+        paths = author_shaft_settings(export_context.get_stage(), depsgraph)
+        if paths:
+            render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
+        return True
+
+
+CLASSES = (CREPUSCULAR_USDHook,)
+
+
+def register() -> None:
+    if not load_blender_pxr():
+        # A hook without importable USD bindings would abort every USD export.
+        render.log("Blender's USD Python bindings are missing: the USD export hook is off")
+        return
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    # Blender's pxr stays imported: its compiled modules cannot be loaded twice.
+    for cls in reversed(CLASSES):
+        if cls.is_registered:
+            bpy.utils.unregister_class(cls)

@@ -1,0 +1,198 @@
+"""Round trip from Blender: a bpy scene exported with Blender's own USD exporter, its shaft
+settings authored by the add-on's export hook, rendered by `crepuscular-usd`, against the
+add-on's `render_layers` output of the same frame.
+
+Blender runs in a subprocess (blender_job.py): only Blender's own USD bindings can take its
+stage, and this process holds usd-core's for the USD step.
+
+Tolerance. Both sides run the same core on the same triangles, camera, sun, medium, settings
+and style; what differs is the path: Blender's exporter writes transforms, points and light
+values in single precision, and the reader composes them again in double. So the layers may
+differ by float32 rounding (about 1e-7 relative; measured: at most 6e-7 mean relative error
+per layer, 8e-6 scene units of depth), and by a shadow-map texel that such rounding flips at
+an edge. The bounds, a mean relative error of 1e-4 per layer and 1e-3 scene units of depth
+per pixel, leave room for that and for other machines' rounding, and stay orders of
+magnitude below any real mismatch: the sun's exposure of 0.5 stop is 41 %, Blender's
+strength / 4 is 75 %, its 6500 K tint is 4 % in red and blue, a camera shift in the wrong
+units moves depth edges by whole pixels.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+import crepuscular
+
+bpy = pytest.importorskip("bpy")
+pxr = pytest.importorskip("pxr")
+
+import blender_scenes  # noqa: E402
+from pxr import Sdf, Usd, UsdGeom, UsdLux  # noqa: E402
+
+from crepuscular_usd.attributes import ATTRIBUTES  # noqa: E402
+from crepuscular_usd.cli import main  # noqa: E402
+from crepuscular_usd.schema import API_NAME  # noqa: E402
+
+WIDTH, HEIGHT = 96, 54
+LAYERS = ("volume.R", "volume.G", "volume.B", "volume.A", "visibility")
+MEAN_RELATIVE = 1e-4
+DEPTH_ABSOLUTE = 1e-3
+
+
+def _render(stage: Path, out: str, *frames: str) -> None:
+    args = ["render", str(stage), "--out", out, "--width", str(WIDTH), "--height", str(HEIGHT)]
+    status = main([*args, *frames, "--quiet"])
+    assert status == 0
+
+
+def _errors(blender: Path, usd: Path) -> dict[str, float]:
+    """Mean relative error per layer, and the largest depth difference (scene units)."""
+    ours, theirs = crepuscular.read_exr(blender), crepuscular.read_exr(usd)
+    assert sorted(ours) == sorted(theirs)
+    errors = {
+        name: float(np.abs(ours[name] - theirs[name]).mean() / np.abs(ours[name]).mean())
+        for name in (*LAYERS, "depth")
+    }
+    errors["depth max"] = float(np.abs(ours["depth"] - theirs["depth"]).max())
+    return errors
+
+
+def _assert_close(errors: dict[str, float], label: str) -> None:
+    print(label, ", ".join(f"{name} {value:.2g}" for name, value in errors.items()))
+    for name in (*LAYERS, "depth"):
+        assert errors[name] <= MEAN_RELATIVE, (label, name, errors)
+    assert errors["depth max"] <= DEPTH_ABSOLUTE, (label, errors)
+
+
+@pytest.fixture(scope="module")
+def still(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("round_trip_still")
+    blender_scenes.run_job(out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def animated(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("round_trip_animated")
+    blender_scenes.run_job(out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=True)
+    return out
+
+
+def test_layers_match_the_addons(still: Path) -> None:
+    """Blender's default export options (Z up, metres, polygons as they are), rendered at
+    the stage's own time, which the hook makes the Blender frame's."""
+    blender = crepuscular.read_exr(still / "blender.0001.exr")
+    # Not a vacuous comparison: the fog box, the slats' shadows and the styled light.
+    assert 0.2 < blender["volume.A"].mean() < 0.9
+    assert 0.05 < blender["visibility"].mean() < 0.95
+    assert blender["volume.R"].max() > 0.01
+    _render(still / "shot.usda", str(still / "usd.exr"))
+    _assert_close(_errors(still / "blender.0001.exr", still / "usd.exr"), "Z up, metres:")
+
+
+def test_y_up_centimetre_export_renders_the_same(still: Path) -> None:
+    stage = Usd.Stage.Open(str(still / "shot_y_up_cm.usda"))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert UsdGeom.GetStageMetersPerUnit(stage) == pytest.approx(0.01)
+    light = stage.GetPrimAtPath("/root/Sun/Sun")
+    # Lengths in stage units: the add-on's 0.3 m closing radius and 0.12 per metre.
+    assert light.GetAttribute("crepuscular:closing:radius").Get() == pytest.approx(30.0)
+    assert light.GetAttribute("crepuscular:medium:extinction").Get() == pytest.approx(0.0012)
+    _render(still / "shot_y_up_cm.usda", str(still / "usd_y_up_cm.exr"))
+    errors = _errors(still / "blender.0001.exr", still / "usd_y_up_cm.exr")
+    _assert_close(errors, "Y up, centimetres:")
+
+
+def test_animated_export_renders_every_frame(animated: Path) -> None:
+    """Camera, lens, sun and closing radius keyed over three frames; the fog box is hidden
+    from renders, so the exporter leaves it out and the hook authors its box."""
+    _render(animated / "shot.usda", str(animated / "usd.####.exr"), "--frames", "1-3")
+    for frame in (1, 2, 3):
+        errors = _errors(animated / f"blender.{frame:04d}.exr", animated / f"usd.{frame:04d}.exr")
+        _assert_close(errors, f"frame {frame}:")
+    first = crepuscular.read_exr(animated / "blender.0001.exr")
+    last = crepuscular.read_exr(animated / "blender.0003.exr")
+    assert np.abs(first["depth"] - last["depth"]).max() > 0.1  # the camera moved
+
+
+def _light(stage: Usd.Stage) -> Usd.Prim:
+    lights = [p for p in stage.Traverse() if p.IsA(UsdLux.DistantLight)]
+    assert len(lights) == 1
+    return lights[0]
+
+
+def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
+    definition = Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(API_NAME)
+    stage = Usd.Stage.Open(str(still / "shot.usda"))
+    light = _light(stage)
+    assert light.HasAPI(API_NAME)
+    authored = [p for p in light.GetAuthoredPropertyNames() if p.startswith("crepuscular:")]
+    assert "crepuscular:method" in authored
+    for name in authored:
+        assert name in definition.GetPropertyNames(), name
+        if name in ATTRIBUTES:
+            expected = definition.GetAttributeDefinition(name).GetTypeName()
+            assert light.GetAttribute(name).GetTypeName() == expected, name
+    # The exported fog mesh is the medium's box; the slat that takes holes gets them.
+    extent = light.GetRelationship("crepuscular:mediumExtent").GetTargets()
+    assert extent == [Sdf.Path("/root/Fog/Fog")]
+    holes = light.GetRelationship("crepuscular:holes:objects").GetTargets()
+    assert holes == [Sdf.Path("/root/slat_1")]
+    values = {name: light.GetAttribute(name).Get() for name in authored}
+    assert values["crepuscular:method"] == "minmax"
+    assert values["crepuscular:supersampling"] == 2  # the add-on's edge samples
+    assert values["crepuscular:intensityScale"] == pytest.approx(4.0)
+    # Blender writes the lamp's Temperature checkbox as true; the hook writes its value.
+    lux = UsdLux.LightAPI(light)
+    assert lux.GetEnableColorTemperatureAttr().Get() is False
+    assert lux.GetIntensityAttr().Get() == pytest.approx(2.5 / 4)  # Blender's own, untouched
+    # Animated: keyed values are time-sampled, constant ones are not; the fog box, left
+    # out of the export, becomes a guide Cube.
+    stage = Usd.Stage.Open(str(animated / "shot.usda"))
+    light = _light(stage)
+    radius = light.GetAttribute("crepuscular:closing:radius")
+    assert radius.GetTimeSamples() == [1.0, 2.0, 3.0]
+    assert radius.Get(Usd.TimeCode(2)) == pytest.approx(0.4)
+    assert light.GetAttribute("crepuscular:medium:extinction").GetNumTimeSamples() == 0
+    (cube_path,) = light.GetRelationship("crepuscular:mediumExtent").GetTargets()
+    cube = stage.GetPrimAtPath(cube_path)
+    assert cube.IsA(UsdGeom.Cube)
+    assert UsdGeom.Imageable(cube).ComputePurpose() == UsdGeom.Tokens.guide
+
+
+def test_hook_names_are_the_usd_steps(installed: ModuleType) -> None:
+    """The hook's attribute table is the USD package's own file, shipped in the zip."""
+    shipped = Path(installed.__file__).parent / "usd_attributes.py"
+    source = blender_scenes.ROOT / "usd" / "crepuscular_usd" / "attributes.py"
+    assert shipped.read_bytes() == source.read_bytes()
+    assert installed.usd_hook.ATTRIBUTES.keys() == ATTRIBUTES.keys()
+
+
+def _scene_with_a_sun(shafts: bool) -> Any:
+    scene = bpy.context.scene
+    blender_scenes.add_camera(scene, blender_scenes.look_at((0, -10, 3), (0, 0, 1)))
+    blender_scenes.add_sun(scene, (0.2, 0.3, -1.0), enabled=shafts)
+    return scene
+
+
+def test_export_without_shafts_is_left_alone(addon: ModuleType, tmp_path: Path) -> None:
+    _scene_with_a_sun(shafts=False)
+    path = tmp_path / "plain.usda"
+    assert bpy.ops.wm.usd_export(filepath=str(path)) == {"FINISHED"}
+    assert not _light(Usd.Stage.Open(str(path))).HasAPI(API_NAME)
+
+
+def test_a_foreign_pxr_is_refused_by_name(
+    addon: ModuleType, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """This process imported usd-core's pxr first: Blender's stage cannot reach the hook,
+    and the export fails with a message saying so, instead of crashing."""
+    _scene_with_a_sun(shafts=True)
+    with pytest.raises(RuntimeError, match="USD hook"):
+        bpy.ops.wm.usd_export(filepath=str(tmp_path / "shot.usda"))
+    assert "not from Blender's own USD" in capfd.readouterr().err
