@@ -197,6 +197,10 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
     return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
 }
 
+// Relative spread of a pixel's depth samples below which no edge runs through it
+// (render.rs: EDGE_DEPTH_SPREAD).
+const float EDGE_DEPTH_SPREAD = 0.02;
+
 // What one depth sample contributes; defined by the shader that includes this file.
 vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end);
 
@@ -213,6 +217,48 @@ void shade_output_pixel() {
     float alpha = 0.0;
     float visibility = 0.0;
     float depth_sum = 0.0;
+    if (ss > 1u) {
+        // Shaded once at the centre, like MSAA, where no depth edge runs through the pixel
+        // (render.rs: uniform_surface).
+        float low = 1e30;
+        float high = 0.0;
+        float sum = 0.0;
+        bool all_background = true;
+        bool any_background = false;
+        for (uint sy = 0; sy < ss; ++sy) {
+            for (uint sx = 0; sx < ss; ++sx) {
+                float surface = surfaces[(full_y * ss + sy) * sample_width + full_x * ss + sx];
+                bool background = surface < 0.0;
+                all_background = all_background && background;
+                any_background = any_background || background;
+                if (!background) {
+                    low = min(low, surface);
+                    high = max(high, surface);
+                    sum += surface;
+                }
+            }
+        }
+        float spp = float(ss * ss);
+        bool uniform_depth = all_background
+            || (!any_background && high <= low * (1.0 + EDGE_DEPTH_SPREAD));
+        if (uniform_depth) {
+            float surface = all_background ? p.max_distance : sum / spp;
+            vec2 pixel = vec2(float(full_x), float(full_y)) + 0.5;
+            vec3 origin_cam = p.origin0.xyz + pixel.x * p.origin_dx.xyz + pixel.y * p.origin_dy.xyz;
+            vec3 dir_cam = p.dir0.xyz + pixel.x * p.dir_dx.xyz + pixel.y * p.dir_dy.xyz;
+            float distance_per_depth = length(dir_cam);
+            vec3 origin = (p.world_from_camera * vec4(origin_cam, 1.0)).xyz;
+            vec3 direction = normalize(mat3(p.world_from_camera) * dir_cam);
+            float t_start = p.clip_start * distance_per_depth;
+            float t_end = min(surface, p.max_distance);
+            vec3 s = shade_sample(pixel, origin, direction, t_start, t_end);
+            uint index = id.y * p.width + id.x;
+            volume_out[index] = vec4(p.tint.rgb * (s.x * phase(direction)), s.y);
+            visibility_out[index] = s.z;
+            depth_out[index] = surface;
+            return;
+        }
+    }
     for (uint sy = 0; sy < ss; ++sy) {
         for (uint sx = 0; sx < ss; ++sx) {
             float surface = surfaces[(full_y * ss + sy) * sample_width + full_x * ss + sx];

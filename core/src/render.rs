@@ -402,9 +402,33 @@ impl SurfaceDistances {
     }
 }
 
+/// Relative spread of a pixel's depth samples below which no edge runs through it.
+pub const EDGE_DEPTH_SPREAD: f64 = 0.02;
+
+/// The mean of a pixel's depth samples when they agree (all background, +∞, or all
+/// surfaces within [`EDGE_DEPTH_SPREAD`] of each other); `None` at a depth edge.
+pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
+    let (mut low, mut high, mut sum, mut count) = (f64::INFINITY, 0.0f64, 0.0, 0);
+    for depth in depths {
+        let depth = depth as f64;
+        (low, high) = (low.min(depth), high.max(depth));
+        sum += depth;
+        count += 1;
+    }
+    if count == 0 {
+        return None;
+    }
+    if low.is_infinite() {
+        return Some(f64::INFINITY);
+    }
+    (high <= low * (1.0 + EDGE_DEPTH_SPREAD)).then(|| sum / count as f64)
+}
+
 /// Runs `shade(pixel, ray, t_start, t_end)` for every depth sample (`pixel` is its
-/// continuous image position), averaging samples into
-/// pixels, in parallel over rows. Each pixel depends only on its own inputs, so the
+/// continuous image position), averaging samples into pixels, in parallel over rows.
+/// With supersampling, a pixel whose depth samples agree ([`uniform_surface`]) is shaded
+/// once at its centre, as MSAA shades once per pixel: only pixels at depth edges pay for
+/// every sample. Each pixel depends only on its own inputs, so the
 /// output is bit-identical for any thread count.
 pub(crate) fn shade_pixels(
     camera: &CameraModel,
@@ -447,6 +471,38 @@ pub(crate) fn shade_pixels(
                         let full_x = sample_pixel(x as u32, stride, camera.width) as usize;
                         let mut sum = PixelSample::default();
                         let mut depth_sum = 0.0;
+                        let surface_at = |sx: usize, sy: usize| {
+                            let sample_row = full_y * ss as usize + sy;
+                            surfaces.distances
+                                [sample_row * sample_width + full_x * ss as usize + sx]
+                        };
+                        if ss > 1 {
+                            let depths = (0..ss as usize)
+                                .flat_map(|sy| (0..ss as usize).map(move |sx| (sx, sy)))
+                                .map(|(sx, sy)| surface_at(sx, sy));
+                            if let Some(surface) = uniform_surface(depths) {
+                                // Shaded once, like MSAA: no edge runs through the pixel.
+                                let pixel = [full_x as f64 + 0.5, full_y as f64 + 0.5];
+                                let ray = camera.ray(pixel[0], pixel[1]);
+                                let t_start = camera.clip_start * ray.distance_per_depth;
+                                let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
+                                let radiance = sample.radiance;
+                                let i = row * width + x;
+                                volume[i * 4..i * 4 + 4].copy_from_slice(&[
+                                    radiance.x as f32,
+                                    radiance.y as f32,
+                                    radiance.z as f32,
+                                    sample.alpha as f32,
+                                ]);
+                                visibility[i] = sample.visibility as f32;
+                                depth[i] = if surface.is_finite() {
+                                    surface as f32
+                                } else {
+                                    max_distance as f32
+                                };
+                                continue;
+                            }
+                        }
                         for sy in 0..ss as usize {
                             for sx in 0..ss as usize {
                                 let sample_row = full_y * ss as usize + sy;
