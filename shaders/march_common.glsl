@@ -204,6 +204,24 @@ const float EDGE_DEPTH_SPREAD = 0.02;
 // What one depth sample contributes; defined by the shader that includes this file.
 vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end);
 
+// Adds one depth sample at `pixel` to a pixel's sums; `surface` < 0 is background.
+void add_sample(vec2 pixel, float surface, inout vec3 radiance, inout float alpha,
+                inout float visibility, inout float depth_sum) {
+    bool background = surface < 0.0;
+    vec3 origin_cam = p.origin0.xyz + pixel.x * p.origin_dx.xyz + pixel.y * p.origin_dy.xyz;
+    vec3 dir_cam = p.dir0.xyz + pixel.x * p.dir_dx.xyz + pixel.y * p.dir_dy.xyz;
+    float distance_per_depth = length(dir_cam);
+    vec3 origin = (p.world_from_camera * vec4(origin_cam, 1.0)).xyz;
+    vec3 direction = normalize(mat3(p.world_from_camera) * dir_cam);
+    float t_start = p.clip_start * distance_per_depth;
+    float t_end = background ? p.max_distance : min(surface, p.max_distance);
+    vec3 s = shade_sample(pixel, origin, direction, t_start, t_end);
+    radiance += p.tint.rgb * (s.x * phase(direction));
+    alpha += s.y;
+    visibility += s.z;
+    depth_sum += background ? p.max_distance : surface;
+}
+
 void shade_output_pixel() {
     uvec2 id = gl_GlobalInvocationID.xy;
     if (id.x >= p.width || id.y >= p.height) {
@@ -217,6 +235,8 @@ void shade_output_pixel() {
     float alpha = 0.0;
     float visibility = 0.0;
     float depth_sum = 0.0;
+    float spp = float(ss * ss);
+    bool uniform_depth = false;
     if (ss > 1u) {
         // Shaded once at the centre, like MSAA, where no depth edge runs through the pixel
         // (render.rs: uniform_surface).
@@ -238,49 +258,27 @@ void shade_output_pixel() {
                 }
             }
         }
-        float spp = float(ss * ss);
-        bool uniform_depth = all_background
+        uniform_depth = all_background
             || (!any_background && high <= low * (1.0 + EDGE_DEPTH_SPREAD));
         if (uniform_depth) {
-            float surface = all_background ? p.max_distance : sum / spp;
-            vec2 pixel = vec2(float(full_x), float(full_y)) + 0.5;
-            vec3 origin_cam = p.origin0.xyz + pixel.x * p.origin_dx.xyz + pixel.y * p.origin_dy.xyz;
-            vec3 dir_cam = p.dir0.xyz + pixel.x * p.dir_dx.xyz + pixel.y * p.dir_dy.xyz;
-            float distance_per_depth = length(dir_cam);
-            vec3 origin = (p.world_from_camera * vec4(origin_cam, 1.0)).xyz;
-            vec3 direction = normalize(mat3(p.world_from_camera) * dir_cam);
-            float t_start = p.clip_start * distance_per_depth;
-            float t_end = min(surface, p.max_distance);
-            vec3 s = shade_sample(pixel, origin, direction, t_start, t_end);
-            uint index = id.y * p.width + id.x;
-            volume_out[index] = vec4(p.tint.rgb * (s.x * phase(direction)), s.y);
-            visibility_out[index] = s.z;
-            depth_out[index] = surface;
-            return;
+            vec2 centre = vec2(float(full_x), float(full_y)) + 0.5;
+            float surface = all_background ? -1.0 : sum / spp;
+            add_sample(centre, surface, radiance, alpha, visibility, depth_sum);
         }
     }
-    for (uint sy = 0; sy < ss; ++sy) {
-        for (uint sx = 0; sx < ss; ++sx) {
-            float surface = surfaces[(full_y * ss + sy) * sample_width + full_x * ss + sx];
-            bool background = surface < 0.0;
-            vec2 pixel = vec2(float(full_x), float(full_y)) + (vec2(float(sx), float(sy)) + 0.5) / float(ss);
-            vec3 origin_cam = p.origin0.xyz + pixel.x * p.origin_dx.xyz + pixel.y * p.origin_dy.xyz;
-            vec3 dir_cam = p.dir0.xyz + pixel.x * p.dir_dx.xyz + pixel.y * p.dir_dy.xyz;
-            float distance_per_depth = length(dir_cam);
-            vec3 origin = (p.world_from_camera * vec4(origin_cam, 1.0)).xyz;
-            vec3 direction = normalize(mat3(p.world_from_camera) * dir_cam);
-            float t_start = p.clip_start * distance_per_depth;
-            float t_end = background ? p.max_distance : min(surface, p.max_distance);
-            vec3 s = shade_sample(pixel, origin, direction, t_start, t_end);
-            radiance += p.tint.rgb * (s.x * phase(direction));
-            alpha += s.y;
-            visibility += s.z;
-            depth_sum += background ? p.max_distance : surface;
+    if (!uniform_depth) {
+        for (uint sy = 0; sy < ss; ++sy) {
+            for (uint sx = 0; sx < ss; ++sx) {
+                float surface = surfaces[(full_y * ss + sy) * sample_width + full_x * ss + sx];
+                vec2 pixel = vec2(float(full_x), float(full_y))
+                    + (vec2(float(sx), float(sy)) + 0.5) / float(ss);
+                add_sample(pixel, surface, radiance, alpha, visibility, depth_sum);
+            }
         }
     }
-    float spp = float(ss * ss);
+    float count = uniform_depth ? 1.0 : spp;
     uint index = id.y * p.width + id.x;
-    volume_out[index] = vec4(radiance / spp, alpha / spp);
-    visibility_out[index] = visibility / spp;
-    depth_out[index] = depth_sum / spp;
+    volume_out[index] = vec4(radiance / count, alpha / count);
+    visibility_out[index] = visibility / count;
+    depth_out[index] = depth_sum / count;
 }

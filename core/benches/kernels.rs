@@ -23,11 +23,7 @@ fn rasterization(c: &mut Criterion) {
         group.bench_with_input(
             BenchmarkId::new("shadow_map_1024", name),
             &geometry,
-            |b, g| {
-                b.iter(|| {
-                    ShadowMap::build(&camera, &scene.sun, &scene.medium, &scene.render, &g.view())
-                })
-            },
+            |b, g| b.iter(|| ShadowMap::of_scene_geometry(&scene, &camera, g)),
         );
         let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
         let pixel_from_world = camera.pixel_from_world();

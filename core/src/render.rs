@@ -451,6 +451,18 @@ pub(crate) fn shade_pixels(
     // Bands of TILE rows shaded tile by tile: neighbouring pixels share epipolar slices,
     // so a tile's rectified data stays in cache, where a whole image row would not.
     const TILE: usize = 16;
+    // One depth sample's shading, and its depth for the depth layer.
+    let shade_at = |pixel: [f64; 2], surface: f64| {
+        let ray = camera.ray(pixel[0], pixel[1]);
+        let t_start = camera.clip_start * ray.distance_per_depth;
+        let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
+        let depth = if surface.is_finite() {
+            surface
+        } else {
+            max_distance
+        };
+        (sample, depth)
+    };
     layers
         .volume
         .par_chunks_mut(TILE * width * 4)
@@ -469,73 +481,57 @@ pub(crate) fn shade_pixels(
                     let full_y = sample_pixel(y as u32, stride, camera.height) as usize;
                     for x in tile_x..(tile_x + TILE).min(width) {
                         let full_x = sample_pixel(x as u32, stride, camera.width) as usize;
-                        let mut sum = PixelSample::default();
-                        let mut depth_sum = 0.0;
                         let surface_at = |sx: usize, sy: usize| {
                             let sample_row = full_y * ss as usize + sy;
                             surfaces.distances
                                 [sample_row * sample_width + full_x * ss as usize + sx]
                         };
-                        if ss > 1 {
-                            let depths = (0..ss as usize)
-                                .flat_map(|sy| (0..ss as usize).map(move |sx| (sx, sy)))
-                                .map(|(sx, sy)| surface_at(sx, sy));
-                            if let Some(surface) = uniform_surface(depths) {
-                                // Shaded once, like MSAA: no edge runs through the pixel.
-                                let pixel = [full_x as f64 + 0.5, full_y as f64 + 0.5];
-                                let ray = camera.ray(pixel[0], pixel[1]);
-                                let t_start = camera.clip_start * ray.distance_per_depth;
-                                let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
-                                let radiance = sample.radiance;
-                                let i = row * width + x;
-                                volume[i * 4..i * 4 + 4].copy_from_slice(&[
-                                    radiance.x as f32,
-                                    radiance.y as f32,
-                                    radiance.z as f32,
-                                    sample.alpha as f32,
-                                ]);
-                                visibility[i] = sample.visibility as f32;
-                                depth[i] = if surface.is_finite() {
-                                    surface as f32
-                                } else {
-                                    max_distance as f32
-                                };
-                                continue;
+                        let uniform = if ss > 1 {
+                            uniform_surface(
+                                (0..ss as usize)
+                                    .flat_map(|sy| (0..ss as usize).map(move |sx| (sx, sy)))
+                                    .map(|(sx, sy)| surface_at(sx, sy)),
+                            )
+                        } else {
+                            None
+                        };
+                        let (sum, depth_sum, count) = match uniform {
+                            // Shaded once, like MSAA: no edge runs through the pixel.
+                            Some(surface) => {
+                                let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
+                                let (sample, depth) = shade_at(centre, surface);
+                                (sample, depth, 1.0)
                             }
-                        }
-                        for sy in 0..ss as usize {
-                            for sx in 0..ss as usize {
-                                let sample_row = full_y * ss as usize + sy;
-                                let column = full_x * ss as usize + sx;
-                                let surface =
-                                    surfaces.distances[sample_row * sample_width + column] as f64;
-                                let pixel = [
-                                    full_x as f64 + (sx as f64 + 0.5) / ss as f64,
-                                    full_y as f64 + (sy as f64 + 0.5) / ss as f64,
-                                ];
-                                let ray = camera.ray(pixel[0], pixel[1]);
-                                let t_start = camera.clip_start * ray.distance_per_depth;
-                                let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
-                                sum.radiance += sample.radiance;
-                                sum.alpha += sample.alpha;
-                                sum.visibility += sample.visibility;
-                                depth_sum += if surface.is_finite() {
-                                    surface
-                                } else {
-                                    max_distance
-                                };
+                            None => {
+                                let mut sum = PixelSample::default();
+                                let mut depth_sum = 0.0;
+                                for sy in 0..ss as usize {
+                                    for sx in 0..ss as usize {
+                                        let pixel = [
+                                            full_x as f64 + (sx as f64 + 0.5) / ss as f64,
+                                            full_y as f64 + (sy as f64 + 0.5) / ss as f64,
+                                        ];
+                                        let (sample, depth) =
+                                            shade_at(pixel, surface_at(sx, sy) as f64);
+                                        sum.radiance += sample.radiance;
+                                        sum.alpha += sample.alpha;
+                                        sum.visibility += sample.visibility;
+                                        depth_sum += depth;
+                                    }
+                                }
+                                (sum, depth_sum, samples_per_pixel)
                             }
-                        }
-                        let radiance = sum.radiance / samples_per_pixel;
+                        };
+                        let radiance = sum.radiance / count;
                         let i = row * width + x;
                         volume[i * 4..i * 4 + 4].copy_from_slice(&[
                             radiance.x as f32,
                             radiance.y as f32,
                             radiance.z as f32,
-                            (sum.alpha / samples_per_pixel) as f32,
+                            (sum.alpha / count) as f32,
                         ]);
-                        visibility[i] = (sum.visibility / samples_per_pixel) as f32;
-                        depth[i] = (depth_sum / samples_per_pixel) as f32;
+                        visibility[i] = (sum.visibility / count) as f32;
+                        depth[i] = (depth_sum / count) as f32;
                     }
                 }
             }

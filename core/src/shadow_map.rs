@@ -29,7 +29,19 @@ pub struct ShadowMap {
 impl ShadowMap {
     /// The map of a whole scene description: its meshes, sun, medium and settings.
     pub fn of_scene(scene: &crate::scene::Scene, camera: &CameraModel) -> Self {
-        let geometry = crate::render::FlatGeometry::from_scene(scene);
+        Self::of_scene_geometry(
+            scene,
+            camera,
+            &crate::render::FlatGeometry::from_scene(scene),
+        )
+    }
+
+    /// [`ShadowMap::of_scene`] for callers that keep the scene's flattened geometry.
+    pub fn of_scene_geometry(
+        scene: &crate::scene::Scene,
+        camera: &CameraModel,
+        geometry: &crate::render::FlatGeometry,
+    ) -> Self {
         Self::build(
             camera,
             &scene.sun,

@@ -86,13 +86,7 @@ fn bound(scene: &str, method: Method) -> f64 {
 fn rectified(scene: &Scene, method: Method, rectification: Rectification) -> EpipolarMap {
     let camera = CameraModel::new(&scene.camera);
     let geometry = FlatGeometry::from_scene(scene);
-    let shadow = ShadowMap::build(
-        &camera,
-        &scene.sun,
-        &scene.medium,
-        &scene.render,
-        &geometry.view(),
-    );
+    let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry);
     let desc = match method {
         Method::MinMax => RectifyDesc::min_max(scene.render.epipolar_slices),
         _ => RectifyDesc::prefiltered(scene.render.epipolar_slices),

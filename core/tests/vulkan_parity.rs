@@ -329,13 +329,7 @@ fn a_missing_driver_falls_back_to_the_cpu_with_one_message() {
 fn prefix_plan(scene: &Scene) -> PrefixPlan {
     let camera = CameraModel::new(&scene.camera);
     let geometry = FlatGeometry::from_scene(scene);
-    let shadow = ShadowMap::build(
-        &camera,
-        &scene.sun,
-        &scene.medium,
-        &scene.render,
-        &geometry.view(),
-    );
+    let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry);
     let light_travel = scene.sun.direction.as_dvec3().normalize();
     let map = EpipolarMap::rectify(
         &camera,

@@ -181,13 +181,7 @@ mod tests {
         scene.render.shadow_map_size = 128;
         let camera = CameraModel::new(&scene.camera);
         let geometry = FlatGeometry::from_scene(&scene);
-        let shadow = ShadowMap::build(
-            &camera,
-            &scene.sun,
-            &scene.medium,
-            &scene.render,
-            &geometry.view(),
-        );
+        let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
         let map = EpipolarMap::rectify(
             &camera,
             &shadow,
