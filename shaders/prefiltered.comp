@@ -38,14 +38,16 @@ layout(std430, binding = 6) readonly buffer PrefilteredParams {
     uint unused;
 } q;
 
-// Per slice: KNOTS knots, then log₂ of its fastest ray's speed.
-layout(std430, binding = 7) readonly buffer Frames { float frames[]; };
+// Per band: its warp's KNOTS knots.
+layout(std430, binding = 7) readonly buffer BandKnots { float band_knots[]; };
 layout(std430, binding = 8) readonly buffer SliceBands { uvec2 slice_bands[]; };
 layout(std430, binding = 9) readonly buffer Bands { uvec2 bands[]; };
 layout(std430, binding = 10) readonly buffer Weight { float weight[]; };
 // Rows are whole lanes of 8 values: 16 bytes of snorm16 or 32 of f32, read as uvec4.
 layout(std430, binding = 11) readonly buffer Basis { uvec4 basis4[]; };
 layout(std430, binding = 12) readonly buffer Coefficients { vec4 coefficients4[]; };
+// Per slice: log₂ of its fastest ray's speed.
+layout(std430, binding = 13) readonly buffer SliceSpeeds { float log2_fastest[]; };
 
 const float TAU = 6.28318530717959;
 
@@ -107,16 +109,16 @@ float sample_coordinate(float s) {
     return s > 0.0 ? (q.spacing_first - 1.0 / s) / q.spacing_step : -BIG;
 }
 
-float warp(uint slice, float key) {
-    uint base = slice * (KNOTS + 1u);
+float warp(uint band, float key) {
+    uint base = band * KNOTS;
     uint index = 0u;
     for (uint i = 1u; i < KNOTS - 1u; ++i) {
-        if (frames[base + i] <= key) {
+        if (band_knots[base + i] <= key) {
             index += 1u;
         }
     }
-    float a = frames[base + index];
-    float b = frames[base + index + 1u];
+    float a = band_knots[base + index];
+    float b = band_knots[base + index + 1u];
     float within = b > a ? (key - a) / (b - a) : 0.0;
     float local = (float(index) + within) / float(KNOTS - 1u);
     return clamp(WARP_MARGIN + (1.0 - 2.0 * WARP_MARGIN) * local, 0.0, 1.0);
@@ -128,6 +130,40 @@ void boundary(float x, uint rows, out uint lower, out float fraction) {
     float clamped = clamp(x, 0.0, float(last));
     lower = min(uint(clamped), last);
     fraction = lower == last ? 0.0 : clamped - float(lower);
+}
+
+// Σ_r factor_r · ⟨basis row r, coefficients⟩, four lanes at a time.
+float blend_dot(uint rows[4], float factors[4], uint coefficient_row) {
+    float dot_ = 0.0;
+    uint quads = q.stride / 4u;
+    uint coefficient_base = coefficient_row * quads;
+    if (q.snorm != 0u) {
+        uint octets = q.stride / 8u;
+        for (uint c = 0u; c < octets; ++c) {
+            vec4 low = vec4(0.0);
+            vec4 high = vec4(0.0);
+            for (uint r = 0u; r < 4u; ++r) {
+                if (factors[r] != 0.0) {
+                    uvec4 w = basis4[rows[r] * octets + c];
+                    low += factors[r] * vec4(unpackSnorm2x16(w.x), unpackSnorm2x16(w.y));
+                    high += factors[r] * vec4(unpackSnorm2x16(w.z), unpackSnorm2x16(w.w));
+                }
+            }
+            dot_ += dot(low, coefficients4[coefficient_base + 2u * c]);
+            dot_ += dot(high, coefficients4[coefficient_base + 2u * c + 1u]);
+        }
+    } else {
+        for (uint c = 0u; c < quads; ++c) {
+            vec4 blended = vec4(0.0);
+            for (uint r = 0u; r < 4u; ++r) {
+                if (factors[r] != 0.0) {
+                    blended += factors[r] * uintBitsToFloat(basis4[rows[r] * quads + c]);
+                }
+            }
+            dot_ += dot(blended, coefficients4[coefficient_base + c]);
+        }
+    }
+    return dot_;
 }
 
 // Weighted average visibility between boundary positions x0 < x1; false where a band
@@ -155,16 +191,12 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
             continue;
         }
         uvec2 range = slice_bands[slice];
-        float log2_fastest = frames[slice * (KNOTS + 1u) + KNOTS];
-        float position = clamp(log2_fastest - log2_rate, 0.0, float(range.y - 1u));
+        float position = clamp(log2_fastest[slice] - log2_rate, 0.0, float(range.y - 1u));
         uint j = min(uint(position), range.y - 1u);
         float band_fraction = position - float(j);
         uint next = min(j + 1u, range.y - 1u);
-        // Two bands × two ends × two boundaries, in fixed slots (factor 0 when unused) so
-        // that the compiler keeps them in registers.
-        uint rows[8] = uint[8](0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u);
-        float factors[8] = float[8](0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         float shares = 0.0;
+        float dot_ = 0.0;
         for (uint k = 0u; k < 2u; ++k) {
             uint band_index = range.x + (k == 0u ? j : next);
             float band_share = k == 0u ? 1.0 - band_fraction : band_fraction;
@@ -190,6 +222,10 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
                 return false;
             }
             float scale = share * band_share / dw;
+            // Two ends × two boundaries, in fixed slots (factor 0 when unused) so that the
+            // compiler keeps them in registers.
+            uint rows[4] = uint[4](0u, 0u, 0u, 0u);
+            float factors[4] = float[4](0.0, 0.0, 0.0, 0.0);
             for (uint e = 0u; e < 2u; ++e) {
                 uint lower = e == 0u ? end_lower : start_lower;
                 float fraction = e == 0u ? end_fraction : start_fraction;
@@ -200,44 +236,14 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
                     if (b == 0u || part == 0.0) {
                         continue;
                     }
-                    uint slot = k * 4u + e * 2u + h;
+                    uint slot = e * 2u + h;
                     rows[slot] = first_row + b;
                     factors[slot] = sign_ * scale * part * weight[first_row + b];
                 }
             }
             shares += share * band_share;
-        }
-        float z = warp(slice, key);
-        uint coefficient_row = uint(z * TABLE_STEPS + 0.5);
-        // Σ_r factor_r · ⟨basis row r, coefficients⟩, four lanes at a time.
-        float dot_ = 0.0;
-        uint quads = q.stride / 4u;
-        uint coefficient_base = coefficient_row * quads;
-        if (q.snorm != 0u) {
-            uint octets = q.stride / 8u;
-            for (uint c = 0u; c < octets; ++c) {
-                vec4 low = vec4(0.0);
-                vec4 high = vec4(0.0);
-                for (uint r = 0u; r < 8u; ++r) {
-                    if (factors[r] != 0.0) {
-                        uvec4 w = basis4[rows[r] * octets + c];
-                        low += factors[r] * vec4(unpackSnorm2x16(w.x), unpackSnorm2x16(w.y));
-                        high += factors[r] * vec4(unpackSnorm2x16(w.z), unpackSnorm2x16(w.w));
-                    }
-                }
-                dot_ += dot(low, coefficients4[coefficient_base + 2u * c]);
-                dot_ += dot(high, coefficients4[coefficient_base + 2u * c + 1u]);
-            }
-        } else {
-            for (uint c = 0u; c < quads; ++c) {
-                vec4 blended = vec4(0.0);
-                for (uint r = 0u; r < 8u; ++r) {
-                    if (factors[r] != 0.0) {
-                        blended += factors[r] * uintBitsToFloat(basis4[rows[r] * quads + c]);
-                    }
-                }
-                dot_ += dot(blended, coefficients4[coefficient_base + c]);
-            }
+            float z = warp(band_index, key);
+            dot_ += blend_dot(rows, factors, uint(z * TABLE_STEPS + 0.5));
         }
         visibility += clamp(0.5 * shares + dot_, 0.0, shares);
     }

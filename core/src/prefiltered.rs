@@ -111,21 +111,15 @@ impl PrefilteredDesc {
 /// by more than 0.15 points.
 const RAY_MARGIN: f64 = 0.1;
 
-/// Per slice: a monotone warp of keys, and the speeds of its rays.
+/// A monotone map of keys into [0, 1], piecewise linear between quantiles.
 #[derive(Clone, Copy, Debug)]
-struct SliceFrame {
+struct Warp {
     /// Keys at evenly spaced warped positions in [`RAY_MARGIN`, 1 − `RAY_MARGIN`], strictly
     /// increasing.
     knots: [f64; KNOTS],
-    /// Texels per unit of t of the slice's fastest and slowest rays.
-    fastest: f64,
-    slowest: f64,
-    /// Where the slice's rays are at t = 0 (the smallest such position).
-    origin: f64,
-    log2_fastest: f64,
 }
 
-impl SliceFrame {
+impl Warp {
     /// Position in [0, 1] for a key; rays land in [`RAY_MARGIN`, 1 − `RAY_MARGIN`].
     #[inline]
     fn warp(&self, key: f64) -> f64 {
@@ -136,7 +130,21 @@ impl SliceFrame {
         let local = (index as f64 + (key - a) / (b - a)) / segment;
         (RAY_MARGIN + (1.0 - 2.0 * RAY_MARGIN) * local).clamp(0.0, 1.0)
     }
+}
 
+/// Per slice: the warp of all its rays, and their speeds.
+#[derive(Clone, Copy, Debug)]
+struct SliceFrame {
+    warp: Warp,
+    /// Texels per unit of t of the slice's fastest and slowest rays.
+    fastest: f64,
+    slowest: f64,
+    /// Where the slice's rays are at t = 0 (the smallest such position).
+    origin: f64,
+    log2_fastest: f64,
+}
+
+impl SliceFrame {
     /// Bands at speeds fastest·r^−j down to the first at or below the slowest ray.
     fn band_count(&self) -> usize {
         let ratio = (self.fastest / self.slowest).max(1.0);
@@ -161,6 +169,11 @@ impl SliceFrame {
 struct Band {
     /// Texels per unit of t of the reference.
     rate: f64,
+    /// The warp of the keys of the rays that read this band. A band's rays share a
+    /// narrow range of speeds, and with an epipolar layout of angles to the light, so
+    /// their keys span a fraction of the slice's: near an on-screen sun a slice's keys
+    /// span most of [−1, 1] and one warp for them all blurred rays grazing an occluder.
+    warp: Warp,
     first_row: usize,
     rows: usize,
 }
@@ -460,8 +473,9 @@ impl<'a> PrefilteredPlan<'a> {
         let row = padded(2 * frequencies);
         let extinction = medium.extinction as f64;
         let tables = Tables::get(frequencies);
-        let frames = slice_frames(map, camera, epipoles, desc.epipole_block);
-        let (slice_bands, bands) = plan_bands(map, &frames, extinction, desc.max_distance);
+        let (frames, rays) = slice_frames(map, camera, epipoles, desc.epipole_block);
+        let (slice_bands, mut bands) = plan_bands(map, &frames, extinction, desc.max_distance);
+        warp_bands(map, &frames, &rays, &slice_bands, &mut bands);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         let mut weight = vec![0.0f32; total_rows];
         let rows_total = total_rows - bands.len();
@@ -547,12 +561,14 @@ impl<'a> PrefilteredPlan<'a> {
 pub struct PrefilteredTables<'b> {
     /// Values per basis and coefficient row.
     pub stride: usize,
-    /// Per slice: the warp's knots, then log₂ of its fastest ray's speed.
-    pub frames: Vec<([f64; KNOTS], f64)>,
+    /// Per slice: log₂ of its fastest ray's speed.
+    pub log2_fastest: Vec<f64>,
     /// Per slice: (first band, band count).
     pub slice_bands: Vec<[u32; 2]>,
     /// Per band: (first row, rows).
     pub bands: Vec<[u32; 2]>,
+    /// Per band: its warp's knots.
+    pub band_knots: Vec<[f64; KNOTS]>,
     /// Cumulative weight per row.
     pub weight: &'b [f32],
     /// Row e: the coefficients at warped key e / [`TABLE_STEPS`].
@@ -580,11 +596,7 @@ impl<'a> PrefilteredPlan<'a> {
     pub fn tables(&self) -> PrefilteredTables<'_> {
         PrefilteredTables {
             stride: self.prefix.stride,
-            frames: self
-                .frames
-                .iter()
-                .map(|f| (f.knots, f.log2_fastest))
-                .collect(),
+            log2_fastest: self.frames.iter().map(|f| f.log2_fastest).collect(),
             slice_bands: self
                 .slice_bands
                 .iter()
@@ -595,6 +607,7 @@ impl<'a> PrefilteredPlan<'a> {
                 .iter()
                 .map(|b| [b.first_row as u32, b.rows as u32])
                 .collect(),
+            band_knots: self.bands.iter().map(|b| b.warp.knots).collect(),
             weight: &self.weight,
             coefficients: &self.tables.coefficients,
             near_plane_correction: self.near_plane_correction,
@@ -630,8 +643,8 @@ impl<'a> Prefiltered<'a> {
 
     /// Weighted average visibility between continuous boundary positions `x0 < x1`
     /// (`x0` ≤ 0 is the slice's start), blended over the two slices and the bands that
-    /// bracket the ray's speed. Per slice, the prefix rows are blended and dotted with
-    /// the coefficients in one pass.
+    /// bracket the ray's speed. Per band, its prefix rows are blended and dotted with the
+    /// coefficients of the ray's key under the band's warp in one pass.
     #[inline]
     fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Option<f64> {
         let log2_rate = located.s_per_t.log2();
@@ -640,14 +653,15 @@ impl<'a> Prefiltered<'a> {
             if share == 0.0 {
                 continue;
             }
-            // Two bands × two ends × two boundaries.
-            let mut rows = [(0u32, 0.0f32); 8];
-            let mut count = 0;
+            let mut dot = 0.0;
             let mut shares = 0.0;
             for (band, band_share) in self.bands_for(slice, log2_rate) {
                 if band_share == 0.0 {
                     continue;
                 }
+                // Two ends × two boundaries.
+                let mut rows = [(0u32, 0.0f32); 4];
+                let mut count = 0;
                 let weights = &self.weight[band.first_row..band.first_row + band.rows];
                 let end = band.boundary(x1);
                 let start = band.boundary(x0);
@@ -675,18 +689,20 @@ impl<'a> Prefiltered<'a> {
                     }
                 }
                 shares += share * band_share;
+                let z = band.warp.warp(key);
+                let coefficients =
+                    &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride];
+                let rows = &rows[..count];
+                dot += match &self.basis {
+                    FilteredBasis::F32(stored) => {
+                        self.kernels.blend_dot(stored, rows, coefficients)
+                    }
+                    FilteredBasis::Snorm16(stored) => {
+                        self.kernels.blend_dot(stored, rows, coefficients)
+                    }
+                } as f64;
             }
-            let z = self.frames[slice as usize].warp(key);
-            let coefficients =
-                &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride];
-            let rows = &rows[..count];
-            let dot = match &self.basis {
-                FilteredBasis::F32(stored) => self.kernels.blend_dot(stored, rows, coefficients),
-                FilteredBasis::Snorm16(stored) => {
-                    self.kernels.blend_dot(stored, rows, coefficients)
-                }
-            };
-            visibility += (0.5 * shares + dot as f64).clamp(0.0, shares);
+            visibility += (0.5 * shares + dot).clamp(0.0, shares);
         }
         Some(visibility)
     }
@@ -768,6 +784,7 @@ fn plan_bands(
             };
             bands.push(Band {
                 rate,
+                warp: frame.warp,
                 first_row: next_row,
                 rows: used + 1,
             });
@@ -775,6 +792,60 @@ fn plan_bands(
         }
     }
     (slice_bands, bands)
+}
+
+/// Fewest sampled rays that give a band its own warp; a band with fewer keeps its
+/// slice's.
+const MIN_BAND_RAYS: usize = 2 * KNOTS;
+
+/// Gives every band the warp of the sampled rays that read it (see [`Band::warp`]) and of
+/// the texels among them, in parallel over slices. `rays` are each slice's sampled rays,
+/// sorted by key.
+fn warp_bands(
+    map: &EpipolarMap,
+    frames: &[SliceFrame],
+    rays: &[Vec<SampledRay>],
+    slice_bands: &[SliceBands],
+    bands: &mut [Band],
+) {
+    let mut parts = Vec::with_capacity(slice_bands.len());
+    let mut rest = bands;
+    for range in slice_bands {
+        let (own, tail) = rest.split_at_mut(range.count as usize);
+        rest = tail;
+        parts.push(own);
+    }
+    parts.into_par_iter().enumerate().for_each(|(slice, own)| {
+        let (frame, rays) = (&frames[slice], &rays[slice]);
+        if own.len() < 2 || rays.len() < MIN_BAND_RAYS {
+            return;
+        }
+        let texels = texel_keys(map, slice);
+        let count = own.len();
+        for (j, band) in own.iter_mut().enumerate() {
+            let reading: Vec<f64> = rays
+                .iter()
+                .filter(|ray| {
+                    let position = frame.band_position(ray.rate.log2(), count);
+                    let lower = position as usize;
+                    lower == j || (lower + 1 == j && position > lower as f64)
+                })
+                .map(|ray| ray.key)
+                .collect();
+            if reading.len() >= MIN_BAND_RAYS {
+                band.warp = Warp::of(&reading, texels.clone());
+            }
+        }
+    });
+}
+
+/// One key per texel of a slice: enough for quantiles.
+fn texel_keys(map: &EpipolarMap, slice: usize) -> Vec<f64> {
+    map.row(slice as u32)
+        .iter()
+        .step_by(SAMPLES_PER_ROW)
+        .map(|&value| map.order_key(value as f64))
+        .collect()
 }
 
 /// Fills every band's per-sample inputs of the prefix sums, its per-row scales and the
@@ -817,17 +888,18 @@ fn plan_slices(
     parts.into_par_iter().for_each(
         |(slice, own, entries_part, weights_part, scales_part, weight_part)| {
             let frame = &frames[slice];
-            // A last row that the map's samples do not fill takes empty samples.
-            let mut slice_entries: Vec<u32> = map
+            let keys: Vec<f64> = map
                 .row(slice as u32)
                 .iter()
-                .map(|&value| Tables::index(frame.warp(map.order_key(value as f64))) as u32)
+                .map(|&value| map.order_key(value as f64))
                 .collect();
-            slice_entries.resize(row_count(map) * SAMPLES_PER_ROW, 0);
             let (mut sample, mut row, mut filled) = (0, 0, 0);
             for band in own {
                 let count = (band.rows - 1) * SAMPLES_PER_ROW;
-                entries_part[sample..sample + count].copy_from_slice(&slice_entries[..count]);
+                // A last row that the map's samples do not fill takes empty samples.
+                for (entry, key) in entries_part[sample..sample + count].iter_mut().zip(&keys) {
+                    *entry = Tables::index(band.warp.warp(*key)) as u32;
+                }
                 band_weights(
                     map,
                     frame.origin,
@@ -924,7 +996,7 @@ fn slice_frames(
     camera: &CameraModel,
     epipoles: &[[f64; 2]],
     block: f64,
-) -> Vec<SliceFrame> {
+) -> (Vec<SliceFrame>, Vec<Vec<SampledRay>>) {
     const RAYS_PER_SLICE: f64 = 128.0;
     let pixels = camera.width as f64 * camera.height as f64;
     let interior_stride = ((pixels / (map.slices as f64 * RAYS_PER_SLICE)).sqrt() as u32).max(1);
@@ -972,27 +1044,20 @@ fn slice_frames(
     let frames: Vec<Option<SliceFrame>> = rays
         .par_iter_mut()
         .enumerate()
-        .map(|(slice, rays)| {
-            // One key per texel is enough for quantiles.
-            let texels: Vec<f64> = map
-                .row(slice as u32)
-                .iter()
-                .step_by(SAMPLES_PER_ROW)
-                .map(|&value| map.order_key(value as f64))
-                .collect();
-            frame_of(rays, texels)
-        })
+        .map(|(slice, rays)| frame_of(rays, texel_keys(map, slice)))
         .collect();
     // Fill unsampled slices from the nearest sampled one, scanning both ways.
     let sampled: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].is_some()).collect();
     let fallback = SliceFrame {
-        knots: std::array::from_fn(|i| i as f64),
+        warp: Warp {
+            knots: std::array::from_fn(|i| i as f64),
+        },
         fastest: 1.0,
         slowest: 1.0,
         origin: 0.0,
         log2_fastest: 0.0,
     };
-    (0..frames.len())
+    let frames = (0..frames.len())
         .map(|i| {
             frames[i].unwrap_or_else(|| {
                 let nearest = sampled
@@ -1001,56 +1066,17 @@ fn slice_frames(
                 nearest.and_then(|&j| frames[j]).unwrap_or(fallback)
             })
         })
-        .collect()
+        .collect();
+    (frames, rays)
 }
 
-/// A slice's frame from its sampled rays and its texels' keys. The warp's inner knots are
-/// quantiles of rays and of the texels whose keys lie among the rays', weighed half and
-/// half: a ray's visibility blurs over keys within about 1/M of its own, so resolution
-/// belongs where rays and the occluders they pass close to are. Rays alone left the top
-/// eighth of colonnade's default view (rays grazing its roof) in a tenth of the range,
-/// and the roof leaked light through the blur.
-fn frame_of(rays: &mut [SampledRay], mut texels: Vec<f64>) -> Option<SliceFrame> {
+/// A slice's frame from its sampled rays (sorted here, by key) and its texels' keys.
+fn frame_of(rays: &mut [SampledRay], texels: Vec<f64>) -> Option<SliceFrame> {
     if rays.is_empty() {
         return None;
     }
     rays.sort_unstable_by(|a, b| a.key.total_cmp(&b.key));
-    let (lowest, highest) = (rays[0].key, rays[rays.len() - 1].key);
-    texels.retain(|&key| key > lowest && key < highest);
-    texels.sort_unstable_by(|a, b| a.total_cmp(b));
-    let mut knots = [0.0; KNOTS];
-    knots[0] = lowest;
-    knots[KNOTS - 1] = highest;
-    let ray_share = if texels.is_empty() { 1.0 } else { 0.5 };
-    let (ray_weight, texel_weight) = (
-        ray_share / rays.len() as f64,
-        (1.0 - ray_share) / texels.len().max(1) as f64,
-    );
-    // Walk both sorted lists in key order, cutting at each (KNOTS − 1)-th of the weight.
-    let (mut r, mut t, mut cumulative, mut next) = (0, 0, 0.0, 1);
-    while next < KNOTS - 1 && (r < rays.len() || t < texels.len()) {
-        let key = if t >= texels.len() || (r < rays.len() && rays[r].key <= texels[t]) {
-            r += 1;
-            cumulative += ray_weight;
-            rays[r - 1].key
-        } else {
-            t += 1;
-            cumulative += texel_weight;
-            texels[t - 1]
-        };
-        while next < KNOTS - 1 && cumulative >= next as f64 / (KNOTS - 1) as f64 - 1e-12 {
-            knots[next] = key;
-            next += 1;
-        }
-    }
-    for knot in &mut knots[next..KNOTS - 1] {
-        *knot = highest;
-    }
-    // Strictly increasing, so that every segment has a slope.
-    let spread = (knots[KNOTS - 1] - knots[0]).max(1e-9);
-    for i in 1..KNOTS {
-        knots[i] = knots[i].max(knots[i - 1] + spread * 1e-6);
-    }
+    let keys: Vec<f64> = rays.iter().map(|ray| ray.key).collect();
     let fastest = rays.iter().map(|r| r.rate).fold(0.0, f64::max);
     let slowest = rays
         .iter()
@@ -1059,12 +1085,60 @@ fn frame_of(rays: &mut [SampledRay], mut texels: Vec<f64>) -> Option<SliceFrame>
         .max(fastest / MAX_SPEED_RATIO);
     let origin = rays.iter().map(|r| r.origin).fold(f64::INFINITY, f64::min);
     Some(SliceFrame {
-        knots,
+        warp: Warp::of(&keys, texels),
         fastest,
         slowest,
         origin,
         log2_fastest: fastest.log2(),
     })
+}
+
+impl Warp {
+    /// The warp of sorted ray keys and of texel keys. The inner knots are quantiles of the
+    /// rays and of the texels whose keys lie among the rays', weighed half and half: a
+    /// ray's visibility blurs over keys within about 1/M of its own, so resolution belongs
+    /// where rays and the occluders they pass close to are. Rays alone left the top eighth
+    /// of colonnade's default view (rays grazing its roof) in a tenth of the range, and the
+    /// roof leaked light through the blur.
+    fn of(rays: &[f64], mut texels: Vec<f64>) -> Self {
+        let (lowest, highest) = (rays[0], rays[rays.len() - 1]);
+        texels.retain(|&key| key > lowest && key < highest);
+        texels.sort_unstable_by(|a, b| a.total_cmp(b));
+        let mut knots = [0.0; KNOTS];
+        knots[0] = lowest;
+        knots[KNOTS - 1] = highest;
+        let ray_share = if texels.is_empty() { 1.0 } else { 0.5 };
+        let (ray_weight, texel_weight) = (
+            ray_share / rays.len() as f64,
+            (1.0 - ray_share) / texels.len().max(1) as f64,
+        );
+        // Walk both sorted lists in key order, cutting at each (KNOTS − 1)-th of the weight.
+        let (mut r, mut t, mut cumulative, mut next) = (0, 0, 0.0, 1);
+        while next < KNOTS - 1 && (r < rays.len() || t < texels.len()) {
+            let key = if t >= texels.len() || (r < rays.len() && rays[r] <= texels[t]) {
+                r += 1;
+                cumulative += ray_weight;
+                rays[r - 1]
+            } else {
+                t += 1;
+                cumulative += texel_weight;
+                texels[t - 1]
+            };
+            while next < KNOTS - 1 && cumulative >= next as f64 / (KNOTS - 1) as f64 - 1e-12 {
+                knots[next] = key;
+                next += 1;
+            }
+        }
+        for knot in &mut knots[next..KNOTS - 1] {
+            *knot = highest;
+        }
+        // Strictly increasing, so that every segment has a slope.
+        let spread = (knots[KNOTS - 1] - knots[0]).max(1e-9);
+        for i in 1..KNOTS {
+            knots[i] = knots[i].max(knots[i - 1] + spread * 1e-6);
+        }
+        Self { knots }
+    }
 }
 
 #[cfg(test)]
@@ -1127,12 +1201,12 @@ mod tests {
             .collect();
         let frame = frame_of(&mut rays, Vec::new()).expect("a frame");
         let (lo, hi) = (rays[0].key, rays[99].key);
-        assert!((frame.warp(lo) - RAY_MARGIN).abs() < 1e-9);
-        assert!((frame.warp(hi) - (1.0 - RAY_MARGIN)).abs() < 1e-9);
+        assert!((frame.warp.warp(lo) - RAY_MARGIN).abs() < 1e-9);
+        assert!((frame.warp.warp(hi) - (1.0 - RAY_MARGIN)).abs() < 1e-9);
         let mut last = -1.0;
         for i in 0..=1000 {
             let key = lo - 5.0 + (hi - lo + 10.0) * i as f64 / 1000.0;
-            let z = frame.warp(key);
+            let z = frame.warp.warp(key);
             assert!((0.0..=1.0).contains(&z) && z >= last);
             last = z;
         }
@@ -1154,15 +1228,18 @@ mod tests {
         let mut texels: Vec<f64> = (0..1000).map(|i| 0.5 + i as f64 * 1e-4).collect();
         texels.extend([-5.0, 7.0]);
         let mixed = frame_of(&mut rays, texels).expect("a frame");
-        assert_eq!((mixed.knots[0], mixed.knots[KNOTS - 1]), (0.0, 1.0));
+        assert_eq!(
+            (mixed.warp.knots[0], mixed.warp.knots[KNOTS - 1]),
+            (0.0, 1.0)
+        );
         // Rays alone: knots at eighths. With the cluster in [0.5, 0.6], keys 0.5 and 0.6
         // are warped apart by about half the range rather than a tenth of it.
-        assert!((alone.knots[4] - 0.5).abs() < 0.011);
-        let gap = |f: &SliceFrame| f.warp(0.6) - f.warp(0.5);
+        assert!((alone.warp.knots[4] - 0.5).abs() < 0.011);
+        let gap = |f: &SliceFrame| f.warp.warp(0.6) - f.warp.warp(0.5);
         assert!(gap(&alone) < 0.09, "{}", gap(&alone));
         assert!(gap(&mixed) > 0.35, "{}", gap(&mixed));
         let mut last = f64::NEG_INFINITY;
-        for knot in mixed.knots {
+        for knot in mixed.warp.knots {
             assert!(knot > last);
             last = knot;
         }
@@ -1173,7 +1250,9 @@ mod tests {
     #[test]
     fn bands_bracket_every_ray() {
         let frame = SliceFrame {
-            knots: std::array::from_fn(|i| i as f64),
+            warp: Warp {
+                knots: std::array::from_fn(|i| i as f64),
+            },
             fastest: 300.0,
             slowest: 0.7,
             origin: 0.0,

@@ -103,21 +103,17 @@ pub fn shade(
     let width = reduced_size(inputs.camera.width, stride);
     let height = reduced_size(inputs.camera.height, stride);
     let groups = groups_2d(width, height, LOCAL, device.physical.max_workgroup_count)?;
-    let frames: Vec<f32> = tables
-        .frames
+    let band_knots: Vec<f32> = tables
+        .band_knots
         .iter()
-        .flat_map(|(knots, log2_fastest)| {
-            knots
-                .iter()
-                .map(|&k| k as f32)
-                .chain(std::iter::once(*log2_fastest as f32))
-        })
+        .flat_map(|knots| knots.iter().map(|&k| k as f32))
         .collect();
-    debug_assert_eq!(frames.len(), tables.frames.len() * (WARP_KNOTS + 1));
+    debug_assert_eq!(band_knots.len(), tables.bands.len() * WARP_KNOTS);
+    let log2_fastest: Vec<f32> = tables.log2_fastest.iter().map(|&v| v as f32).collect();
     let slice_bands: Vec<u32> = tables.slice_bands.iter().flatten().copied().collect();
     let bands: Vec<u32> = tables.bands.iter().flatten().copied().collect();
     let run = || -> GpuResult<(Layers, Option<f64>)> {
-        let mut rec = Recorder::new(device, STAGE, 1, 13)?;
+        let mut rec = Recorder::new(device, STAGE, 1, 14)?;
         let params = rec.upload(&march_params(inputs), "march parameters")?;
         let shadow = rec.upload(&inputs.shadow.depth, "shadow map")?;
         let surfaces = rec.upload(&surface_values(inputs.surfaces), "surface distances")?;
@@ -126,13 +122,14 @@ pub fn shade(
             &prefiltered_params(map, tables, storage, epipoles, block)?,
             "prefiltered parameters",
         )?;
-        let frames = rec.upload(&frames, "slice frames")?;
+        let band_knots = rec.upload(&band_knots, "band warps")?;
+        let log2_fastest = rec.upload(&log2_fastest, "slice speeds")?;
         let slice_bands = rec.upload(&slice_bands, "slice bands")?;
         let bands = rec.upload(&bands, "bands")?;
         let weight = rec.upload(tables.weight, "cumulative weights")?;
         let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 13);
+        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 14);
         rec.timed(STAGE, |rec| {
             rec.dispatch(
                 &desc,
@@ -144,12 +141,13 @@ pub fn shade(
                     &out.visibility,
                     &out.depth,
                     &pf,
-                    &frames,
+                    &band_knots,
                     &slice_bands,
                     &bands,
                     &weight,
                     basis,
                     &coefficients,
+                    &log2_fastest,
                 ],
                 &[],
                 groups,
