@@ -822,30 +822,34 @@ fn warp_bands(
         }
         let texels = texel_keys(map, slice);
         let count = own.len();
-        for (j, band) in own.iter_mut().enumerate() {
-            let reading: Vec<f64> = rays
-                .iter()
-                .filter(|ray| {
-                    let position = frame.band_position(ray.rate.log2(), count);
-                    let lower = position as usize;
-                    lower == j || (lower + 1 == j && position > lower as f64)
-                })
-                .map(|ray| ray.key)
-                .collect();
-            if reading.len() >= MIN_BAND_RAYS {
-                band.warp = Warp::of(&reading, texels.clone());
+        // Rays come sorted by key, so each band's keys do too.
+        let mut reading: Vec<Vec<f64>> = vec![Vec::new(); count];
+        for ray in rays {
+            let position = frame.band_position(ray.rate.log2(), count);
+            let lower = position as usize;
+            reading[lower].push(ray.key);
+            if lower + 1 < count && position > lower as f64 {
+                reading[lower + 1].push(ray.key);
+            }
+        }
+        for (band, keys) in own.iter_mut().zip(&reading) {
+            if keys.len() >= MIN_BAND_RAYS {
+                band.warp = Warp::of(keys, &texels);
             }
         }
     });
 }
 
-/// One key per texel of a slice: enough for quantiles.
+/// One key per texel of a slice (enough for quantiles), sorted.
 fn texel_keys(map: &EpipolarMap, slice: usize) -> Vec<f64> {
-    map.row(slice as u32)
+    let mut keys: Vec<f64> = map
+        .row(slice as u32)
         .iter()
         .step_by(SAMPLES_PER_ROW)
         .map(|&value| map.order_key(value as f64))
-        .collect()
+        .collect();
+    keys.sort_unstable_by(|a, b| a.total_cmp(b));
+    keys
 }
 
 /// Fills every band's per-sample inputs of the prefix sums, its per-row scales and the
@@ -1044,7 +1048,7 @@ fn slice_frames(
     let frames: Vec<Option<SliceFrame>> = rays
         .par_iter_mut()
         .enumerate()
-        .map(|(slice, rays)| frame_of(rays, texel_keys(map, slice)))
+        .map(|(slice, rays)| frame_of(rays, &texel_keys(map, slice)))
         .collect();
     // Fill unsampled slices from the nearest sampled one, scanning both ways.
     let sampled: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].is_some()).collect();
@@ -1071,7 +1075,7 @@ fn slice_frames(
 }
 
 /// A slice's frame from its sampled rays (sorted here, by key) and its texels' keys.
-fn frame_of(rays: &mut [SampledRay], texels: Vec<f64>) -> Option<SliceFrame> {
+fn frame_of(rays: &mut [SampledRay], texels: &[f64]) -> Option<SliceFrame> {
     if rays.is_empty() {
         return None;
     }
@@ -1094,16 +1098,16 @@ fn frame_of(rays: &mut [SampledRay], texels: Vec<f64>) -> Option<SliceFrame> {
 }
 
 impl Warp {
-    /// The warp of sorted ray keys and of texel keys. The inner knots are quantiles of the
+    /// The warp of sorted ray keys and of sorted texel keys. The inner knots are quantiles of the
     /// rays and of the texels whose keys lie among the rays', weighed half and half: a
     /// ray's visibility blurs over keys within about 1/M of its own, so resolution belongs
     /// where rays and the occluders they pass close to are. Rays alone left the top eighth
     /// of colonnade's default view (rays grazing its roof) in a tenth of the range, and the
     /// roof leaked light through the blur.
-    fn of(rays: &[f64], mut texels: Vec<f64>) -> Self {
+    fn of(rays: &[f64], texels: &[f64]) -> Self {
         let (lowest, highest) = (rays[0], rays[rays.len() - 1]);
-        texels.retain(|&key| key > lowest && key < highest);
-        texels.sort_unstable_by(|a, b| a.total_cmp(b));
+        let first = texels.partition_point(|&key| key <= lowest);
+        let texels = &texels[first..texels.partition_point(|&key| key < highest).max(first)];
         let mut knots = [0.0; KNOTS];
         knots[0] = lowest;
         knots[KNOTS - 1] = highest;
@@ -1199,7 +1203,7 @@ mod tests {
                 origin: 0.0,
             })
             .collect();
-        let frame = frame_of(&mut rays, Vec::new()).expect("a frame");
+        let frame = frame_of(&mut rays, &[]).expect("a frame");
         let (lo, hi) = (rays[0].key, rays[99].key);
         assert!((frame.warp.warp(lo) - RAY_MARGIN).abs() < 1e-9);
         assert!((frame.warp.warp(hi) - (1.0 - RAY_MARGIN)).abs() < 1e-9);
@@ -1224,10 +1228,11 @@ mod tests {
                 origin: 0.0,
             })
             .collect();
-        let alone = frame_of(&mut rays, Vec::new()).expect("a frame");
+        let alone = frame_of(&mut rays, &[]).expect("a frame");
         let mut texels: Vec<f64> = (0..1000).map(|i| 0.5 + i as f64 * 1e-4).collect();
         texels.extend([-5.0, 7.0]);
-        let mixed = frame_of(&mut rays, texels).expect("a frame");
+        texels.sort_unstable_by(|a, b| a.total_cmp(b));
+        let mixed = frame_of(&mut rays, &texels).expect("a frame");
         assert_eq!(
             (mixed.warp.knots[0], mixed.warp.knots[KNOTS - 1]),
             (0.0, 1.0)
