@@ -117,18 +117,28 @@ struct Warp {
     /// Keys at evenly spaced warped positions in [`RAY_MARGIN`, 1 − `RAY_MARGIN`], strictly
     /// increasing.
     knots: [f64; KNOTS],
+    /// Per segment, warped units per unit of key: every pixel warps its key, and a
+    /// division there stalled the coefficient lookup behind it.
+    slopes: [f64; KNOTS - 1],
 }
 
 impl Warp {
+    fn from_knots(knots: [f64; KNOTS]) -> Self {
+        let span = (1.0 - 2.0 * RAY_MARGIN) / (KNOTS - 1) as f64;
+        Self {
+            knots,
+            slopes: std::array::from_fn(|i| span / (knots[i + 1] - knots[i])),
+        }
+    }
+
     /// Position in [0, 1] for a key; rays land in [`RAY_MARGIN`, 1 − `RAY_MARGIN`].
     #[inline]
     fn warp(&self, key: f64) -> f64 {
         let k = &self.knots;
-        let segment = (KNOTS - 1) as f64;
+        let span = (1.0 - 2.0 * RAY_MARGIN) / (KNOTS - 1) as f64;
         let index = k[1..KNOTS - 1].iter().filter(|&&knot| knot <= key).count();
-        let (a, b) = (k[index], k[index + 1]);
-        let local = (index as f64 + (key - a) / (b - a)) / segment;
-        (RAY_MARGIN + (1.0 - 2.0 * RAY_MARGIN) * local).clamp(0.0, 1.0)
+        let z = RAY_MARGIN + span * index as f64 + (key - k[index]) * self.slopes[index];
+        z.clamp(0.0, 1.0)
     }
 }
 
@@ -1053,9 +1063,7 @@ fn slice_frames(
     // Fill unsampled slices from the nearest sampled one, scanning both ways.
     let sampled: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].is_some()).collect();
     let fallback = SliceFrame {
-        warp: Warp {
-            knots: std::array::from_fn(|i| i as f64),
-        },
+        warp: Warp::from_knots(std::array::from_fn(|i| i as f64)),
         fastest: 1.0,
         slowest: 1.0,
         origin: 0.0,
@@ -1141,7 +1149,7 @@ impl Warp {
         for i in 1..KNOTS {
             knots[i] = knots[i].max(knots[i - 1] + spread * 1e-6);
         }
-        Self { knots }
+        Self::from_knots(knots)
     }
 }
 
@@ -1255,9 +1263,7 @@ mod tests {
     #[test]
     fn bands_bracket_every_ray() {
         let frame = SliceFrame {
-            warp: Warp {
-                knots: std::array::from_fn(|i| i as f64),
-            },
+            warp: Warp::from_knots(std::array::from_fn(|i| i as f64)),
             fastest: 300.0,
             slowest: 0.7,
             origin: 0.0,
