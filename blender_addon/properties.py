@@ -154,7 +154,7 @@ class CrepuscularLight(PropertyGroup):
         description="Render volumetric shafts of this sun and composite them over renders",
         update=_lights_update,
     )
-    method: EnumProperty(name="Method", items=METHODS, default="minmax", update=_tag_preview)
+    method: EnumProperty(name="Method", items=METHODS, default="prefiltered", update=_tag_preview)
     shadow_map_size: IntProperty(
         name="Shadow Map",
         description="Side of the sun's shadow map, in texels",

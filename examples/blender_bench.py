@@ -65,7 +65,7 @@ def build_tree_scene(width: int, height: int) -> bpy.types.Scene:
     camera.data.clip_start, camera.data.clip_end = cam["clip_start"], cam["clip_end"]
     sun = blender_scenes.add_sun(scene, source["sun"]["direction"], strength=8.0)
     settings = sun.data.crepuscular
-    settings.method, settings.shadow_map_size = "minmax", 1024
+    settings.method, settings.shadow_map_size = "prefiltered", 1024
     settings.max_distance = source["render"]["max_distance"]
     scene.crepuscular.extinction = source["medium"]["extinction"]
     scene.crepuscular.anisotropy = source["medium"]["anisotropy"]
@@ -91,7 +91,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=1920)
     parser.add_argument("--height", type=int, default=1080)
     parser.add_argument("--edge-samples", type=int, default=None)
-    parser.add_argument("--method", default="minmax")
+    parser.add_argument("--method", default="prefiltered")
     parser.add_argument(
         "--cycles-samples",
         type=int,

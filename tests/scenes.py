@@ -51,6 +51,7 @@ def build_scene(
         "medium": {"extinction": 0.08, "anisotropy": 0.3},
         "meshes": meshes,
         "render": {
+            "method": "reference",
             "shadow_map_size": shadow_map_size,
             "max_distance": 30.0,
             "steps": steps,

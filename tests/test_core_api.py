@@ -60,7 +60,7 @@ def test_valid_scene_passes_validation(scene: dict[str, Any]) -> None:
 def test_scene_from_json_fills_defaults_and_round_trips(scene: dict[str, Any]) -> None:
     del scene["render"]
     normalized = scene_from_json(json.dumps(scene))
-    assert normalized["render"]["method"] == "reference"
+    assert normalized["render"]["method"] == "prefiltered"
     assert normalized["render"]["shadow_bias"] is None
     assert normalized["sun"]["color"] == [1.0, 1.0, 1.0]
     assert normalized["medium"]["extent"] == {"kind": "unbounded"}

@@ -98,6 +98,7 @@ def test_minmax_method_agrees_with_the_reference() -> None:
     scene = small(crepuscular.builtin_scene("colonnade"))
     scene["render"]["steps"] = 2048
     scene["render"]["shadow_map_size"] = 1024
+    scene["render"]["method"] = "reference"
     reference = crepuscular.render(scene)
     scene["render"]["method"] = "minmax"
     fast = crepuscular.render(scene)

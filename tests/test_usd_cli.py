@@ -233,7 +233,7 @@ def test_apply_schema_authors_the_defaults(stage_path: Path, tmp_path: Path) -> 
     moon = edited_stage.GetPrimAtPath("/World/Moon")
     assert moon.HasAPI("CrepuscularLightAPI")
     assert moon.GetAttribute("crepuscular:medium:extinction").HasAuthoredValue()
-    assert moon.GetAttribute("crepuscular:method").Get() == "reference"
+    assert moon.GetAttribute("crepuscular:method").Get() == "prefiltered"
     assert [str(t) for t in moon.GetRelationship("crepuscular:mediumExtent").GetTargets()] == [
         "/World/Fog"
     ]

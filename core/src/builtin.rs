@@ -302,7 +302,7 @@ fn fog(extinction: f32, anisotropy: f32) -> Medium {
 fn settings(max_distance: f32) -> RenderSettings {
     RenderSettings {
         shadow_map_size: 1024,
-        method: Method::Reference,
+        method: Method::Prefiltered,
         max_distance,
         ..RenderSettings::default()
     }

@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 use crepuscular::scene::{
-    Camera, Extent, Medium, Mesh, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
+    Camera, Extent, Medium, Mesh, Method, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
 use crepuscular::Style;
 use glam::{Mat4, Vec3};
@@ -56,8 +56,10 @@ pub fn medium(extinction: f32, anisotropy: f32) -> Medium {
     }
 }
 
+/// Settings of the reference march.
 pub fn settings(shadow_map_size: u32, steps: u32, max_distance: f32) -> RenderSettings {
     RenderSettings {
+        method: Method::Reference,
         shadow_map_size,
         steps,
         max_distance,
