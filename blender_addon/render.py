@@ -5,10 +5,13 @@ pipeline's own depsgraph (mode 'RENDER', evaluated at that frame, with render vi
 and render modifier settings), after `render_pre` and before the engine and the compositor
 run. There the add-on exports the frame, renders the layers with the core, writes them into
 the float Image datablock "Crepuscular Volume" (premultiplied, scene-linear) and, when asked,
-into a multi-layer EXR next to the render output. The compositor node group "Crepuscular
-Composite", wired into `scene.compositing_node_group` in front of its output, reads that
-image and puts it over the beauty with a premultiplied Alpha Over, in scene-linear before
-the view transform. The user can open and tweak both node trees.
+into a multi-layer EXR next to the render output. The EXR is compressed and written on a
+worker thread while the engine renders the beauty; the next frame, the end of the render
+(`render_complete`, `render_cancel`) and unregistering wait for it and report a failure.
+The compositor node group "Crepuscular Composite", wired into
+`scene.compositing_node_group` in front of its output, reads that image and puts it over
+the beauty with a premultiplied Alpha Over, in scene-linear before the view transform.
+The user can open and tweak both node trees.
 
 The fog object, when it supplies the medium, is made invisible to every ray type for the
 duration of a render (and restored after), so the beauty does not count the medium twice.
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import os
 import sys
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import bpy
@@ -120,6 +124,55 @@ def layers_path(scene: bpy.types.Scene, frame: int) -> str:
     if stem and stem[-1] not in "_-.":
         stem += "_"
     return os.path.join(directory, f"{stem}crepuscular_{frame:04d}.exr")
+
+
+class LayerWriter:
+    """Writes layer EXRs on one worker thread, at most one file in flight: compressing a
+    1080p frame takes about as long as rendering its layers, and the core releases the GIL
+    while it writes, so the write overlaps the beauty render instead of adding to it."""
+
+    def __init__(self) -> None:
+        self._executor: ThreadPoolExecutor | None = None
+        self._pending: tuple[str, Future[None]] | None = None
+
+    def submit(self, path: str, layers: crepuscular.Layers) -> None:
+        """Starts writing `layers` to `path` once the previous file is done; raises the
+        previous file's error, if it failed."""
+        self.wait()
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="crepuscular")
+        self._pending = (path, self._executor.submit(crepuscular.write_exr, path, layers))
+
+    def wait(self) -> None:
+        """Blocks until the file in flight is written; raises its error, if it failed."""
+        if self._pending is None:
+            return
+        path, future = self._pending
+        self._pending = None
+        future.result()
+        log(f"wrote layers to {path}")
+
+    def close(self) -> None:
+        """Waits for the file in flight and stops the worker."""
+        try:
+            self.wait()
+        finally:
+            if self._executor is not None:
+                self._executor.shutdown()
+                self._executor = None
+
+
+WRITER = LayerWriter()
+
+
+def finish_layer_files(scene: bpy.types.Scene) -> None:
+    """Waits for the layer file in flight; a failure is reported on the scene and raised."""
+    try:
+        WRITER.wait()
+    except USER_ERRORS as error:
+        scene.crepuscular.last_error = f"writing layers: {error}"
+        log(scene.crepuscular.last_error)
+        raise
 
 
 # Compositor -----------------------------------------------------------------------------
@@ -268,6 +321,7 @@ def on_render_done(scene: bpy.types.Scene, _depsgraph: Any = None) -> None:
             for flag, value in flags.items():
                 setattr(fog, flag, value)
         del _HIDDEN_FOG[name]
+    finish_layer_files(scene)
 
 
 @bpy.app.handlers.persistent
@@ -298,8 +352,8 @@ def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph)
     if settings.write_layers:
         path = layers_path(scene, frame)
         os.makedirs(os.path.dirname(path), exist_ok=True)
-        crepuscular.write_exr(path, layers)
-        log(f"wrote layers of frame {frame} to {path}")
+        finish_layer_files(scene)
+        WRITER.submit(path, layers)
 
 
 @bpy.app.handlers.persistent
@@ -401,6 +455,7 @@ def mute_compositor_nodes() -> None:
 
 
 def unregister() -> None:
+    WRITER.close()
     mute_compositor_nodes()
     for name, handler in reversed(HANDLERS):
         handlers = getattr(bpy.app.handlers, name)

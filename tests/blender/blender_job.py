@@ -117,6 +117,15 @@ def job_composite(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "centres.exr")) == {"FINISHED"}
 
 
+def job_unwritable_layers(spec: dict[str, Any], out: Path) -> None:
+    """F12 where the layer EXR cannot be written (a folder holds its name): the error is
+    reported on the scene once the render ends, and the composite is still written."""
+    scene = shaft_scene(spec)
+    (out / "blocked_crepuscular_0001.exr").mkdir()
+    _render(scene, out / "blocked.exr")
+    (out / "report.json").write_text(json.dumps({"last_error": scene.crepuscular.last_error}))
+
+
 def job_animation(spec: dict[str, Any], out: Path) -> None:
     scene = shaft_scene(spec)
     scene.frame_start, scene.frame_end = 1, 3
@@ -278,6 +287,7 @@ JOBS = {
     "animation": job_animation,
     "silhouette": job_silhouette,
     "usd_round_trip": job_usd_round_trip,
+    "unwritable_layers": job_unwritable_layers,
 }
 
 

@@ -7,6 +7,7 @@ minute on two cores."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -43,6 +44,16 @@ def test_f12_composites_the_layers_over_the_beauty(installed: ModuleType, tmp_pa
     expected = layers + (1.0 - layers[..., 3:4]) * beauty
     np.testing.assert_allclose(composite, expected, rtol=1e-4, atol=1e-5)
     assert np.abs(composite - beauty).mean() > 0.01
+
+
+def test_a_layer_file_that_cannot_be_written_is_reported(
+    installed: ModuleType, tmp_path: Path
+) -> None:
+    run_job(tmp_path, "unwritable_layers", width=32, height=18, samples=1)
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["last_error"].startswith("writing layers:")
+    assert "blocked_crepuscular_0001.exr" in report["last_error"]
+    assert rgba(tmp_path / "blocked.exr").shape == (18, 32, 4)
 
 
 def test_depth_matches_cycles_depth_pass(installed: ModuleType, tmp_path: Path) -> None:
