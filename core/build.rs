@@ -1,8 +1,12 @@
-//! Compiles the GLSL compute shaders in the top-level `shaders/` directory to SPIR-V with
-//! `glslc`, into OUT_DIR, where the Vulkan backend embeds them.
+//! Compiles the GLSL shaders in the top-level `shaders/` directory (compute `.comp`, vertex
+//! `.vert` and fragment `.frag`) to SPIR-V with `glslc`, into OUT_DIR as `<file name>.spv`
+//! (`march.comp.spv`), where the Vulkan backend embeds them.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
+
+/// File extensions of shader sources; glslc takes the stage from them.
+const SHADER_STAGES: [&str; 3] = ["comp", "vert", "frag"];
 
 fn main() {
     let manifest = PathBuf::from(
@@ -21,7 +25,10 @@ fn main() {
             )
         })
         .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|path| path.extension().is_some_and(|ext| ext == "comp"))
+        .filter(|path| {
+            path.extension()
+                .is_some_and(|ext| SHADER_STAGES.iter().any(|stage| ext == *stage))
+        })
         .collect();
     sources.sort();
     for source in &sources {
@@ -37,11 +44,11 @@ fn main() {
 }
 
 fn compile(compiler: &std::ffi::OsStr, source: &Path, out: &Path) {
-    let stem = source
-        .file_stem()
+    let file_name = source
+        .file_name()
         .and_then(|s| s.to_str())
         .unwrap_or("shader");
-    let target = out.join(format!("{stem}.spv"));
+    let target = out.join(format!("{file_name}.spv"));
     let result = Command::new(compiler)
         .args(["--target-env=vulkan1.1", "-O", "-Werror", "-o"])
         .arg(&target)

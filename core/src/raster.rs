@@ -9,6 +9,7 @@
 use glam::{DMat4, DVec4};
 use rayon::prelude::*;
 
+use crate::error::Result;
 use crate::render::Geometry;
 
 /// Id written where no triangle covers a sample.
@@ -83,7 +84,34 @@ pub struct DepthTarget {
     pub height: u32,
     /// +∞ where nothing was drawn.
     pub depth: Vec<f32>,
+    /// [`NO_OBJECT`] where nothing was drawn; empty from a rasterizer asked for depth
+    /// alone (the GPU's camera-depth pass).
     pub ids: Vec<u32>,
+}
+
+/// Fills depth targets: [`rasterize`] on the CPU, or a GPU's graphics pipeline.
+pub trait Rasterizer {
+    /// [`rasterize`]'s contract: world triangles through `pixel_from_world` into `desc`.
+    fn rasterize(
+        &self,
+        geometry: &Geometry,
+        pixel_from_world: &DMat4,
+        desc: &RasterDesc,
+    ) -> Result<DepthTarget>;
+}
+
+/// The CPU backend's rasterizer.
+pub struct CpuRasterizer;
+
+impl Rasterizer for CpuRasterizer {
+    fn rasterize(
+        &self,
+        geometry: &Geometry,
+        pixel_from_world: &DMat4,
+        desc: &RasterDesc,
+    ) -> Result<DepthTarget> {
+        Ok(rasterize(geometry, pixel_from_world, desc))
+    }
 }
 
 /// A triangle after clipping and snapping, ready for edge-function traversal.

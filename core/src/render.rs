@@ -11,7 +11,7 @@ use crate::layers::Layers;
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
 use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
-use crate::raster::{rasterize, RasterDesc};
+use crate::raster::{rasterize, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
 use crate::shadow_map::ShadowMap;
@@ -346,20 +346,33 @@ impl SurfaceDistances {
         }
     }
 
+    /// [`SurfaceDistances::new`] with a rasterized camera depth from `rasterizer`.
+    pub(crate) fn new_with(
+        camera: &CameraModel,
+        frame: &Frame,
+        rasterizer: &dyn Rasterizer,
+    ) -> Result<Self> {
+        Ok(match frame.camera_depth {
+            Some(given) => Self::from_given(camera, given),
+            None => {
+                let ss = frame.settings.supersampling;
+                let (pixel_from_world, desc) = camera_raster(camera, ss);
+                let target = rasterizer.rasterize(&frame.geometry, &pixel_from_world, &desc)?;
+                Self::from_planar(camera, ss, &target.depth)
+            }
+        })
+    }
+
     fn rasterized(camera: &CameraModel, frame: &Frame) -> Self {
         let ss = frame.settings.supersampling;
-        let (width, height) = (camera.width * ss, camera.height * ss);
-        let scale = DMat4::from_scale(DVec3::new(ss as f64, ss as f64, 1.0));
-        let pixel_from_world = scale * camera.pixel_from_world();
-        let desc = if camera.is_perspective() {
-            RasterDesc::perspective(width, height, camera.clip_start, camera.clip_end)
-        } else {
-            RasterDesc {
-                depth_range: (camera.clip_start, camera.clip_end),
-                ..RasterDesc::orthographic(width, height)
-            }
-        };
+        let (pixel_from_world, desc) = camera_raster(camera, ss);
         let planar = rasterize(&frame.geometry, &pixel_from_world, &desc).depth;
+        Self::from_planar(camera, ss, &planar)
+    }
+
+    /// Ray distances from a planar depth of `ss`² samples per pixel.
+    fn from_planar(camera: &CameraModel, ss: u32, planar: &[f32]) -> Self {
+        let width = camera.width * ss;
         let distances = planar
             .par_iter()
             .enumerate()
@@ -400,6 +413,23 @@ impl SurfaceDistances {
             distances,
         }
     }
+}
+
+/// The camera depth's projection and target with `ss`² samples per pixel: planar depth
+/// (w for a pinhole camera) clipped to the camera's clip range.
+pub fn camera_raster(camera: &CameraModel, ss: u32) -> (DMat4, RasterDesc) {
+    let (width, height) = (camera.width * ss, camera.height * ss);
+    let scale = DMat4::from_scale(DVec3::new(ss as f64, ss as f64, 1.0));
+    let pixel_from_world = scale * camera.pixel_from_world();
+    let desc = if camera.is_perspective() {
+        RasterDesc::perspective(width, height, camera.clip_start, camera.clip_end)
+    } else {
+        RasterDesc {
+            depth_range: (camera.clip_start, camera.clip_end),
+            ..RasterDesc::orthographic(width, height)
+        }
+    };
+    (pixel_from_world, desc)
 }
 
 /// Relative spread of a pixel's depth samples below which no edge runs through it.

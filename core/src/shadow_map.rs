@@ -4,7 +4,8 @@
 use glam::{DMat4, DVec3, DVec4};
 
 use crate::camera::CameraModel;
-use crate::raster::{rasterize, RasterDesc, NO_OBJECT};
+use crate::error::Result;
+use crate::raster::{rasterize, DepthTarget, RasterDesc, Rasterizer, NO_OBJECT};
 use crate::render::Geometry;
 use crate::scene::{Extent, Medium, RenderSettings, Sun};
 
@@ -65,6 +66,35 @@ impl ShadowMap {
             &texel_from_world,
             &RasterDesc::orthographic(size, size),
         );
+        Self::from_target(settings, texel_from_world, target)
+    }
+
+    /// [`ShadowMap::build`] with the rasterization done by `rasterizer`, which must write
+    /// object ids.
+    pub fn build_with(
+        camera: &CameraModel,
+        sun: &Sun,
+        medium: &Medium,
+        settings: &RenderSettings,
+        geometry: &Geometry,
+        rasterizer: &dyn Rasterizer,
+    ) -> Result<Self> {
+        let size = settings.shadow_map_size;
+        let texel_from_world = fit(camera, sun, medium, settings.max_distance as f64, size);
+        let target = rasterizer.rasterize(
+            geometry,
+            &texel_from_world,
+            &RasterDesc::orthographic(size, size),
+        )?;
+        Ok(Self::from_target(settings, texel_from_world, target))
+    }
+
+    fn from_target(
+        settings: &RenderSettings,
+        texel_from_world: DMat4,
+        target: DepthTarget,
+    ) -> Self {
+        let size = target.width;
         let texel_size = texel_world_size(&texel_from_world);
         let bias = settings
             .shadow_bias

@@ -6,6 +6,8 @@ use ash::vk;
 /// How a command touches a buffer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Access {
+    /// A vertex shader reading a storage buffer (the depth passes' vertex pulling).
+    VertexRead,
     ComputeRead,
     ComputeWrite,
     TransferRead,
@@ -20,6 +22,7 @@ impl Access {
 
     fn stage(self) -> vk::PipelineStageFlags {
         match self {
+            Access::VertexRead => vk::PipelineStageFlags::VERTEX_SHADER,
             Access::ComputeRead | Access::ComputeWrite => vk::PipelineStageFlags::COMPUTE_SHADER,
             Access::TransferRead | Access::TransferWrite => vk::PipelineStageFlags::TRANSFER,
             Access::HostRead => vk::PipelineStageFlags::HOST,
@@ -28,7 +31,7 @@ impl Access {
 
     fn mask(self) -> vk::AccessFlags {
         match self {
-            Access::ComputeRead => vk::AccessFlags::SHADER_READ,
+            Access::VertexRead | Access::ComputeRead => vk::AccessFlags::SHADER_READ,
             Access::ComputeWrite => vk::AccessFlags::SHADER_WRITE,
             Access::TransferRead => vk::AccessFlags::TRANSFER_READ,
             Access::TransferWrite => vk::AccessFlags::TRANSFER_WRITE,
@@ -98,6 +101,14 @@ mod tests {
         let b = barrier_between(Access::TransferWrite, Access::HostRead).unwrap();
         assert_eq!(b.dst_stage, vk::PipelineStageFlags::HOST);
         assert_eq!(b.dst_access, vk::AccessFlags::HOST_READ);
+    }
+
+    #[test]
+    fn upload_then_vertex_pulling_waits_for_the_copy() {
+        let b = barrier_between(Access::TransferWrite, Access::VertexRead).unwrap();
+        assert_eq!(b.src_access, vk::AccessFlags::TRANSFER_WRITE);
+        assert_eq!(b.dst_stage, vk::PipelineStageFlags::VERTEX_SHADER);
+        assert_eq!(b.dst_access, vk::AccessFlags::SHADER_READ);
     }
 
     #[test]

@@ -11,6 +11,8 @@ use super::buffer::{as_bytes, from_bytes, Buffer, BufferDesc, Pod};
 use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
+use super::graphics_pipeline::{Framebuffer, GraphicsPipeline, GraphicsPipelineDesc};
+use super::image::Image;
 use super::query::TimestampPool;
 
 /// Timestamp pairs one recording can hold.
@@ -29,6 +31,7 @@ pub struct Recorder {
     fence: vk::Fence,
     timestamps: Option<TimestampPool>,
     pipelines: Vec<Arc<ComputePipeline>>,
+    graphics_pipelines: Vec<Arc<GraphicsPipeline>>,
     staging: Vec<Buffer>,
     readbacks: Vec<Buffer>,
     /// Submitted but not yet known to be complete: Drop must wait before destroying.
@@ -36,8 +39,8 @@ pub struct Recorder {
 }
 
 impl Recorder {
-    /// Begins recording `stage`, with room for `max_dispatches` descriptor sets of up to
-    /// `max_buffers` storage buffers each.
+    /// Begins recording `stage`, with room for `max_dispatches` descriptor sets (one per
+    /// dispatch or draw) of up to `max_buffers` storage buffers each.
     pub fn new(
         device: &Arc<Device>,
         stage: &'static str,
@@ -62,6 +65,7 @@ impl Recorder {
             fence: vk::Fence::null(),
             timestamps: None,
             pipelines: Vec::new(),
+            graphics_pipelines: Vec::new(),
             staging: Vec::new(),
             readbacks: Vec::new(),
             in_flight: false,
@@ -194,38 +198,10 @@ impl Recorder {
             });
         }
         let pipeline = self.device.pipeline(desc)?;
+        let set = self.descriptor_set(pipeline.set_layout, buffers)?;
         let raw = &self.device.raw;
-        let layouts = [pipeline.set_layout];
-        let allocate = vk::DescriptorSetAllocateInfo::default()
-            .descriptor_pool(self.descriptors)
-            .set_layouts(&layouts);
-        // SAFETY: the pool was sized for this recording's dispatches.
-        let set =
-            unsafe { raw.allocate_descriptor_sets(&allocate) }.call("vkAllocateDescriptorSets")?[0];
-        let infos: Vec<vk::DescriptorBufferInfo> = buffers
-            .iter()
-            .map(|b| {
-                vk::DescriptorBufferInfo::default()
-                    .buffer(b.raw)
-                    .offset(0)
-                    .range(vk::WHOLE_SIZE)
-            })
-            .collect();
-        let writes: Vec<vk::WriteDescriptorSet> = infos
-            .iter()
-            .enumerate()
-            .map(|(binding, info)| {
-                vk::WriteDescriptorSet::default()
-                    .dst_set(set)
-                    .dst_binding(binding as u32)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                    .buffer_info(std::slice::from_ref(info))
-            })
-            .collect();
-        // SAFETY: recording; `infos` outlives the update, and the buffers outlive the
-        // submission.
+        // SAFETY: recording; the buffers outlive the submission.
         unsafe {
-            raw.update_descriptor_sets(&writes, &[]);
             raw.cmd_bind_pipeline(self.cb, vk::PipelineBindPoint::COMPUTE, pipeline.raw);
             raw.cmd_bind_descriptor_sets(
                 self.cb,
@@ -248,6 +224,144 @@ impl Recorder {
         }
         self.pipelines.push(pipeline);
         Ok(())
+    }
+
+    /// A descriptor set of `layout` with `buffers` as storage buffers at bindings 0...
+    fn descriptor_set(
+        &mut self,
+        layout: vk::DescriptorSetLayout,
+        buffers: &[&Buffer],
+    ) -> GpuResult<vk::DescriptorSet> {
+        let raw = &self.device.raw;
+        let layouts = [layout];
+        let allocate = vk::DescriptorSetAllocateInfo::default()
+            .descriptor_pool(self.descriptors)
+            .set_layouts(&layouts);
+        // SAFETY: the pool was sized for this recording's dispatches and draws.
+        let set =
+            unsafe { raw.allocate_descriptor_sets(&allocate) }.call("vkAllocateDescriptorSets")?[0];
+        let infos: Vec<vk::DescriptorBufferInfo> = buffers
+            .iter()
+            .map(|b| {
+                vk::DescriptorBufferInfo::default()
+                    .buffer(b.raw)
+                    .offset(0)
+                    .range(vk::WHOLE_SIZE)
+            })
+            .collect();
+        let writes: Vec<vk::WriteDescriptorSet> = infos
+            .iter()
+            .enumerate()
+            .map(|(binding, info)| {
+                vk::WriteDescriptorSet::default()
+                    .dst_set(set)
+                    .dst_binding(binding as u32)
+                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .buffer_info(std::slice::from_ref(info))
+            })
+            .collect();
+        // SAFETY: `infos` outlives the update; the set is not in use yet.
+        unsafe { raw.update_descriptor_sets(&writes, &[]) };
+        Ok(set)
+    }
+
+    /// Records one render pass on `target` that clears its attachments to `clear` (in
+    /// attachment order) and draws `vertex_count` vertices with `desc`'s pipeline, with
+    /// `buffers` at bindings 0.. and `push` as the vertex shader's push constants. The
+    /// attachments end ready for [`Recorder::download_image`].
+    pub fn draw(
+        &mut self,
+        desc: &GraphicsPipelineDesc,
+        target: &Framebuffer,
+        clear: &[vk::ClearValue],
+        buffers: &[&Buffer],
+        push: &[u8],
+        vertex_count: u32,
+    ) -> GpuResult<()> {
+        let attachments = desc.attachment_formats().len();
+        if buffers.len() != desc.buffers as usize
+            || push.len() != desc.push_constant_bytes as usize
+            || clear.len() != attachments
+        {
+            return Err(GpuError::Shader {
+                name: desc.vertex.name(),
+                reason: format!(
+                    "bound {} buffers, {} push-constant bytes and {} clear values, the \
+                     pipeline takes {}, {} and {}",
+                    buffers.len(),
+                    push.len(),
+                    clear.len(),
+                    desc.buffers,
+                    desc.push_constant_bytes,
+                    attachments
+                ),
+            });
+        }
+        let pipeline = self.device.graphics_pipeline(desc)?;
+        if pipeline.render_pass != target.render_pass {
+            return Err(GpuError::Unsupported(
+                "a framebuffer made for another render pass".to_owned(),
+            ));
+        }
+        let set = self.descriptor_set(pipeline.set_layout, buffers)?;
+        let raw = &self.device.raw;
+        let begin = vk::RenderPassBeginInfo::default()
+            .render_pass(pipeline.render_pass)
+            .framebuffer(target.raw)
+            .render_area(target.scissor())
+            .clear_values(clear);
+        // SAFETY: recording outside a render pass; the framebuffer, its images and the
+        // buffers outlive the submission.
+        unsafe {
+            raw.cmd_begin_render_pass(self.cb, &begin, vk::SubpassContents::INLINE);
+            raw.cmd_bind_pipeline(self.cb, vk::PipelineBindPoint::GRAPHICS, pipeline.raw);
+            raw.cmd_set_viewport(self.cb, 0, &[target.viewport()]);
+            raw.cmd_set_scissor(self.cb, 0, &[target.scissor()]);
+            raw.cmd_bind_descriptor_sets(
+                self.cb,
+                vk::PipelineBindPoint::GRAPHICS,
+                pipeline.layout,
+                0,
+                &[set],
+                &[],
+            );
+            if !push.is_empty() {
+                raw.cmd_push_constants(
+                    self.cb,
+                    pipeline.layout,
+                    vk::ShaderStageFlags::VERTEX,
+                    0,
+                    push,
+                );
+            }
+            raw.cmd_draw(self.cb, vertex_count, 1, 0, 0);
+            raw.cmd_end_render_pass(self.cb);
+        }
+        self.graphics_pipelines.push(pipeline);
+        Ok(())
+    }
+
+    /// Copies an image that a render pass left in `TRANSFER_SRC_OPTIMAL` (see
+    /// [`Recorder::draw`]) to a host-visible buffer, rows tightly packed; read it from the
+    /// [`Completed`] submission.
+    pub fn download_image(&mut self, image: &Image, name: &str) -> GpuResult<Readback> {
+        let target = Buffer::new(
+            &self.device,
+            BufferDesc::readback(image.desc.buffer_bytes()),
+            name,
+        )?;
+        // SAFETY: recording; the image outlives the submission and is in the layout named.
+        unsafe {
+            self.device.raw.cmd_copy_image_to_buffer(
+                self.cb,
+                image.raw,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                target.raw,
+                &[image.desc.copy_to_buffer_region()],
+            )
+        };
+        self.readbacks.push(target);
+        Ok(Readback(self.readbacks.len() - 1))
     }
 
     /// Records `f`'s commands between two timestamps labelled `label` (untimed where the

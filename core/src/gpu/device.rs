@@ -1,5 +1,5 @@
-//! The logical device: one compute queue, the memory allocator, and the cache of compute
-//! pipelines. Shared as `Arc<Device>`; everything created from it is destroyed first.
+//! The logical device: one queue (compute, and graphics where the device has it), the
+//! memory allocator, and the caches of compute and graphics pipelines. Shared as `Arc<Device>`; everything created from it is destroyed first.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -9,6 +9,7 @@ use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
 use super::error::{GpuError, GpuResult, VkContext};
+use super::graphics_pipeline::{GraphicsPipeline, GraphicsPipelineDesc};
 use super::instance::{Instance, InstanceDesc};
 use super::physical_device::{DevicePolicy, PhysicalDevice};
 
@@ -21,6 +22,7 @@ pub struct Device {
     /// `None` only while the device is being dropped.
     allocator: Mutex<Option<Allocator>>,
     pipelines: Mutex<HashMap<ComputePipelineDesc, Arc<ComputePipeline>>>,
+    graphics_pipelines: Mutex<HashMap<GraphicsPipelineDesc, Arc<GraphicsPipeline>>>,
     /// Declared last: dropped after the device is destroyed.
     pub instance: Instance,
 }
@@ -67,6 +69,7 @@ impl Device {
             queue_lock: Mutex::new(()),
             allocator: Mutex::new(Some(allocator)),
             pipelines: Mutex::new(HashMap::new()),
+            graphics_pipelines: Mutex::new(HashMap::new()),
             instance,
         }))
     }
@@ -100,6 +103,25 @@ impl Device {
         Ok(pipeline)
     }
 
+    /// The graphics pipeline for `desc`, created on first use.
+    pub fn graphics_pipeline(
+        &self,
+        desc: &GraphicsPipelineDesc,
+    ) -> GpuResult<Arc<GraphicsPipeline>> {
+        if !self.physical.graphics {
+            return Err(GpuError::Unsupported(
+                "graphics pipelines on a queue without graphics".to_owned(),
+            ));
+        }
+        let mut pipelines = lock(&self.graphics_pipelines);
+        if let Some(pipeline) = pipelines.get(desc) {
+            return Ok(pipeline.clone());
+        }
+        let pipeline = Arc::new(GraphicsPipeline::new(&self.raw, desc)?);
+        pipelines.insert(*desc, pipeline.clone());
+        Ok(pipeline)
+    }
+
     /// A line naming the device, for messages and bench output.
     pub fn describe(&self) -> String {
         format!("{} ({})", self.physical.name, self.physical.kind.name())
@@ -122,6 +144,9 @@ impl Drop for Device {
             let _ = self.raw.device_wait_idle();
         }
         for (_, pipeline) in lock(&self.pipelines).drain() {
+            pipeline.destroy(&self.raw);
+        }
+        for (_, pipeline) in lock(&self.graphics_pipelines).drain() {
             pipeline.destroy(&self.raw);
         }
         // The allocator frees its memory blocks through the device, so it goes first.

@@ -3,21 +3,26 @@
 //!
 //! | stage | where |
 //! |---|---|
-//! | shadow map and camera depth rasterization | CPU |
+//! | shadow map rasterization (depth and object ids), camera depth rasterization | GPU (graphics pipeline, depth passes) |
+//! | camera depth given by the host: conversion to ray distances | CPU |
 //! | hole filling (2D closing and the other morphology operations) | GPU |
 //! | silhouette enhancement, hole creation | CPU |
 //! | reference ray march | GPU |
 //! | epipolar rectification (resampling) for `prefiltered` | GPU |
-//! | projective rectification (rasterized), min-max scattering | CPU |
+//! | projective rectification (rasterized: projected depth), min-max scattering (its shadow map and camera depth included) | CPU |
 //! | prefiltered: planning (frames, bands, weights) | CPU |
 //! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation | GPU |
 //! | upsampling of downsampled evaluation | GPU |
 //! | transfer function: baking | CPU; application | GPU |
+//!
+//! A depth target larger than the device's framebuffers, or a queue without graphics,
+//! keeps that rasterization on the CPU (listed in [`GpuTimes::cpu_stages`]).
 
 use std::sync::Arc;
 
 use super::device::Device;
 use super::march::{self, MarchInputs};
+use super::raster::GpuRasterizer;
 use super::rectify::GpuResampler;
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
@@ -26,7 +31,7 @@ use crate::error::Result;
 use crate::layers::Layers;
 use crate::morphology::MorphologyDesc;
 use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
-use crate::render::{scatter_timed, Frame, StageTimes, SurfaceDistances};
+use crate::render::{camera_raster, scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
 use crate::style::Style;
@@ -36,6 +41,10 @@ use crate::upsample::reduced_size;
 /// the stages that ran on the CPU.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct GpuTimes {
+    /// The shadow map's depth pass (depth and object ids).
+    pub shadow_map: Option<f64>,
+    /// The camera's depth pass.
+    pub camera_depth: Option<f64>,
     pub hole_filling: Option<f64>,
     pub ray_march: Option<f64>,
     /// Epipolar rectification (resampling the shadow map along slices).
@@ -54,6 +63,8 @@ impl GpuTimes {
     /// The GPU stages' total.
     pub fn total(&self) -> f64 {
         [
+            self.shadow_map,
+            self.camera_depth,
             self.hole_filling,
             self.ray_march,
             self.rectification,
@@ -117,22 +128,47 @@ fn gpu_frame(
     let rows = reduced_size(frame.camera.height, frame.settings.downsample);
     control.begin(rows as u64);
     control.check()?;
-    let mut shadow = ShadowMap::build(
-        camera,
-        frame.sun,
-        frame.medium,
-        frame.settings,
-        &frame.geometry,
-    );
-    gpu.cpu_stages.push("shadow map");
+    let shadow_rasterizer = GpuRasterizer::shadow_map(device);
+    let size = frame.settings.shadow_map_size;
+    let mut shadow = if shadow_rasterizer.fits(size, size) {
+        let shadow = ShadowMap::build_with(
+            camera,
+            frame.sun,
+            frame.medium,
+            frame.settings,
+            &frame.geometry,
+            &shadow_rasterizer,
+        )?;
+        gpu.shadow_map = shadow_rasterizer.milliseconds();
+        shadow
+    } else {
+        gpu.cpu_stages.push("shadow map");
+        ShadowMap::build(
+            camera,
+            frame.sun,
+            frame.medium,
+            frame.settings,
+            &frame.geometry,
+        )
+    };
     control.check()?;
     times.shadow_map = stopwatch.lap();
     if frame.style.manipulates_occluders() {
         shadow = manipulate_occluders(device, frame.style, shadow, camera, gpu)?;
         times.occluders = stopwatch.lap();
     }
-    let surfaces = SurfaceDistances::new(camera, frame);
-    gpu.cpu_stages.push("camera depth");
+    let depth_rasterizer = GpuRasterizer::camera_depth(device);
+    let (_, depth_desc) = camera_raster(camera, frame.settings.supersampling);
+    let surfaces = if frame.camera_depth.is_none()
+        && depth_rasterizer.fits(depth_desc.width, depth_desc.height)
+    {
+        let surfaces = SurfaceDistances::new_with(camera, frame, &depth_rasterizer)?;
+        gpu.camera_depth = depth_rasterizer.milliseconds();
+        surfaces
+    } else {
+        gpu.cpu_stages.push("camera depth");
+        SurfaceDistances::new(camera, frame)
+    };
     times.camera_depth = stopwatch.lap();
     control.check()?;
     let inputs = MarchInputs {

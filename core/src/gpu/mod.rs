@@ -1,13 +1,14 @@
-//! The Vulkan backend (ash): headless compute on a device loaded at run time, running
-//! the frame's stages from the GLSL shaders in `shaders/`. The CPU backend stays the
-//! oracle; [`frame`] says which stages run where.
+//! The Vulkan backend (ash): headless compute and depth-only graphics on a device loaded
+//! at run time, running the frame's stages from the GLSL shaders in `shaders/`. The CPU
+//! backend stays the oracle; [`frame`] says which stages run where.
 //!
 //! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
-//! [`shader`], [`compute_pipeline`], [`command`] (recording and submission), [`barrier`],
-//! [`query`] (timestamps), [`layer_buffers`] (the layers' device buffers and read-back),
-//! [`dispatch`] (workgroup counts and parameter packing), and one per ported stage:
-//! [`march`], [`morphology`], [`transfer`], [`prefix`], [`prefiltered`], [`upsample`],
-//! [`rectify`].
+//! [`image`], [`shader`], [`compute_pipeline`], [`graphics_pipeline`] (render passes and
+//! framebuffers), [`command`] (recording and submission), [`barrier`], [`query`]
+//! (timestamps), [`layer_buffers`] (the layers' device buffers and read-back), [`dispatch`]
+//! (workgroup counts and parameter packing), and one per ported stage: [`raster`] (shadow
+//! map and camera depth), [`march`], [`morphology`], [`transfer`], [`prefix`],
+//! [`prefiltered`], [`upsample`], [`rectify`].
 
 pub mod barrier;
 pub mod buffer;
@@ -17,6 +18,8 @@ pub mod device;
 pub mod dispatch;
 pub mod error;
 pub mod frame;
+pub mod graphics_pipeline;
+pub mod image;
 pub mod instance;
 pub mod layer_buffers;
 pub mod march;
@@ -25,6 +28,7 @@ pub mod physical_device;
 pub mod prefiltered;
 pub mod prefix;
 pub mod query;
+pub mod raster;
 pub mod rectify;
 pub mod shader;
 pub mod transfer;

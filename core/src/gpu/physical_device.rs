@@ -67,6 +67,20 @@ pub fn choose_device(kinds: &[DeviceKind], policy: DevicePolicy) -> Option<usize
         .map(|(_, i)| i)
 }
 
+/// Index of the queue family to use: the first with compute and graphics, so that one
+/// queue runs every stage, or else the first with compute.
+pub fn choose_queue_family(families: &[vk::QueueFlags]) -> Option<usize> {
+    let both = vk::QueueFlags::COMPUTE | vk::QueueFlags::GRAPHICS;
+    families
+        .iter()
+        .position(|flags| flags.contains(both))
+        .or_else(|| {
+            families
+                .iter()
+                .position(|flags| flags.contains(vk::QueueFlags::COMPUTE))
+        })
+}
+
 /// A physical device with the properties the backend uses.
 #[derive(Clone, Debug)]
 pub struct PhysicalDevice {
@@ -75,9 +89,17 @@ pub struct PhysicalDevice {
     pub kind: DeviceKind,
     /// Nanoseconds per timestamp tick.
     pub timestamp_period: f32,
-    /// The compute queue family and its valid timestamp bits (0: no timestamps).
+    /// The queue family (compute, with graphics where a family offers both) and its valid
+    /// timestamp bits (0: no timestamps).
     pub queue_family: u32,
     pub timestamp_valid_bits: u32,
+    /// Whether the queue also runs graphics pipelines (the depth passes).
+    pub graphics: bool,
+    /// The largest render target: framebuffer and 2D image limits together.
+    pub max_render_size: [u32; 2],
+    pub max_viewport_dimensions: [u32; 2],
+    /// The range viewport corners must lie in.
+    pub viewport_bounds_range: [f32; 2],
     pub max_workgroup_count: [u32; 3],
     pub max_storage_buffer_range: u32,
 }
@@ -98,13 +120,12 @@ impl PhysicalDevice {
                     .raw
                     .get_physical_device_queue_family_properties(raw)
             };
-            let Some((family, queue)) = families
-                .iter()
-                .enumerate()
-                .find(|(_, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+            let Some(family) =
+                choose_queue_family(&families.iter().map(|f| f.queue_flags).collect::<Vec<_>>())
             else {
                 continue;
             };
+            let queue = families[family];
             let name = properties
                 .device_name_as_c_str()
                 .map(|name| name.to_string_lossy().into_owned())
@@ -116,6 +137,19 @@ impl PhysicalDevice {
                 timestamp_period: properties.limits.timestamp_period,
                 queue_family: family as u32,
                 timestamp_valid_bits: queue.timestamp_valid_bits,
+                graphics: queue.queue_flags.contains(vk::QueueFlags::GRAPHICS),
+                max_render_size: [
+                    properties
+                        .limits
+                        .max_framebuffer_width
+                        .min(properties.limits.max_image_dimension2_d),
+                    properties
+                        .limits
+                        .max_framebuffer_height
+                        .min(properties.limits.max_image_dimension2_d),
+                ],
+                max_viewport_dimensions: properties.limits.max_viewport_dimensions,
+                viewport_bounds_range: properties.limits.viewport_bounds_range,
                 max_workgroup_count: properties.limits.max_compute_work_group_count,
                 max_storage_buffer_range: properties.limits.max_storage_buffer_range,
             });
@@ -173,6 +207,18 @@ mod tests {
             choose_device(&[Integrated, Discrete, Cpu], DevicePolicy::Any),
             Some(1)
         );
+    }
+
+    #[test]
+    fn the_queue_family_runs_graphics_where_one_can() {
+        let compute = vk::QueueFlags::COMPUTE | vk::QueueFlags::TRANSFER;
+        let both = vk::QueueFlags::COMPUTE | vk::QueueFlags::GRAPHICS;
+        assert_eq!(choose_queue_family(&[compute, both]), Some(1));
+        assert_eq!(
+            choose_queue_family(&[vk::QueueFlags::TRANSFER, compute]),
+            Some(1)
+        );
+        assert_eq!(choose_queue_family(&[vk::QueueFlags::GRAPHICS]), None);
     }
 
     #[test]

@@ -5,7 +5,7 @@ use ash::vk;
 
 use super::error::{GpuError, GpuResult, VkContext};
 
-/// The compute shaders, by name (their file stem in `shaders/`).
+/// The shaders, compute and graphics, by their file in `shaders/`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Shader {
     March,
@@ -15,30 +15,66 @@ pub enum Shader {
     Prefiltered,
     Upsample,
     Rectify,
+    /// The depth passes' vertex shader.
+    RasterVertex,
+    /// The shadow map's fragment shader, which writes object ids.
+    RasterFragment,
 }
 
 impl Shader {
+    pub const ALL: [Shader; 9] = [
+        Shader::March,
+        Shader::Morphology,
+        Shader::Transfer,
+        Shader::Prefix,
+        Shader::Prefiltered,
+        Shader::Upsample,
+        Shader::Rectify,
+        Shader::RasterVertex,
+        Shader::RasterFragment,
+    ];
+
+    /// The source's file name in `shaders/`.
     pub fn name(self) -> &'static str {
         match self {
-            Shader::March => "march",
-            Shader::Morphology => "morphology",
-            Shader::Transfer => "transfer",
-            Shader::Prefix => "prefix",
-            Shader::Prefiltered => "prefiltered",
-            Shader::Upsample => "upsample",
-            Shader::Rectify => "rectify",
+            Shader::March => "march.comp",
+            Shader::Morphology => "morphology.comp",
+            Shader::Transfer => "transfer.comp",
+            Shader::Prefix => "prefix.comp",
+            Shader::Prefiltered => "prefiltered.comp",
+            Shader::Upsample => "upsample.comp",
+            Shader::Rectify => "rectify.comp",
+            Shader::RasterVertex => "raster.vert",
+            Shader::RasterFragment => "raster.frag",
+        }
+    }
+
+    /// The pipeline stage the shader runs in.
+    pub fn stage(self) -> vk::ShaderStageFlags {
+        match self {
+            Shader::RasterVertex => vk::ShaderStageFlags::VERTEX,
+            Shader::RasterFragment => vk::ShaderStageFlags::FRAGMENT,
+            _ => vk::ShaderStageFlags::COMPUTE,
         }
     }
 
     pub fn spirv(self) -> &'static [u8] {
         match self {
-            Shader::March => include_bytes!(concat!(env!("OUT_DIR"), "/march.spv")),
-            Shader::Morphology => include_bytes!(concat!(env!("OUT_DIR"), "/morphology.spv")),
-            Shader::Transfer => include_bytes!(concat!(env!("OUT_DIR"), "/transfer.spv")),
-            Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.spv")),
-            Shader::Prefiltered => include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.spv")),
-            Shader::Upsample => include_bytes!(concat!(env!("OUT_DIR"), "/upsample.spv")),
-            Shader::Rectify => include_bytes!(concat!(env!("OUT_DIR"), "/rectify.spv")),
+            Shader::March => include_bytes!(concat!(env!("OUT_DIR"), "/march.comp.spv")),
+            Shader::Morphology => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/morphology.comp.spv"))
+            }
+            Shader::Transfer => include_bytes!(concat!(env!("OUT_DIR"), "/transfer.comp.spv")),
+            Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.comp.spv")),
+            Shader::Prefiltered => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.comp.spv"))
+            }
+            Shader::Upsample => include_bytes!(concat!(env!("OUT_DIR"), "/upsample.comp.spv")),
+            Shader::Rectify => include_bytes!(concat!(env!("OUT_DIR"), "/rectify.comp.spv")),
+            Shader::RasterVertex => include_bytes!(concat!(env!("OUT_DIR"), "/raster.vert.spv")),
+            Shader::RasterFragment => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/raster.frag.spv"))
+            }
         }
     }
 
@@ -80,15 +116,7 @@ mod tests {
 
     #[test]
     fn every_shader_is_embedded_as_spirv() {
-        for shader in [
-            Shader::March,
-            Shader::Morphology,
-            Shader::Transfer,
-            Shader::Prefix,
-            Shader::Prefiltered,
-            Shader::Upsample,
-            Shader::Rectify,
-        ] {
+        for shader in Shader::ALL {
             let words = shader.words().unwrap();
             assert_eq!(
                 words[0],
@@ -97,5 +125,33 @@ mod tests {
                 shader.name()
             );
         }
+    }
+
+    #[test]
+    fn every_source_in_the_shader_directory_has_a_variant() {
+        let shaders = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shaders");
+        for entry in std::fs::read_dir(shaders).unwrap() {
+            let path = entry.unwrap().path();
+            let name = path.file_name().unwrap().to_str().unwrap().to_owned();
+            if ["comp", "vert", "frag"]
+                .iter()
+                .any(|ext| path.extension().is_some_and(|e| e == *ext))
+            {
+                assert!(
+                    Shader::ALL.iter().any(|s| s.name() == name),
+                    "{name} is compiled but not embedded"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn graphics_shaders_name_their_stage() {
+        assert_eq!(Shader::RasterVertex.stage(), vk::ShaderStageFlags::VERTEX);
+        assert_eq!(
+            Shader::RasterFragment.stage(),
+            vk::ShaderStageFlags::FRAGMENT
+        );
+        assert_eq!(Shader::March.stage(), vk::ShaderStageFlags::COMPUTE);
     }
 }

@@ -37,6 +37,8 @@ struct Row {
     scene: String,
     method: &'static str,
     look: &'static str,
+    shadow_map: Option<f64>,
+    camera_depth: Option<f64>,
     hole_filling: Option<f64>,
     march: Option<f64>,
     rectify: Option<f64>,
@@ -44,7 +46,8 @@ struct Row {
     upsampling: Option<f64>,
     transfer: Option<f64>,
     gpu_total: f64,
-    /// CPU-side work of the Vulkan path (rasterization, baking), median ms.
+    /// Wall time of the Vulkan path's depth maps and rectification (GPU passes with their
+    /// uploads and read-backs, CPU work such as projective rasterization), median ms.
     cpu_side: f64,
     frame: f64,
     cpu: Option<(StageTimes, f64)>,
@@ -127,6 +130,8 @@ pub fn run(
                 scene: name.clone(),
                 method: scene.render.method.name(),
                 look,
+                shadow_map: median_option(&gpu, |t| t.shadow_map),
+                camera_depth: median_option(&gpu, |t| t.camera_depth),
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
                 march: median_option(&gpu, |t| t.ray_march.or(t.prefiltered)),
                 rectify: median_option(&gpu, |t| t.rectification),
@@ -171,10 +176,12 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         device.describe()
     );
     println!(
-        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
         "method",
         "look",
+        "smap",
+        "cdepth",
         "holes",
         "rect",
         "shade",
@@ -182,7 +189,7 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         "up",
         "TF",
         "GPU sum",
-        "CPU side",
+        "maps",
         "frame",
         "cpu holes",
         "cpu shade",
@@ -200,10 +207,12 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         };
         let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
-            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
             row.method,
             row.look,
+            ms(row.shadow_map),
+            ms(row.camera_depth),
             ms(row.hole_filling),
             ms(row.rectify),
             ms(row.march),
@@ -224,12 +233,12 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.sort();
     on_cpu.dedup();
     println!(
-        "\nholes = hole filling (2D closing); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
+        "\nsmap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
          prefiltered evaluation with the reference near on-screen epipoles); prefix = \
          prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
          evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
-         wall time of the whole Vulkan-path frame. `CPU side` = shadow map + camera depth \
-         rasterization + rectification (its wall time, with the GPU's). Stages the Vulkan path still runs on the CPU: {}.",
+         wall time of the whole Vulkan-path frame. `maps` = wall time of the shadow map, camera \
+         depth and rectification stages (GPU passes with their transfers, and CPU work). Stages the Vulkan path still runs on the CPU: {}.",
         on_cpu.join(", ")
     );
     println!(
