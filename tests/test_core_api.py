@@ -623,7 +623,8 @@ def test_backend_setting_selects_vulkan_or_cpu_with_matching_layers(
         assert other.volume.shape == cpu.volume.shape
         error = np.abs(other.volume - cpu.volume).sum() / max(np.abs(cpu.volume).sum(), 1e-30)
         assert error <= 1e-3, (backend, error)
-        np.testing.assert_allclose(other.depth, cpu.depth, rtol=1e-6)
+        # Vulkan rasterizes the camera depth itself, interpolating in f32.
+        np.testing.assert_allclose(other.depth, cpu.depth, rtol=1e-3)
 
 
 def test_unknown_backend_is_named(scene: dict[str, Any]) -> None:
