@@ -129,6 +129,18 @@ impl CameraModel {
         ]
     }
 
+    /// [`Ray::distance_per_depth`] of [`CameraModel::ray`] without the rest of the ray:
+    /// converting a depth buffer needs only this, per sample.
+    #[inline]
+    pub fn distance_per_depth(&self, px: f64, py: f64) -> f64 {
+        if self.perspective {
+            let [x, y] = self.plane_point(px, py);
+            DVec3::new(x, y, -1.0).length()
+        } else {
+            1.0
+        }
+    }
+
     /// The world-space ray through continuous pixel coordinates.
     pub fn ray(&self, px: f64, py: f64) -> Ray {
         let [x, y] = self.plane_point(px, py);
@@ -245,6 +257,23 @@ mod tests {
             sensor_fit: fit,
             shift_x,
             shift_y: 0.0,
+        }
+    }
+
+    #[test]
+    fn distance_per_depth_is_the_rays() {
+        let orthographic = Projection::Orthographic {
+            ortho_scale: 6.0,
+            sensor_fit: SensorFit::Auto,
+            shift_x: 0.2,
+            shift_y: 0.0,
+        };
+        for projection in [perspective(SensorFit::Vertical, 0.3), orthographic] {
+            let model = CameraModel::new(&camera(projection, 160, 90));
+            for (px, py) in [(0.0, 0.0), (80.5, 45.5), (159.9, 3.25), (12.0, 89.0)] {
+                let want = model.ray(px, py).distance_per_depth;
+                assert_eq!(model.distance_per_depth(px, py), want, "({px}, {py})");
+            }
         }
     }
 

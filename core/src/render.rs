@@ -378,8 +378,9 @@ impl SurfaceDistances {
             .enumerate()
             .map(|(i, &depth)| {
                 let (x, y) = ((i as u32 % width) as f64, (i as u32 / width) as f64);
-                let ray = camera.ray((x + 0.5) / ss as f64, (y + 0.5) / ss as f64);
-                (depth as f64 * ray.distance_per_depth) as f32
+                let stretch =
+                    camera.distance_per_depth((x + 0.5) / ss as f64, (y + 0.5) / ss as f64);
+                (depth as f64 * stretch) as f32
             })
             .collect();
         Self {
