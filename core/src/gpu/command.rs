@@ -203,27 +203,37 @@ impl Recorder {
         // SAFETY: recording; the buffers outlive the submission.
         unsafe {
             raw.cmd_bind_pipeline(self.cb, vk::PipelineBindPoint::COMPUTE, pipeline.raw);
-            raw.cmd_bind_descriptor_sets(
-                self.cb,
+            self.bind_set_and_push(
                 vk::PipelineBindPoint::COMPUTE,
                 pipeline.layout,
-                0,
-                &[set],
-                &[],
+                set,
+                vk::ShaderStageFlags::COMPUTE,
+                push,
             );
-            if !push.is_empty() {
-                raw.cmd_push_constants(
-                    self.cb,
-                    pipeline.layout,
-                    vk::ShaderStageFlags::COMPUTE,
-                    0,
-                    push,
-                );
-            }
             raw.cmd_dispatch(self.cb, groups[0], groups[1], groups[2]);
         }
         self.pipelines.push(pipeline);
         Ok(())
+    }
+
+    /// Binds `set` and pushes `push` (if any) for the pipeline bound at `point`.
+    ///
+    /// # Safety
+    /// Recording, with a pipeline of `layout` bound at `point`; the set's buffers outlive
+    /// the submission.
+    unsafe fn bind_set_and_push(
+        &self,
+        point: vk::PipelineBindPoint,
+        layout: vk::PipelineLayout,
+        set: vk::DescriptorSet,
+        stages: vk::ShaderStageFlags,
+        push: &[u8],
+    ) {
+        let raw = &self.device.raw;
+        raw.cmd_bind_descriptor_sets(self.cb, point, layout, 0, &[set], &[]);
+        if !push.is_empty() {
+            raw.cmd_push_constants(self.cb, layout, stages, 0, push);
+        }
     }
 
     /// A descriptor set of `layout` with `buffers` as storage buffers at bindings 0...
@@ -317,23 +327,13 @@ impl Recorder {
             raw.cmd_bind_pipeline(self.cb, vk::PipelineBindPoint::GRAPHICS, pipeline.raw);
             raw.cmd_set_viewport(self.cb, 0, &[target.viewport()]);
             raw.cmd_set_scissor(self.cb, 0, &[target.scissor()]);
-            raw.cmd_bind_descriptor_sets(
-                self.cb,
+            self.bind_set_and_push(
                 vk::PipelineBindPoint::GRAPHICS,
                 pipeline.layout,
-                0,
-                &[set],
-                &[],
+                set,
+                vk::ShaderStageFlags::VERTEX,
+                push,
             );
-            if !push.is_empty() {
-                raw.cmd_push_constants(
-                    self.cb,
-                    pipeline.layout,
-                    vk::ShaderStageFlags::VERTEX,
-                    0,
-                    push,
-                );
-            }
             raw.cmd_draw(self.cb, vertex_count, 1, 0, 0);
             raw.cmd_end_render_pass(self.cb);
         }
