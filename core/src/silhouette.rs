@@ -1160,6 +1160,41 @@ mod tests {
         }
     }
 
+    #[test]
+    fn tables_repeat_the_lines_and_cover_every_nearest_ray() {
+        // A device walks texels with these tables alone: they must hold the families'
+        // values, and a kernel length for the ray nearest any texel of a cone.
+        let size = 53;
+        let map = random_map(size, 3);
+        for epipole in epipoles() {
+            let desc = SilhouetteDesc::close(7.0);
+            let lines = Lines::new(&map, size as u32, epipole, &desc)
+                .unwrap()
+                .unwrap();
+            let tables = family_tables(size as u32, epipole, &desc).unwrap().unwrap();
+            assert_eq!(tables.len(), lines.families.len());
+            for (family, table) in lines.families.iter().zip(&tables) {
+                assert_eq!(table.scale, family.scale);
+                assert_eq!(table.rays, (family.rays.0 as i32, family.rays.1 as i32));
+                let last = table.steps_first + table.steps.len() as i32 - 1;
+                for q in 0..size {
+                    for r in 0..size {
+                        if !family.in_cone(q, r) {
+                            continue;
+                        }
+                        let ray = family.nearest(q, r);
+                        assert!(
+                            (table.steps_first as i64..=last as i64).contains(&ray),
+                            "{epipole:?}: ray {ray} of texel ({q}, {r}) outside the table"
+                        );
+                        let index = (ray - table.steps_first as i64) as usize;
+                        assert_eq!(table.steps[index] as usize, family.steps(ray, lines.length));
+                    }
+                }
+            }
+        }
+    }
+
     /// Eq. 3 written out: the minimum over the same samples of the depth each one's view
     /// ray reaches at t, mixed in double precision without the flat-kernel transform.
     fn eq3(lines: &Lines, epipole: Epipole, index: usize) -> f32 {
