@@ -331,6 +331,43 @@ impl HoleNoise {
         self.size
     }
 
+    /// Whether [`HoleNoise::apply`] opens nothing whatever the map: no object chosen, or
+    /// a threshold no noise lies below.
+    pub fn opens_nothing(&self) -> bool {
+        self.chosen.is_empty() || self.threshold <= 0.0
+    }
+
+    /// This frame's noise as plain values, for a device that evaluates it texel by
+    /// texel exactly as [`HoleNoise::apply`] does.
+    pub fn params(&self) -> NoiseParams {
+        NoiseParams {
+            size: self.size,
+            block: BLOCK as u32,
+            threshold: self.threshold,
+            warp: self.warp,
+            origin: self.origin.to_array(),
+            per_x: self.per_x.to_array(),
+            per_y: self.per_y.to_array(),
+            rotation: self.rotation.to_array(),
+            period_whole: self.period.whole,
+            period_mask: self.period.mask,
+            period_cells: self.period.cells,
+            period_inverse: self.period.inverse,
+            perlin_scale: PERLIN_SCALE,
+            octaves: self
+                .octaves
+                .iter()
+                .map(|octave| OctaveParams {
+                    scale: octave.scale,
+                    shift: octave.shift.to_array(),
+                    weight: octave.weight,
+                    seed: octave.seed,
+                })
+                .collect(),
+            objects: self.chosen.0.clone(),
+        }
+    }
+
     /// N at every texel of row `y` (`out` holds `size` values), in [0, 1].
     pub fn noise_row(&self, y: u32, out: &mut [f32]) -> Result<()> {
         if y >= self.size || out.len() != self.size as usize {
@@ -472,6 +509,44 @@ impl HoleNoise {
         let (cos, sin) = (self.rotation.x, self.rotation.y);
         DVec2::new(cos * v.x - sin * v.y, sin * v.x + cos * v.y)
     }
+}
+
+/// One frame's [`HoleNoise`] as plain values (see [`HoleNoise::params`]): per block of
+/// `block` texels of a row, q is laid out in f64 from `origin`, `per_x` and `per_y` and
+/// reduced to one period; each texel then adds its lane in f32.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NoiseParams {
+    pub size: u32,
+    pub block: u32,
+    pub threshold: f32,
+    pub warp: f32,
+    pub origin: [f64; 2],
+    pub per_x: [f64; 2],
+    pub per_y: [f64; 2],
+    /// (cos θ, sin θ) of the first lookup.
+    pub rotation: [f64; 2],
+    /// The lattice period in cells; `period_mask` is period − 1 where that wraps it (a
+    /// power of two above 1), else 0.
+    pub period_whole: u32,
+    pub period_mask: u32,
+    pub period_cells: f32,
+    pub period_inverse: f32,
+    /// Scales Perlin noise into [−1, 1].
+    pub perlin_scale: f32,
+    pub octaves: Vec<OctaveParams>,
+    /// The chosen object ids, sorted and without duplicates.
+    pub objects: Vec<u32>,
+}
+
+/// One octave of Eq. 5 (see [`NoiseParams`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OctaveParams {
+    /// 2ⁱ.
+    pub scale: f64,
+    /// Shift in this octave's cells.
+    pub shift: [f64; 2],
+    pub weight: f32,
+    pub seed: u32,
 }
 
 /// A copy of `map`'s depth with holes opened in the occluders of `desc.objects`.

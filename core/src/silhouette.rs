@@ -155,6 +155,134 @@ pub fn apply_naive(
         .collect())
 }
 
+/// One family of lines flattened into per-column and per-ray tables: what an evaluator
+/// that walks each texel's rays on its own (the Vulkan backend) needs to visit the same
+/// samples and evaluate the same expressions as [`apply_naive`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct FamilyTables {
+    /// Columns run along texel x (else y).
+    pub x_major: bool,
+    /// +1 or −1: the direction, along the major axis, away from the epipole.
+    pub sign: i32,
+    /// Pinhole rays from a point (else parallel orthographic lines).
+    pub fan: bool,
+    /// Epipole coordinates along the major and minor axes (pinhole).
+    pub major: f64,
+    pub minor: f64,
+    /// Inclusive range of the rays that reach the map.
+    pub rays: (i32, i32),
+    /// Depth transform base (z_l for a pinhole camera).
+    pub base: f32,
+    /// Per column: ray i samples row ⌊(i + ½)·along + shift⌋, and the ray nearest a texel
+    /// centre c is ⌊c·inv_along − inv_shift⌋ (pinhole).
+    pub along: Vec<f64>,
+    pub shift: Vec<f64>,
+    pub inv_along: Vec<f64>,
+    pub inv_shift: Vec<f64>,
+    /// Per column: line i samples row i + `rows` (orthographic).
+    pub rows: Vec<i32>,
+    /// Per column: the depth transform `u = (z − base)·scale − offset`, back by `unscale`.
+    pub scale: Vec<f32>,
+    pub offset: Vec<f32>,
+    pub unscale: Vec<f32>,
+    /// Per column: whether the rays visit it (pinhole rays start past the epipole).
+    pub visits: Vec<bool>,
+    /// Kernel length in columns of rays `steps_first..`, a little wider than `rays` so
+    /// that the ray nearest any texel of the cone has an entry.
+    pub steps_first: i32,
+    pub steps: Vec<u32>,
+}
+
+/// Rays past either end of a family's range that [`FamilyTables::steps`] covers: the ray
+/// nearest a texel of the cone lies at most a ray or two outside `rays`.
+pub const STEPS_MARGIN: i32 = 4;
+
+/// The line families of a filter as tables, in the order texels look them up (a texel
+/// belongs to the first whose cone holds it); `None` when the filter changes nothing.
+/// Validates like [`apply`], without the depth.
+pub fn family_tables(
+    size: u32,
+    epipole: Epipole,
+    desc: &SilhouetteDesc,
+) -> Result<Option<Vec<FamilyTables>>> {
+    let probe = [f32::INFINITY];
+    // The depth only takes part in validation; a one-texel stand-in checks the rest.
+    let Some(lines) = Lines::new_for(&probe, size, epipole, desc)? else {
+        return Ok(None);
+    };
+    let narrow = |value: i64| {
+        i32::try_from(value).map_err(|_| {
+            Error::invalid(
+                EPIPOLE_FIELD,
+                format!("{epipole:?} puts rays beyond 32-bit indices"),
+            )
+        })
+    };
+    let n = lines.size;
+    lines
+        .families
+        .iter()
+        .map(|family| {
+            let rays = (narrow(family.rays.0)?, narrow(family.rays.1)?);
+            let steps_first = rays.0 - STEPS_MARGIN;
+            let steps = (steps_first as i64..=rays.1 as i64 + STEPS_MARGIN as i64)
+                .map(|ray| family.steps(ray, lines.length) as u32)
+                .collect();
+            let (major, minor, along, shift, inv_along, inv_shift, rows) = match &family.kind {
+                Kind::Fan {
+                    major,
+                    minor,
+                    along,
+                    shift,
+                    inv_along,
+                    inv_shift,
+                    ..
+                } => (
+                    *major,
+                    *minor,
+                    along.clone(),
+                    shift.clone(),
+                    inv_along.clone(),
+                    inv_shift.clone(),
+                    vec![0; n],
+                ),
+                Kind::Parallel { rows, .. } => (
+                    0.0,
+                    0.0,
+                    vec![0.0; n],
+                    vec![0.0; n],
+                    vec![0.0; n],
+                    vec![0.0; n],
+                    rows.iter()
+                        .map(|&row| narrow(row))
+                        .collect::<Result<Vec<_>>>()?,
+                ),
+            };
+            Ok(FamilyTables {
+                x_major: family.axis == Axis::X,
+                sign: family.sign as i32,
+                fan: matches!(family.kind, Kind::Fan { .. }),
+                major,
+                minor,
+                rays,
+                base: family.base,
+                along,
+                shift,
+                inv_along,
+                inv_shift,
+                rows,
+                scale: family.scale.clone(),
+                offset: family.offset.clone(),
+                unscale: family.unscale.clone(),
+                visits: (0..n).map(|q| family.visits(q)).collect(),
+                steps_first,
+                steps,
+            })
+        })
+        .collect::<Result<Vec<_>>>()
+        .map(Some)
+}
+
 const LENGTH_FIELD: &str = "style.silhouette.length";
 const EPIPOLE_FIELD: &str = "style.silhouette.epipole";
 
@@ -536,6 +664,27 @@ impl<'a> Lines<'a> {
         epipole: Epipole,
         desc: &SilhouetteDesc,
     ) -> Result<Option<Self>> {
+        Self::validated(depth, size, epipole, desc, true)
+    }
+
+    /// The lines of a `size`² map without its depth (`depth` is not read): for
+    /// [`family_tables`].
+    fn new_for(
+        depth: &'a [f32],
+        size: u32,
+        epipole: Epipole,
+        desc: &SilhouetteDesc,
+    ) -> Result<Option<Self>> {
+        Self::validated(depth, size, epipole, desc, false)
+    }
+
+    fn validated(
+        depth: &'a [f32],
+        size: u32,
+        epipole: Epipole,
+        desc: &SilhouetteDesc,
+        check: bool,
+    ) -> Result<Option<Self>> {
         let length = desc.length_texels;
         if !length.is_finite() || length < 0.0 {
             return Err(Error::invalid(
@@ -557,7 +706,11 @@ impl<'a> Lines<'a> {
                 format!("{v:?} lies too far from the map (beyond {MAX_POINT:e} texels or depth units); use a direction for a camera at infinity"),
             ));
         }
-        let size = check_depth(depth, size)?;
+        let size = if check {
+            check_depth(depth, size)?
+        } else {
+            size as usize
+        };
         if length < 1.0 || size == 0 {
             return Ok(None);
         }
@@ -1004,6 +1157,41 @@ mod tests {
                 unset <= 1,
                 "{epipole:?}: {unset} texels left to the naive walk"
             );
+        }
+    }
+
+    #[test]
+    fn tables_repeat_the_lines_and_cover_every_nearest_ray() {
+        // A device walks texels with these tables alone: they must hold the families'
+        // values, and a kernel length for the ray nearest any texel of a cone.
+        let size = 53;
+        let map = random_map(size, 3);
+        for epipole in epipoles() {
+            let desc = SilhouetteDesc::close(7.0);
+            let lines = Lines::new(&map, size as u32, epipole, &desc)
+                .unwrap()
+                .unwrap();
+            let tables = family_tables(size as u32, epipole, &desc).unwrap().unwrap();
+            assert_eq!(tables.len(), lines.families.len());
+            for (family, table) in lines.families.iter().zip(&tables) {
+                assert_eq!(table.scale, family.scale);
+                assert_eq!(table.rays, (family.rays.0 as i32, family.rays.1 as i32));
+                let last = table.steps_first + table.steps.len() as i32 - 1;
+                for q in 0..size {
+                    for r in 0..size {
+                        if !family.in_cone(q, r) {
+                            continue;
+                        }
+                        let ray = family.nearest(q, r);
+                        assert!(
+                            (table.steps_first as i64..=last as i64).contains(&ray),
+                            "{epipole:?}: ray {ray} of texel ({q}, {r}) outside the table"
+                        );
+                        let index = (ray - table.steps_first as i64) as usize;
+                        assert_eq!(table.steps[index] as usize, family.steps(ray, lines.length));
+                    }
+                }
+            }
         }
     }
 

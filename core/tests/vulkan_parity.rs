@@ -11,6 +11,7 @@ use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::gpu::{self, Device, DeviceKind, DevicePolicy};
+use crepuscular::holes::{HoleNoise, HolesDesc};
 use crepuscular::morphology::{self, KernelShape, MorphologyDesc, MorphologyOp};
 use crepuscular::prefiltered::{
     CpuPrefixSums, FilteredBasis, Prefiltered, PrefilteredDesc, PrefixPlan, PrefixSums,
@@ -21,6 +22,7 @@ use crepuscular::scene::{
     BasisStorage, Extent, Method, Projection, Rectification, Scene, SensorFit,
 };
 use crepuscular::shadow_map::ShadowMap;
+use crepuscular::silhouette::{self, Epipole, SilhouetteDesc};
 use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
 use crepuscular::upsample::{self, reduced_size, sample_pixel};
 use crepuscular::{Layers, RenderControl, Style};
@@ -125,6 +127,9 @@ fn stylized() -> Style {
         r#"{
         "version": 1,
         "closing": { "operation": "close", "kernel": "disk", "radius": 0.4 },
+        "silhouette": { "operation": "close", "length_texels": 6.0 },
+        "holes": { "frequency": 0.05, "threshold": 0.45, "warp": 1.0, "objects": [0, 1, 2, 3, 4] },
+        "time": 2.5,
         "tf": {
             "mode": "color",
             "depth_range": { "near": 0.0, "far": 60.0 },
@@ -218,6 +223,167 @@ fn morphology_equals_the_cpu_exactly() {
     }
 }
 
+/// (texels whose bits differ, largest absolute difference) between two depth maps; +∞
+/// against a finite depth counts as an infinite difference.
+fn depth_parity(gpu: &[f32], cpu: &[f32]) -> (usize, f64) {
+    assert_eq!(gpu.len(), cpu.len());
+    gpu.iter()
+        .zip(cpu)
+        .filter(|(g, c)| g.to_bits() != c.to_bits())
+        .fold((0, 0.0f64), |(count, max), (&g, &c)| {
+            let d = if g == c {
+                0.0
+            } else {
+                (g as f64 - c as f64).abs()
+            };
+            (count + 1, max.max(d))
+        })
+}
+
+/// A built-in scene seen through an orthographic camera.
+fn orthographic(scene: &Scene) -> Scene {
+    let mut scene = scene.clone();
+    scene.camera.projection = Projection::Orthographic {
+        ortho_scale: 30.0,
+        sensor_fit: SensorFit::Auto,
+        shift_x: 0.0,
+        shift_y: 0.0,
+    };
+    scene
+}
+
+/// Silhouette enhancement: the shader walks each texel's rays as `apply_naive` does, with
+/// the CPU's line tables, in the CPU's precision and operation order, so the GPU must
+/// equal the CPU bit for bit (0 texels differ, max abs error 0) for dilation and closure,
+/// pinhole and orthographic cameras, and several lengths.
+#[test]
+fn silhouettes_equal_the_cpu_exactly() {
+    let Some(device) = device("the silhouette parity test") else {
+        return;
+    };
+    if !gpu::silhouette::supported(&device) {
+        eprintln!("skipping the silhouette parity test: no double precision in shaders");
+        return;
+    }
+    for name in BUILTIN_SCENES {
+        let pinhole = small(name);
+        for (kind, scene) in [
+            ("pinhole", pinhole.clone()),
+            ("orthographic", orthographic(&pinhole)),
+        ] {
+            let camera = CameraModel::new(&scene.camera);
+            let shadow = ShadowMap::of_scene(&scene, &camera);
+            let epipole = Epipole::of_camera(&camera, &shadow.texel_from_world);
+            for desc in [
+                SilhouetteDesc::dilate(3.0),
+                SilhouetteDesc::dilate(17.5),
+                SilhouetteDesc::close(5.0),
+                SilhouetteDesc::close(12.0),
+            ] {
+                let cpu = silhouette::apply(&shadow.depth, shadow.size, epipole, &desc).unwrap();
+                let (gpu, _) =
+                    gpu::silhouette::apply(&device, &shadow.depth, shadow.size, epipole, &desc)
+                        .unwrap();
+                let changed = cpu
+                    .iter()
+                    .zip(&shadow.depth)
+                    .filter(|(a, b)| a != b)
+                    .count();
+                let (differing, max) = depth_parity(&gpu, &cpu);
+                eprintln!(
+                    "silhouettes {name} {kind} {desc:?}: {differing} of {} texels differ \
+                     (max abs error {max:e}); the filter changed {changed}",
+                    cpu.len()
+                );
+                assert_eq!(differing, 0, "{name} {kind} {desc:?}");
+            }
+        }
+    }
+}
+
+/// Hole creation: the shader evaluates `HoleNoise` with the CPU's expressions, so the
+/// holed depth must equal the CPU's bit for bit (0 texels differ) for several
+/// thresholds, scales, grids (a power of two and not) and times, on one object and on
+/// every object of each scene.
+#[test]
+fn hole_creation_equals_the_cpu_exactly() {
+    let Some(device) = device("the hole-creation parity test") else {
+        return;
+    };
+    if !gpu::silhouette::supported(&device) {
+        eprintln!("skipping the hole-creation parity test: no double precision in shaders");
+        return;
+    }
+    for name in BUILTIN_SCENES {
+        let scene = small(name);
+        let camera = CameraModel::new(&scene.camera);
+        let shadow = ShadowMap::of_scene(&scene, &camera);
+        let mut all: Vec<u32> = shadow
+            .ids
+            .iter()
+            .copied()
+            .filter(|&id| id != NO_OBJECT)
+            .collect();
+        all.sort_unstable();
+        all.dedup();
+        assert!(!all.is_empty(), "{name} casts no shadow");
+        let one = vec![all[all.len() / 2]];
+        let settings = [
+            HolesDesc::default(),
+            HolesDesc {
+                frequency: 0.1,
+                threshold: 0.3,
+                grid_size: 60,
+                time: 7.5,
+                warp: 2.0,
+                seed: 11,
+                ..HolesDesc::default()
+            },
+            HolesDesc {
+                frequency: 0.02,
+                persistence: 0.7,
+                octaves: 6,
+                threshold: 0.8,
+                time: 3.0,
+                speed: -0.3,
+                pivot: [4.0, -2.0, 1.0],
+                ..HolesDesc::default()
+            },
+            HolesDesc {
+                frequency: 0.2,
+                threshold: 0.5,
+                grid_size: 7,
+                warp: 0.0,
+                ..HolesDesc::default()
+            },
+        ];
+        for base in settings {
+            for (which, objects) in [("one object", &one), ("every object", &all)] {
+                let desc = HolesDesc {
+                    objects: objects.clone(),
+                    ..base.clone()
+                };
+                let noise = HoleNoise::for_map(&desc, &shadow).unwrap();
+                let mut cpu = shadow.depth.clone();
+                let opened = noise.apply(&mut cpu, &shadow.ids).unwrap();
+                let (gpu, _) =
+                    gpu::holes::apply(&device, &noise, &shadow.depth, &shadow.ids).unwrap();
+                let (differing, _) = depth_parity(&gpu, &cpu);
+                eprintln!(
+                    "holes {name} {which} h={} f={} g={} t={}: {differing} of {} texels \
+                     differ; the CPU opened {opened}",
+                    desc.threshold,
+                    desc.frequency,
+                    desc.grid_size,
+                    desc.time,
+                    cpu.len()
+                );
+                assert_eq!(differing, 0, "{name} {which} {desc:?}");
+            }
+        }
+    }
+}
+
 /// The TF application alone, on CPU-rendered layers: colour mode under a full light and
 /// under a light without blue (channels mixed), and monochrome. Bilinear weights are
 /// applied to the TF before (CPU) or after (GPU) the rule, which is the same in exact
@@ -266,8 +432,9 @@ fn transfer_function_matches_the_cpu() {
     }
 }
 
-/// Whole stylized frames (GPU shadow map and camera depth, hole filling, march and TF; CPU
-/// hole creation and TF baking) of the four built-in scenes. Bounds as for the march alone.
+/// Whole stylized frames (GPU shadow map and camera depth, hole filling, silhouettes, hole
+/// creation, march and TF; CPU TF baking) of the four built-in scenes. Bounds as for the
+/// march alone.
 #[test]
 fn stylized_frames_match_the_cpu_on_the_builtin_scenes() {
     let Some(device) = device("the full-frame parity test") else {
@@ -279,6 +446,14 @@ fn stylized_frames_match_the_cpu_on_the_builtin_scenes() {
         let (gpu, cpu, times) = render_both(&device, &scene);
         if device.physical.timestamp_valid_bits > 0 {
             assert!(times.hole_filling.is_some() && times.ray_march.is_some());
+            if gpu::silhouette::supported(&device) {
+                assert!(times.silhouettes.is_some() && times.hole_creation.is_some());
+                assert!(
+                    !times.cpu_stages.contains(&"silhouettes and hole creation"),
+                    "{:?}",
+                    times.cpu_stages
+                );
+            }
             assert!(times.transfer_function.is_some());
             assert!(times.shadow_map.is_some() && times.camera_depth.is_some());
             assert!(

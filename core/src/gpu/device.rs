@@ -36,8 +36,10 @@ impl Device {
         let queue_info = vk::DeviceQueueCreateInfo::default()
             .queue_family_index(physical.queue_family)
             .queue_priorities(&priorities);
-        let info =
-            vk::DeviceCreateInfo::default().queue_create_infos(std::slice::from_ref(&queue_info));
+        let features = vk::PhysicalDeviceFeatures::default().shader_float64(physical.float64);
+        let info = vk::DeviceCreateInfo::default()
+            .queue_create_infos(std::slice::from_ref(&queue_info))
+            .enabled_features(&features);
         // SAFETY: `physical.raw` belongs to `instance`; `info` outlives the call.
         let raw = unsafe { instance.raw.create_device(physical.raw, &info, None) }
             .call("vkCreateDevice")?;

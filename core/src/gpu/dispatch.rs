@@ -77,6 +77,37 @@ impl Std430 {
         self
     }
 
+    /// A double, aligned to 8 bytes.
+    pub fn f64(&mut self, value: f64) -> &mut Self {
+        self.align(8);
+        self.bytes.extend_from_slice(&value.to_le_bytes());
+        self
+    }
+
+    /// A dvec2, aligned to 16 bytes.
+    pub fn dvec2(&mut self, value: [f64; 2]) -> &mut Self {
+        self.align(16);
+        for v in value {
+            self.bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        self
+    }
+
+    /// A dvec4, aligned to 32 bytes.
+    pub fn dvec4(&mut self, value: [f64; 4]) -> &mut Self {
+        self.align(32);
+        for v in value {
+            self.bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        self
+    }
+
+    /// Pads to `alignment` bytes: the end of a struct in an array.
+    pub fn pad_to(&mut self, alignment: usize) -> &mut Self {
+        self.align(alignment);
+        self
+    }
+
     pub fn vec4(&mut self, value: [f32; 4]) -> &mut Self {
         self.align(16);
         for v in value {
@@ -152,5 +183,19 @@ mod tests {
         assert_eq!(&bytes[0..4], &7u32.to_le_bytes());
         assert_eq!(&bytes[16..20], &1.0f32.to_le_bytes());
         assert_eq!(&bytes[32..36], &0.5f32.to_le_bytes());
+    }
+
+    #[test]
+    fn std430_aligns_doubles_to_their_size() {
+        let mut p = Std430::new();
+        p.u32(1).f64(2.0);
+        assert_eq!(p.len(), 16, "the double starts at offset 8");
+        p.u32(3).dvec2([4.0, 5.0]);
+        assert_eq!(p.len(), 48, "the dvec2 starts at offset 32");
+        p.u32(6).dvec4([0.0; 4]);
+        assert_eq!(p.len(), 96, "the dvec4 starts at offset 64");
+        let bytes = p.finish();
+        assert_eq!(&bytes[8..16], &2.0f64.to_le_bytes());
+        assert_eq!(&bytes[40..48], &5.0f64.to_le_bytes());
     }
 }

@@ -6,7 +6,7 @@
 //! | shadow map rasterization (depth and object ids), camera depth rasterization | GPU (graphics pipeline, depth passes) |
 //! | camera depth given by the host: conversion to ray distances | CPU |
 //! | hole filling (2D closing and the other morphology operations) | GPU |
-//! | silhouette enhancement, hole creation | CPU |
+//! | silhouette enhancement (line set-up per column and ray: CPU), hole creation | GPU (double precision in shaders) |
 //! | reference ray march | GPU |
 //! | epipolar rectification (resampling) for `prefiltered` | GPU |
 //! | projective rectification (rasterized: projected depth), min-max scattering (its shadow map and camera depth included) | CPU |
@@ -16,7 +16,8 @@
 //! | transfer function: baking | CPU; application | GPU |
 //!
 //! A depth target larger than the device's framebuffers, or a queue without graphics,
-//! keeps that rasterization on the CPU (listed in [`GpuTimes::cpu_stages`]).
+//! keeps that rasterization on the CPU, and a device without double precision in shaders
+//! keeps silhouettes and hole creation there (listed in [`GpuTimes::cpu_stages`]).
 
 use std::sync::Arc;
 
@@ -28,12 +29,14 @@ use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
+use crate::holes::{HoleNoise, HolesDesc};
 use crate::layers::Layers;
 use crate::morphology::MorphologyDesc;
 use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
 use crate::render::{camera_raster, scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
+use crate::silhouette::{Epipole, SilhouetteDesc};
 use crate::style::Style;
 use crate::upsample::reduced_size;
 
@@ -46,6 +49,9 @@ pub struct GpuTimes {
     /// The camera's depth pass.
     pub camera_depth: Option<f64>,
     pub hole_filling: Option<f64>,
+    /// Silhouette enhancement (1D epipolar dilation or closure).
+    pub silhouettes: Option<f64>,
+    pub hole_creation: Option<f64>,
     pub ray_march: Option<f64>,
     /// Epipolar rectification (resampling the shadow map along slices).
     pub rectification: Option<f64>,
@@ -66,6 +72,8 @@ impl GpuTimes {
             self.shadow_map,
             self.camera_depth,
             self.hole_filling,
+            self.silhouettes,
+            self.hole_creation,
             self.ray_march,
             self.rectification,
             self.prefix_sums,
@@ -271,8 +279,9 @@ fn gpu_frame(
     Ok((layers, times))
 }
 
-/// The style's occluder operators in the CPU's order: the 2D morphology on the GPU, then
-/// silhouettes and holes on the CPU.
+/// The style's occluder operators in the CPU's order ([`Style::scattering_map`]): hole
+/// filling, silhouettes, hole creation, each on the GPU. A device without double
+/// precision in shaders leaves the last two to the CPU.
 fn manipulate_occluders(
     device: &Arc<Device>,
     style: &Style,
@@ -280,10 +289,9 @@ fn manipulate_occluders(
     camera: &CameraModel,
     gpu: &mut GpuTimes,
 ) -> Result<ShadowMap> {
+    let texels = |world: f32| (world as f64 / shadow.texel_size) as f32;
     if let Some(closing) = &style.closing {
-        let radius = closing
-            .radius_texels
-            .unwrap_or((closing.radius as f64 / shadow.texel_size) as f32);
+        let radius = closing.radius_texels.unwrap_or(texels(closing.radius));
         if radius > 0.0 {
             let desc = MorphologyDesc::new(closing.operation, closing.kernel, radius);
             let (depth, ms) = super::morphology::apply(device, &shadow.depth, shadow.size, &desc)?;
@@ -291,13 +299,42 @@ fn manipulate_occluders(
             gpu.hole_filling = ms;
         }
     }
-    let rest = Style {
-        closing: None,
-        ..style.clone()
-    };
-    if rest.manipulates_occluders() {
-        gpu.cpu_stages.push("silhouettes and hole creation");
-        shadow = rest.scattering_map(&shadow, camera)?;
+    if !super::silhouette::supported(device) {
+        let rest = Style {
+            closing: None,
+            ..style.clone()
+        };
+        if rest.manipulates_occluders() {
+            gpu.cpu_stages.push("silhouettes and hole creation");
+            shadow = rest.scattering_map(&shadow, camera)?;
+        }
+        return Ok(shadow);
+    }
+    if let Some(silhouette) = &style.silhouette {
+        let length = silhouette
+            .length_texels
+            .unwrap_or(texels(silhouette.length));
+        if length > 0.0 {
+            let desc = SilhouetteDesc {
+                op: silhouette.operation,
+                length_texels: length,
+            };
+            let epipole = Epipole::of_camera(camera, &shadow.texel_from_world);
+            let (depth, ms) =
+                super::silhouette::apply(device, &shadow.depth, shadow.size, epipole, &desc)?;
+            shadow.depth = depth;
+            gpu.silhouettes = ms;
+        }
+    }
+    if let Some(holes) = &style.holes {
+        let desc = HolesDesc {
+            time: holes.time + style.time,
+            ..holes.clone()
+        };
+        let noise = HoleNoise::for_map(&desc, &shadow)?;
+        let (depth, ms) = super::holes::apply(device, &noise, &shadow.depth, &shadow.ids)?;
+        shadow.depth = depth;
+        gpu.hole_creation = ms;
     }
     Ok(shadow)
 }

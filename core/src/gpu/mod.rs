@@ -7,8 +7,8 @@
 //! framebuffers), [`command`] (recording and submission), [`barrier`], [`query`]
 //! (timestamps), [`layer_buffers`] (the layers' device buffers and read-back), [`dispatch`]
 //! (workgroup counts and parameter packing), and one per ported stage: [`raster`] (shadow
-//! map and camera depth), [`march`], [`morphology`], [`transfer`], [`prefix`],
-//! [`prefiltered`], [`upsample`], [`rectify`].
+//! map and camera depth), [`march`], [`morphology`], [`silhouette`], [`holes`],
+//! [`transfer`], [`prefix`], [`prefiltered`], [`upsample`], [`rectify`].
 
 pub mod barrier;
 pub mod buffer;
@@ -19,6 +19,7 @@ pub mod dispatch;
 pub mod error;
 pub mod frame;
 pub mod graphics_pipeline;
+pub mod holes;
 pub mod image;
 pub mod instance;
 pub mod layer_buffers;
@@ -31,6 +32,7 @@ pub mod query;
 pub mod raster;
 pub mod rectify;
 pub mod shader;
+pub mod silhouette;
 pub mod transfer;
 pub mod upsample;
 

@@ -102,6 +102,9 @@ pub struct PhysicalDevice {
     pub viewport_bounds_range: [f32; 2],
     pub max_workgroup_count: [u32; 3],
     pub max_storage_buffer_range: u32,
+    /// Whether shaders may use double precision (silhouettes and hole creation place
+    /// their samples in f64, as the CPU does).
+    pub float64: bool,
 }
 
 impl PhysicalDevice {
@@ -126,6 +129,8 @@ impl PhysicalDevice {
                 continue;
             };
             let queue = families[family];
+            // SAFETY: as above.
+            let features = unsafe { instance.raw.get_physical_device_features(raw) };
             let name = properties
                 .device_name_as_c_str()
                 .map(|name| name.to_string_lossy().into_owned())
@@ -152,6 +157,7 @@ impl PhysicalDevice {
                 viewport_bounds_range: properties.limits.viewport_bounds_range,
                 max_workgroup_count: properties.limits.max_compute_work_group_count,
                 max_storage_buffer_range: properties.limits.max_storage_buffer_range,
+                float64: features.shader_float64 == vk::TRUE,
             });
         }
         Ok(devices)

@@ -15,6 +15,8 @@ pub enum Shader {
     Prefiltered,
     Upsample,
     Rectify,
+    Silhouette,
+    Holes,
     /// The depth passes' vertex shader.
     RasterVertex,
     /// The shadow map's fragment shader, which writes object ids.
@@ -22,7 +24,7 @@ pub enum Shader {
 }
 
 impl Shader {
-    pub const ALL: [Shader; 9] = [
+    pub const ALL: [Shader; 11] = [
         Shader::March,
         Shader::Morphology,
         Shader::Transfer,
@@ -30,6 +32,8 @@ impl Shader {
         Shader::Prefiltered,
         Shader::Upsample,
         Shader::Rectify,
+        Shader::Silhouette,
+        Shader::Holes,
         Shader::RasterVertex,
         Shader::RasterFragment,
     ];
@@ -44,6 +48,8 @@ impl Shader {
             Shader::Prefiltered => "prefiltered.comp",
             Shader::Upsample => "upsample.comp",
             Shader::Rectify => "rectify.comp",
+            Shader::Silhouette => "silhouette.comp",
+            Shader::Holes => "holes.comp",
             Shader::RasterVertex => "raster.vert",
             Shader::RasterFragment => "raster.frag",
         }
@@ -71,6 +77,10 @@ impl Shader {
             }
             Shader::Upsample => include_bytes!(concat!(env!("OUT_DIR"), "/upsample.comp.spv")),
             Shader::Rectify => include_bytes!(concat!(env!("OUT_DIR"), "/rectify.comp.spv")),
+            Shader::Silhouette => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/silhouette.comp.spv"))
+            }
+            Shader::Holes => include_bytes!(concat!(env!("OUT_DIR"), "/holes.comp.spv")),
             Shader::RasterVertex => include_bytes!(concat!(env!("OUT_DIR"), "/raster.vert.spv")),
             Shader::RasterFragment => {
                 include_bytes!(concat!(env!("OUT_DIR"), "/raster.frag.spv"))

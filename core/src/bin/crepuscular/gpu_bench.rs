@@ -40,6 +40,8 @@ struct Row {
     shadow_map: Option<f64>,
     camera_depth: Option<f64>,
     hole_filling: Option<f64>,
+    silhouettes: Option<f64>,
+    hole_creation: Option<f64>,
     march: Option<f64>,
     rectify: Option<f64>,
     prefix: Option<f64>,
@@ -133,6 +135,8 @@ pub fn run(
                 shadow_map: median_option(&gpu, |t| t.shadow_map),
                 camera_depth: median_option(&gpu, |t| t.camera_depth),
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
+                silhouettes: median_option(&gpu, |t| t.silhouettes),
+                hole_creation: median_option(&gpu, |t| t.hole_creation),
                 march: median_option(&gpu, |t| t.ray_march.or(t.prefiltered)),
                 rectify: median_option(&gpu, |t| t.rectification),
                 prefix: median_option(&gpu, |t| t.prefix_sums),
@@ -176,13 +180,15 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         device.describe()
     );
     println!(
-        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
         "method",
         "look",
         "smap",
         "cdepth",
         "holes",
+        "silh",
+        "hcreate",
         "rect",
         "shade",
         "prefix",
@@ -207,13 +213,15 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         };
         let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
-            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
             row.method,
             row.look,
             ms(row.shadow_map),
             ms(row.camera_depth),
             ms(row.hole_filling),
+            ms(row.silhouettes),
+            ms(row.hole_creation),
             ms(row.rectify),
             ms(row.march),
             ms(row.prefix),
@@ -233,7 +241,7 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.sort();
     on_cpu.dedup();
     println!(
-        "\nsmap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
+        "\nsmap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); silh = silhouette enhancement (1D epipolar dilation or closure); hcreate = hole creation (noise holes in chosen objects); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
          prefiltered evaluation with the reference near on-screen epipoles); prefix = \
          prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
          evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
