@@ -215,8 +215,8 @@ struct SliceBands {
 struct Tables {
     /// Row i: [cos(c·z)…, sin(c·z)…] at z = i / TABLE_STEPS, padded with zeros.
     basis: Vec<f32>,
-    /// Row i: [(2/c)·sin(c·z)…, −(2/c)·cos(c·z)…], so that the dot product with a basis
-    /// row is Σ (2/c)·sin(c·(z_ray − z_texel)).
+    /// Row i: [(2/c)·σ·sin(c·z)…, −(2/c)·σ·cos(c·z)…], so that the dot product with a
+    /// basis row is Σ (2/c)·σ·sin(c·(z_ray − z_texel)), σ = [`damping`] of the frequency.
     coefficients: Vec<f32>,
 }
 
@@ -239,7 +239,7 @@ impl Tables {
         {
             harmonics(i as f64 / TABLE_STEPS as f64, frequencies, &mut values);
             for m in 0..frequencies {
-                let scale = 2.0 / frequency(m);
+                let scale = damping(m, frequencies) * 2.0 / frequency(m);
                 let (cos, sin) = (values[m], values[frequencies + m]);
                 basis[m] = cos as f32;
                 basis[frequencies + m] = sin as f32;
@@ -282,6 +282,24 @@ pub struct Prefiltered<'a> {
 
 fn frequency(m: usize) -> f64 {
     PI * (2 * m + 1) as f64
+}
+
+/// Exponent of the Lanczos σ-factors that damp the series. The truncated series
+/// overshoots the visibility step by 9% (Gibbs): beside an occluder it rings, which shows
+/// as ripples in dark shafts and rings around an on-screen sun. Lanczos' factors take the
+/// overshoot to 1.2% but widen the step's 10–90% transition 1.8×, and a wider step leaks
+/// light under occluders that rays graze. Their square root takes the overshoot to 3.2%
+/// and widens the step 1.4× (M = 32). Against the undamped series it lowered the error on
+/// 22 of 23 random views of the built-in scenes and on 9 of the 16 test views (the worst
+/// from 2.3% to 2.0%); orthographic views, where rays see little ringing, lost up to 0.4
+/// points.
+const RINGING_DAMPING: f64 = 0.5;
+
+/// The σ-factor of frequency m of `frequencies`: sinc(π(2m + 1)/(2F + 1)) to the power
+/// [`RINGING_DAMPING`].
+fn damping(m: usize, frequencies: usize) -> f64 {
+    let x = PI * (2 * m + 1) as f64 / (2 * frequencies + 1) as f64;
+    (x.sin() / x).powf(RINGING_DAMPING)
 }
 
 /// (cos(c_m·z), sin(c_m·z)) for m < `frequencies`, written as [cos…, sin…].
@@ -1200,6 +1218,36 @@ mod tests {
         // Steeper with more frequencies: the transition is narrower than 1/frequencies.
         assert!(visibility(0.5, 0.5 - 1.5 / frequencies as f64) > 0.9);
         assert!(visibility(0.5, 0.5 + 1.5 / frequencies as f64) < 0.1);
+    }
+
+    /// The damped step overshoots by about a third of the truncated series' 9%, and its
+    /// transition widens by less than half.
+    #[test]
+    fn damping_trades_overshoot_for_a_slightly_wider_step() {
+        let frequencies = 16;
+        let step = |z: f64, damped: bool| {
+            0.5 + (0..frequencies)
+                .map(|m| {
+                    let sigma = if damped { damping(m, frequencies) } else { 1.0 };
+                    sigma * 2.0 / frequency(m) * (frequency(m) * z).sin()
+                })
+                .sum::<f64>()
+        };
+        let measure = |damped: bool| {
+            let zs: Vec<f64> = (0..=20000).map(|i| -0.5 + i as f64 / 20000.0).collect();
+            let values: Vec<f64> = zs.iter().map(|&z| step(z, damped)).collect();
+            let overshoot = values.iter().cloned().fold(f64::MIN, f64::max) - 1.0;
+            let crossing = |level: f64| zs[values.iter().position(|&v| v > level).unwrap()];
+            (overshoot, crossing(0.9) - crossing(0.1))
+        };
+        let (plain_overshoot, plain_width) = measure(false);
+        let (overshoot, width) = measure(true);
+        assert!((plain_overshoot - 0.09).abs() < 0.005, "{plain_overshoot}");
+        assert!(overshoot < 0.035, "{overshoot}");
+        assert!(
+            width > plain_width && width < 1.5 * plain_width,
+            "{width} {plain_width}"
+        );
     }
 
     #[test]
