@@ -15,6 +15,9 @@ const uint PROJECTIVE = 2u;
 const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
+// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES.
+const float BOX_PIECE_DEPTH = 0.25;
+const uint MAX_BOX_PIECES = 8u;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -339,22 +342,37 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         return vec3(0.0, 0.0, visibility);
     }
     float from = (q.near_plane_correction != 0u || a > t_start) ? a : 0.0;
-    float x0 = sample_coordinate(located.y + located.z * from);
-    float x1 = sample_coordinate(located.y + located.z * b);
-    if (!average(located, key, x0, x1, visibility)) {
-        visibility = 1.0;
-    }
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
-    float unshadowed;
-    if (p.box_medium != 0u) {
-        unshadowed = box_integrate(a, b, a, sigma);
-    } else if (sigma * (b - a) >= 1e-8) {
-        unshadowed = alpha / sigma;
-    } else {
-        unshadowed = integral_exp(sigma, b - a);
+    if (p.box_medium == 0u) {
+        float x0 = sample_coordinate(located.y + located.z * from);
+        float x1 = sample_coordinate(located.y + located.z * b);
+        if (!average(located, key, x0, x1, visibility)) {
+            visibility = 1.0;
+        }
+        float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
+        return vec3(visibility * unshadowed, alpha, visibility);
     }
-    return vec3(visibility * unshadowed, alpha, visibility);
+    // Inside a box the sunlight's attenuation varies along the ray: pieces of bounded
+    // optical depth, each its own average times its own integral (box_pieces on the CPU).
+    uint pieces = uint(clamp(ceil(sigma * (b - a) / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
+    float scattering = 0.0;
+    float unshadowed = 0.0;
+    for (uint k = 0u; k < pieces; ++k) {
+        float t0 = a + (b - a) * float(k) / float(pieces);
+        float t1 = a + (b - a) * float(k + 1u) / float(pieces);
+        float piece = box_integrate(t0, t1, a, sigma);
+        float x0 = sample_coordinate(located.y + located.z * (k == 0u ? from : t0));
+        float x1 = sample_coordinate(located.y + located.z * t1);
+        float v;
+        if (!average(located, key, x0, x1, v)) {
+            v = 1.0;
+        }
+        scattering += v * piece;
+        unshadowed += piece;
+    }
+    visibility = unshadowed > 1e-30 ? clamp(scattering / unshadowed, 0.0, 1.0) : 1.0;
+    return vec3(scattering, alpha, visibility);
 }
 
 bool near_epipole(vec2 pixel) {

@@ -163,8 +163,12 @@ fn minmax_matches_the_reference() {
     assert!(failures.is_empty(), "above the bound: {failures:?}");
 }
 
+/// A `box` medium, where the sunlight's attenuation varies along the rays: min-max
+/// integrates it exactly (bound 1%); prefiltering cuts rays into pieces of bounded optical
+/// depth (bound 2%; one average per ray measured 1.4–5.3% here, 11% in the Blender
+/// fidelity scene).
 #[test]
-fn minmax_matches_the_reference_in_a_box_medium() {
+fn fast_methods_match_the_reference_in_a_box_medium() {
     for (view, mut scene) in views("torus").into_iter().take(3) {
         scene.medium.extinction = 0.3;
         scene.medium.extent = Extent::Box {
@@ -173,15 +177,22 @@ fn minmax_matches_the_reference_in_a_box_medium() {
                 * Mat4::from_scale(Vec3::new(5.0, 4.0, 3.0)),
         };
         let reference = render_with(&scene, Method::Reference, 4096);
-        let fast = render_with(&scene, Method::MinMax, 4096);
-        assert_finite(&fast);
-        let (relative, mean) = error(&fast, &reference);
-        println!(
-            "box {view:<12} error {:.3}% (mean radiance {mean:.4})",
-            relative * 100.0
-        );
-        assert!(mean > 0.0);
-        assert!(relative <= 0.01, "{view}: {:.3}%", relative * 100.0);
+        for (method, bound) in [(Method::MinMax, 0.01), (Method::Prefiltered, 0.02)] {
+            let fast = render_with(&scene, method, 4096);
+            assert_finite(&fast);
+            let (relative, mean) = error(&fast, &reference);
+            println!(
+                "box {view:<12} {:<11} error {:.3}% (mean radiance {mean:.4})",
+                method.name(),
+                relative * 100.0
+            );
+            assert!(mean > 0.0);
+            assert!(
+                relative <= bound,
+                "{view} {method:?}: {:.3}%",
+                relative * 100.0
+            );
+        }
     }
 }
 

@@ -63,6 +63,13 @@ def job_fidelity(spec: dict[str, Any], out: Path) -> None:
     sun = scene.objects["Sun"]
     sun.data.crepuscular.enabled = True
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "layers.exr")) == {"FINISHED"}
+    # The default method, as an artist gets it.
+    settings = sun.data.crepuscular
+    settings.method = settings.bl_rna.properties["method"].default
+    assert settings.method == "prefiltered"
+    path = str(out / "layers_default_method.exr")
+    assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
+    settings.method = "reference"
     sun.data.crepuscular.enabled = False
     # A grey backdrop outside the box, lit straight by the sun and seen through the fog.
     grey = blender_scenes.black_material(0.5)

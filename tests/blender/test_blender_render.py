@@ -145,6 +145,16 @@ def test_fog_object_matches_cycles(fidelity: dict[str, Any]) -> None:
     assert relative < 0.03, relative
 
 
+def test_the_default_method_matches_cycles(fidelity: dict[str, Any]) -> None:
+    """The same comparison with the default (prefiltered) method."""
+    out = fidelity["out"]
+    ours = volume(out / "layers_default_method.exr")[..., :3]
+    cycles = rgba(out / "cycles_black.exr")[..., :3]
+    assert ours.mean() == pytest.approx(cycles.mean(), rel=0.02)
+    relative = np.abs(ours - cycles).mean() / cycles.mean()
+    assert relative < 0.03, relative
+
+
 def test_grey_surfaces_composite_like_cycles(fidelity: dict[str, Any]) -> None:
     """F12 with shafts on hides the fog object and composites: it matches Cycles' own fog."""
     out = fidelity["out"]
