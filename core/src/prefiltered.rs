@@ -21,8 +21,10 @@
 //!   cumulative weight beside them. Coefficients and basis are tabulated, so neither
 //!   building nor evaluating takes trigonometry per texel or per pixel.
 //! - The sunlight's attenuation inside a `box` medium is smooth, so it is factored out of
-//!   the visibility integral (as DESIGN allows): the weighted visibility multiplies the
-//!   ray's exact unshadowed in-scattering.
+//!   the visibility integral piecewise: the ray is cut into pieces of bounded optical
+//!   depth ([`box_pieces`]), and each piece's weighted visibility multiplies its exact
+//!   unshadowed in-scattering. One piece per ray was 11% off where light enters the box
+//!   through an opening and dims farther in.
 
 use std::f64::consts::PI;
 use std::sync::OnceLock;
