@@ -119,17 +119,19 @@ struct Warp {
     /// Keys at evenly spaced warped positions in [`RAY_MARGIN`, 1 − `RAY_MARGIN`], strictly
     /// increasing.
     knots: [f64; KNOTS],
-    /// Per segment, warped units per unit of key: every pixel warps its key, and a
-    /// division there stalled the coefficient lookup behind it.
+    /// Per segment, warped units per unit of key, so that warping a key (once per pixel
+    /// and band) takes no division.
     slopes: [f64; KNOTS - 1],
 }
 
 impl Warp {
+    /// Warped length of one segment between knots.
+    const SEGMENT: f64 = (1.0 - 2.0 * RAY_MARGIN) / (KNOTS - 1) as f64;
+
     fn from_knots(knots: [f64; KNOTS]) -> Self {
-        let span = (1.0 - 2.0 * RAY_MARGIN) / (KNOTS - 1) as f64;
         Self {
             knots,
-            slopes: std::array::from_fn(|i| span / (knots[i + 1] - knots[i])),
+            slopes: std::array::from_fn(|i| Self::SEGMENT / (knots[i + 1] - knots[i])),
         }
     }
 
@@ -137,9 +139,8 @@ impl Warp {
     #[inline]
     fn warp(&self, key: f64) -> f64 {
         let k = &self.knots;
-        let span = (1.0 - 2.0 * RAY_MARGIN) / (KNOTS - 1) as f64;
         let index = k[1..KNOTS - 1].iter().filter(|&&knot| knot <= key).count();
-        let z = RAY_MARGIN + span * index as f64 + (key - k[index]) * self.slopes[index];
+        let z = RAY_MARGIN + Self::SEGMENT * index as f64 + (key - k[index]) * self.slopes[index];
         z.clamp(0.0, 1.0)
     }
 }
@@ -1253,6 +1254,15 @@ mod tests {
         // Steeper with more frequencies: the transition is narrower than 1/frequencies.
         assert!(visibility(0.5, 0.5 - 1.5 / frequencies as f64) > 0.9);
         assert!(visibility(0.5, 0.5 + 1.5 / frequencies as f64) < 0.1);
+    }
+
+    #[test]
+    fn box_pieces_bound_the_optical_depth_of_each() {
+        assert_eq!(box_pieces(0.0), 1);
+        assert_eq!(box_pieces(0.25), 1);
+        assert_eq!(box_pieces(0.26), 2);
+        assert_eq!(box_pieces(1.9), 8);
+        assert_eq!(box_pieces(50.0), MAX_BOX_PIECES);
     }
 
     /// The damped step overshoots by about a third of the truncated series' 9%, and its
