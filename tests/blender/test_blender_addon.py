@@ -72,7 +72,7 @@ def _registered(owner: type, name: str) -> bool:
     return owner.bl_rna_get_subclass_py(name) is not None
 
 
-def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
+def test_unregister_leaves_nothing_behind(addon: ModuleType, tmp_path: Path) -> None:
     import addon_utils
 
     preview, render = addon.preview, addon.render
@@ -95,6 +95,10 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
     ]
     (hook,) = addon.usd_hook.CLASSES
     assert hook.is_registered
+    # A layer file still being written when the add-on goes is finished, not lost.
+    pending = tmp_path / "pending.exr"
+    zeros = np.zeros((2, 4), np.float32)
+    render.WRITER.submit(str(pending), crepuscular.Layers(4, 2, np.zeros((2, 4, 4)), zeros, zeros))
     addon_utils.disable(blender_scenes.ADDON_MODULE, default_set=True)
     try:
         for name in dir(bpy.app.handlers):
@@ -123,6 +127,8 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType) -> None:
                 assert not _registered(base, name), name
         assert not hasattr(bpy.types, "CREPUSCULAR_OT_render_layers")
         assert not hook.is_registered  # the USD export hook
+        assert crepuscular.read_exr(pending)["depth"].shape == (2, 4)
+        assert render.WRITER._executor is None
         # The group stays (it is the user's data) but composites nothing stale.
         assert node.mute
     finally:
