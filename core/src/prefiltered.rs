@@ -504,9 +504,8 @@ impl<'a> PrefilteredPlan<'a> {
         let row = padded(2 * frequencies);
         let extinction = medium.extinction as f64;
         let tables = Tables::get(frequencies);
-        let (frames, rays) = slice_frames(map, camera, epipoles, desc.epipole_block);
-        let (slice_bands, mut bands) = plan_bands(map, &frames, extinction, desc.max_distance);
-        warp_bands(map, &frames, &rays, &slice_bands, &mut bands);
+        let (frames, warps) = slice_frames(map, camera, epipoles, desc.epipole_block);
+        let (slice_bands, bands) = plan_bands(map, &frames, &warps, extinction, desc.max_distance);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         let mut weight = vec![0.0f32; total_rows];
         let rows_total = total_rows - bands.len();
@@ -815,9 +814,11 @@ pub fn box_pieces(optical_depth: f64) -> u32 {
 /// Lays out every slice's bands: how many, their references, and how far each table
 /// reaches. A band's table ends where its fastest ray's weight has become negligible or
 /// the ray can go no farther, whichever comes first; the fastest band spans the slice.
+/// `warps` holds each slice's band warps ([`band_warps`]).
 fn plan_bands(
     map: &EpipolarMap,
     frames: &[SliceFrame],
+    warps: &[Vec<Warp>],
     extinction: f64,
     max_distance: f64,
 ) -> (Vec<SliceBands>, Vec<Band>) {
@@ -830,13 +831,14 @@ fn plan_bands(
     let mut slice_bands = Vec::with_capacity(frames.len());
     let mut bands = Vec::new();
     let mut next_row = 0;
-    for frame in frames {
+    for (frame, warps) in frames.iter().zip(warps) {
         let count = frame.band_count();
         slice_bands.push(SliceBands {
             first: bands.len() as u32,
             count: count as u32,
         });
-        for j in 0..count {
+        debug_assert_eq!(warps.len(), count);
+        for (j, &warp) in warps.iter().enumerate() {
             let rate = frame.band_rate(j);
             // Rays read band j only while slower than band j − 1's reference.
             let fastest = frame.band_rate(j.saturating_sub(1));
@@ -848,7 +850,7 @@ fn plan_bands(
             };
             bands.push(Band {
                 rate,
-                warp: frame.warp,
+                warp,
                 first_row: next_row,
                 rows: used + 1,
             });
@@ -862,46 +864,31 @@ fn plan_bands(
 /// slice's.
 const MIN_BAND_RAYS: usize = 2 * KNOTS;
 
-/// Gives every band the warp of the sampled rays that read it (see [`Band::warp`]) and of
-/// the texels among them, in parallel over slices. `rays` are each slice's sampled rays,
-/// sorted by key.
-fn warp_bands(
-    map: &EpipolarMap,
-    frames: &[SliceFrame],
-    rays: &[Vec<SampledRay>],
-    slice_bands: &[SliceBands],
-    bands: &mut [Band],
-) {
-    let mut parts = Vec::with_capacity(slice_bands.len());
-    let mut rest = bands;
-    for range in slice_bands {
-        let (own, tail) = rest.split_at_mut(range.count as usize);
-        rest = tail;
-        parts.push(own);
+/// Per band of `frame`, the warp of the sampled rays that read it (see [`Band::warp`])
+/// and of the texels among them; bands read by too few rays keep the slice's warp.
+/// `rays` are sorted by key, `texels` too.
+fn band_warps(frame: &SliceFrame, rays: &[SampledRay], texels: &[f64]) -> Vec<Warp> {
+    let count = frame.band_count();
+    let mut warps = vec![frame.warp; count];
+    if count < 2 || rays.len() < MIN_BAND_RAYS {
+        return warps;
     }
-    parts.into_par_iter().enumerate().for_each(|(slice, own)| {
-        let (frame, rays) = (&frames[slice], &rays[slice]);
-        if own.len() < 2 || rays.len() < MIN_BAND_RAYS {
-            return;
+    // Rays come sorted by key, so each band's keys do too.
+    let mut reading: Vec<Vec<f64>> = vec![Vec::new(); count];
+    for ray in rays {
+        let position = frame.band_position(ray.rate.log2(), count);
+        let lower = position as usize;
+        reading[lower].push(ray.key);
+        if lower + 1 < count && position > lower as f64 {
+            reading[lower + 1].push(ray.key);
         }
-        let texels = texel_keys(map, slice);
-        let count = own.len();
-        // Rays come sorted by key, so each band's keys do too.
-        let mut reading: Vec<Vec<f64>> = vec![Vec::new(); count];
-        for ray in rays {
-            let position = frame.band_position(ray.rate.log2(), count);
-            let lower = position as usize;
-            reading[lower].push(ray.key);
-            if lower + 1 < count && position > lower as f64 {
-                reading[lower + 1].push(ray.key);
-            }
+    }
+    for (warp, keys) in warps.iter_mut().zip(&reading) {
+        if keys.len() >= MIN_BAND_RAYS {
+            *warp = Warp::of(keys, texels);
         }
-        for (band, keys) in own.iter_mut().zip(&reading) {
-            if keys.len() >= MIN_BAND_RAYS {
-                band.warp = Warp::of(keys, &texels);
-            }
-        }
-    });
+    }
+    warps
 }
 
 /// One key per texel of a slice (enough for quantiles), sorted.
@@ -1064,7 +1051,7 @@ fn slice_frames(
     camera: &CameraModel,
     epipoles: &[[f64; 2]],
     block: f64,
-) -> (Vec<SliceFrame>, Vec<Vec<SampledRay>>) {
+) -> (Vec<SliceFrame>, Vec<Vec<Warp>>) {
     const RAYS_PER_SLICE: f64 = 128.0;
     let pixels = camera.width as f64 * camera.height as f64;
     let interior_stride = ((pixels / (map.slices as f64 * RAYS_PER_SLICE)).sqrt() as u32).max(1);
@@ -1109,10 +1096,18 @@ fn slice_frames(
             rays[slice as usize].push(sampled);
         }
     }
-    let frames: Vec<Option<SliceFrame>> = rays
+    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = rays
         .par_iter_mut()
         .enumerate()
-        .map(|(slice, rays)| frame_of(rays, &texel_keys(map, slice)))
+        .map(|(slice, rays)| {
+            let texels = texel_keys(map, slice);
+            let frame = frame_of(rays, &texels)?;
+            Some((frame, band_warps(&frame, rays, &texels)))
+        })
+        .collect();
+    let frames: Vec<Option<SliceFrame>> = sampled_frames
+        .iter()
+        .map(|sampled| sampled.as_ref().map(|(frame, _)| *frame))
         .collect();
     // Fill unsampled slices from the nearest sampled one, scanning both ways.
     let sampled: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].is_some()).collect();
@@ -1123,7 +1118,7 @@ fn slice_frames(
         origin: 0.0,
         log2_fastest: 0.0,
     };
-    let frames = (0..frames.len())
+    let frames: Vec<SliceFrame> = (0..frames.len())
         .map(|i| {
             frames[i].unwrap_or_else(|| {
                 let nearest = sampled
@@ -1133,7 +1128,16 @@ fn slice_frames(
             })
         })
         .collect();
-    (frames, rays)
+    // A slice that took a neighbour's frame has no rays of its own: one warp for all bands.
+    let warps = sampled_frames
+        .into_iter()
+        .zip(&frames)
+        .map(|(sampled, frame)| match sampled {
+            Some((_, warps)) => warps,
+            None => vec![frame.warp; frame.band_count()],
+        })
+        .collect();
+    (frames, warps)
 }
 
 /// A slice's frame from its sampled rays (sorted here, by key) and its texels' keys.

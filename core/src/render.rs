@@ -397,10 +397,10 @@ impl SurfaceDistances {
             .enumerate()
             .map(|(i, &value)| {
                 let (x, y) = ((i as u32 % width) as f64, (i as u32 / width) as f64);
-                let ray = camera.ray(x + 0.5, y + 0.5);
+                let stretch = camera.distance_per_depth(x + 0.5, y + 0.5);
                 let (planar, distance) = match given.kind {
-                    DepthKind::Planar => (value as f64, value as f64 * ray.distance_per_depth),
-                    DepthKind::RayDistance => (value as f64 / ray.distance_per_depth, value as f64),
+                    DepthKind::Planar => (value as f64, value as f64 * stretch),
+                    DepthKind::RayDistance => (value as f64 / stretch, value as f64),
                 };
                 if planar > camera.clip_end {
                     f32::INFINITY

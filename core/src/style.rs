@@ -26,6 +26,39 @@ use crate::shadow_map::ShadowMap;
 use crate::silhouette::{self, Epipole, SilhouetteDesc, SilhouetteOp};
 use crate::transfer_function::{self, ApplySettings, ProjectedPoint, TfTexture, TransferFunction};
 
+/// One occluder operator of a style, resolved against a shadow map
+/// ([`Style::occluder_operators`]).
+#[derive(Clone, Debug)]
+pub enum OccluderOperator {
+    /// 2D morphology of the depth.
+    HoleFilling(MorphologyDesc),
+    /// 1D epipolar dilation or closure.
+    Silhouettes {
+        desc: SilhouetteDesc,
+        epipole: Epipole,
+    },
+    /// Thresholded noise on chosen objects.
+    HoleCreation(HoleNoise),
+}
+
+impl OccluderOperator {
+    /// Applies the operator to `map` on the CPU.
+    pub fn apply(&self, map: &mut ShadowMap) -> Result<()> {
+        match self {
+            OccluderOperator::HoleFilling(desc) => {
+                map.depth = morphology::apply(&map.depth, map.size, desc)?;
+            }
+            OccluderOperator::Silhouettes { desc, epipole } => {
+                map.depth = silhouette::apply(&map.depth, map.size, *epipole, desc)?;
+            }
+            OccluderOperator::HoleCreation(noise) => {
+                noise.apply(&mut map.depth, &map.ids)?;
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The style-preset version this build reads and writes.
 pub const STYLE_VERSION: u32 = 1;
 
@@ -188,15 +221,23 @@ impl Style {
         Ok(())
     }
 
-    /// The shadow map scattering sees: a manipulated copy when any operator is on.
-    pub fn scattering_map(&self, shadow: &ShadowMap, camera: &CameraModel) -> Result<ShadowMap> {
-        let mut map = shadow.clone();
+    /// The occluder operators that are on, in the order they apply, with their sizes in
+    /// texels of `shadow` and everything else they need resolved, for any backend.
+    pub fn occluder_operators(
+        &self,
+        shadow: &ShadowMap,
+        camera: &CameraModel,
+    ) -> Result<Vec<OccluderOperator>> {
         let texels = |world: f32| (world as f64 / shadow.texel_size) as f32;
+        let mut operators = Vec::new();
         if let Some(closing) = &self.closing {
             let radius = closing.radius_texels.unwrap_or(texels(closing.radius));
             if radius > 0.0 {
-                let desc = MorphologyDesc::new(closing.operation, closing.kernel, radius);
-                map.depth = morphology::apply(&map.depth, map.size, &desc)?;
+                operators.push(OccluderOperator::HoleFilling(MorphologyDesc::new(
+                    closing.operation,
+                    closing.kernel,
+                    radius,
+                )));
             }
         }
         if let Some(silhouette) = &self.silhouette {
@@ -204,12 +245,13 @@ impl Style {
                 .length_texels
                 .unwrap_or(texels(silhouette.length));
             if length > 0.0 {
-                let desc = SilhouetteDesc {
-                    op: silhouette.operation,
-                    length_texels: length,
-                };
-                let epipole = Epipole::of_camera(camera, &shadow.texel_from_world);
-                map.depth = silhouette::apply(&map.depth, map.size, epipole, &desc)?;
+                operators.push(OccluderOperator::Silhouettes {
+                    desc: SilhouetteDesc {
+                        op: silhouette.operation,
+                        length_texels: length,
+                    },
+                    epipole: Epipole::of_camera(camera, &shadow.texel_from_world),
+                });
             }
         }
         if let Some(holes) = &self.holes {
@@ -217,8 +259,18 @@ impl Style {
                 time: holes.time + self.time,
                 ..holes.clone()
             };
-            let noise = HoleNoise::for_map(&desc, shadow)?;
-            noise.apply(&mut map.depth, &shadow.ids)?;
+            operators.push(OccluderOperator::HoleCreation(HoleNoise::for_map(
+                &desc, shadow,
+            )?));
+        }
+        Ok(operators)
+    }
+
+    /// The shadow map scattering sees: a manipulated copy when any operator is on.
+    pub fn scattering_map(&self, shadow: &ShadowMap, camera: &CameraModel) -> Result<ShadowMap> {
+        let mut map = shadow.clone();
+        for operator in self.occluder_operators(shadow, camera)? {
+            operator.apply(&mut map)?;
         }
         Ok(map)
     }

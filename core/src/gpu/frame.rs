@@ -29,15 +29,12 @@ use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
-use crate::holes::{HoleNoise, HolesDesc};
 use crate::layers::Layers;
-use crate::morphology::MorphologyDesc;
 use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
 use crate::render::{camera_raster, scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
-use crate::silhouette::{Epipole, SilhouetteDesc};
-use crate::style::Style;
+use crate::style::{OccluderOperator, Style};
 use crate::upsample::reduced_size;
 
 /// GPU timestamps of the stages that ran on the GPU, in milliseconds, and the names of
@@ -279,9 +276,9 @@ fn gpu_frame(
     Ok((layers, times))
 }
 
-/// The style's occluder operators in the CPU's order ([`Style::scattering_map`]): hole
-/// filling, silhouettes, hole creation, each on the GPU. A device without double
-/// precision in shaders leaves the last two to the CPU.
+/// The style's occluder operators ([`Style::occluder_operators`]), each on the GPU. A
+/// device without double precision in shaders leaves silhouettes and hole creation to
+/// the CPU.
 fn manipulate_occluders(
     device: &Arc<Device>,
     style: &Style,
@@ -289,52 +286,34 @@ fn manipulate_occluders(
     camera: &CameraModel,
     gpu: &mut GpuTimes,
 ) -> Result<ShadowMap> {
-    let texels = |world: f32| (world as f64 / shadow.texel_size) as f32;
-    if let Some(closing) = &style.closing {
-        let radius = closing.radius_texels.unwrap_or(texels(closing.radius));
-        if radius > 0.0 {
-            let desc = MorphologyDesc::new(closing.operation, closing.kernel, radius);
-            let (depth, ms) = super::morphology::apply(device, &shadow.depth, shadow.size, &desc)?;
-            shadow.depth = depth;
-            gpu.hole_filling = ms;
+    let double_precision = super::silhouette::supported(device);
+    for operator in style.occluder_operators(&shadow, camera)? {
+        match &operator {
+            OccluderOperator::HoleFilling(desc) => {
+                let (depth, ms) =
+                    super::morphology::apply(device, &shadow.depth, shadow.size, desc)?;
+                shadow.depth = depth;
+                gpu.hole_filling = ms;
+            }
+            OccluderOperator::Silhouettes { desc, epipole } if double_precision => {
+                let (depth, ms) =
+                    super::silhouette::apply(device, &shadow.depth, shadow.size, *epipole, desc)?;
+                shadow.depth = depth;
+                gpu.silhouettes = ms;
+            }
+            OccluderOperator::HoleCreation(noise) if double_precision => {
+                let (depth, ms) = super::holes::apply(device, noise, &shadow.depth, &shadow.ids)?;
+                shadow.depth = depth;
+                gpu.hole_creation = ms;
+            }
+            _ => {
+                const ON_THE_CPU: &str = "silhouettes and hole creation";
+                if !gpu.cpu_stages.contains(&ON_THE_CPU) {
+                    gpu.cpu_stages.push(ON_THE_CPU);
+                }
+                operator.apply(&mut shadow)?;
+            }
         }
-    }
-    if !super::silhouette::supported(device) {
-        let rest = Style {
-            closing: None,
-            ..style.clone()
-        };
-        if rest.manipulates_occluders() {
-            gpu.cpu_stages.push("silhouettes and hole creation");
-            shadow = rest.scattering_map(&shadow, camera)?;
-        }
-        return Ok(shadow);
-    }
-    if let Some(silhouette) = &style.silhouette {
-        let length = silhouette
-            .length_texels
-            .unwrap_or(texels(silhouette.length));
-        if length > 0.0 {
-            let desc = SilhouetteDesc {
-                op: silhouette.operation,
-                length_texels: length,
-            };
-            let epipole = Epipole::of_camera(camera, &shadow.texel_from_world);
-            let (depth, ms) =
-                super::silhouette::apply(device, &shadow.depth, shadow.size, epipole, &desc)?;
-            shadow.depth = depth;
-            gpu.silhouettes = ms;
-        }
-    }
-    if let Some(holes) = &style.holes {
-        let desc = HolesDesc {
-            time: holes.time + style.time,
-            ..holes.clone()
-        };
-        let noise = HoleNoise::for_map(&desc, &shadow)?;
-        let (depth, ms) = super::holes::apply(device, &noise, &shadow.depth, &shadow.ids)?;
-        shadow.depth = depth;
-        gpu.hole_creation = ms;
     }
     Ok(shadow)
 }
