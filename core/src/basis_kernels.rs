@@ -64,19 +64,16 @@ impl Kernels {
         Kernels::Portable
     }
 
-    /// Σ_r factor_r · ⟨stored row index_r, coefficients⟩, over padded rows of `stored`.
+    /// Σ over `reads` of Σ_r factor_r · ⟨stored row index_r, the read's coefficients⟩,
+    /// over padded rows of `stored`: one call and one horizontal sum for all the bands a
+    /// pixel reads in one slice.
     #[inline]
-    pub fn blend_dot<T: BasisValue>(
-        self,
-        stored: &[T],
-        rows: &[(u32, f32)],
-        coefficients: &[f32],
-    ) -> f32 {
+    pub fn blend_dots<T: BasisValue>(self, stored: &[T], reads: &[BandRead<'_>]) -> f32 {
         match self {
-            Kernels::Portable => blend_dot(stored, rows, coefficients),
+            Kernels::Portable => blend_dots(stored, reads),
             // SAFETY: `detect` only chose this variant where the CPU has AVX2 and FMA.
             #[cfg(target_arch = "x86_64")]
-            Kernels::Avx2Fma => unsafe { blend_dot_avx2(stored, rows, coefficients) },
+            Kernels::Avx2Fma => unsafe { blend_dots_avx2(stored, reads) },
         }
     }
 
@@ -95,32 +92,44 @@ impl Kernels {
     ) {
         match self {
             Kernels::Portable => prefix_sums(table, entries, weights, scales, out),
-            // SAFETY: as in `blend_dot`.
+            // SAFETY: as in `blend_dots`.
             #[cfg(target_arch = "x86_64")]
             Kernels::Avx2Fma => unsafe { prefix_sums_avx2(table, entries, weights, scales, out) },
         }
     }
 }
 
+/// What a pixel reads from one band: up to four weighted rows of the filtered basis,
+/// dotted with the coefficients of the ray's key.
+#[derive(Clone, Copy, Debug)]
+pub struct BandRead<'c> {
+    pub rows: [(u32, f32); 4],
+    pub count: usize,
+    pub coefficients: &'c [f32],
+}
+
 #[inline(always)]
-fn blend_dot<T: BasisValue>(stored: &[T], rows: &[(u32, f32)], coefficients: &[f32]) -> f32 {
-    let stride = coefficients.len();
+fn blend_dots<T: BasisValue>(stored: &[T], reads: &[BandRead<'_>]) -> f32 {
     let mut total = [0.0f32; LANES];
-    for (lane_start, coefficients) in (0..stride)
-        .step_by(LANES)
-        .zip(coefficients.chunks_exact(LANES))
-    {
-        let mut blended = [0.0f32; LANES];
-        for &(index, factor) in rows {
-            let start = index as usize * stride + lane_start;
-            let values = &stored[start..start + LANES];
-            let factor = factor * T::SCALE;
-            for lane in 0..LANES {
-                blended[lane] += factor * values[lane].load();
+    for read in reads {
+        let stride = read.coefficients.len();
+        let rows = &read.rows[..read.count];
+        for (lane_start, coefficients) in (0..stride)
+            .step_by(LANES)
+            .zip(read.coefficients.chunks_exact(LANES))
+        {
+            let mut blended = [0.0f32; LANES];
+            for &(index, factor) in rows {
+                let start = index as usize * stride + lane_start;
+                let values = &stored[start..start + LANES];
+                let factor = factor * T::SCALE;
+                for lane in 0..LANES {
+                    blended[lane] += factor * values[lane].load();
+                }
             }
-        }
-        for lane in 0..LANES {
-            total[lane] += blended[lane] * coefficients[lane];
+            for lane in 0..LANES {
+                total[lane] += blended[lane] * coefficients[lane];
+            }
         }
     }
     total.iter().sum()
@@ -128,12 +137,8 @@ fn blend_dot<T: BasisValue>(stored: &[T], rows: &[(u32, f32)], coefficients: &[f
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn blend_dot_avx2<T: BasisValue>(
-    stored: &[T],
-    rows: &[(u32, f32)],
-    coefficients: &[f32],
-) -> f32 {
-    blend_dot(stored, rows, coefficients)
+unsafe fn blend_dots_avx2<T: BasisValue>(stored: &[T], reads: &[BandRead<'_>]) -> f32 {
+    blend_dots(stored, reads)
 }
 
 #[inline(always)]
@@ -212,26 +217,48 @@ mod tests {
     }
 
     #[test]
-    fn blend_dot_matches_the_direct_sum() {
+    fn blend_dots_match_the_direct_sum() {
         let stride = padded(20);
         let rows = 5;
         let stored: Vec<f32> = (0..rows * stride)
             .map(|i| ((i * 37 % 23) as f32 - 11.0) / 11.0)
             .collect();
-        let coefficients: Vec<f32> = (0..stride)
-            .map(|k| if k < 20 { (k as f32).sin() } else { 0.0 })
-            .collect();
-        let picked = [(4u32, 0.25f32), (1, -1.5), (3, 2.0)];
+        let coefficients = |phase: f32| -> Vec<f32> {
+            (0..stride)
+                .map(|k| {
+                    if k < 20 {
+                        (k as f32 + phase).sin()
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        };
+        let (first, second) = (coefficients(0.0), coefficients(0.7));
+        let picked = [
+            (&[(4u32, 0.25f32), (1, -1.5), (3, 2.0)][..], &first),
+            (&[(0, 0.5), (2, -0.75)][..], &second),
+        ];
         let mut expected = 0.0f64;
-        for &(index, factor) in &picked {
-            for k in 0..stride {
-                expected += factor as f64
-                    * stored[index as usize * stride + k] as f64
-                    * coefficients[k] as f64;
+        let mut reads = Vec::new();
+        for (rows, coefficients) in picked {
+            for &(index, factor) in rows {
+                for k in 0..stride {
+                    expected += factor as f64
+                        * stored[index as usize * stride + k] as f64
+                        * coefficients[k] as f64;
+                }
             }
+            let mut read = BandRead {
+                rows: [(0, 0.0); 4],
+                count: rows.len(),
+                coefficients,
+            };
+            read.rows[..rows.len()].copy_from_slice(rows);
+            reads.push(read);
         }
         for kernels in all_kernels() {
-            let got = kernels.blend_dot(&stored, &picked, &coefficients);
+            let got = kernels.blend_dots(&stored, &reads);
             assert!(
                 (got as f64 - expected).abs() < 1e-5,
                 "{kernels:?}: {got} vs {expected}"

@@ -31,7 +31,7 @@ use std::sync::OnceLock;
 
 use rayon::prelude::*;
 
-use crate::basis_kernels::{padded, BasisValue, Kernels};
+use crate::basis_kernels::{padded, BandRead, BasisValue, Kernels};
 use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
 use crate::error::{Error, Result};
@@ -673,8 +673,8 @@ impl<'a> Prefiltered<'a> {
 
     /// Weighted average visibility between continuous boundary positions `x0 < x1`
     /// (`x0` ≤ 0 is the slice's start), blended over the two slices and the bands that
-    /// bracket the ray's speed. Per band, its prefix rows are blended and dotted with the
-    /// coefficients of the ray's key under the band's warp in one pass.
+    /// bracket the ray's speed. Per slice, its bands' prefix rows are blended and dotted
+    /// with the coefficients of the ray's key under each band's warp in one kernel call.
     #[inline]
     fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Option<f64> {
         let log2_rate = located.s_per_t.log2();
@@ -683,18 +683,18 @@ impl<'a> Prefiltered<'a> {
             if share == 0.0 {
                 continue;
             }
-            let mut dot = 0.0;
+            let mut reads = [BandRead {
+                rows: [(0, 0.0); 4],
+                count: 0,
+                coefficients: &[],
+            }; 2];
+            let mut read_count = 0;
             let mut shares = 0.0;
             for (band, band_share) in self.bands_for(slice, log2_rate) {
                 if band_share == 0.0 {
                     continue;
                 }
-                // Two ends × two boundaries.
-                let mut rows = [(0u32, 0.0f32); 4];
-                let mut count = 0;
                 let weights = &self.weight[band.first_row..band.first_row + band.rows];
-                let end = band.boundary(x1);
-                let start = band.boundary(x0);
                 let weight_at = |(lower, fraction): (usize, f64)| {
                     let w0 = weights[lower] as f64;
                     if fraction == 0.0 {
@@ -702,36 +702,40 @@ impl<'a> Prefiltered<'a> {
                     }
                     w0 + fraction * (weights[lower + 1] as f64 - w0)
                 };
-                let dw = weight_at(end) - weight_at(start);
+                let end = band.boundary(x1);
+                // Boundary 0 is the empty prefix, of no weight.
+                let start = (x0 > 0.0).then(|| band.boundary(x0));
+                let dw = weight_at(end) - start.map_or(0.0, weight_at);
                 if dw <= 0.0 {
                     return None;
                 }
+                let read = &mut reads[read_count];
+                read_count += 1;
                 let scale = share * band_share / dw;
-                for ((lower, fraction), sign) in [(end, 1.0), (start, -1.0)] {
+                let mut add = |(lower, fraction): (usize, f64), sign: f64| {
                     for (boundary, part) in [(lower, 1.0 - fraction), (lower + 1, fraction)] {
-                        // Boundary 0 is the empty prefix.
                         if boundary == 0 || part == 0.0 {
                             continue;
                         }
                         let factor = sign * scale * part * weights[boundary] as f64;
-                        rows[count] = ((band.first_row + boundary) as u32, factor as f32);
-                        count += 1;
+                        read.rows[read.count] = ((band.first_row + boundary) as u32, factor as f32);
+                        read.count += 1;
                     }
+                };
+                add(end, 1.0);
+                if let Some(start) = start {
+                    add(start, -1.0);
                 }
                 shares += share * band_share;
                 let z = band.warp.warp(key);
-                let coefficients =
+                read.coefficients =
                     &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride];
-                let rows = &rows[..count];
-                dot += match &self.basis {
-                    FilteredBasis::F32(stored) => {
-                        self.kernels.blend_dot(stored, rows, coefficients)
-                    }
-                    FilteredBasis::Snorm16(stored) => {
-                        self.kernels.blend_dot(stored, rows, coefficients)
-                    }
-                } as f64;
             }
+            let reads = &reads[..read_count];
+            let dot = match &self.basis {
+                FilteredBasis::F32(stored) => self.kernels.blend_dots(stored, reads),
+                FilteredBasis::Snorm16(stored) => self.kernels.blend_dots(stored, reads),
+            } as f64;
             visibility += (0.5 * shares + dot).clamp(0.0, shares);
         }
         Some(visibility)
@@ -1242,7 +1246,12 @@ mod tests {
         let visibility = |z_ray: f64, z_texel: f64| {
             let at = |table: &[f32], z: f64| table[Tables::index(z) * row..][..row].to_vec();
             let (c, b) = (at(&tables.coefficients, z_ray), at(&tables.basis, z_texel));
-            0.5 + Kernels::Portable.blend_dot(&b, &[(0, 1.0)], &c) as f64
+            let read = BandRead {
+                rows: [(0, 1.0); 4],
+                count: 1,
+                coefficients: &c,
+            };
+            0.5 + Kernels::Portable.blend_dots(&b, &[read]) as f64
         };
         for &(z_ray, z_texel, expected) in &[
             (0.6, 0.3, 1.0),
