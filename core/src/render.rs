@@ -13,7 +13,9 @@ use crate::phase;
 use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
 use crate::raster::{rasterize, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
-use crate::scene::{check_triangles, Camera, Medium, Method, RenderSettings, Scene, Sun};
+use crate::scene::{
+    check_triangles, Camera, Medium, Method, Rectification, RenderSettings, Scene, Sun,
+};
 use crate::shadow_map::ShadowMap;
 use crate::style::Style;
 use crate::upsample::{joint_bilateral, reduced_size, sample_pixel};
@@ -244,7 +246,7 @@ pub(crate) fn scatter_timed(
             &frame.geometry,
             light_travel,
             frame.settings.max_distance as f64,
-            frame.settings.rectification,
+            frame.rectification(),
             &desc,
         )?,
         None => None,
@@ -626,7 +628,28 @@ impl<'a> Frame<'a> {
         if let Some(depth) = &self.camera_depth {
             depth.validate(self.camera.width, self.camera.height)?;
         }
+        if self.style.manipulates_occluders()
+            && self.settings.rectification == Rectification::Projective
+        {
+            return Err(Error::invalid(
+                "render.rectification",
+                "'projective' rasterizes the geometry into the rectified map, so the style's \
+                 occluder operators (hole filling, silhouettes, hole creation), which act on \
+                 the shadow map, would be lost; use 'auto' or 'epipolar' with them",
+            ));
+        }
         Ok(())
+    }
+
+    /// How the fast methods rectify. A projective map is rasterized from the geometry
+    /// rather than resampled from the shadow map, so it cannot carry the style's occluder
+    /// operators: with any, `auto` resamples epipolarly.
+    pub fn rectification(&self) -> Rectification {
+        if self.style.manipulates_occluders() {
+            Rectification::Epipolar
+        } else {
+            self.settings.rectification
+        }
     }
 }
 

@@ -191,6 +191,47 @@ fn forcing_projective_where_it_cannot_work_names_the_setting() {
 }
 
 #[test]
+fn occluder_operators_keep_the_epipolar_layout() {
+    // A view on which `auto` rasterizes a projective map for the physical look.
+    let (_, mut scene) = across_views("tree")
+        .into_iter()
+        .find(|(view, _)| *view == "across narrow")
+        .expect("the narrow view");
+    for method in [Method::MinMax, Method::Prefiltered] {
+        assert!(rectified(&scene, method, Rectification::Auto).is_projective());
+    }
+    let physical = render_with(&scene, Method::Reference, Rectification::Epipolar);
+    scene.style = serde_json::from_str(include_str!("../../examples/presets/holes-in-tree.json"))
+        .expect("a valid preset");
+    let reference = render_with(&scene, Method::Reference, Rectification::Epipolar);
+    let holes = error(&physical, &reference);
+    assert!(
+        holes > 0.05,
+        "the holes change the image by {holes:.3} only"
+    );
+    // The projective map is rasterized from the geometry, which has no holes: `auto`
+    // resamples the shadow map they were cut into.
+    for method in [Method::MinMax, Method::Prefiltered] {
+        let fast = error(
+            &render_with(&scene, method, Rectification::Auto),
+            &reference,
+        );
+        println!(
+            "{}: {:.3}% (the holes: {:.1}%)",
+            method.name(),
+            fast * 100.0,
+            holes * 100.0
+        );
+        assert!(
+            fast <= bound("tree", method),
+            "{}: {fast:.4}",
+            method.name()
+        );
+    }
+    expect_rectification_error(&scene, "occluder operators");
+}
+
+#[test]
 fn auto_picks_projective_only_for_shallow_valid_views() {
     let mut picked = Vec::new();
     for name in BUILTIN_SCENES {

@@ -194,7 +194,7 @@ fn gpu_frame(
                 &frame.geometry,
                 frame.sun.direction.as_dvec3().normalize(),
                 frame.settings.max_distance as f64,
-                frame.settings.rectification,
+                frame.rectification(),
                 &RectifyDesc::prefiltered(frame.settings.epipolar_slices),
                 &resampler,
             )?;
