@@ -44,6 +44,8 @@ layout(std430, binding = 5) writeonly buffer Depth { float depth_out[]; };
 
 vec3 texel_origin;
 vec3 texel_step;
+// Steps of the march under way: the frame's, or fewer in a fast method's fallback.
+uint march_steps;
 vec3 cube_origin;
 vec3 cube_step;
 
@@ -58,7 +60,7 @@ bool lit(float t) {
 }
 
 float average_visibility(float t_start, float t_end) {
-    uint n = p.steps;
+    uint n = march_steps;
     float dt = (t_end - t_start) / float(n);
     uint lit_steps = 0;
     for (uint i = 0; i < n; ++i) {
@@ -80,7 +82,7 @@ float weighted_visibility(float scattering, float unshadowed, bool shadowed, flo
 
 // x: scattering, y: alpha, z: visibility.
 vec3 march_unbounded(float t_start, float t_end) {
-    uint n = p.steps;
+    uint n = march_steps;
     float dt = (t_end - t_start) / float(n);
     float sigma = p.extinction;
     float decay = exp(-sigma * dt);
@@ -142,7 +144,7 @@ vec3 march_box(float t_start, float t_end) {
     if (!hit || !(b > a)) {
         return vec3(0.0, 0.0, average_visibility(t_start, t_end));
     }
-    uint n = p.steps;
+    uint n = march_steps;
     float dt = (b - a) / float(n);
     float sigma = p.extinction;
     float depth_before = sunward_depth(cube_origin + cube_step * a);
@@ -194,6 +196,24 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
         return vec3(0.0, 0.0, 1.0);
     }
     begin_ray(origin, direction);
+    march_steps = p.steps;
+    return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
+}
+
+// reference.rs: FALLBACK_STEPS_PER_TEXEL, MIN_FALLBACK_STEPS.
+const float FALLBACK_STEPS_PER_TEXEL = 64.0;
+const uint MIN_FALLBACK_STEPS = 64u;
+
+// A fast method's fallback (reference.rs, Marcher::march_fallback): the frame's steps, or
+// fewer where the ray crosses few shadow-map texels, at FALLBACK_STEPS_PER_TEXEL each.
+vec3 fallback_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
+    if (!(t_end > t_start)) {
+        return vec3(0.0, 0.0, 1.0);
+    }
+    begin_ray(origin, direction);
+    float texels = length(texel_step.xy) * (t_end - t_start);
+    float steps = min(ceil(texels * FALLBACK_STEPS_PER_TEXEL), float(p.steps));
+    march_steps = clamp(uint(steps), min(MIN_FALLBACK_STEPS, p.steps), p.steps);
     return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
 }
 

@@ -2,7 +2,8 @@
 // Prefiltered per-pixel evaluation (core/src/prefiltered.rs, Prefiltered::march): locate
 // the ray in the rectified map, blend the filtered basis' prefix rows of the bands and
 // slices around it, and dot them with the ray's coefficients. Pixels near an on-screen
-// epipole, and rays along the light, take the reference march, as on the CPU.
+// epipole, rays along the light and rays too short for the prefix sums take the fallback
+// march, as on the CPU.
 #extension GL_GOOGLE_include_directive : require
 
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -15,9 +16,10 @@ const uint PROJECTIVE = 2u;
 const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
-// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES.
+// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, SHORT_RAY_TEXELS.
 const float BOX_PIECE_DEPTH = 0.25;
 const uint MAX_BOX_PIECES = 8u;
+const float SHORT_RAY_TEXELS = 16.0;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -320,6 +322,11 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     if (!(t_end > t_start)) {
         return vec3(0.0, 0.0, 1.0);
     }
+    // Too short for the prefix sums' resolution: marched instead.
+    if (q.map_layout != PROJECTIVE && located.z * (t_end - t_start) < SHORT_RAY_TEXELS) {
+        ok = false;
+        return vec3(0.0);
+    }
     float key = order_key(located.w);
     float a = t_start;
     float b = t_end;
@@ -387,11 +394,11 @@ bool near_epipole(vec2 pixel) {
 
 vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end) {
     if (near_epipole(pixel)) {
-        return reference_sample(origin, direction, t_start, t_end);
+        return fallback_sample(origin, direction, t_start, t_end);
     }
     bool ok;
     vec3 s = prefiltered_sample(origin, direction, t_start, t_end, ok);
-    return ok ? s : reference_sample(origin, direction, t_start, t_end);
+    return ok ? s : fallback_sample(origin, direction, t_start, t_end);
 }
 
 void main() {

@@ -172,6 +172,13 @@ pub(crate) fn weighted_visibility(scattering: f64, unshadowed: f64) -> Option<f6
     (unshadowed > 1e-300).then(|| (scattering / unshadowed).clamp(0.0, 1.0))
 }
 
+/// Steps per shadow-map texel crossed of [`Marcher::march_fallback`]. Light through
+/// slits a few texels wide, seen by rays a dozen texels long, was 2.2% off the 4096-step
+/// reference at 16 steps per texel, 0.8% at 64 and 0.2% at 256.
+pub const FALLBACK_STEPS_PER_TEXEL: f64 = 64.0;
+/// Fewest steps of [`Marcher::march_fallback`] (unless the frame asks for fewer).
+pub const MIN_FALLBACK_STEPS: u32 = 64;
+
 /// Per-frame constants of the march.
 #[derive(Clone, Debug)]
 pub struct Marcher<'a> {
@@ -194,6 +201,28 @@ impl<'a> Marcher<'a> {
 
     /// Integrates one ray over [t_start, t_end].
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
+        self.march_in_steps(ray, t_start, t_end, self.steps)
+    }
+
+    /// A fast method's fallback march: the frame's steps, or fewer where the ray crosses
+    /// few shadow-map texels, as long as each gets [`FALLBACK_STEPS_PER_TEXEL`]. Rays near
+    /// an epipole and rays too short for a fast method cross only a few texels.
+    pub fn march_fallback(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
+        let texels = self
+            .shadow
+            .texel_from_world
+            .transform_vector3(ray.direction)
+            .truncate()
+            .length()
+            * (t_end - t_start).max(0.0);
+        let steps = (texels * FALLBACK_STEPS_PER_TEXEL)
+            .ceil()
+            .min(u32::MAX as f64) as u32;
+        let steps = steps.clamp(MIN_FALLBACK_STEPS.min(self.steps), self.steps);
+        self.march_in_steps(ray, t_start, t_end, steps)
+    }
+
+    fn march_in_steps(&self, ray: &Ray, t_start: f64, t_end: f64, steps: u32) -> RaySample {
         if t_end <= t_start {
             return RaySample::EMPTY;
         }
@@ -203,21 +232,35 @@ impl<'a> Marcher<'a> {
             .texel_from_world
             .transform_vector3(ray.direction);
         let lit = |t: f64| self.shadow.is_lit(texel_origin + texel_step * t);
+        let marcher = Marcher {
+            steps,
+            ..self.clone()
+        };
+        marcher.march_lit(ray, &lit, t_start, t_end)
+    }
+
+    fn march_lit(
+        &self,
+        ray: &Ray,
+        lit: &impl Fn(f64) -> bool,
+        t_start: f64,
+        t_end: f64,
+    ) -> RaySample {
         match &self.box_medium {
-            None => self.march_unbounded(&lit, t_start, t_end),
+            None => self.march_unbounded(lit, t_start, t_end),
             Some(box_medium) => {
                 let Some((a, b)) = medium_segment(Some(box_medium), ray, t_start, t_end) else {
                     return RaySample {
-                        visibility: self.average_visibility(&lit, t_start, t_end),
+                        visibility: self.average_visibility(lit, t_start, t_end),
                         ..RaySample::EMPTY
                     };
                 };
-                let (scattering, unshadowed) = self.scatter_in_box(box_medium, ray, &lit, a, b);
+                let (scattering, unshadowed) = self.scatter_in_box(box_medium, ray, lit, a, b);
                 RaySample {
                     scattering,
                     alpha: -(-self.extinction * (b - a)).exp_m1(),
                     visibility: weighted_visibility(scattering, unshadowed)
-                        .unwrap_or_else(|| self.average_visibility(&lit, t_start, t_end)),
+                        .unwrap_or_else(|| self.average_visibility(lit, t_start, t_end)),
                 }
             }
         }

@@ -234,6 +234,10 @@ pub(crate) fn scatter_timed(
     };
     let reference =
         |ray: &Ray, t_start: f64, t_end: f64| to_pixel(marcher.march(ray, t_start, t_end), ray);
+    // The fast methods' fallback near epipoles and for rays they decline.
+    let fallback = |ray: &Ray, t_start: f64, t_end: f64| {
+        to_pixel(marcher.march_fallback(ray, t_start, t_end), ray)
+    };
     let rectify = match frame.settings.method {
         Method::Reference => None,
         Method::MinMax => Some(RectifyDesc::min_max(frame.settings.epipolar_slices)),
@@ -316,9 +320,9 @@ pub(crate) fn scatter_timed(
         control,
         |pixel, ray, t0, t1| {
             if near_epipole(pixel) {
-                return reference(ray, t0, t1);
+                return fallback(ray, t0, t1);
             }
-            fast(ray, t0, t1).unwrap_or_else(|| reference(ray, t0, t1))
+            fast(ray, t0, t1).unwrap_or_else(|| fallback(ray, t0, t1))
         },
     )?;
     times.shading = stopwatch.lap();
