@@ -2,8 +2,8 @@
 // Prefiltered per-pixel evaluation (core/src/prefiltered.rs, Prefiltered::march): locate
 // the ray in the rectified map, blend the filtered basis' prefix rows of the bands and
 // slices around it, and dot them with the ray's coefficients. Pixels near an on-screen
-// epipole, rays along the light and rays too short for the prefix sums take the fallback
-// march, as on the CPU.
+// epipole, rays along the light, rays too short for the prefix sums and rays too far along
+// a slice for their precision take the fallback march, as on the CPU.
 #extension GL_GOOGLE_include_directive : require
 
 layout(local_size_x = 8, local_size_y = 8) in;
@@ -171,9 +171,13 @@ float blend_dot(uint rows[4], float factors[4], uint coefficient_row) {
     return dot_;
 }
 
-// Weighted average visibility between boundary positions x0 < x1; false where a band
-// holds no weight there (the CPU then takes the ray as lit).
-bool average(vec4 located, float key, float x0, float x1, out float visibility) {
+// What average() makes of a stretch of a ray (prefiltered.rs: Average).
+const uint AVERAGE_VISIBILITY = 0u;
+const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
+const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
+
+// Weighted average visibility between boundary positions x0 < x1.
+uint average(vec4 located, float key, float x0, float x1, out float visibility) {
     visibility = 0.0;
     float log2_rate = log2(located.z);
     // Neighbouring slices and their shares.
@@ -224,7 +228,11 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
             }
             float dw = w_end - w_start;
             if (!(dw > 0.0)) {
-                return false;
+                return AVERAGE_OFF_THE_MAP;
+            }
+            // prefiltered.rs: Prefiltered::condition_limit.
+            if (w_start > (q.snorm != 0u ? 1e3 : 1e5) * dw) {
+                return AVERAGE_IMPRECISE;
             }
             float scale = share * band_share / dw;
             // Two ends × two boundaries, in fixed slots (factor 0 when unused) so that the
@@ -252,7 +260,7 @@ bool average(vec4 located, float key, float x0, float x1, out float visibility) 
         }
         visibility += clamp(0.5 * shares + dot_, 0.0, shares);
     }
-    return true;
+    return AVERAGE_VISIBILITY;
 }
 
 // ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (the sunward
@@ -343,7 +351,12 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     if (!inside) {
         float x0 = sample_coordinate(located.y + located.z * t_start);
         float x1 = sample_coordinate(located.y + located.z * t_end);
-        if (!average(located, key, x0, x1, visibility)) {
+        uint outcome = average(located, key, x0, x1, visibility);
+        if (outcome == AVERAGE_IMPRECISE) {
+            ok = false;
+            return vec3(0.0);
+        }
+        if (outcome == AVERAGE_OFF_THE_MAP) {
             visibility = 1.0;
         }
         return vec3(0.0, 0.0, visibility);
@@ -354,7 +367,12 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     if (p.box_medium == 0u) {
         float x0 = sample_coordinate(located.y + located.z * from);
         float x1 = sample_coordinate(located.y + located.z * b);
-        if (!average(located, key, x0, x1, visibility)) {
+        uint outcome = average(located, key, x0, x1, visibility);
+        if (outcome == AVERAGE_IMPRECISE) {
+            ok = false;
+            return vec3(0.0);
+        }
+        if (outcome == AVERAGE_OFF_THE_MAP) {
             visibility = 1.0;
         }
         float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
@@ -372,7 +390,12 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         float x0 = sample_coordinate(located.y + located.z * (k == 0u ? from : t0));
         float x1 = sample_coordinate(located.y + located.z * t1);
         float v;
-        if (!average(located, key, x0, x1, v)) {
+        uint outcome = average(located, key, x0, x1, v);
+        if (outcome == AVERAGE_IMPRECISE) {
+            ok = false;
+            return vec3(0.0);
+        }
+        if (outcome == AVERAGE_OFF_THE_MAP) {
             v = 1.0;
         }
         scattering += v * piece;

@@ -684,7 +684,7 @@ impl<'a> Prefiltered<'a> {
     /// bracket the ray's speed. Per slice, its bands' prefix rows are blended and dotted
     /// with the coefficients of the ray's key under each band's warp in one kernel call.
     #[inline]
-    fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Option<f64> {
+    fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Average {
         let log2_rate = located.s_per_t.log2();
         let mut visibility = 0.0;
         for (slice, share) in self.map.neighbours(located.slice) {
@@ -713,9 +713,13 @@ impl<'a> Prefiltered<'a> {
                 let end = band.boundary(x1);
                 // Boundary 0 is the empty prefix, of no weight.
                 let start = (x0 > 0.0).then(|| band.boundary(x0));
-                let dw = weight_at(end) - start.map_or(0.0, weight_at);
+                let before = start.map_or(0.0, weight_at);
+                let dw = weight_at(end) - before;
                 if dw <= 0.0 {
-                    return None;
+                    return Average::OffTheMap;
+                }
+                if before > self.condition_limit() * dw {
+                    return Average::Imprecise;
                 }
                 let read = &mut reads[read_count];
                 read_count += 1;
@@ -746,7 +750,19 @@ impl<'a> Prefiltered<'a> {
             } as f64;
             visibility += (0.5 * shares + dot).clamp(0.0, shares);
         }
-        Some(visibility)
+        Average::Visibility(visibility)
+    }
+
+    /// Largest ratio of the weight before a ray to the weight along it: past it, the
+    /// difference of the stored prefix sums loses more than about 1% of visibility to the
+    /// storage's rounding (snorm16: 1.5·10⁻⁵ per value; f32 keeps a hundred times more).
+    /// Rays that start far along a slice, which an orthographic camera's do, in a dense
+    /// medium, where the transmittance weights there are tiny, reach it.
+    fn condition_limit(&self) -> f64 {
+        match self.basis {
+            FilteredBasis::F32(_) => 1e5,
+            FilteredBasis::Snorm16(_) => 1e3,
+        }
     }
 
     /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
@@ -763,9 +779,7 @@ impl<'a> Prefiltered<'a> {
         let sigma = self.extinction;
         let Some((a, b)) = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end) else {
             // Off the map (shorter than a sample) counts as lit, like the other methods.
-            let visibility = self
-                .average(&located, key, x(t_start), x(t_end))
-                .unwrap_or(1.0);
+            let visibility = self.average(&located, key, x(t_start), x(t_end)).value()?;
             return Some(RaySample {
                 visibility,
                 ..RaySample::EMPTY
@@ -780,7 +794,7 @@ impl<'a> Prefiltered<'a> {
         };
         let alpha = -(-sigma * (b - a)).exp_m1();
         let Some(box_medium) = &self.box_medium else {
-            let visibility = self.average(&located, key, x(from), x(b)).unwrap_or(1.0);
+            let visibility = self.average(&located, key, x(from), x(b)).value()?;
             let unshadowed = if sigma * (b - a) >= 1e-8 {
                 alpha / sigma
             } else {
@@ -803,7 +817,7 @@ impl<'a> Prefiltered<'a> {
             let t1 = a + (b - a) * (k + 1) as f64 / pieces as f64;
             let piece = box_medium.integrate(ray, t0, t1, a, sigma);
             let start = if k == 0 { from } else { t0 };
-            let visibility = self.average(&located, key, x(start), x(t1)).unwrap_or(1.0);
+            let visibility = self.average(&located, key, x(start), x(t1)).value()?;
             scattering += visibility * piece;
             unshadowed += piece;
         }
@@ -812,6 +826,28 @@ impl<'a> Prefiltered<'a> {
             alpha,
             visibility: weighted_visibility(scattering, unshadowed).unwrap_or(1.0),
         })
+    }
+}
+
+/// What [`Prefiltered::average`] makes of a stretch of a ray.
+enum Average {
+    Visibility(f64),
+    /// A band holds no weight there: off the map, or shorter than a sample. Counted as
+    /// lit, like the other methods.
+    OffTheMap,
+    /// Too far along the slice for the stored prefix sums' precision
+    /// ([`Prefiltered::condition_limit`]): the ray is declined and marched.
+    Imprecise,
+}
+
+impl Average {
+    /// The visibility, or `None` where the ray must be marched instead.
+    fn value(self) -> Option<f64> {
+        match self {
+            Average::Visibility(visibility) => Some(visibility),
+            Average::OffTheMap => Some(1.0),
+            Average::Imprecise => None,
+        }
     }
 }
 
