@@ -204,13 +204,80 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
 const float FALLBACK_STEPS_PER_TEXEL = 64.0;
 const uint MIN_FALLBACK_STEPS = 64u;
 
-// A fast method's fallback (reference.rs, Marcher::march_fallback): the frame's steps, or
-// fewer where the ray crosses few shadow-map texels, at FALLBACK_STEPS_PER_TEXEL each.
+// Exact single scattering outside any box (reference.rs, Marcher::walk_texels): a 2D
+// walk through the shadow map's texels, each crossing's lit part found where the ray's
+// light depth meets the texel's occluder, integrated in closed form. Needs begin_ray.
+vec3 walk_texels(float t_start, float t_end) {
+    float sigma = p.extinction;
+    vec3 start = texel_origin + texel_step * t_start;
+    vec3 end = texel_origin + texel_step * t_end;
+    ivec2 cell = ivec2(floor(start.xy));
+    vec2 next = vec2(BIG);
+    vec2 delta = vec2(BIG);
+    ivec2 direction = ivec2(0);
+    for (int axis = 0; axis < 2; ++axis) {
+        float o = texel_origin[axis];
+        float d = texel_step[axis];
+        if (d != 0.0) {
+            next[axis] = (float(cell[axis] + (d > 0.0 ? 1 : 0)) - o) / d;
+            delta[axis] = 1.0 / abs(d);
+            direction[axis] = d > 0.0 ? 1 : -1;
+        }
+    }
+    float cells = min(ceil(abs(end.x - start.x)) + ceil(abs(end.y - start.y)) + 2.0, 1e7);
+    int size = int(p.map_size);
+    float scattering = 0.0;
+    float t = t_start;
+    for (uint i = 0u; i < uint(cells); ++i) {
+        float leave = max(min(min(next.x, next.y), t_end), t);
+        float lit_from = t;
+        float lit_to = leave;
+        if (cell.x >= 0 && cell.y >= 0 && cell.x < size && cell.y < size) {
+            float threshold = shadow_depth[uint(cell.y) * p.map_size + uint(cell.x)] + p.bias;
+            if (texel_step.z == 0.0) {
+                if (!(texel_origin.z <= threshold)) {
+                    lit_to = t;
+                }
+            } else {
+                float meet = (threshold - texel_origin.z) / texel_step.z;
+                if (texel_step.z > 0.0) {
+                    lit_to = min(meet, leave);
+                } else {
+                    lit_from = max(meet, t);
+                }
+            }
+        }
+        if (lit_to > lit_from) {
+            scattering += exp(-sigma * (lit_from - t_start)) * integral_exp(sigma, lit_to - lit_from);
+        }
+        if (leave >= t_end) {
+            break;
+        }
+        if (next.y < next.x) {
+            cell.y += direction.y;
+            next.y += delta.y;
+        } else {
+            cell.x += direction.x;
+            next.x += delta.x;
+        }
+        t = leave;
+    }
+    float unshadowed = integral_exp(sigma, t_end - t_start);
+    float alpha = -expm1_accurate(-sigma * (t_end - t_start));
+    return vec3(scattering, alpha, clamp(scattering / unshadowed, 0.0, 1.0));
+}
+
+// A fast method's fallback (reference.rs, Marcher::march_fallback): outside a box, the
+// exact texel walk; inside, the frame's steps, or fewer where the ray crosses few
+// shadow-map texels, at FALLBACK_STEPS_PER_TEXEL each.
 vec3 fallback_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
     if (!(t_end > t_start)) {
         return vec3(0.0, 0.0, 1.0);
     }
     begin_ray(origin, direction);
+    if (p.box_medium == 0u) {
+        return walk_texels(t_start, t_end);
+    }
     float texels = length(texel_step.xy) * (t_end - t_start);
     float steps = min(ceil(texels * FALLBACK_STEPS_PER_TEXEL), float(p.steps));
     march_steps = clamp(uint(steps), min(MIN_FALLBACK_STEPS, p.steps), p.steps);

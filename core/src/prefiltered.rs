@@ -67,8 +67,8 @@ const MAX_SPEED_RATIO: f64 = 4096.0;
 /// per-pixel cost of one row per texel.
 pub const SAMPLES_PER_ROW: usize = 2;
 
-/// Rays crossing fewer shadow-map texels than this are declined, and marched instead
-/// ([`crate::reference::Marcher::march_fallback`], a few hundred lookups at most). Rows
+/// Rays crossing fewer shadow-map texels than this are declined, and computed exactly
+/// instead ([`crate::reference::Marcher::march_fallback`], one lookup per texel). Rows
 /// of prefix sums resolve a ray's ends to a texel, and the smooth step in keys spreads
 /// over several: on a ray only a few texels long that is most of it. Rays hitting a
 /// surface close to the camera, or running nearly along the light, were off by 5–10% of
@@ -836,7 +836,7 @@ enum Average {
     /// lit, like the other methods.
     OffTheMap,
     /// Too far along the slice for the stored prefix sums' precision
-    /// ([`Prefiltered::condition_limit`]): the ray is declined and marched.
+    /// ([`Prefiltered::condition_limit`]): the ray is declined and integrated exactly.
     Imprecise,
 }
 

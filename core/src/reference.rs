@@ -204,10 +204,16 @@ impl<'a> Marcher<'a> {
         self.march_in_steps(ray, t_start, t_end, self.steps)
     }
 
-    /// A fast method's fallback march: the frame's steps, or fewer where the ray crosses
-    /// few shadow-map texels, as long as each gets [`FALLBACK_STEPS_PER_TEXEL`]. Rays near
-    /// an epipole and rays too short for a fast method cross only a few texels.
+    /// A fast method's fallback for rays near an epipole and rays it declines, which
+    /// cross few shadow-map texels. Outside a `box` medium the ray is walked texel by
+    /// texel and integrated exactly ([`Marcher::walk_texels`]): the limit the march tends
+    /// to as its steps grow, at a cost of one lookup per texel crossed. In a box it is
+    /// marched: the frame's steps, or fewer where each texel crossed still gets
+    /// [`FALLBACK_STEPS_PER_TEXEL`].
     pub fn march_fallback(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
+        if self.box_medium.is_none() {
+            return self.walk_texels(ray, t_start, t_end);
+        }
         let texels = self
             .shadow
             .texel_from_world
@@ -220,6 +226,86 @@ impl<'a> Marcher<'a> {
             .min(u32::MAX as f64) as u32;
         let steps = steps.clamp(MIN_FALLBACK_STEPS.min(self.steps), self.steps);
         self.march_in_steps(ray, t_start, t_end, steps)
+    }
+
+    /// Exact single scattering along a ray outside any box: a 2D walk through the shadow
+    /// map's texels, each crossing's lit part found where the ray's light depth meets the
+    /// texel's occluder (`ShadowMap::is_lit`), and its in-scattering integrated in closed
+    /// form.
+    pub fn walk_texels(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
+        if t_end <= t_start {
+            return RaySample::EMPTY;
+        }
+        let shadow = self.shadow;
+        let origin = shadow.texel_from_world.transform_point3(ray.origin);
+        let step = shadow.texel_from_world.transform_vector3(ray.direction);
+        let sigma = self.extinction;
+        // ∫ e^(−σ(t − t_start)) dt over [a, b].
+        let weight = |a: f64, b: f64| (-sigma * (a - t_start)).exp() * integral_exp(sigma, b - a);
+        let size = shadow.size as i64;
+        let at = |t: f64| origin + step * t;
+        let start = at(t_start);
+        let mut cell = [start.x.floor() as i64, start.y.floor() as i64];
+        // Per axis: the t of the next cell border, the t between borders, the cell step.
+        let axis = |o: f64, d: f64, c: i64| {
+            if d > 0.0 {
+                ((c + 1) as f64 - o) / d
+            } else if d < 0.0 {
+                (c as f64 - o) / d
+            } else {
+                f64::INFINITY
+            }
+        };
+        let mut next = [
+            axis(origin.x, step.x, cell[0]),
+            axis(origin.y, step.y, cell[1]),
+        ];
+        let delta = [1.0 / step.x.abs(), 1.0 / step.y.abs()];
+        let direction = [step.x.signum() as i64, step.y.signum() as i64];
+        let end = at(t_end);
+        let cells = (end.x - start.x).abs().ceil() + (end.y - start.y).abs().ceil() + 2.0;
+        let (mut scattering, mut t) = (0.0, t_start);
+        for _ in 0..cells.min(1e7) as usize {
+            let exit = next[0].min(next[1]).min(t_end).max(t);
+            let inside = (0..size).contains(&cell[0]) && (0..size).contains(&cell[1]);
+            let (lit_from, lit_to) = if !inside {
+                (t, exit)
+            } else {
+                let threshold =
+                    shadow.depth[(cell[1] * size + cell[0]) as usize] as f64 + shadow.bias;
+                // Lit while origin.z + step.z·t ≤ threshold.
+                if step.z == 0.0 {
+                    if origin.z <= threshold {
+                        (t, exit)
+                    } else {
+                        (t, t)
+                    }
+                } else {
+                    let meet = (threshold - origin.z) / step.z;
+                    if step.z > 0.0 {
+                        (t, meet.min(exit))
+                    } else {
+                        (meet.max(t), exit)
+                    }
+                }
+            };
+            if lit_to > lit_from {
+                scattering += weight(lit_from, lit_to);
+            }
+            if exit >= t_end {
+                break;
+            }
+            let k = usize::from(next[1] < next[0]);
+            cell[k] += direction[k];
+            next[k] += delta[k];
+            t = exit;
+        }
+        let unshadowed = integral_exp(sigma, t_end - t_start);
+        RaySample {
+            scattering,
+            alpha: -(-sigma * (t_end - t_start)).exp_m1(),
+            visibility: (scattering / unshadowed).clamp(0.0, 1.0),
+        }
     }
 
     fn march_in_steps(&self, ray: &Ray, t_start: f64, t_end: f64, steps: u32) -> RaySample {

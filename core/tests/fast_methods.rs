@@ -198,10 +198,11 @@ fn fast_methods_match_the_reference_in_a_box_medium() {
 
 /// Looking up at `plane`'s slotted roof from a metre below it, under a high sun: every ray
 /// crosses only a few shadow-map texels, which prefix rows resolve to a texel and the smooth
-/// step in keys spreads over several. Such rays are marched (`SHORT_RAY_TEXELS`); before,
-/// prefiltering was off by 10% here, on the light coming through the slits.
+/// step in keys spreads over several. Such rays are walked texel by texel and integrated
+/// exactly (`SHORT_RAY_TEXELS`); before, prefiltering was off by 10% here, on the light
+/// coming through the slits.
 #[test]
-fn rays_too_short_for_prefiltering_are_marched() {
+fn rays_too_short_for_prefiltering_are_integrated_exactly() {
     let mut scene = builtin_scene("plane").expect("built-in scene");
     let eye = Vec3::new(-5.7, -7.5, 4.0);
     scene.camera = Camera::pinhole_looking_at(
@@ -226,12 +227,12 @@ fn rays_too_short_for_prefiltering_are_marched() {
 
 /// An orthographic camera's rays start all along their slices, and in a dense medium the
 /// transmittance weights far along a slice are tiny: the difference of two stored prefix
-/// sums there is mostly rounding. Such rays are marched (`Prefiltered::condition_limit`):
+/// sums there is mostly rounding. Such rays are walked exactly (`Prefiltered::condition_limit`):
 /// on `tree` the error was 4.3% without. Other views stay off (colonnade 13%): past the
 /// weights' depth cap, rays starting far along a slice are weighted evenly, not by their
 /// own transmittance.
 #[test]
-fn rays_too_far_along_a_slice_for_its_precision_are_marched() {
+fn rays_too_far_along_a_slice_for_its_precision_are_integrated_exactly() {
     for name in ["torus", "tree"] {
         let (_, mut scene) = views(name)
             .into_iter()
