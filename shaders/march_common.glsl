@@ -250,7 +250,8 @@ vec3 walk_texels(float t_start, float t_end) {
         if (lit_to > lit_from) {
             scattering += exp(-sigma * (lit_from - t_start)) * integral_exp(sigma, lit_to - lit_from);
         }
-        if (leave >= t_end) {
+        // reference.rs: WALK_DEPTH.
+        if (leave >= t_end || sigma * (leave - t_start) > 20.0) {
             break;
         }
         if (next.y < next.x) {

@@ -230,8 +230,8 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
             if (!(dw > 0.0)) {
                 return AVERAGE_OFF_THE_MAP;
             }
-            // prefiltered.rs: Prefiltered::condition_limit.
-            if (w_start > (q.snorm != 0u ? 1e3 : 1e5) * dw) {
+            // prefiltered.rs: CONDITION_LIMIT.
+            if (w_start > 100.0 * dw) {
                 return AVERAGE_IMPRECISE;
             }
             float scale = share * band_share / dw;

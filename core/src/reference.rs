@@ -172,6 +172,10 @@ pub(crate) fn weighted_visibility(scattering: f64, unshadowed: f64) -> Option<f6
     (unshadowed > 1e-300).then(|| (scattering / unshadowed).clamp(0.0, 1.0))
 }
 
+/// Optical depth along a ray after which [`Marcher::walk_texels`] stops: the rest adds
+/// less than e^−20 of its light.
+pub const WALK_DEPTH: f64 = 20.0;
+
 /// Steps per shadow-map texel crossed of [`Marcher::march_fallback`]. Light through
 /// slits a few texels wide, seen by rays a dozen texels long, was 2.2% off the 4096-step
 /// reference at 16 steps per texel, 0.8% at 64 and 0.2% at 256.
@@ -292,7 +296,8 @@ impl<'a> Marcher<'a> {
             if lit_to > lit_from {
                 scattering += weight(lit_from, lit_to);
             }
-            if exit >= t_end {
+            // Past this optical depth the rest adds less than e^−20 of what came before.
+            if exit >= t_end || sigma * (exit - t_start) > WALK_DEPTH {
                 break;
             }
             let k = usize::from(next[1] < next[0]);
