@@ -1,0 +1,187 @@
+"""Fast methods against the reference on random views: a search for failure cases.
+
+Each case draws a built-in scene, a sun, a camera (perspective or orthographic, aimed at
+the subject, into the sun or away from it), a medium (thin to dense, sometimes a box),
+render settings (reach, near-plane correction, downsampling, supersampling) and a style,
+renders it with `reference`, `minmax` and `prefiltered` through the public API, and prints
+each fast method's mean absolute error over the mean reference radiance. Cases above
+`--flag` percent are written out as scene JSON for `crepuscular render --scene`.
+
+Nearly black images inflate the relative error: look at the mean radiance printed beside
+it before chasing one.
+
+    .venv/bin/python examples/differential_views.py --seed 2 --cases 60 --out /tmp/cases
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import random
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import crepuscular
+
+STYLES: list[dict | None] = [
+    None,
+    {"version": 1, "closing": {"operation": "close", "kernel": "disk", "radius": 0.6}},
+    {"version": 1, "silhouette": {"operation": "close", "length": 0.4}},
+    {"version": 1, "silhouette": {"operation": "dilate", "length": 0.3}},
+    {
+        "version": 1,
+        "holes": {
+            "frequency": 0.03,
+            "persistence": 0.5,
+            "octaves": 3,
+            "threshold": 0.5,
+            "grid_size": 64,
+            "seed": 3,
+            "speed": 0.0,
+            "warp": 0.3,
+            "objects": [2, 3],
+        },
+    },
+]
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> list[float]:
+    """A column-major world-from-camera matrix looking from `eye` at `target`."""
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    up = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    matrix = np.eye(4)
+    matrix[:3, 0] = right
+    matrix[:3, 1] = np.cross(right, forward)
+    matrix[:3, 2] = -forward
+    matrix[:3, 3] = eye
+    return matrix.T.ravel().tolist()
+
+
+def random_case(rng: random.Random, width: int, height: int) -> tuple[str, dict]:
+    name = rng.choice(list(crepuscular.builtin_scene_names()))
+    scene = crepuscular.builtin_scene(name)
+    elevation = math.radians(rng.uniform(8, 89))
+    azimuth = rng.uniform(0, 2 * math.pi)
+    scene["sun"]["direction"] = [
+        -math.cos(elevation) * math.cos(azimuth),
+        -math.cos(elevation) * math.sin(azimuth),
+        -math.sin(elevation),
+    ]
+    towards_sun = -np.array(scene["sun"]["direction"])
+    eye = np.array([rng.uniform(-14, 14), rng.uniform(-14, 14), rng.uniform(0.3, 8)])
+    jitter = np.array([rng.gauss(0, 1.5) for _ in range(3)])
+    aim = rng.random()
+    if aim < 0.3:
+        target = eye + 5 * towards_sun + jitter
+    elif aim < 0.45:
+        target = eye - 5 * towards_sun + jitter
+    else:
+        target = np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(0, 3)])
+    camera = scene["camera"]
+    camera["world_from_camera"] = look_at(eye, target)
+    camera["width"], camera["height"] = width, height
+    if rng.random() < 0.2:
+        camera["projection"] = {
+            "kind": "orthographic",
+            "ortho_scale": rng.uniform(5, 25),
+            "sensor_fit": "auto",
+            "shift_x": 0.0,
+            "shift_y": 0.0,
+        }
+    else:
+        camera["projection"]["focal_length"] = rng.choice([18.0, 35.0, 50.0, 85.0])
+    medium = scene["medium"]
+    medium["extinction"] = rng.choice([0.01, 0.05, 0.2, 0.6])
+    medium["anisotropy"] = rng.uniform(-0.5, 0.8)
+    if rng.random() < 0.25:
+        cx, cy, cz = rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(1, 4)
+        sx, sy, sz = rng.uniform(3, 12), rng.uniform(3, 12), rng.uniform(2, 6)
+        medium["extent"] = {
+            "kind": "box",
+            "world_from_cube": [sx, 0, 0, 0, 0, sy, 0, 0, 0, 0, sz, 0, cx, cy, cz, 1],
+        }
+    settings = scene["render"]
+    settings["max_distance"] = rng.choice([70.0, 30.0, 12.0])
+    settings["near_plane_correction"] = rng.random() < 0.7
+    settings["steps"] = 4096
+    resolution = rng.random()
+    if resolution < 0.2:
+        settings["downsample"] = 2
+    elif resolution < 0.4:
+        settings["supersampling"] = 2
+    style = rng.choice(STYLES)
+    if style is not None:
+        scene["style"] = copy.deepcopy(style)
+    return name, scene
+
+
+def describe(name: str, scene: dict) -> str:
+    style = scene.get("style")
+    operators = [key for key in ("closing", "silhouette", "holes") if style and key in style]
+    settings, medium = scene["render"], scene["medium"]
+    elevation = math.degrees(math.asin(-scene["sun"]["direction"][2]))
+    return (
+        f"{name:<9} sun {elevation:2.0f}° {scene['camera']['projection']['kind']:<12} "
+        f"extinction {medium['extinction']:<4} {medium['extent']['kind']:<9} "
+        f"reach {settings['max_distance']:<4} 1/{settings.get('downsample', 1)} "
+        f"ss {settings.get('supersampling', 1)} style {'+'.join(operators) or '-'}"
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--cases", type=int, default=30)
+    parser.add_argument("--width", type=int, default=192)
+    parser.add_argument("--height", type=int, default=108)
+    parser.add_argument("--flag", type=float, default=3.0, help="percent error to flag")
+    parser.add_argument("--out", type=Path, help="folder for the flagged cases' scene JSON")
+    args = parser.parse_args()
+    rng = random.Random(args.seed)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+    flagged = 0
+    for case in range(args.cases):
+        name, scene = random_case(rng, args.width, args.height)
+        volumes = {}
+        try:
+            for method in ("reference", "minmax", "prefiltered"):
+                variant = copy.deepcopy(scene)
+                variant["render"]["method"] = method
+                volume = np.asarray(crepuscular.render(variant).volume)
+                if not np.isfinite(volume).all():
+                    print(f"{case:3} {describe(name, scene)} | {method}: non-finite values")
+                volumes[method] = volume[..., :3].astype(np.float64)
+        except crepuscular.CrepuscularError as error:
+            print(f"{case:3} {describe(name, scene)} | error: {error}")
+            continue
+        reference = volumes["reference"]
+        total = max(reference.sum(), 1e-12)
+        errors = {
+            method: 100 * np.abs(volumes[method] - reference).sum() / total
+            for method in ("minmax", "prefiltered")
+        }
+        flag = max(errors.values()) > args.flag
+        flagged += flag
+        print(
+            f"{case:3} {describe(name, scene)} | minmax {errors['minmax']:6.2f}% "
+            f"prefiltered {errors['prefiltered']:6.2f}% mean {reference.mean():.3g}"
+            + ("  <<<" if flag else ""),
+            flush=True,
+        )
+        if flag and args.out is not None:
+            path = args.out / f"case_{args.seed}_{case}.json"
+            path.write_text(json.dumps(scene))
+    print(f"{flagged} of {args.cases} cases above {args.flag}%")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
