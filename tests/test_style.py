@@ -91,3 +91,54 @@ def test_a_missing_preset_file_is_named(tmp_path: Path) -> None:
     missing = tmp_path / "nowhere.json"
     with pytest.raises(FileNotFoundError, match=r"nowhere\.json"):
         crepuscular.load_style(missing)
+
+
+def _preset_beside_an_image(folder: Path) -> tuple[Path, Path]:
+    """A preset whose TF layer names a two-pixel EXR beside it by a relative path."""
+    folder.mkdir()
+    image = folder / "ramp.exr"
+    crepuscular.write_exr_channels(
+        image,
+        {
+            "R": np.array([[0.0, 1.0]], dtype=np.float32),
+            "G": np.array([[0.2, 0.2]], dtype=np.float32),
+            "B": np.array([[1.0, 0.0]], dtype=np.float32),
+        },
+    )
+    preset = folder / "ramp-look.json"
+    preset.write_text(
+        json.dumps(
+            {
+                "version": crepuscular.STYLE_VERSION,
+                "tf": {
+                    "mode": "color",
+                    "depth_range": {"near": 0.0, "far": 50.0},
+                    "layers": [{"kind": "image", "image": {"kind": "file", "path": "ramp.exr"}}],
+                },
+            }
+        ),
+        encoding="utf-8",
+    )
+    return preset, image
+
+
+def test_a_presets_images_are_found_beside_it_from_any_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, scene: dict[str, Any]
+) -> None:
+    preset, image = _preset_beside_an_image(tmp_path / "looks")
+    elsewhere = tmp_path / "farm-job"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+
+    loaded = crepuscular.load_style(preset)
+    assert Path(loaded["tf"]["layers"][0]["image"]["path"]) == image
+    baked = crepuscular.bake_tf(str(preset))
+    assert baked[0, 0, 2] > 0.9, "the ramp's blue end"
+    assert baked[0, -1, 0] > 0.9, "the ramp's red end"
+    np.testing.assert_array_equal(baked, crepuscular.bake_tf(loaded))
+    styled = crepuscular.render(scene, style=preset)
+    assert np.isfinite(styled.volume).all()
+
+    # As text, a relative path is the working directory's, and a miss names the file.
+    with pytest.raises(crepuscular.CrepuscularError, match=r"ramp\.exr"):
+        crepuscular.bake_tf(preset.read_text(encoding="utf-8"))

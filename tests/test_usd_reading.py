@@ -383,7 +383,7 @@ def test_transfer_function_inline_and_as_asset_and_holes_objects(tmp_path: Path)
     light.GetAttribute("crepuscular:holes:enable").Set(True)
     light.GetRelationship("crepuscular:holes:objects").SetTargets(["/World/occluder"])
     asset = reader.read(Usd.TimeCode.Default())
-    assert asset.style["tf"] == tf
+    assert asset.style["tf"] == crepuscular.load_style({"version": 1, "tf": tf})["tf"]
     occluder_id = asset.geometry.ids_by_path[Sdf.Path("/World/occluder")]
     assert asset.style["holes"]["objects"] == [occluder_id]
     expected = flatten(scene)
@@ -396,6 +396,29 @@ def test_transfer_function_inline_and_as_asset_and_holes_objects(tmp_path: Path)
     assert float(crepuscular.render_arrays(**asset.render_kwargs()).volume[..., :3].sum()) < float(
         plain.volume[..., :3].sum()
     )
+
+
+def test_a_tf_assets_images_are_found_beside_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "shot").mkdir()
+    stage = author_stage(str(tmp_path / "shot" / "tf.usda"), build_scene(**SMALL))
+    looks = tmp_path / "looks"
+    looks.mkdir()
+    ramp = np.array([[0.0, 1.0]], dtype=np.float32)
+    crepuscular.write_exr_channels(looks / "ramp.exr", {"R": ramp, "G": ramp, "B": 1.0 - ramp})
+    image_layer = {"kind": "image", "image": {"kind": "file", "path": "ramp.exr"}}
+    tf = {"mode": "color", "depth_range": {"near": 0, "far": 30}, "layers": [image_layer]}
+    (looks / "ramp-look.json").write_text(json.dumps({"version": 1, "tf": tf}))
+    light = stage.GetPrimAtPath("/World/Sun")
+    light.GetAttribute("crepuscular:tf:asset").Set(Sdf.AssetPath("../looks/ramp-look.json"))
+    farm_job = tmp_path / "farm-job"
+    farm_job.mkdir()
+    monkeypatch.chdir(farm_job)
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=64).read(Usd.TimeCode.Default())
+    assert Path(frame.style["tf"]["layers"][0]["image"]["path"]) == looks / "ramp.exr"
+    styled = crepuscular.render_arrays(**frame.render_kwargs())
+    assert np.isfinite(styled.volume).all()
 
 
 def test_stage_without_the_api_gets_physical_defaults(tmp_path: Path) -> None:

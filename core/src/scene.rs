@@ -382,6 +382,16 @@ impl Scene {
         serde_json::to_string_pretty(self).expect("a scene always serializes to JSON")
     }
 
+    /// Reads a scene file; relative file paths in its style are taken relative to the file.
+    pub fn load(path: &std::path::Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|err| Error::io(path, err))?;
+        let mut scene = Self::from_json(&text)?;
+        scene
+            .style
+            .rebase_paths(path.parent().unwrap_or(std::path::Path::new("")));
+        Ok(scene)
+    }
+
     pub fn triangle_count(&self) -> usize {
         self.meshes.iter().map(|mesh| mesh.triangles.len()).sum()
     }

@@ -166,15 +166,25 @@ impl Style {
         serde_json::to_string_pretty(self).unwrap_or_else(|err| format!("{{\"error\": \"{err}\"}}"))
     }
 
-    /// Reads a preset file.
+    /// Reads a preset file; its relative image paths are taken relative to the file.
     pub fn load(path: &std::path::Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|err| Error::io(path, err))?;
-        Self::from_json(&text).map_err(|err| match err {
+        let mut style = Self::from_json(&text).map_err(|err| match err {
             Error::SceneFormat(reason) => {
                 Error::SceneFormat(format!("style preset {}: {reason}", path.display()))
             }
             other => other,
-        })
+        })?;
+        style.rebase_paths(path.parent().unwrap_or(std::path::Path::new("")));
+        Ok(style)
+    }
+
+    /// Makes the relative file paths in this style relative to `base`, the directory of
+    /// the file it was read from.
+    pub fn rebase_paths(&mut self, base: &std::path::Path) {
+        if let Some(tf) = &mut self.tf {
+            tf.rebase_image_paths(base);
+        }
     }
 
     /// Whether this is the physically based look: no operator and no TF.

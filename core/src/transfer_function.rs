@@ -176,7 +176,8 @@ pub enum ImageSource {
     /// A PNG (8 or 16 bit, read as sRGB-encoded, straight alpha) or an OpenEXR file (linear,
     /// premultiplied as EXR specifies; `R`, `G`, `B` and optional `A` channels, negative
     /// values and alpha above 1 clamped). Chosen by the extension. Relative paths are
-    /// relative to the working directory.
+    /// relative to the preset or scene file that holds them, and to the working directory
+    /// for JSON given as text.
     File { path: PathBuf },
     /// Straight linear RGBA, rows top to bottom.
     Pixels {
@@ -883,6 +884,27 @@ impl TransferFunction {
 
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("a transfer function always serializes to JSON")
+    }
+
+    /// Makes relative image paths relative to `base` (the directory of the file that named
+    /// them) rather than to whatever the working directory is when the TF is baked: a
+    /// preset must find its images from a farm job or a Blender session alike.
+    pub fn rebase_image_paths(&mut self, base: &std::path::Path) {
+        let keyframed = self
+            .keyframes
+            .iter_mut()
+            .flat_map(|key| key.layers.iter_mut());
+        for layer in self.layers.iter_mut().chain(keyframed) {
+            if let TfLayer::Image {
+                image: ImageSource::File { path },
+                ..
+            } = layer
+            {
+                if path.is_relative() {
+                    *path = base.join(&*path);
+                }
+            }
+        }
     }
 
     /// [`Self::validate_at`] under `style.tf`.
@@ -2197,6 +2219,71 @@ mod tests {
             }
             other => panic!("expected Exr, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn preset_and_scene_files_find_their_images_beside_them() {
+        let folder = temp_path("looks");
+        std::fs::create_dir_all(&folder).unwrap();
+        let tf = TransferFunction {
+            keyframes: vec![TfKeyframe {
+                time: 0.0,
+                layers: vec![TfLayer::Image {
+                    opacity: 1.0,
+                    blend: BlendMode::Alpha,
+                    image: ImageSource::File {
+                        path: PathBuf::from("ramp.png"),
+                    },
+                }],
+            }],
+            ..TransferFunction::new(
+                TfMode::Color,
+                DepthRange {
+                    near: 0.0,
+                    far: 50.0,
+                },
+                Vec::new(),
+            )
+        };
+        let style = crate::Style {
+            tf: Some(tf),
+            ..crate::Style::default()
+        };
+        let mut scene = crate::builtin_scene("torus").unwrap();
+        scene.style = style.clone();
+        let (style_file, scene_file) = (folder.join("look.json"), folder.join("shot.json"));
+        std::fs::write(&style_file, style.to_json()).unwrap();
+        std::fs::write(&scene_file, scene.to_json()).unwrap();
+        let loaded_style = crate::Style::load(&style_file);
+        let loaded_scene = crate::Scene::load(&scene_file);
+        std::fs::remove_dir_all(&folder).ok();
+        let image_path =
+            |style: &crate::Style| match &style.tf.as_ref().unwrap().keyframes[0].layers[0] {
+                TfLayer::Image {
+                    image: ImageSource::File { path },
+                    ..
+                } => path.clone(),
+                other => panic!("expected an image layer, got {other:?}"),
+            };
+        assert_eq!(image_path(&loaded_style.unwrap()), folder.join("ramp.png"));
+        assert_eq!(
+            image_path(&loaded_scene.unwrap().style),
+            folder.join("ramp.png")
+        );
+        // Absolute paths stay as they are.
+        let mut absolute = style.clone();
+        let root = PathBuf::from("/srv/looks/ramp.png");
+        if let Some(TfLayer::Image {
+            image: ImageSource::File { path },
+            ..
+        }) = absolute.tf.as_mut().unwrap().keyframes[0]
+            .layers
+            .first_mut()
+        {
+            path.clone_from(&root);
+        }
+        absolute.rebase_paths(&folder);
+        assert_eq!(image_path(&absolute), root);
     }
 
     #[test]

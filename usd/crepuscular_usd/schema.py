@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from pxr import Plug, Sdf, Usd, UsdGeom, UsdLux, UsdVol
 
+import crepuscular
 from crepuscular_usd.attributes import (
     API_NAME,
     ATTRIBUTES,
@@ -230,7 +231,8 @@ def _read_tf(prim: Usd.Prim, time: Usd.TimeCode, has_api: bool) -> dict[str, Any
             raise SchemaError(
                 f"{prim.GetPath()}.{TF_ASSET}: cannot read {resolved}: {error}"
             ) from error
-        return _parse_tf(text, f"{prim.GetPath()}.{TF_ASSET} ({resolved})")
+        where = f"{prim.GetPath()}.{TF_ASSET} ({resolved})"
+        return _beside(_parse_tf(text, where), Path(resolved).parent, where)
     if inline.strip():
         return _parse_tf(inline, f"{prim.GetPath()}.{TF_JSON}")
     return None
@@ -253,6 +255,17 @@ def _parse_tf(text: str, where: str) -> dict[str, Any]:
     if not isinstance(tf, dict):
         raise SchemaError(f"{where}: its tf is not a JSON object")
     return tf
+
+
+def _beside(tf: dict[str, Any], folder: Path, where: str) -> dict[str, Any]:
+    """The TF with its relative image paths joined to `folder`, the preset asset's own, as
+    USD resolves asset paths relative to the layer that authors them."""
+    style = {"version": crepuscular.STYLE_VERSION, "tf": tf}
+    try:
+        rebased: dict[str, Any] = crepuscular.load_style(style, base_dir=folder)["tf"]
+    except crepuscular.InvalidInputError as error:
+        raise SchemaError(f"{where}: {error}") from error
+    return rebased
 
 
 def box_from_extent_prim(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:

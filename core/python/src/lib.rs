@@ -17,6 +17,8 @@ use crepuscular::style::STYLE_VERSION;
 use crepuscular::{
     CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene, Style,
 };
+use std::path::PathBuf;
+
 use numpy::{PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
@@ -118,21 +120,42 @@ fn render_arrays<'py>(
 }
 
 /// Parses and validates a JSON scene description and returns it re-serialized with every
-/// default filled in.
+/// default filled in; relative file paths in its style are made relative to `base_dir`
+/// (the directory of the file the text came from) when given.
 #[pyfunction]
-#[pyo3(signature = (scene_json, /))]
-fn normalize_scene_json(py: Python<'_>, scene_json: &str) -> PyResult<String> {
-    py.detach(|| Scene::from_json(scene_json).map(|scene| scene.to_json()))
-        .map_err(to_py_err)
+#[pyo3(signature = (scene_json, /, *, base_dir=None))]
+fn normalize_scene_json(
+    py: Python<'_>,
+    scene_json: &str,
+    base_dir: Option<PathBuf>,
+) -> PyResult<String> {
+    py.detach(|| {
+        let mut scene = Scene::from_json(scene_json)?;
+        if let Some(base) = &base_dir {
+            scene.style.rebase_paths(base);
+        }
+        Ok::<_, crepuscular::Error>(scene.to_json())
+    })
+    .map_err(to_py_err)
 }
 
 /// Parses and validates a JSON style preset and returns it re-serialized with every
-/// default filled in.
+/// default filled in; relative file paths are made relative to `base_dir` when given.
 #[pyfunction]
-#[pyo3(signature = (style_json, /))]
-fn normalize_style_json(py: Python<'_>, style_json: &str) -> PyResult<String> {
-    py.detach(|| Style::from_json(style_json).map(|style| style.to_json()))
-        .map_err(to_py_err)
+#[pyo3(signature = (style_json, /, *, base_dir=None))]
+fn normalize_style_json(
+    py: Python<'_>,
+    style_json: &str,
+    base_dir: Option<PathBuf>,
+) -> PyResult<String> {
+    py.detach(|| {
+        let mut style = Style::from_json(style_json)?;
+        if let Some(base) = &base_dir {
+            style.rebase_paths(base);
+        }
+        Ok::<_, crepuscular::Error>(style.to_json())
+    })
+    .map_err(to_py_err)
 }
 
 /// Bakes a style preset's transfer function at `time` into its texture.

@@ -156,13 +156,18 @@ def render_arrays(
     return Layers(*raw)
 
 
-def load_style(style: StyleLike) -> dict[str, Any]:
+def load_style(
+    style: StyleLike, *, base_dir: str | os.PathLike[str] | None = None
+) -> dict[str, Any]:
     """Reads and validates a style preset; returns it with every default filled in.
 
-    Unknown keys and out-of-range values raise errors that name the field, e.g.
-    "style.closing.radius".
+    Relative image paths in its transfer function are joined to `base_dir` when given, else
+    to the preset file's directory; in text and mappings without `base_dir` they stay as
+    they are (the working directory's when baked). Unknown keys and out-of-range values
+    raise errors that name the field, e.g. "style.closing.radius".
     """
-    result: dict[str, Any] = json.loads(_core.normalize_style_json(_convert.scene_json(style)))
+    text = _convert.scene_json(style, "style")
+    result: dict[str, Any] = json.loads(_core.normalize_style_json(text, base_dir=base_dir))
     return result
 
 
@@ -184,7 +189,7 @@ def _style_json(style: StyleLike | None) -> str | None:
         return None
     if isinstance(style, Mapping):
         return _convert.to_json(style, "style")
-    return _convert.scene_json(style)
+    return _convert.scene_json(style, "style")
 
 
 def scene_from_json(text: str) -> dict[str, Any]:

@@ -12,11 +12,12 @@ import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
+from crepuscular import _core
 from crepuscular._core import InvalidInputError
 
 _U32_MAX = int(np.iinfo(np.uint32).max)
@@ -33,21 +34,28 @@ def invalid(field: str, reason: str) -> InvalidInputError:
 # --- JSON ---------------------------------------------------------------------------------
 
 
-def scene_json(scene: Mapping[str, Any] | str | os.PathLike[str]) -> str:
-    """JSON text for a scene given as a mapping, JSON text or a path to a .json file.
+def scene_json(
+    scene: Mapping[str, Any] | str | os.PathLike[str], kind: Literal["scene", "style"] = "scene"
+) -> str:
+    """JSON text for a scene (or a style preset, by `kind`) given as a mapping, JSON text or
+    a path to a .json file.
 
     A string whose first non-blank character is "{" is JSON text; any other string is a path.
+    A file's relative image paths are made relative to the file, so that a preset finds its
+    images whatever the working directory; in text and mappings they stay relative to it.
     """
-    if isinstance(scene, os.PathLike):
-        return Path(scene).read_text(encoding="utf-8")
-    if isinstance(scene, str):
-        if scene.lstrip().startswith("{"):
-            return scene
-        return Path(scene).read_text(encoding="utf-8")
+    if isinstance(scene, str) and scene.lstrip().startswith("{"):
+        return scene
+    if isinstance(scene, (str, os.PathLike)):
+        path = Path(scene)
+        text = path.read_text(encoding="utf-8")
+        if kind == "style":
+            return _core.normalize_style_json(text, base_dir=path.parent)
+        return _core.normalize_scene_json(text, base_dir=path.parent)
     if isinstance(scene, Mapping):
         return to_json(scene, "")
     raise TypeError(
-        f"scene must be a mapping, JSON text or a path to a .json file, got {type(scene).__name__}"
+        f"{kind} must be a mapping, JSON text or a path to a .json file, got {type(scene).__name__}"
     )
 
 

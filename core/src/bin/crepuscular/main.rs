@@ -185,8 +185,7 @@ fn main() -> ExitCode {
 pub fn load_scene(source: &str) -> Result<Scene> {
     let path = Path::new(source);
     if source.ends_with(".json") || path.exists() {
-        let text = std::fs::read_to_string(path).map_err(|err| Error::io(path, err))?;
-        Scene::from_json(&text)
+        Scene::load(path)
     } else {
         builtin_scene(source)
     }
