@@ -48,6 +48,7 @@ usd-package: $(VENV)/.test-deps
 lint: $(VENV)/.test-deps
 	$(CARGO) fmt --all --check
 	$(CARGO) clippy --workspace --all-targets --release -- -D warnings
+	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps
 	ruff check core/python tests examples usd blender_addon
 	ruff format --check core/python tests examples usd blender_addon
 

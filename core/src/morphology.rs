@@ -12,7 +12,7 @@
 //! - box of radius r: the offsets with |dx|, |dy| ≤ ⌊r⌋, a (2⌊r⌋+1)² square.
 //!
 //! Cost does not grow with the kernel's area. The box is separable: a running extremum
-//! along rows, then along columns, O(1) per texel ([`crate::running`]). The disk is the
+//! along rows, then along columns, O(1) per texel (`running`). The disk is the
 //! union of one horizontal chord per row offset dy, of half-width w(dy); every chord is
 //! read in O(1) from a sparse table of power-of-two extrema along its row, so a texel
 //! costs O(r), in loops over contiguous x that compile to vector min/max.

@@ -6,7 +6,7 @@
 //!
 //! - Keys (rectified values, oriented so that larger means more shadowed) are warped per
 //!   slice by quantiles of the slice's ray keys and of the texel keys among them into
-//!   [[`RAY_MARGIN`], 1 − [`RAY_MARGIN`]], which spends the basis' resolution where rays
+//!   [`RAY_MARGIN`, 1 − `RAY_MARGIN`], which spends the basis' resolution where rays
 //!   and nearby occluders are and keeps differences clear of the series' periodic jump.
 //! - Each row of prefix sums adds [`SAMPLES_PER_ROW`] rectified samples, so that the map
 //!   follows the shadow map twice per texel while the tables keep one row per texel.
@@ -609,7 +609,7 @@ pub struct PrefilteredTables<'b> {
     pub band_knots: Vec<[f64; KNOTS]>,
     /// Cumulative weight per row.
     pub weight: &'b [f32],
-    /// Row e: the coefficients at warped key e / [`TABLE_STEPS`].
+    /// Row e: the coefficients at warped key e / `TABLE_STEPS`.
     pub coefficients: &'static [f32],
     pub near_plane_correction: bool,
     /// Rectified samples per row: a row boundary's coordinate is the map's sample
@@ -820,7 +820,7 @@ impl<'a> Prefiltered<'a> {
 /// Largest ratio of the weight before a ray to the weight along it. Past it the ray
 /// starts where its bands' transmittance weights have decayed: differences of stored
 /// prefix sums there are mostly snorm16 rounding, and past the weights' depth cap
-/// ([`MAX_REFERENCE_DEPTH`]) the ray would be weighted evenly rather than by its own
+/// (`MAX_REFERENCE_DEPTH`) the ray would be weighted evenly rather than by its own
 /// transmittance. An orthographic camera's rays start all along their slices, and in
 /// a dense medium (σ = 0.6 /m) a limit of 10³ left colonnade 17% off, 10² took it to
 /// 0.3%, and 10 walked so many rays that the frame took 5× as long.

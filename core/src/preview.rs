@@ -97,7 +97,7 @@ fn sanitize(c: f32) -> f32 {
     }
 }
 
-/// Highlight shoulder: identity up to [`KNEE`], then `k + (1 − k)·t/(1 + t)` with
+/// Highlight shoulder: identity up to `KNEE`, then `k + (1 − k)·t/(1 + t)` with
 /// `t = (x − k)/(1 − k)`, which meets the identity with matching slope and approaches 1.
 /// It is applied to the largest channel and the others scaled alike, so hue is kept and
 /// no channel clips.

@@ -2,7 +2,7 @@
 //!
 //! Every function here parses its arguments into core types, runs the core with the GIL
 //! released where the work can be long, and converts the core's errors once, through
-//! [`errors::to_py_err`]. The friendly Python API (dicts, paths, dtype conversion, the
+//! `errors::to_py_err`. The friendly Python API (dicts, paths, dtype conversion, the
 //! `Layers` dataclass) lives in `python/crepuscular/__init__.py`; keep this layer one
 //! function per core entry point.
 
