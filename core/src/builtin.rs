@@ -52,13 +52,19 @@ pub fn builtin_scene(name: &str) -> Result<Scene> {
 /// A ring above the ground facing halfway between the sun and the camera, so that both
 /// look through its hole: the shaft through the hole shows inside the ring's shadow.
 fn torus() -> Scene {
+    torus_tessellated(96, 32)
+}
+
+/// The `torus` scene with its ring cut into `segments_u` × `segments_v` quads (2·u·v
+/// triangles): the same look at any geometric density, for rasterization benchmarks.
+pub fn torus_tessellated(segments_u: u32, segments_v: u32) -> Scene {
     let centre = Vec3::new(0.0, 0.0, 5.0);
     let eye = Vec3::new(9.0, -8.0, 9.0);
     let sun = sun_at(90.0, 70.0, Vec3::ONE, SUN_STRENGTH);
     let towards_sun = -sun.direction.normalize();
     let axis = (towards_sun + (eye - centre).normalize()).normalize();
     let mut ring = MeshBuilder::new();
-    ring.torus(frame(centre, axis), 2.0, 0.6, 96, 32);
+    ring.torus(frame(centre, axis), 2.0, 0.6, segments_u, segments_v);
     Scene {
         version: SCENE_VERSION,
         camera: Camera::pinhole_looking_at(eye, Vec3::new(0.3, -0.8, 3.6), 28.0, 1920, 1080),
@@ -397,6 +403,27 @@ mod tests {
             unique.dedup();
             assert_eq!(unique.len(), ids.len(), "{name}: object ids {ids:?} repeat");
         }
+    }
+
+    #[test]
+    fn a_denser_torus_casts_the_same_shadow() {
+        let coarse = builtin_scene("torus").unwrap();
+        let dense = torus_tessellated(384, 128);
+        assert_eq!(dense.meshes[1].triangles.len(), 2 * 384 * 128);
+        assert_eq!(dense.camera, coarse.camera);
+        assert_eq!(dense.sun, coarse.sun);
+        let ring_texels = |scene: &Scene| {
+            let camera = crate::camera::CameraModel::new(&scene.camera);
+            let geometry = crate::render::FlatGeometry::from_scene(scene);
+            let map = crate::shadow_map::ShadowMap::of_scene_geometry(scene, &camera, &geometry);
+            map.ids.iter().map(|&id| id == 2).collect::<Vec<bool>>()
+        };
+        let (coarse, dense) = (ring_texels(&coarse), ring_texels(&dense));
+        let ring = coarse.iter().filter(|&&hit| hit).count();
+        let differ = coarse.iter().zip(&dense).filter(|(a, b)| a != b).count();
+        assert!(ring > 1_000, "the ring covers {ring} texels");
+        // Only the coarse ring's chords differ: a few texels along its outline.
+        assert!(differ * 50 < ring, "{differ} of {ring} ring texels differ");
     }
 
     #[test]

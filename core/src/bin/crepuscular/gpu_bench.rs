@@ -4,11 +4,11 @@
 
 use std::sync::Arc;
 
-use crepuscular::builtin::builtin_scene;
+use crepuscular::builtin::{builtin_scene, torus_tessellated};
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
 use crepuscular::gpu::Device;
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
-use crepuscular::scene::Method;
+use crepuscular::scene::{Method, Rectification};
 use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
 
 use crate::bench::{median, peak_memory};
@@ -169,6 +169,62 @@ pub fn run(
         }
     }
     print_table(device, &rows, overrides, runs);
+    raster_row(device, overrides, runs, compare_cpu)
+}
+
+/// Quads around and across the tube of the rasterization row's torus: 2·1024·512 =
+/// 1,048,576 triangles in the ring.
+const DENSE_TORUS_SEGMENTS: (u32, u32) = (1024, 512);
+
+/// Times the two depth passes on the `torus` scene tessellated into a million triangles.
+/// The rectification is epipolar so that no pass rasterizes on the CPU.
+fn raster_row(
+    device: &Arc<Device>,
+    overrides: &Overrides,
+    runs: usize,
+    compare_cpu: bool,
+) -> Result<()> {
+    let mut scene = torus_tessellated(DENSE_TORUS_SEGMENTS.0, DENSE_TORUS_SEGMENTS.1);
+    overrides.apply(&mut scene)?;
+    scene.render.backend = Backend::Vulkan;
+    scene.render.method = Method::Prefiltered;
+    scene.render.rectification = Rectification::Epipolar;
+    let geometry = FlatGeometry::from_scene(&scene);
+    let frame = Frame::of_scene(&scene, &geometry);
+    render_timed(device, &frame, &RenderControl::new())?;
+    let mut gpu = Vec::new();
+    let mut walls = Vec::new();
+    for _ in 0..runs {
+        let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
+        gpu.push(times);
+        walls.push(stages);
+    }
+    let ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
+    let wall = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
+    println!(
+        "\nRasterization of {} triangles (torus at {}×{} segments, and the ground), {}×{}, {}² map; \
+         GPU timestamp medians of {runs}: shadow map {} ms, camera depth {} ms; wall with the \
+         geometry upload and read-backs: shadow map {:.1} ms, camera depth {:.1} ms",
+        geometry.triangles.len(),
+        DENSE_TORUS_SEGMENTS.0,
+        DENSE_TORUS_SEGMENTS.1,
+        scene.camera.width,
+        scene.camera.height,
+        scene.render.shadow_map_size,
+        ms(median_option(&gpu, |t| t.shadow_map)),
+        ms(median_option(&gpu, |t| t.camera_depth)),
+        wall(|s| s.shadow_map),
+        wall(|s| s.camera_depth),
+    );
+    if compare_cpu {
+        let (_, stages) = render_timed_cpu(&frame, &RenderControl::new())?;
+        println!(
+            "CPU backend, one run with {} threads: shadow map {:.1} ms, camera depth {:.1} ms",
+            rayon::current_num_threads(),
+            stages.shadow_map * 1e3,
+            stages.camera_depth * 1e3,
+        );
+    }
     Ok(())
 }
 
