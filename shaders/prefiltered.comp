@@ -16,7 +16,7 @@ const uint PROJECTIVE = 2u;
 const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
-// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, SHORT_RAY_TEXELS.
+// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES; core/src/epipolar.rs: SHORT_RAY_TEXELS.
 const float BOX_PIECE_DEPTH = 0.25;
 const uint MAX_BOX_PIECES = 8u;
 const float SHORT_RAY_TEXELS = 16.0;

@@ -194,11 +194,16 @@ impl<'a> MinMaxMethod<'a> {
         }
     }
 
-    /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
+    /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light
+    /// or crosses too few texels for the rectified map ([`EpipolarMap::is_short`]): the
+    /// caller computes those exactly.
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
         let located = self.map.locate(ray)?;
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
+        }
+        if self.map.is_short(&located, t_start, t_end) {
+            return None;
         }
         let sigma = self.medium.extinction as f64;
         let medium_segment = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end);

@@ -67,14 +67,6 @@ const MAX_SPEED_RATIO: f64 = 4096.0;
 /// per-pixel cost of one row per texel.
 pub const SAMPLES_PER_ROW: usize = 2;
 
-/// Rays crossing fewer shadow-map texels than this are declined, and computed exactly
-/// instead ([`crate::reference::Marcher::march_fallback`], one lookup per texel). Rows
-/// of prefix sums resolve a ray's ends to a texel, and the smooth step in keys spreads
-/// over several: on a ray only a few texels long that is most of it. Rays hitting a
-/// surface close to the camera, or running nearly along the light, were off by 5–10% of
-/// a dark image's light in views of `plane` (random views, not in the tests).
-pub const SHORT_RAY_TEXELS: f64 = 16.0;
-
 /// Rows of prefix sums along a slice of `map`.
 fn row_count(map: &EpipolarMap) -> usize {
     (map.samples as usize).div_ceil(SAMPLES_PER_ROW)
@@ -759,7 +751,7 @@ impl<'a> Prefiltered<'a> {
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
         }
-        if !self.map.is_projective() && located.s_per_t * (t_end - t_start) < SHORT_RAY_TEXELS {
+        if self.map.is_short(&located, t_start, t_end) {
             return None;
         }
         let key = self.map.order_key(located.threshold);
