@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use crepuscular::builtin::{builtin_scene, torus_tessellated};
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
-use crepuscular::gpu::Device;
+use crepuscular::gpu::{Device, DeviceKind};
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{Method, Rectification};
 use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
@@ -235,6 +235,15 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         "\nVulkan backend on {}; GPU columns are timestamp medians in ms",
         device.describe()
     );
+    if device.physical.kind == DeviceKind::Cpu {
+        // Seen on lavapipe: 0.01–0.09 ms for single-dispatch stages that take hundreds of
+        // ms of wall time (its end-of-pipe timestamp does not wait for the dispatch); stages
+        // with barriers inside (hole filling) read plausibly.
+        println!(
+            "(a CPU implementation: its compute-stage timestamps are not reliable; compare \
+             wall times)"
+        );
+    }
     println!(
         "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
