@@ -20,8 +20,6 @@ const float WARP_MARGIN = 0.1;
 const float BOX_PIECE_DEPTH = 0.25;
 const uint MAX_BOX_PIECES = 8u;
 const float SHORT_RAY_TEXELS = 16.0;
-// core/src/prefiltered.rs: SURFACE_TAIL_TEXELS.
-const float SURFACE_TAIL_TEXELS = 16.0;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -42,7 +40,7 @@ layout(std430, binding = 6) readonly buffer PrefilteredParams {
     uint snorm;
     uint epipole_count;
     uint near_plane_correction;
-    uint samples_per_row;
+    uint unused;
 } q;
 
 // Per band: its warp's KNOTS knots.
@@ -55,8 +53,6 @@ layout(std430, binding = 11) readonly buffer Basis { uvec4 basis4[]; };
 layout(std430, binding = 12) readonly buffer Coefficients { vec4 coefficients4[]; };
 // Per slice: log₂ of its fastest ray's speed.
 layout(std430, binding = 13) readonly buffer SliceSpeeds { float log2_fastest[]; };
-// The rectified map: `slices` rows of `samples` values of K.
-layout(std430, binding = 14) readonly buffer Rectified { float rectified[]; };
 
 const float TAU = 6.28318530717959;
 
@@ -175,118 +171,6 @@ float blend_dot(uint rows[4], float factors[4], uint coefficient_row) {
     return dot_;
 }
 
-// The two slices around slice coordinate `x` and their shares (EpipolarMap::neighbours).
-void neighbours(float x, out uint slice[2], out float share[2]) {
-    uint last = q.slices - 1u;
-    float clamped;
-    if (q.full_circle != 0u) {
-        float count = float(q.slices);
-        float c = x < 0.0 ? x + count : (x >= count ? x - count : x);
-        clamped = clamp(c, 0.0, count);
-    } else {
-        clamped = clamp(x, 0.0, float(last));
-    }
-    uint lower = min(uint(clamped), last);
-    float fraction = clamped - float(lower);
-    slice[0] = lower;
-    slice[1] = lower == last ? (q.full_circle != 0u ? 0u : last) : lower + 1u;
-    share[0] = 1.0 - fraction;
-    share[1] = fraction;
-}
-
-// In-scattering over [t_tail, t_end] of a ray whose medium starts at `a`, from the
-// rectified samples of its two slices, each split where the ray meets its occluder
-// (Prefiltered::lit_tail, EpipolarMap::lit_spans_scan). Positions off the map are lit.
-float lit_tail(vec4 located, float a, float t_tail, float t_end, float sigma) {
-    uint slice[2];
-    float share[2];
-    neighbours(located.x, slice, share);
-    float step_ = q.spacing_step / float(q.samples_per_row);
-    float map_start = q.spacing_first;
-    float map_end = q.spacing_first + float(q.samples) * step_;
-    float s_a = located.y + located.z * t_tail;
-    float s_b = located.y + located.z * t_end;
-    float tail = 0.0;
-    for (uint n = 0u; n < 2u; ++n) {
-        if (share[n] == 0.0) {
-            continue;
-        }
-        // Lit spans, merged while they touch, each integrated once.
-        float lit = 0.0;
-        vec2 pending = vec2(0.0, -1.0);
-        vec2 spans[3];
-        spans[0] = vec2(s_a, min(s_b, map_start));
-        spans[2] = vec2(max(s_a, map_end), s_b);
-        float lo_s = max(s_a, map_start);
-        float hi_s = min(s_b, map_end);
-        uint first = 0u;
-        uint last = 0u;
-        bool inside = hi_s > lo_s;
-        if (inside) {
-            first = min(uint(max((lo_s - map_start) / step_, 0.0)), q.samples - 1u);
-            last = min(uint(max((hi_s - map_start) / step_, 0.0)), q.samples - 1u);
-        }
-        uint count = inside ? last - first + 1u : 0u;
-        // Span 0 (before the map), the samples, then span 2 (past it).
-        for (uint k = 0u; k < count + 2u; ++k) {
-            vec2 span;
-            if (k == 0u) {
-                span = spans[0];
-            } else if (k == count + 1u) {
-                span = spans[2];
-            } else {
-                uint i = first + k - 1u;
-                float s0 = map_start + float(i) * step_;
-                float s1 = s0 + step_;
-                float centre = rectified[slice[n] * q.samples + i];
-                float lo = s0;
-                float hi = s1;
-                if (isinf(centre)) {
-                    hi = centre > 0.0 ? s1 : s0;
-                } else {
-                    float s_centre = s0 + 0.5 * step_;
-                    float ca = q.map_layout == PARALLEL ? q.slope : located.w;
-                    float cb = q.map_layout == PARALLEL
-                        ? centre + q.slope * s_centre - located.w
-                        : centre * s_centre;
-                    if (ca > 0.0) {
-                        hi = min(s1, cb / ca);
-                    } else if (ca < 0.0) {
-                        lo = max(s0, cb / ca);
-                    } else if (cb < 0.0) {
-                        hi = s0;
-                    }
-                }
-                span = vec2(max(lo, lo_s), min(hi, hi_s));
-            }
-            if (!(span.y > span.x)) {
-                continue;
-            }
-            if (pending.y >= span.x) {
-                pending.y = max(pending.y, span.y);
-                continue;
-            }
-            if (pending.y > pending.x) {
-                float t0 = max((pending.x - located.y) / located.z, t_tail);
-                float t1 = min((pending.y - located.y) / located.z, t_end);
-                if (t1 > t0) {
-                    lit += exp(-sigma * (t0 - a)) * integral_exp(sigma, t1 - t0);
-                }
-            }
-            pending = span;
-        }
-        if (pending.y > pending.x) {
-            float t0 = max((pending.x - located.y) / located.z, t_tail);
-            float t1 = min((pending.y - located.y) / located.z, t_end);
-            if (t1 > t0) {
-                lit += exp(-sigma * (t0 - a)) * integral_exp(sigma, t1 - t0);
-            }
-        }
-        tail += share[n] * lit;
-    }
-    return tail;
-}
-
 // What average() makes of a stretch of a ray (prefiltered.rs: Average).
 const uint AVERAGE_VISIBILITY = 0u;
 const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
@@ -296,12 +180,22 @@ const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
 uint average(vec4 located, float key, float x0, float x1, out float visibility) {
     visibility = 0.0;
     float log2_rate = log2(located.z);
-    uint neighbour[2];
-    float neighbour_share[2];
-    neighbours(located.x, neighbour, neighbour_share);
+    // Neighbouring slices and their shares.
+    uint last = q.slices - 1u;
+    float clamped;
+    if (q.full_circle != 0u) {
+        float count = float(q.slices);
+        float c = located.x < 0.0 ? located.x + count : (located.x >= count ? located.x - count : located.x);
+        clamped = clamp(c, 0.0, count);
+    } else {
+        clamped = clamp(located.x, 0.0, float(last));
+    }
+    uint lower_slice = min(uint(clamped), last);
+    float slice_fraction = clamped - float(lower_slice);
+    uint upper_slice = lower_slice == last ? (q.full_circle != 0u ? 0u : last) : lower_slice + 1u;
     for (uint n = 0u; n < 2u; ++n) {
-        uint slice = neighbour[n];
-        float share = neighbour_share[n];
+        uint slice = n == 0u ? lower_slice : upper_slice;
+        float share = n == 0u ? 1.0 - slice_fraction : slice_fraction;
         if (share == 0.0) {
             continue;
         }
@@ -471,30 +365,18 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
     if (p.box_medium == 0u) {
-        float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
-        // A ray ending on a surface: its last texels are integrated exactly.
-        bool on_surface = t_end < p.max_distance && q.map_layout != PROJECTIVE;
-        float t_tail = on_surface ? max(b - SURFACE_TAIL_TEXELS / located.z, a) : b;
-        float head = 0.0;
-        if (t_tail > a) {
-            float x0 = sample_coordinate(located.y + located.z * from);
-            float x1 = sample_coordinate(located.y + located.z * t_tail);
-            uint outcome = average(located, key, x0, x1, visibility);
-            if (outcome == AVERAGE_IMPRECISE) {
-                ok = false;
-                return vec3(0.0);
-            }
-            if (outcome == AVERAGE_OFF_THE_MAP) {
-                visibility = 1.0;
-            }
-            if (!on_surface) {
-                return vec3(visibility * unshadowed, alpha, visibility);
-            }
-            head = visibility * integral_exp(sigma, t_tail - a);
+        float x0 = sample_coordinate(located.y + located.z * from);
+        float x1 = sample_coordinate(located.y + located.z * b);
+        uint outcome = average(located, key, x0, x1, visibility);
+        if (outcome == AVERAGE_IMPRECISE) {
+            ok = false;
+            return vec3(0.0);
         }
-        float scattering = head + lit_tail(located, a, t_tail, b, sigma);
-        visibility = unshadowed > 1e-30 ? clamp(scattering / unshadowed, 0.0, 1.0) : 1.0;
-        return vec3(scattering, alpha, visibility);
+        if (outcome == AVERAGE_OFF_THE_MAP) {
+            visibility = 1.0;
+        }
+        float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
+        return vec3(visibility * unshadowed, alpha, visibility);
     }
     // Inside a box the sunlight's attenuation varies along the ray: pieces of bounded
     // optical depth, each its own average times its own integral (box_pieces on the CPU).

@@ -827,52 +827,6 @@ impl EpipolarMap {
         geometry
     }
 
-    /// Calls `visit(s0, s1)` for each maximal lit interval of [`s_a`, `s_b`] along `slice`
-    /// for a ray with `threshold`, in order, sample by sample: for the short stretches at
-    /// the ends of rays (a min-max mipmap skips the uniform runs of long ones). Each sample
-    /// is split exactly where the ray meets its occluder. Positions off the map are lit.
-    pub fn lit_spans_scan(
-        &self,
-        slice: u32,
-        threshold: f64,
-        s_a: f64,
-        s_b: f64,
-        mut visit: impl FnMut(f64, f64),
-    ) {
-        let mut pending: Option<(f64, f64)> = None;
-        let mut lit = |s0: f64, s1: f64| {
-            if s1 <= s0 {
-                return;
-            }
-            match pending {
-                Some((p0, p1)) if p1 >= s0 => pending = Some((p0, s1.max(p1))),
-                Some((p0, p1)) => {
-                    visit(p0, p1);
-                    pending = Some((s0, s1));
-                }
-                None => pending = Some((s0, s1)),
-            }
-        };
-        let (start, end) = self.s_range();
-        lit(s_a, s_b.min(start));
-        let (a, b) = (s_a.max(start), s_b.min(end));
-        if b > a {
-            let row = self.row(slice);
-            let last_sample = self.samples as usize - 1;
-            let first = (self.sample_coordinate(a).max(0.0) as usize).min(last_sample);
-            let last = (self.sample_coordinate(b).max(0.0) as usize).min(last_sample);
-            for (i, &value) in row.iter().enumerate().take(last + 1).skip(first) {
-                if let Some((s0, s1)) = self.lit_part(i, value, threshold) {
-                    lit(s0.max(a), s1.min(b));
-                }
-            }
-        }
-        lit(s_a.max(end), s_b);
-        if let Some((s0, s1)) = pending {
-            visit(s0, s1);
-        }
-    }
-
     pub fn row(&self, slice: u32) -> &[f32] {
         let start = slice as usize * self.samples as usize;
         &self.values[start..start + self.samples as usize]

@@ -25,9 +25,6 @@
 //!   depth ([`box_pieces`]), and each piece's weighted visibility multiplies its exact
 //!   unshadowed in-scattering. One piece per ray was 11% off where light enters the box
 //!   through an opening and dims farther in.
-//! - A ray that ends on a surface meets the surface's own key there, where the smooth
-//!   step reads ½: its last [`SURFACE_TAIL_TEXELS`] are integrated exactly from the
-//!   rectified samples instead (outside `box` media).
 
 use std::f64::consts::PI;
 use std::sync::OnceLock;
@@ -283,8 +280,6 @@ pub struct Prefiltered<'a> {
     weight: Vec<f32>,
     extinction: f64,
     near_plane_correction: bool,
-    /// Rays ending closer than this end on a surface (see [`SURFACE_TAIL_TEXELS`]).
-    max_distance: f64,
     box_medium: Option<BoxMedium>,
 }
 
@@ -491,7 +486,6 @@ pub struct PrefilteredPlan<'a> {
     weight: Vec<f32>,
     extinction: f64,
     near_plane_correction: bool,
-    max_distance: f64,
     box_medium: Option<BoxMedium>,
 }
 
@@ -557,7 +551,6 @@ impl<'a> PrefilteredPlan<'a> {
             weight,
             extinction,
             near_plane_correction: desc.near_plane_correction,
-            max_distance: desc.max_distance,
             box_medium: BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize()),
         }
     }
@@ -574,7 +567,6 @@ impl<'a> PrefilteredPlan<'a> {
             weight,
             extinction,
             near_plane_correction,
-            max_distance,
             box_medium,
         } = self;
         let row = prefix.stride;
@@ -590,7 +582,6 @@ impl<'a> PrefilteredPlan<'a> {
             weight,
             extinction,
             near_plane_correction,
-            max_distance,
             box_medium,
         }
     }
@@ -754,28 +745,6 @@ impl<'a> Prefiltered<'a> {
         Average::Visibility(visibility)
     }
 
-    /// In-scattering over [`t_tail`, `t_end`] of a ray whose medium starts at `a`, found
-    /// exactly from the rectified samples of its two slices ([`SURFACE_TAIL_TEXELS`]).
-    fn lit_tail(&self, located: &RaySlice, a: f64, t_tail: f64, t_end: f64) -> f64 {
-        let sigma = self.extinction;
-        let s_at = |t: f64| located.s_origin + located.s_per_t * t;
-        let mut tail = 0.0;
-        for (slice, share) in self.map.neighbours(located.slice) {
-            if share == 0.0 {
-                continue;
-            }
-            let (s_a, s_b) = (s_at(t_tail), s_at(t_end));
-            self.map
-                .lit_spans_scan(slice, located.threshold, s_a, s_b, |s0, s1| {
-                    let (t0, t1) = (located.t_at(s0).max(t_tail), located.t_at(s1).min(t_end));
-                    if t1 > t0 {
-                        tail += share * (-sigma * (t0 - a)).exp() * integral_exp(sigma, t1 - t0);
-                    }
-                });
-        }
-        tail
-    }
-
     /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
         let located = self.map.locate(ray)?;
@@ -805,32 +774,16 @@ impl<'a> Prefiltered<'a> {
         };
         let alpha = -(-sigma * (b - a)).exp_m1();
         let Some(box_medium) = &self.box_medium else {
+            let visibility = self.average(&located, key, x(from), x(b)).value()?;
             let unshadowed = if sigma * (b - a) >= 1e-8 {
                 alpha / sigma
             } else {
                 integral_exp(sigma, b - a)
             };
-            let ends_on_surface = t_end < self.max_distance && !self.map.is_projective();
-            if !ends_on_surface {
-                let visibility = self.average(&located, key, x(from), x(b)).value()?;
-                return Some(RaySample {
-                    scattering: visibility * unshadowed,
-                    alpha,
-                    visibility,
-                });
-            }
-            let t_tail = (b - SURFACE_TAIL_TEXELS / located.s_per_t).max(a);
-            let head = if t_tail > a {
-                self.average(&located, key, x(from), x(t_tail)).value()?
-                    * integral_exp(sigma, t_tail - a)
-            } else {
-                0.0
-            };
-            let scattering = head + self.lit_tail(&located, a, t_tail, b);
             return Some(RaySample {
-                scattering,
+                scattering: visibility * unshadowed,
                 alpha,
-                visibility: weighted_visibility(scattering, unshadowed).unwrap_or(1.0),
+                visibility,
             });
         };
         // The sunlight's attenuation inside the box varies along the ray, and where it
@@ -855,13 +808,6 @@ impl<'a> Prefiltered<'a> {
         })
     }
 }
-
-/// Texels at the end of a ray that stops on a surface which are integrated exactly, from
-/// the rectified samples, rather than prefiltered. There the surface's own key meets the
-/// ray's, so the smooth step reads about ½ however the surface is lit: light leaked under
-/// thin roofs and lit ground lost its last stretch (plane's default view 1.9% off at
-/// M = 32, 0.7% with the exact tail; an orthographic view up at its roof 4.6% → 1.1%).
-pub const SURFACE_TAIL_TEXELS: f64 = 16.0;
 
 /// Largest ratio of the weight before a ray to the weight along it. Past it the ray
 /// starts where its bands' transmittance weights have decayed: differences of stored

@@ -75,7 +75,7 @@ pub fn prefiltered_params(
         .u32(snorm as u32)
         .u32(epipoles.len() as u32)
         .u32(tables.near_plane_correction as u32)
-        .u32(tables.samples_per_row as u32)
+        .u32(0)
         .finish())
 }
 
@@ -113,7 +113,7 @@ pub fn shade(
     let slice_bands: Vec<u32> = tables.slice_bands.iter().flatten().copied().collect();
     let bands: Vec<u32> = tables.bands.iter().flatten().copied().collect();
     let run = || -> GpuResult<(Layers, Option<f64>)> {
-        let mut rec = Recorder::new(device, STAGE, 1, 15)?;
+        let mut rec = Recorder::new(device, STAGE, 1, 14)?;
         let params = rec.upload(&march_params(inputs), "march parameters")?;
         let shadow = rec.upload(&inputs.shadow.depth, "shadow map")?;
         let surfaces = rec.upload(&surface_values(inputs.surfaces), "surface distances")?;
@@ -128,9 +128,8 @@ pub fn shade(
         let bands = rec.upload(&bands, "bands")?;
         let weight = rec.upload(tables.weight, "cumulative weights")?;
         let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
-        let rectified = rec.upload(&map.values, "rectified map")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 15);
+        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 14);
         rec.timed(STAGE, |rec| {
             rec.dispatch(
                 &desc,
@@ -149,7 +148,6 @@ pub fn shade(
                     basis,
                     &coefficients,
                     &log2_fastest,
-                    &rectified,
                 ],
                 &[],
                 groups,
