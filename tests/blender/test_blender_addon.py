@@ -269,6 +269,30 @@ def test_bad_presets_name_the_field(addon: ModuleType, tmp_path: Path) -> None:
         bpy.ops.crepuscular.load_preset(filepath=str(bad))
 
 
+def test_a_presets_tf_image_is_found_beside_it(
+    addon: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    looks = tmp_path / "looks"
+    looks.mkdir()
+    ramp = np.array([[0.0, 1.0]], dtype=np.float32)
+    crepuscular.write_exr_channels(looks / "ramp.exr", {"R": ramp, "G": ramp, "B": 1.0 - ramp})
+    preset = looks / "ramp-look.json"
+    image_layer = {"kind": "image", "image": {"kind": "file", "path": "ramp.exr"}}
+    tf = {"mode": "color", "depth_range": {"near": 0.0, "far": 50.0}, "layers": [image_layer]}
+    preset.write_text(json.dumps({"version": 1, "tf": tf}))
+    elsewhere = tmp_path / "session"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    settings = _basic_scene().objects["Sun"].data.crepuscular
+    addon.style.apply_preset(settings, preset)
+    image = settings.tf_layers[0].image
+    assert Path(bpy.path.abspath(image.filepath)) == looks / "ramp.exr"
+    assert tuple(image.size) == (2, 1)
+    pixels = np.array(image.pixels[:], dtype=np.float32).reshape(2, 4)
+    assert pixels[0, 2] > 0.9, "the ramp's blue end"
+    assert pixels[1, 0] > 0.9, "the ramp's red end"
+
+
 # Export ---------------------------------------------------------------------------------
 
 
