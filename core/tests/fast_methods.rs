@@ -177,22 +177,28 @@ fn fast_methods_match_the_reference_in_a_box_medium() {
                 * Mat4::from_scale(Vec3::new(5.0, 4.0, 3.0)),
         };
         let reference = render_with(&scene, Method::Reference, 4096);
-        for (method, bound) in [(Method::MinMax, 0.01), (Method::Prefiltered, 0.02)] {
-            let fast = render_with(&scene, method, 4096);
-            assert_finite(&fast);
-            let (relative, mean) = error(&fast, &reference);
-            println!(
-                "box {view:<12} {:<11} error {:.3}% (mean radiance {mean:.4})",
-                method.name(),
-                relative * 100.0
-            );
-            assert!(mean > 0.0);
-            assert!(
-                relative <= bound,
-                "{view} {method:?}: {:.3}%",
-                relative * 100.0
-            );
-        }
+        assert_fast_methods_match(&format!("box {view:<12}"), &scene, &reference);
+    }
+}
+
+/// Min-max within 1% and prefiltering within 2% of `reference`, a render of `scene`.
+fn assert_fast_methods_match(label: &str, scene: &Scene, reference: &Layers) {
+    for (method, bound) in [(Method::MinMax, 0.01), (Method::Prefiltered, 0.02)] {
+        let fast = render_with(scene, method, 4096);
+        assert_finite(&fast);
+        let (relative, mean) = error(&fast, reference);
+        println!(
+            "{label} {:<11} error {:.3}% (mean radiance {mean:.4})",
+            method.name(),
+            relative * 100.0
+        );
+        assert!(mean > 0.0);
+        assert!(
+            relative <= bound,
+            "{label}, {}: {:.3}%",
+            method.name(),
+            relative * 100.0
+        );
     }
 }
 
@@ -230,23 +236,7 @@ fn rays_too_short_for_rectified_lookups_are_integrated_exactly() {
     in_crown.medium.extinction = 0.6;
     for (name, scene) in [("under the roof", under_roof), ("in the crown", in_crown)] {
         let reference = render_with(&scene, Method::Reference, 4096);
-        for (method, bound) in [(Method::MinMax, 0.01), (Method::Prefiltered, 0.02)] {
-            let fast = render_with(&scene, method, 4096);
-            assert_finite(&fast);
-            let (relative, mean) = error(&fast, &reference);
-            println!(
-                "short rays {name:<14} {:<11} error {:.3}% (mean radiance {mean:.4})",
-                method.name(),
-                relative * 100.0
-            );
-            assert!(mean > 0.0);
-            assert!(
-                relative <= bound,
-                "{name}, {}: {:.3}%",
-                method.name(),
-                relative * 100.0
-            );
-        }
+        assert_fast_methods_match(&format!("short rays {name:<14}"), &scene, &reference);
     }
 }
 

@@ -27,17 +27,20 @@ use crate::arrays::{layers_to_py, rows, values, DepthMap};
 use crate::errors::to_py_err;
 use crate::run::run_detached;
 
-/// Renders a JSON scene description.
+/// Renders a JSON scene description; relative file paths in its style are made relative
+/// to `base_dir` (the directory of the file the text came from) when given.
 ///
 /// Returns `(width, height, volume, visibility, depth)` with arrays shaped `(H, W, 4)`,
 /// `(H, W)` and `(H, W)`.
 #[pyfunction]
 #[pyo3(signature = (
-    scene_json, /, *, style_json=None, camera_depth=None, depth_kind="planar", progress=None,
+    scene_json, /, *, base_dir=None, style_json=None, camera_depth=None, depth_kind="planar",
+    progress=None,
 ))]
 fn render_json<'py>(
     py: Python<'py>,
     scene_json: &str,
+    base_dir: Option<PathBuf>,
     style_json: Option<&str>,
     camera_depth: Option<PyReadonlyArray2<'py, f32>>,
     depth_kind: &str,
@@ -46,6 +49,9 @@ fn render_json<'py>(
     let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref()).map_err(to_py_err)?;
     let layers = run_detached(py, progress.as_ref(), |control| {
         let mut scene = Scene::from_json(scene_json)?;
+        if let Some(base) = &base_dir {
+            scene.style.rebase_paths(base);
+        }
         if let Some(style) = style_json {
             scene.style = Style::from_json(style)?;
         }

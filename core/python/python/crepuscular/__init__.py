@@ -108,6 +108,7 @@ def render(
     _check_progress(progress)
     raw = _core.render_json(
         _convert.scene_json(scene),
+        base_dir=_convert.base_dir(scene),
         style_json=_style_json(style),
         camera_depth=_convert.depth_map(camera_depth),
         depth_kind=depth_kind,
@@ -166,8 +167,9 @@ def load_style(
     they are (the working directory's when baked). Unknown keys and out-of-range values
     raise errors that name the field, e.g. "style.closing.radius".
     """
-    text = _convert.scene_json(style, "style")
-    result: dict[str, Any] = json.loads(_core.normalize_style_json(text, base_dir=base_dir))
+    folder = _convert.base_dir(style) if base_dir is None else base_dir
+    text = _convert.scene_json(style)
+    result: dict[str, Any] = json.loads(_core.normalize_style_json(text, base_dir=folder))
     return result
 
 
@@ -189,7 +191,7 @@ def _style_json(style: StyleLike | None) -> str | None:
         return None
     if isinstance(style, Mapping):
         return _convert.to_json(style, "style")
-    return _convert.scene_json(style, "style")
+    return _convert.style_json(style)
 
 
 def scene_from_json(text: str) -> dict[str, Any]:

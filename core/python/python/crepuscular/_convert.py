@@ -12,7 +12,7 @@ import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -34,29 +34,40 @@ def invalid(field: str, reason: str) -> InvalidInputError:
 # --- JSON ---------------------------------------------------------------------------------
 
 
-def scene_json(
-    scene: Mapping[str, Any] | str | os.PathLike[str], kind: Literal["scene", "style"] = "scene"
-) -> str:
-    """JSON text for a scene (or a style preset, by `kind`) given as a mapping, JSON text or
-    a path to a .json file.
+def scene_json(scene: Mapping[str, Any] | str | os.PathLike[str]) -> str:
+    """JSON text for a scene given as a mapping, JSON text or a path to a .json file.
 
     A string whose first non-blank character is "{" is JSON text; any other string is a path.
-    A file's relative image paths are made relative to the file, so that a preset finds its
-    images whatever the working directory; in text and mappings they stay relative to it.
     """
-    if isinstance(scene, str) and scene.lstrip().startswith("{"):
-        return scene
-    if isinstance(scene, (str, os.PathLike)):
-        path = Path(scene)
-        text = path.read_text(encoding="utf-8")
-        if kind == "style":
-            return _core.normalize_style_json(text, base_dir=path.parent)
-        return _core.normalize_scene_json(text, base_dir=path.parent)
+    if isinstance(scene, os.PathLike):
+        return Path(scene).read_text(encoding="utf-8")
+    if isinstance(scene, str):
+        if scene.lstrip().startswith("{"):
+            return scene
+        return Path(scene).read_text(encoding="utf-8")
     if isinstance(scene, Mapping):
         return to_json(scene, "")
     raise TypeError(
-        f"{kind} must be a mapping, JSON text or a path to a .json file, got {type(scene).__name__}"
+        f"scene must be a mapping, JSON text or a path to a .json file, got {type(scene).__name__}"
     )
+
+
+def base_dir(source: Mapping[str, Any] | str | os.PathLike[str]) -> Path | None:
+    """The directory of a scene or preset given as a path, which its relative image paths
+    are relative to; None for JSON text and mappings (the working directory's)."""
+    if isinstance(source, os.PathLike) or (
+        isinstance(source, str) and not source.lstrip().startswith("{")
+    ):
+        return Path(source).parent
+    return None
+
+
+def style_json(style: Mapping[str, Any] | str | os.PathLike[str]) -> str:
+    """JSON text for a style preset, as `scene_json`; a file's relative image paths are
+    joined to its directory, so that a preset finds its images from any working directory."""
+    text = scene_json(style)
+    folder = base_dir(style)
+    return text if folder is None else _core.normalize_style_json(text, base_dir=folder)
 
 
 def to_json(value: Any, path: str) -> str:

@@ -33,6 +33,7 @@ def render_json(
     scene_json: str,
     /,
     *,
+    base_dir: str | os.PathLike[str] | None = None,
     style_json: str | None = None,
     camera_depth: _Float32Array | None = None,
     depth_kind: _DepthKind = "planar",

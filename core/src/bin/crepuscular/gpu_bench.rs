@@ -199,7 +199,6 @@ fn raster_row(
         gpu.push(times);
         walls.push(stages);
     }
-    let ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
     let wall = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
     println!(
         "\nRasterization of {} triangles (torus at {}×{} segments, and the ground), {}×{}, {}² map; \
@@ -211,8 +210,8 @@ fn raster_row(
         scene.camera.width,
         scene.camera.height,
         scene.render.shadow_map_size,
-        ms(median_option(&gpu, |t| t.shadow_map)),
-        ms(median_option(&gpu, |t| t.camera_depth)),
+        gpu_ms(median_option(&gpu, |t| t.shadow_map)),
+        gpu_ms(median_option(&gpu, |t| t.camera_depth)),
         wall(|s| s.shadow_map),
         wall(|s| s.camera_depth),
     );
@@ -228,8 +227,13 @@ fn raster_row(
     Ok(())
 }
 
+/// A GPU time in ms, or "-" for a stage that did not run.
+fn gpu_ms(v: Option<f64>) -> String {
+    v.map_or("-".to_owned(), |v| format!("{v:.3}"))
+}
+
 fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize) {
-    let ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
+    let ms = gpu_ms;
     let cpu_ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.1}"));
     println!(
         "\nVulkan backend on {}; GPU columns are timestamp medians in ms",
