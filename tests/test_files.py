@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import struct
 from pathlib import Path
 
@@ -69,10 +70,15 @@ def test_truncated_exr_is_a_named_error(tmp_path: Path) -> None:
     path = tmp_path / "cut.exr"
     crepuscular.write_exr(path, layers)
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    with pytest.raises(crepuscular.ExrError, match=r"cut\.exr"):
+    with pytest.raises(crepuscular.ExrError, match=r"cut\.exr") as truncated:
         crepuscular.read_exr(path)
-    with pytest.raises(crepuscular.ExrError):
+    assert truncated.value.filename == str(path)
+    # The message says what is wrong, not OSError's "[Errno None] None: 'path'".
+    assert "None" not in str(truncated.value)
+    assert str(truncated.value) == truncated.value.args[0]
+    with pytest.raises(crepuscular.ExrError, match=r"missing\.exr: No such file") as missing:
         crepuscular.read_exr(tmp_path / "missing.exr")
+    assert missing.value.errno == errno.ENOENT
 
 
 def test_composite_is_premultiplied_over() -> None:

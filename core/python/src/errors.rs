@@ -15,7 +15,7 @@ use std::path::Path;
 
 use crepuscular::Error;
 use pyo3::create_exception;
-use pyo3::exceptions::{PyException, PyOSError, PyValueError};
+use pyo3::exceptions::{PyBaseException, PyException, PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
 use pyo3::types::{PyDict, PyTuple, PyType};
@@ -68,12 +68,19 @@ pub fn invalid_input_error(py: Python<'_>) -> PyResult<&Bound<'_, PyType>> {
 pub fn exr_error(py: Python<'_>) -> PyResult<&Bound<'_, PyType>> {
     EXR_ERROR
         .get_or_try_init(py, || {
+            // OSError's own __str__ prints "[Errno None] None: 'path'" once `filename` is
+            // set, dropping the message that says what went wrong.
+            let extra = PyDict::new(py);
+            extra.set_item(
+                "__str__",
+                py.get_type::<PyBaseException>().getattr("__str__")?,
+            )?;
             new_exception_type(
                 py,
                 "ExrError",
                 EXR_ERROR_DOC,
                 py.get_type::<PyOSError>(),
-                None,
+                Some(extra),
             )
         })
         .map(|ty| ty.bind(py))
