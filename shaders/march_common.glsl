@@ -44,8 +44,6 @@ layout(std430, binding = 5) writeonly buffer Depth { float depth_out[]; };
 
 vec3 texel_origin;
 vec3 texel_step;
-// Steps of the march under way: the frame's, or fewer in a fast method's fallback.
-uint march_steps;
 vec3 cube_origin;
 vec3 cube_step;
 
@@ -60,7 +58,7 @@ bool lit(float t) {
 }
 
 float average_visibility(float t_start, float t_end) {
-    uint n = march_steps;
+    uint n = p.steps;
     float dt = (t_end - t_start) / float(n);
     uint lit_steps = 0;
     for (uint i = 0; i < n; ++i) {
@@ -82,7 +80,7 @@ float weighted_visibility(float scattering, float unshadowed, bool shadowed, flo
 
 // x: scattering, y: alpha, z: visibility.
 vec3 march_unbounded(float t_start, float t_end) {
-    uint n = march_steps;
+    uint n = p.steps;
     float dt = (t_end - t_start) / float(n);
     float sigma = p.extinction;
     float decay = exp(-sigma * dt);
@@ -144,7 +142,7 @@ vec3 march_box(float t_start, float t_end) {
     if (!hit || !(b > a)) {
         return vec3(0.0, 0.0, average_visibility(t_start, t_end));
     }
-    uint n = march_steps;
+    uint n = p.steps;
     float dt = (b - a) / float(n);
     float sigma = p.extinction;
     float depth_before = sunward_depth(cube_origin + cube_step * a);
@@ -196,18 +194,76 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
         return vec3(0.0, 0.0, 1.0);
     }
     begin_ray(origin, direction);
-    march_steps = p.steps;
     return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
 }
 
-// reference.rs: FALLBACK_STEPS_PER_TEXEL, MIN_FALLBACK_STEPS.
-const float FALLBACK_STEPS_PER_TEXEL = 64.0;
-const uint MIN_FALLBACK_STEPS = 64u;
+// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (the sunward
+// depth ℓ is piecewise linear), as BoxRay::integrate. Needs begin_ray.
+float box_integrate(float t0, float t1, float a, float sigma) {
+    vec2 lines[3];
+    bool finite_line[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        float s = p.towards_sun[axis];
+        finite_line[axis] = s != 0.0;
+        if (s != 0.0) {
+            float wall = s > 0.0 ? 1.0 : -1.0;
+            lines[axis] = vec2((wall - cube_origin[axis]) / s, -cube_step[axis] / s);
+        } else {
+            lines[axis] = vec2(BIG, 0.0);
+        }
+    }
+    float cuts[5] = float[5](t0, t1, t1, t1, t1);
+    uint count = 1u;
+    for (int i = 0; i < 3; ++i) {
+        for (int k = i + 1; k < 3; ++k) {
+            if (finite_line[i] && finite_line[k] && lines[i].y != lines[k].y) {
+                float t = (lines[k].x - lines[i].x) / (lines[i].y - lines[k].y);
+                if (t > t0 && t < t1) {
+                    cuts[count] = t;
+                    count += 1u;
+                }
+            }
+        }
+    }
+    cuts[count] = t1;
+    for (uint i = 1u; i <= count; ++i) {
+        for (uint k = i; k > 0u && cuts[k - 1u] > cuts[k]; --k) {
+            float swap = cuts[k];
+            cuts[k] = cuts[k - 1u];
+            cuts[k - 1u] = swap;
+        }
+    }
+    float total = 0.0;
+    for (uint i = 0u; i < count; ++i) {
+        float p0 = cuts[i];
+        float p1 = cuts[i + 1u];
+        if (!(p1 > p0)) {
+            continue;
+        }
+        float d0 = BIG;
+        float d1 = BIG;
+        for (int axis = 0; axis < 3; ++axis) {
+            d0 = min(d0, lines[axis].x + lines[axis].y * p0);
+            d1 = min(d1, lines[axis].x + lines[axis].y * p1);
+        }
+        d0 = max(d0, 0.0);
+        d1 = max(d1, 0.0);
+        float slope = (d1 - d0) / (p1 - p0);
+        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + slope), p1 - p0);
+    }
+    return total;
+}
 
-// Exact single scattering outside any box (reference.rs, Marcher::walk_texels): a 2D
-// walk through the shadow map's texels, each crossing's lit part found where the ray's
-// light depth meets the texel's occluder, integrated in closed form. Needs begin_ray.
-vec3 walk_texels(float t_start, float t_end) {
+// What walk_lit sums over each lit part of a ray.
+const uint WALK_UNBOUNDED = 0u; // e^(−σ(t − origin)) integrated
+const uint WALK_BOX = 1u;       // box_integrate from origin
+const uint WALK_LENGTH = 2u;    // its length
+
+// Walks the shadow map's texels along the ray over [t_start, t_end] (reference.rs,
+// Marcher::lit_spans), each crossing's lit part found where the ray's light depth meets
+// the texel's occluder, and sums the lit parts' `mode` weights; stops past `enough`.
+// Off the map counts as lit. Needs begin_ray.
+float walk_lit(float t_start, float t_end, float enough, uint mode, float origin) {
     float sigma = p.extinction;
     vec3 start = texel_origin + texel_step * t_start;
     vec3 end = texel_origin + texel_step * t_end;
@@ -226,7 +282,7 @@ vec3 walk_texels(float t_start, float t_end) {
     }
     float cells = min(ceil(abs(end.x - start.x)) + ceil(abs(end.y - start.y)) + 2.0, 1e7);
     int size = int(p.map_size);
-    float scattering = 0.0;
+    float total = 0.0;
     float t = t_start;
     for (uint i = 0u; i < uint(cells); ++i) {
         float leave = max(min(min(next.x, next.y), t_end), t);
@@ -248,10 +304,15 @@ vec3 walk_texels(float t_start, float t_end) {
             }
         }
         if (lit_to > lit_from) {
-            scattering += exp(-sigma * (lit_from - t_start)) * integral_exp(sigma, lit_to - lit_from);
+            if (mode == WALK_UNBOUNDED) {
+                total += exp(-sigma * (lit_from - origin)) * integral_exp(sigma, lit_to - lit_from);
+            } else if (mode == WALK_BOX) {
+                total += box_integrate(lit_from, lit_to, origin, sigma);
+            } else {
+                total += lit_to - lit_from;
+            }
         }
-        // reference.rs: WALK_DEPTH.
-        if (leave >= t_end || sigma * (leave - t_start) > 20.0) {
+        if (leave >= t_end || leave > enough) {
             break;
         }
         if (next.y < next.x) {
@@ -263,26 +324,54 @@ vec3 walk_texels(float t_start, float t_end) {
         }
         t = leave;
     }
+    return total;
+}
+
+// Where a walk from `t` on may stop: the rest adds less than e^−20 of its light
+// (reference.rs: WALK_DEPTH).
+float walk_enough(float t) {
+    return p.extinction > 0.0 ? t + 20.0 / p.extinction : BIG;
+}
+
+// Exact single scattering outside any box (reference.rs, Marcher::walk_texels).
+vec3 walk_texels(float t_start, float t_end) {
+    float sigma = p.extinction;
+    float scattering = walk_lit(t_start, t_end, walk_enough(t_start), WALK_UNBOUNDED, t_start);
     float unshadowed = integral_exp(sigma, t_end - t_start);
     float alpha = -expm1_accurate(-sigma * (t_end - t_start));
     return vec3(scattering, alpha, clamp(scattering / unshadowed, 0.0, 1.0));
 }
 
-// A fast method's fallback (reference.rs, Marcher::march_fallback): outside a box, the
-// exact texel walk; inside, the frame's steps, or fewer where the ray crosses few
-// shadow-map texels, at FALLBACK_STEPS_PER_TEXEL each.
+// The walk in a box (reference.rs, Marcher::walk_box): the stretch inside it, each lit
+// part attenuated through the box; a ray that misses it gets the fraction that is lit.
+vec3 walk_box(float t_start, float t_end) {
+    float near, far;
+    bool hit = box_clip(near, far);
+    float a = max(near, t_start);
+    float b = min(far, t_end);
+    if (!hit || !(b > a)) {
+        float lit = walk_lit(t_start, t_end, BIG, WALK_LENGTH, t_start);
+        return vec3(0.0, 0.0, clamp(lit / (t_end - t_start), 0.0, 1.0));
+    }
+    float sigma = p.extinction;
+    float scattering = walk_lit(a, b, walk_enough(a), WALK_BOX, a);
+    float unshadowed = box_integrate(a, b, a, sigma);
+    float visibility;
+    if (unshadowed > 0.0) {
+        visibility = clamp(scattering / unshadowed, 0.0, 1.0);
+    } else {
+        visibility = clamp(walk_lit(t_start, t_end, BIG, WALK_LENGTH, t_start) / (t_end - t_start), 0.0, 1.0);
+    }
+    return vec3(scattering, -expm1_accurate(-sigma * (b - a)), visibility);
+}
+
+// A fast method's fallback (reference.rs, Marcher::march_fallback): the exact walk.
 vec3 fallback_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
     if (!(t_end > t_start)) {
         return vec3(0.0, 0.0, 1.0);
     }
     begin_ray(origin, direction);
-    if (p.box_medium == 0u) {
-        return walk_texels(t_start, t_end);
-    }
-    float texels = length(texel_step.xy) * (t_end - t_start);
-    float steps = min(ceil(texels * FALLBACK_STEPS_PER_TEXEL), float(p.steps));
-    march_steps = clamp(uint(steps), min(MIN_FALLBACK_STEPS, p.steps), p.steps);
-    return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
+    return p.box_medium != 0u ? walk_box(t_start, t_end) : walk_texels(t_start, t_end);
 }
 
 // Relative spread of a pixel's depth samples below which no edge runs through it

@@ -17,8 +17,8 @@ const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
 // core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES; core/src/epipolar.rs: SHORT_RAY_TEXELS.
-const float BOX_PIECE_DEPTH = 0.25;
-const uint MAX_BOX_PIECES = 8u;
+const float BOX_PIECE_DEPTH = 0.1;
+const uint MAX_BOX_PIECES = 20u;
 const float SHORT_RAY_TEXELS = 16.0;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
@@ -263,63 +263,6 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
     return AVERAGE_VISIBILITY;
 }
 
-// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (the sunward
-// depth ℓ is piecewise linear), as BoxMedium::integrate. Needs begin_ray.
-float box_integrate(float t0, float t1, float a, float sigma) {
-    vec2 lines[3];
-    bool finite_line[3];
-    for (int axis = 0; axis < 3; ++axis) {
-        float s = p.towards_sun[axis];
-        finite_line[axis] = s != 0.0;
-        if (s != 0.0) {
-            float wall = s > 0.0 ? 1.0 : -1.0;
-            lines[axis] = vec2((wall - cube_origin[axis]) / s, -cube_step[axis] / s);
-        } else {
-            lines[axis] = vec2(BIG, 0.0);
-        }
-    }
-    float cuts[5] = float[5](t0, t1, t1, t1, t1);
-    uint count = 1u;
-    for (int i = 0; i < 3; ++i) {
-        for (int k = i + 1; k < 3; ++k) {
-            if (finite_line[i] && finite_line[k] && lines[i].y != lines[k].y) {
-                float t = (lines[k].x - lines[i].x) / (lines[i].y - lines[k].y);
-                if (t > t0 && t < t1) {
-                    cuts[count] = t;
-                    count += 1u;
-                }
-            }
-        }
-    }
-    cuts[count] = t1;
-    for (uint i = 1u; i <= count; ++i) {
-        for (uint k = i; k > 0u && cuts[k - 1u] > cuts[k]; --k) {
-            float swap = cuts[k];
-            cuts[k] = cuts[k - 1u];
-            cuts[k - 1u] = swap;
-        }
-    }
-    float total = 0.0;
-    for (uint i = 0u; i < count; ++i) {
-        float p0 = cuts[i];
-        float p1 = cuts[i + 1u];
-        if (!(p1 > p0)) {
-            continue;
-        }
-        float d0 = BIG;
-        float d1 = BIG;
-        for (int axis = 0; axis < 3; ++axis) {
-            d0 = min(d0, lines[axis].x + lines[axis].y * p0);
-            d1 = min(d1, lines[axis].x + lines[axis].y * p1);
-        }
-        d0 = max(d0, 0.0);
-        d1 = max(d1, 0.0);
-        float slope = (d1 - d0) / (p1 - p0);
-        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + slope), p1 - p0);
-    }
-    return total;
-}
-
 // (scattering, alpha, visibility); `ok` false where the ray cannot be located.
 vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end, out bool ok) {
     vec4 located;
@@ -381,6 +324,11 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     // Inside a box the sunlight's attenuation varies along the ray: pieces of bounded
     // optical depth, each its own average times its own integral (box_pieces on the CPU).
     uint pieces = uint(clamp(ceil(sigma * (b - a) / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
+    // A piece crossing too few texels is too short for its own lookup: marched instead.
+    if (q.map_layout != PROJECTIVE && located.z * (b - a) / float(pieces) < SHORT_RAY_TEXELS) {
+        ok = false;
+        return vec3(0.0);
+    }
     float scattering = 0.0;
     float unshadowed = 0.0;
     for (uint k = 0u; k < pieces; ++k) {

@@ -207,6 +207,7 @@ impl<'a> MinMaxMethod<'a> {
         }
         let sigma = self.medium.extinction as f64;
         let medium_segment = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end);
+        let along_box = self.box_medium.as_ref().map(|b| b.along(ray));
         let mut blended = RaySample::default();
         for (slice, weight) in self.map.neighbours(located.slice) {
             if weight == 0.0 {
@@ -223,18 +224,18 @@ impl<'a> MinMaxMethod<'a> {
                 if t1 <= t0 {
                     return;
                 }
-                scattering += match &self.box_medium {
+                scattering += match &along_box {
                     None => (-sigma * (t0 - a)).exp() * integral_exp(sigma, t1 - t0),
-                    Some(box_medium) => box_medium.integrate(ray, t0, t1, a, sigma),
+                    Some(along) => along.integrate(t0, t1, a, sigma),
                 };
             });
             blended.scattering += weight * scattering;
             blended.visibility += weight * lit_length / (t_end - t_start);
         }
         if let Some((a, b)) = medium_segment {
-            let unshadowed = match &self.box_medium {
+            let unshadowed = match &along_box {
                 None => integral_exp(sigma, b - a),
-                Some(box_medium) => box_medium.integrate(ray, a, b, a, sigma),
+                Some(along) => along.integrate(a, b, a, sigma),
             };
             blended.alpha = -(-sigma * (b - a)).exp_m1();
             if let Some(visibility) = weighted_visibility(blended.scattering, unshadowed) {

@@ -503,9 +503,20 @@ impl<'a> PrefilteredPlan<'a> {
         let frequencies = (desc.bases / 2) as usize;
         let row = padded(2 * frequencies);
         let extinction = medium.extinction as f64;
+        let box_medium = BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize());
+        // The transmittance from a slice's start says nothing about a box the rays enter
+        // farther on: its weights had decayed there (a box 15 m off at σ = 0.3 left the
+        // prefix sums too imprecise for every ray through it) and its tables could end
+        // before it. Inside a box, rays are cut into pieces of bounded optical depth
+        // (`box_pieces`), over which even weights stand in for the transmittance.
+        let weighting = if box_medium.is_some() {
+            0.0
+        } else {
+            extinction
+        };
         let tables = Tables::get(frequencies);
         let (frames, warps) = slice_frames(map, camera, epipoles, desc.epipole_block);
-        let (slice_bands, bands) = plan_bands(map, &frames, &warps, extinction, desc.max_distance);
+        let (slice_bands, bands) = plan_bands(map, &frames, &warps, weighting, desc.max_distance);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         let mut weight = vec![0.0f32; total_rows];
         let rows_total = total_rows - bands.len();
@@ -517,7 +528,7 @@ impl<'a> PrefilteredPlan<'a> {
             &frames,
             &slice_bands,
             &bands,
-            extinction,
+            weighting,
             &mut entries,
             &mut weights,
             &mut scales,
@@ -551,7 +562,7 @@ impl<'a> PrefilteredPlan<'a> {
             weight,
             extinction,
             near_plane_correction: desc.near_plane_correction,
-            box_medium: BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize()),
+            box_medium,
         }
     }
 
@@ -790,12 +801,19 @@ impl<'a> Prefiltered<'a> {
         // correlates with visibility (light entering through an opening, dimmer farther
         // in) one average visibility times the unshadowed integral is off by 10% and more.
         // So the stretch is cut into pieces, each its own average times its own integral.
+        // Each piece is its own lookup, and one crossing too few texels reads the smooth
+        // step around keys it cannot resolve: a short stretch of box in a long view ray
+        // (looking up out of a fog layer towards the sun) read 35% too dark.
         let pieces = box_pieces(sigma * (b - a));
+        if self.map.is_short(&located, a, a + (b - a) / pieces as f64) {
+            return None;
+        }
+        let along = box_medium.along(ray);
         let (mut scattering, mut unshadowed) = (0.0, 0.0);
         for k in 0..pieces {
             let t0 = a + (b - a) * k as f64 / pieces as f64;
             let t1 = a + (b - a) * (k + 1) as f64 / pieces as f64;
-            let piece = box_medium.integrate(ray, t0, t1, a, sigma);
+            let piece = along.integrate(t0, t1, a, sigma);
             let start = if k == 0 { from } else { t0 };
             let visibility = self.average(&located, key, x(start), x(t1)).value()?;
             scattering += visibility * piece;
@@ -841,9 +859,12 @@ impl Average {
 }
 
 /// Optical depth of one piece of a ray inside a `box` medium (see [`Prefiltered::march`]).
-pub const BOX_PIECE_DEPTH: f64 = 0.25;
+/// A piece's samples weigh evenly in its average visibility, which is off by the first
+/// order in this depth where visibility correlates with the transmittance: in a box of
+/// fog under a slotted roof, 2.9% off at 0.25, 1.2% at 0.1 for 1.6× the time, 0.9% at 0.05.
+pub const BOX_PIECE_DEPTH: f64 = 0.1;
 /// Most pieces a ray inside a `box` medium is cut into.
-pub const MAX_BOX_PIECES: u32 = 8;
+pub const MAX_BOX_PIECES: u32 = 20;
 
 /// Pieces for a stretch of `optical_depth` inside a `box` medium.
 #[inline]
@@ -1308,9 +1329,9 @@ mod tests {
     #[test]
     fn box_pieces_bound_the_optical_depth_of_each() {
         assert_eq!(box_pieces(0.0), 1);
-        assert_eq!(box_pieces(0.25), 1);
-        assert_eq!(box_pieces(0.26), 2);
-        assert_eq!(box_pieces(1.9), 8);
+        assert_eq!(box_pieces(BOX_PIECE_DEPTH), 1);
+        assert_eq!(box_pieces(1.04 * BOX_PIECE_DEPTH), 2);
+        assert_eq!(box_pieces(7.6 * BOX_PIECE_DEPTH), 8);
         assert_eq!(box_pieces(50.0), MAX_BOX_PIECES);
     }
 

@@ -79,13 +79,10 @@ impl BoxMedium {
         }
     }
 
-    /// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly: the
-    /// sunward depth ℓ is the minimum of three linear functions of t, so it is linear
-    /// between the points where the minimum switches.
-    pub(crate) fn integrate(&self, ray: &Ray, t0: f64, t1: f64, a: f64, sigma: f64) -> f64 {
+    /// What integrating along `ray` needs, once per ray.
+    pub(crate) fn along(&self, ray: &Ray) -> BoxRay {
         let origin = self.cube_from_world.transform_point3(ray.origin);
         let direction = self.cube_from_world.transform_vector3(ray.direction);
-        // ℓ along the ray as α_j + β_j·t for each wall the sun direction points at.
         let mut lines = [(f64::INFINITY, 0.0); 3];
         for (axis, line) in lines.iter_mut().enumerate() {
             let s = self.towards_sun[axis];
@@ -94,39 +91,7 @@ impl BoxMedium {
                 *line = ((wall - origin[axis]) / s, -direction[axis] / s);
             }
         }
-        let depth = |t: f64| {
-            lines
-                .iter()
-                .map(|&(alpha, beta)| alpha + beta * t)
-                .fold(f64::INFINITY, f64::min)
-                .max(0.0)
-        };
-        let mut cuts = [t0, t1, t1, t1, t1];
-        let mut count = 1;
-        for i in 0..3 {
-            for j in i + 1..3 {
-                let ((ai, bi), (aj, bj)) = (lines[i], lines[j]);
-                if ai.is_finite() && aj.is_finite() && bi != bj {
-                    let t = (aj - ai) / (bi - bj);
-                    if t > t0 && t < t1 {
-                        cuts[count] = t;
-                        count += 1;
-                    }
-                }
-            }
-        }
-        cuts[count] = t1;
-        cuts[..=count].sort_by(f64::total_cmp);
-        cuts[..=count]
-            .windows(2)
-            .filter(|piece| piece[1] > piece[0])
-            .map(|piece| {
-                let (p, q) = (piece[0], piece[1]);
-                let (dp, dq) = (depth(p), depth(q));
-                let slope = (dq - dp) / (q - p);
-                (-sigma * (dp + p - a)).exp() * integral_exp(sigma * (1.0 + slope), q - p)
-            })
-            .sum()
+        BoxRay { lines }
     }
 
     /// Parameter range where the ray is inside the box, if any.
@@ -165,6 +130,55 @@ impl BoxMedium {
     }
 }
 
+/// One ray's sunward depth inside a box: ℓ(t) = min over the walls the sun direction
+/// points at of α_j + β_j·t.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct BoxRay {
+    lines: [(f64, f64); 3],
+}
+
+impl BoxRay {
+    /// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly: ℓ is the
+    /// minimum of three linear functions of t, so it is linear between the points where
+    /// the minimum switches.
+    pub(crate) fn integrate(&self, t0: f64, t1: f64, a: f64, sigma: f64) -> f64 {
+        let lines = &self.lines;
+        let depth = |t: f64| {
+            lines
+                .iter()
+                .map(|&(alpha, beta)| alpha + beta * t)
+                .fold(f64::INFINITY, f64::min)
+                .max(0.0)
+        };
+        let mut cuts = [t0, t1, t1, t1, t1];
+        let mut count = 1;
+        for i in 0..3 {
+            for j in i + 1..3 {
+                let ((ai, bi), (aj, bj)) = (lines[i], lines[j]);
+                if ai.is_finite() && aj.is_finite() && bi != bj {
+                    let t = (aj - ai) / (bi - bj);
+                    if t > t0 && t < t1 {
+                        cuts[count] = t;
+                        count += 1;
+                    }
+                }
+            }
+        }
+        cuts[count] = t1;
+        cuts[..=count].sort_by(f64::total_cmp);
+        cuts[..=count]
+            .windows(2)
+            .filter(|piece| piece[1] > piece[0])
+            .map(|piece| {
+                let (p, q) = (piece[0], piece[1]);
+                let (dp, dq) = (depth(p), depth(q));
+                let slope = (dq - dp) / (q - p);
+                (-sigma * (dp + p - a)).exp() * integral_exp(sigma * (1.0 + slope), q - p)
+            })
+            .sum()
+    }
+}
+
 /// V̄ of a ray: its in-scattering over what it would be unshadowed, i.e. visibility
 /// averaged along the ray with the weights light actually reaches the camera with. It is
 /// the plain average in thin media, and `None` where no medium is crossed.
@@ -175,13 +189,6 @@ pub(crate) fn weighted_visibility(scattering: f64, unshadowed: f64) -> Option<f6
 /// Optical depth along a ray after which [`Marcher::walk_texels`] stops: the rest adds
 /// less than e^−20 of its light.
 pub const WALK_DEPTH: f64 = 20.0;
-
-/// Steps per shadow-map texel crossed of [`Marcher::march_fallback`]. Light through
-/// slits a few texels wide, seen by rays a dozen texels long, was 2.2% off the 4096-step
-/// reference at 16 steps per texel, 0.8% at 64 and 0.2% at 256.
-pub const FALLBACK_STEPS_PER_TEXEL: f64 = 64.0;
-/// Fewest steps of [`Marcher::march_fallback`] (unless the frame asks for fewer).
-pub const MIN_FALLBACK_STEPS: u32 = 64;
 
 /// Per-frame constants of the march.
 #[derive(Clone, Debug)]
@@ -209,27 +216,15 @@ impl<'a> Marcher<'a> {
     }
 
     /// A fast method's fallback for rays near an epipole and rays it declines, which
-    /// cross few shadow-map texels. Outside a `box` medium the ray is walked texel by
-    /// texel and integrated exactly ([`Marcher::walk_texels`]): the limit the march tends
-    /// to as its steps grow, at a cost of one lookup per texel crossed. In a box it is
-    /// marched: the frame's steps, or fewer where each texel crossed still gets
-    /// [`FALLBACK_STEPS_PER_TEXEL`].
+    /// cross few shadow-map texels: the ray is walked texel by texel and integrated
+    /// exactly, the limit the march tends to as its steps grow, at a cost of one lookup
+    /// per texel crossed ([`Marcher::walk_texels`]; in a `box` medium only the stretch
+    /// inside the box, each lit part attenuated through it).
     pub fn march_fallback(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
-        if self.box_medium.is_none() {
-            return self.walk_texels(ray, t_start, t_end);
+        match &self.box_medium {
+            None => self.walk_texels(ray, t_start, t_end),
+            Some(box_medium) => self.walk_box(box_medium, ray, t_start, t_end),
         }
-        let texels = self
-            .shadow
-            .texel_from_world
-            .transform_vector3(ray.direction)
-            .truncate()
-            .length()
-            * (t_end - t_start).max(0.0);
-        let steps = (texels * FALLBACK_STEPS_PER_TEXEL)
-            .ceil()
-            .min(u32::MAX as f64) as u32;
-        let steps = steps.clamp(MIN_FALLBACK_STEPS.min(self.steps), self.steps);
-        self.march_in_steps(ray, t_start, t_end, steps)
     }
 
     /// Exact single scattering along a ray outside any box: a 2D walk through the shadow
@@ -240,12 +235,72 @@ impl<'a> Marcher<'a> {
         if t_end <= t_start {
             return RaySample::EMPTY;
         }
+        let sigma = self.extinction;
+        let mut scattering = 0.0;
+        self.lit_spans(ray, t_start, t_end, t_start + WALK_DEPTH / sigma, |a, b| {
+            scattering += (-sigma * (a - t_start)).exp() * integral_exp(sigma, b - a);
+        });
+        let unshadowed = integral_exp(sigma, t_end - t_start);
+        RaySample {
+            scattering,
+            alpha: -(-sigma * (t_end - t_start)).exp_m1(),
+            visibility: (scattering / unshadowed).clamp(0.0, 1.0),
+        }
+    }
+
+    /// [`Marcher::walk_texels`] in a `box` medium: only the stretch inside the box is
+    /// walked, each lit part integrated with the sunlight's attenuation through the box
+    /// ([`BoxRay::integrate`]). A ray that misses the box gets the plain fraction of it
+    /// that is lit, as the march gives it.
+    pub(crate) fn walk_box(
+        &self,
+        box_medium: &BoxMedium,
+        ray: &Ray,
+        t_start: f64,
+        t_end: f64,
+    ) -> RaySample {
+        if t_end <= t_start {
+            return RaySample::EMPTY;
+        }
+        let lit_fraction = || {
+            let mut lit = 0.0;
+            self.lit_spans(ray, t_start, t_end, f64::INFINITY, |a, b| lit += b - a);
+            lit / (t_end - t_start)
+        };
+        let Some((a, b)) = medium_segment(Some(box_medium), ray, t_start, t_end) else {
+            return RaySample {
+                visibility: lit_fraction(),
+                ..RaySample::EMPTY
+            };
+        };
+        let sigma = self.extinction;
+        let along = box_medium.along(ray);
+        let mut scattering = 0.0;
+        self.lit_spans(ray, a, b, a + WALK_DEPTH / sigma, |t0, t1| {
+            scattering += along.integrate(t0, t1, a, sigma);
+        });
+        let unshadowed = along.integrate(a, b, a, sigma);
+        RaySample {
+            scattering,
+            alpha: -(-sigma * (b - a)).exp_m1(),
+            visibility: weighted_visibility(scattering, unshadowed).unwrap_or_else(lit_fraction),
+        }
+    }
+
+    /// Calls `lit` with each lit part [t0, t1] of the ray within [`t_start`, `t_end`], in
+    /// order, walking the shadow map's texels; the walk stops at `enough`, past which the
+    /// rest adds nothing that matters. Off the map counts as lit.
+    fn lit_spans(
+        &self,
+        ray: &Ray,
+        t_start: f64,
+        t_end: f64,
+        enough: f64,
+        mut lit: impl FnMut(f64, f64),
+    ) {
         let shadow = self.shadow;
         let origin = shadow.texel_from_world.transform_point3(ray.origin);
         let step = shadow.texel_from_world.transform_vector3(ray.direction);
-        let sigma = self.extinction;
-        // ∫ e^(−σ(t − t_start)) dt over [a, b].
-        let weight = |a: f64, b: f64| (-sigma * (a - t_start)).exp() * integral_exp(sigma, b - a);
         let size = shadow.size as i64;
         let at = |t: f64| origin + step * t;
         let start = at(t_start);
@@ -268,7 +323,7 @@ impl<'a> Marcher<'a> {
         let direction = [step.x.signum() as i64, step.y.signum() as i64];
         let end = at(t_end);
         let cells = (end.x - start.x).abs().ceil() + (end.y - start.y).abs().ceil() + 2.0;
-        let (mut scattering, mut t) = (0.0, t_start);
+        let mut t = t_start;
         for _ in 0..cells.min(1e7) as usize {
             let exit = next[0].min(next[1]).min(t_end).max(t);
             let inside = (0..size).contains(&cell[0]) && (0..size).contains(&cell[1]);
@@ -294,22 +349,15 @@ impl<'a> Marcher<'a> {
                 }
             };
             if lit_to > lit_from {
-                scattering += weight(lit_from, lit_to);
+                lit(lit_from, lit_to);
             }
-            // Past this optical depth the rest adds less than e^−20 of what came before.
-            if exit >= t_end || sigma * (exit - t_start) > WALK_DEPTH {
+            if exit >= t_end || exit > enough {
                 break;
             }
             let k = usize::from(next[1] < next[0]);
             cell[k] += direction[k];
             next[k] += delta[k];
             t = exit;
-        }
-        let unshadowed = integral_exp(sigma, t_end - t_start);
-        RaySample {
-            scattering,
-            alpha: -(-sigma * (t_end - t_start)).exp_m1(),
-            visibility: (scattering / unshadowed).clamp(0.0, 1.0),
         }
     }
 

@@ -239,35 +239,54 @@ fn henyey_greenstein_integrates_to_one_over_the_sphere() {
 
 /// The fast methods' fallback walks a ray texel by texel and integrates each lit part in
 /// closed form: the limit of the march as its steps grow. Every 97th pixel of each
-/// built-in scene's default view, over its first 30 m, against the march at 2¹⁶ steps.
+/// built-in scene's default view, over its first 30 m, against the march at 2¹⁶ steps,
+/// in unbounded fog and in a `box` of it, where each lit part is attenuated through the
+/// box and a ray that misses the box keeps the fraction of it that is lit.
 #[test]
 fn the_texel_walk_is_the_limit_of_the_march() {
     use crepuscular::reference::Marcher;
     use crepuscular::render::FlatGeometry;
     use crepuscular::shadow_map::ShadowMap;
+    let in_a_box = Extent::Box {
+        world_from_cube: Mat4::from_translation(Vec3::new(0.5, -0.5, 3.0))
+            * Mat4::from_rotation_z(0.4)
+            * Mat4::from_scale(Vec3::new(5.0, 4.0, 3.0)),
+    };
     for name in crepuscular::BUILTIN_SCENES {
-        let mut scene = crepuscular::builtin_scene(name).expect("built-in scene");
-        scene.camera.width = 160;
-        scene.camera.height = 90;
-        scene.medium.extinction = 0.2;
-        let camera = CameraModel::new(&scene.camera);
-        let geometry = FlatGeometry::from_scene(&scene);
-        let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
-        let marcher = Marcher::new(&shadow, &scene.sun, &scene.medium, 1 << 16);
-        let (mut worst, mut partly_lit) = (0.0f64, 0);
-        for pixel in (0..160 * 90).step_by(97) {
-            let ray = camera.ray((pixel % 160) as f64 + 0.5, (pixel / 160) as f64 + 0.5);
-            let walked = marcher.walk_texels(&ray, 0.1, 30.0);
-            let marched = marcher.march(&ray, 0.1, 30.0);
-            assert!((walked.alpha - marched.alpha).abs() < 1e-12);
-            worst = worst.max((walked.visibility - marched.visibility).abs());
-            if (0.01..0.99).contains(&marched.visibility) {
-                partly_lit += 1;
+        for (fog, extent) in [("unbounded", Extent::Unbounded), ("box", in_a_box.clone())] {
+            let mut scene = crepuscular::builtin_scene(name).expect("built-in scene");
+            scene.camera.width = 160;
+            scene.camera.height = 90;
+            scene.medium.extinction = 0.2;
+            scene.medium.extent = extent;
+            let camera = CameraModel::new(&scene.camera);
+            let geometry = FlatGeometry::from_scene(&scene);
+            let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
+            let marcher = Marcher::new(&shadow, &scene.sun, &scene.medium, 1 << 16);
+            let (mut worst, mut worst_scattering, mut partly_lit) = (0.0f64, 0.0f64, 0);
+            for pixel in (0..160 * 90).step_by(97) {
+                let ray = camera.ray((pixel % 160) as f64 + 0.5, (pixel / 160) as f64 + 0.5);
+                let walked = marcher.march_fallback(&ray, 0.1, 30.0);
+                let marched = marcher.march(&ray, 0.1, 30.0);
+                assert!((walked.alpha - marched.alpha).abs() < 1e-12);
+                worst = worst.max((walked.visibility - marched.visibility).abs());
+                worst_scattering = worst_scattering
+                    .max((walked.scattering - marched.scattering).abs() / marched.alpha.max(1e-3));
+                if (0.01..0.99).contains(&marched.visibility) {
+                    partly_lit += 1;
+                }
             }
+            let label = format!("{name} in {fog} fog");
+            println!(
+                "{label}: largest visibility difference {worst:.2e}, scattering {worst_scattering:.2e}, {partly_lit} rays partly lit"
+            );
+            assert!(partly_lit >= 10, "{label}: too few partly lit rays to test");
+            assert!(worst < 2e-3, "{label}: visibility {worst}");
+            assert!(
+                worst_scattering < 2e-3,
+                "{label}: scattering {worst_scattering}"
+            );
         }
-        println!("{name}: largest visibility difference {worst:.2e}, {partly_lit} rays partly lit");
-        assert!(partly_lit >= 10, "{name}: too few partly lit rays to test");
-        assert!(worst < 2e-3, "{name}: {worst}");
     }
 }
 
