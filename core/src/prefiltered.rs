@@ -29,6 +29,7 @@
 use std::f64::consts::PI;
 use std::sync::OnceLock;
 
+use glam::{DVec3, Mat4};
 use rayon::prelude::*;
 
 use crate::basis_kernels::{padded, BandRead, BasisValue, Kernels};
@@ -36,7 +37,7 @@ use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
 use crate::error::{Error, Result};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
-use crate::scene::{BasisStorage, Medium, RenderSettings, Sun};
+use crate::scene::{BasisStorage, Extent, Medium, RenderSettings, Sun};
 
 /// Basis coefficients M: sine and cosine of M/2 frequencies.
 pub const MIN_BASES: u32 = 4;
@@ -509,14 +510,23 @@ impl<'a> PrefilteredPlan<'a> {
         // prefix sums too imprecise for every ray through it) and its tables could end
         // before it. Inside a box, rays are cut into pieces of bounded optical depth
         // (`box_pieces`), over which even weights stand in for the transmittance.
-        let weighting = if box_medium.is_some() {
-            0.0
-        } else {
-            extinction
+        // Tables end where the rays' light stops mattering: past the negligible optical
+        // depth, or past the box.
+        let (weighting, reach) = match &medium.extent {
+            Extent::Box { world_from_cube } => (
+                0.0,
+                desc.max_distance
+                    .min(farthest_in_box(camera, world_from_cube)),
+            ),
+            Extent::Unbounded if extinction > 0.0 => (
+                extinction,
+                desc.max_distance.min(NEGLIGIBLE_DEPTH / extinction),
+            ),
+            Extent::Unbounded => (extinction, desc.max_distance),
         };
         let tables = Tables::get(frequencies);
         let (frames, warps) = slice_frames(map, camera, epipoles, desc.epipole_block);
-        let (slice_bands, bands) = plan_bands(map, &frames, &warps, weighting, desc.max_distance);
+        let (slice_bands, bands) = plan_bands(map, &frames, &warps, reach);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         let mut weight = vec![0.0f32; total_rows];
         let rows_total = total_rows - bands.len();
@@ -880,15 +890,9 @@ fn plan_bands(
     map: &EpipolarMap,
     frames: &[SliceFrame],
     warps: &[Vec<Warp>],
-    extinction: f64,
-    max_distance: f64,
+    reach_t: f64,
 ) -> (Vec<SliceBands>, Vec<Band>) {
     let rows = row_count(map);
-    let reach_t = if extinction > 0.0 {
-        max_distance.min(NEGLIGIBLE_DEPTH / extinction)
-    } else {
-        max_distance
-    };
     let mut slice_bands = Vec::with_capacity(frames.len());
     let mut bands = Vec::new();
     let mut next_row = 0;
@@ -919,6 +923,28 @@ fn plan_bands(
         }
     }
     (slice_bands, bands)
+}
+
+/// The farthest along its ray any camera ray can be inside the box: a perspective
+/// camera's rays start at its position, an orthographic camera's on its view plane.
+fn farthest_in_box(camera: &CameraModel, world_from_cube: &Mat4) -> f64 {
+    let world_from_cube = world_from_cube.as_dmat4();
+    let position = camera.position();
+    let forward = camera
+        .world_from_camera
+        .transform_vector3(DVec3::NEG_Z)
+        .normalize();
+    (0..8)
+        .map(|corner| {
+            let sign = |bit: u32| if corner & bit == 0 { -1.0 } else { 1.0 };
+            let corner = world_from_cube.transform_point3(DVec3::new(sign(1), sign(2), sign(4)));
+            if camera.is_perspective() {
+                corner.distance(position)
+            } else {
+                (corner - position).dot(forward)
+            }
+        })
+        .fold(0.0, f64::max)
 }
 
 /// Fewest sampled rays that give a band its own warp; a band with fewer keeps its
@@ -1324,6 +1350,23 @@ mod tests {
         // Steeper with more frequencies: the transition is narrower than 1/frequencies.
         assert!(visibility(0.5, 0.5 - 1.5 / frequencies as f64) > 0.9);
         assert!(visibility(0.5, 0.5 + 1.5 / frequencies as f64) < 0.1);
+    }
+
+    #[test]
+    fn tables_reach_the_far_side_of_a_box_from_either_camera() {
+        use crate::scene::{Camera, Projection, SensorFit};
+        let mut camera = Camera::pinhole_looking_at(glam::Vec3::ZERO, glam::Vec3::X, 35.0, 64, 36);
+        let cube = Mat4::from_translation(glam::Vec3::new(10.0, 0.0, 0.0));
+        let far = farthest_in_box(&CameraModel::new(&camera), &cube);
+        assert!((far - (121.0f64 + 2.0).sqrt()).abs() < 1e-5, "{far}");
+        camera.projection = Projection::Orthographic {
+            ortho_scale: 4.0,
+            sensor_fit: SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: 0.0,
+        };
+        let far = farthest_in_box(&CameraModel::new(&camera), &cube);
+        assert!((far - 11.0).abs() < 1e-5, "{far}");
     }
 
     #[test]

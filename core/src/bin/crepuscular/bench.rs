@@ -7,8 +7,9 @@ use std::sync::Arc;
 use clap::Args;
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::gpu::Device;
-use crepuscular::scene::{Method, Scene};
+use crepuscular::scene::{Extent, Method, Scene};
 use crepuscular::{render_scene_timed, Backend, Error, RenderControl, Result};
+use glam::{Mat4, Vec3};
 
 use crate::{style_bench, Overrides};
 
@@ -31,6 +32,10 @@ pub struct BenchArgs {
     /// With `--backend vulkan`: skip the CPU backend's run of each frame beside the GPU's.
     #[arg(long)]
     no_cpu: bool,
+    /// Confine each scene's medium to a box around its subject, as a fog cube in Blender
+    /// does, at the same extinction.
+    #[arg(long)]
+    fog_box: bool,
     #[command(flatten)]
     overrides: Overrides,
 }
@@ -146,6 +151,48 @@ fn scaling_variants() -> Vec<Variant> {
     variants
 }
 
+/// A box around the scene's subject (everything but the ground, object 1): its
+/// footprint half as wide again on each side, from the ground to a fifth above its top.
+pub fn fog_box_around_subject(scene: &Scene) -> Extent {
+    let points = |subject_only: bool| {
+        scene
+            .meshes
+            .iter()
+            .filter(move |m| !subject_only || m.object_id != 1)
+            .flat_map(|m| {
+                m.positions
+                    .iter()
+                    .map(|&p| m.world_from_object.transform_point3(Vec3::from(p)))
+            })
+    };
+    let bounds = |points: &mut dyn Iterator<Item = Vec3>| {
+        points.fold(
+            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            |(low, high), p| (low.min(p), high.max(p)),
+        )
+    };
+    let (mut low, mut high) = bounds(&mut points(true));
+    if low.x > high.x {
+        (low, high) = bounds(&mut points(false));
+    }
+    let centre = 0.5 * (low + high);
+    let half = 0.5 * (high - low);
+    let low = Vec3::new(
+        centre.x - 1.5 * half.x,
+        centre.y - 1.5 * half.y,
+        low.z.min(0.0),
+    );
+    let high = Vec3::new(
+        centre.x + 1.5 * half.x,
+        centre.y + 1.5 * half.y,
+        high.z + 0.2 * (high.z - low.z),
+    );
+    Extent::Box {
+        world_from_cube: Mat4::from_translation(0.5 * (low + high))
+            * Mat4::from_scale((0.5 * (high - low)).max(Vec3::splat(0.5))),
+    }
+}
+
 pub fn median(sorted: &[f64]) -> f64 {
     let n = sorted.len();
     if n % 2 == 1 {
@@ -169,7 +216,14 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     overrides.steps.get_or_insert(1024);
     let runs = args.runs.max(1);
     if let Some(device) = bench_device(overrides.backend)? {
-        return crate::gpu_bench::run(&device, &names, &overrides, runs, !args.no_cpu);
+        return crate::gpu_bench::run(
+            &device,
+            &names,
+            &overrides,
+            runs,
+            !args.no_cpu,
+            args.fog_box,
+        );
     }
     let (names, variants) = if args.scaling {
         (names[..1].to_vec(), scaling_variants())
@@ -191,6 +245,12 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         let mut base = builtin_scene(name)?;
         overrides.apply(&mut base)?;
         base.render.backend = Backend::Cpu;
+        let name = &if args.fog_box {
+            base.medium.extent = fog_box_around_subject(&base);
+            format!("{name} (box)")
+        } else {
+            name.clone()
+        };
         for variant in &variants {
             let mut scene = base.clone();
             variant.apply(&mut scene);

@@ -73,6 +73,7 @@ pub fn run(
     overrides: &Overrides,
     runs: usize,
     compare_cpu: bool,
+    fog_box: bool,
 ) -> Result<()> {
     let stylized = match &overrides.style {
         Some(_) => None,
@@ -83,6 +84,12 @@ pub fn run(
         let mut base = builtin_scene(name)?;
         overrides.apply(&mut base)?;
         base.render.backend = Backend::Vulkan;
+        let name = &if fog_box {
+            base.medium.extent = crate::bench::fog_box_around_subject(&base);
+            format!("{name} (box)")
+        } else {
+            name.clone()
+        };
         let mut looks = vec![(
             if overrides.style.is_some() {
                 "--style"
