@@ -921,6 +921,37 @@ fn extent(points: &[DVec2], axis: DVec2) -> (f64, f64) {
         })
 }
 
+/// What unit tests of the rectified methods start from.
+#[cfg(test)]
+pub(crate) mod test_support {
+    use super::*;
+    use crate::render::FlatGeometry;
+    use crate::scene::Scene;
+
+    /// `scene`'s camera, shadow map and rectified map, built as a frame builds them.
+    pub(crate) fn rectified(
+        scene: &Scene,
+        rectification: Rectification,
+        desc: &RectifyDesc,
+    ) -> (CameraModel, ShadowMap, EpipolarMap) {
+        let camera = CameraModel::new(&scene.camera);
+        let geometry = FlatGeometry::from_scene(scene);
+        let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry);
+        let map = EpipolarMap::rectify(
+            &camera,
+            &shadow,
+            &geometry.view(),
+            scene.sun.direction.as_dvec3().normalize(),
+            scene.render.max_distance as f64,
+            rectification,
+            desc,
+        )
+        .expect("a valid view")
+        .expect("a view that rectifies");
+        (camera, shadow, map)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1482,9 +1482,8 @@ mod tests {
     /// piece reads on its own, on every 53rd pixel of torus in a box.
     #[test]
     fn shared_piece_boundaries_read_what_each_piece_reads_alone() {
+        use crate::epipolar::test_support::rectified;
         use crate::epipolar::{epipoles_in_image, RectifyDesc};
-        use crate::render::FlatGeometry;
-        use crate::shadow_map::ShadowMap;
         let mut scene = crate::builtin_scene("torus").expect("built-in scene");
         scene.camera.width = 96;
         scene.camera.height = 54;
@@ -1493,20 +1492,11 @@ mod tests {
             world_from_cube: Mat4::from_translation(glam::Vec3::new(0.5, -0.5, 3.0))
                 * Mat4::from_scale(glam::Vec3::new(5.0, 4.0, 3.0)),
         };
-        let camera = CameraModel::new(&scene.camera);
-        let geometry = FlatGeometry::from_scene(&scene);
-        let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
-        let map = EpipolarMap::rectify(
-            &camera,
-            &shadow,
-            &geometry.view(),
-            scene.sun.direction.as_dvec3().normalize(),
-            scene.render.max_distance as f64,
+        let (camera, shadow, map) = rectified(
+            &scene,
             scene.render.rectification,
             &RectifyDesc::prefiltered(scene.render.epipolar_slices),
-        )
-        .expect("rectified")
-        .expect("the default view can be rectified");
+        );
         let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
         let desc = PrefilteredDesc::from_settings(&scene.render);
         let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);

@@ -165,11 +165,9 @@ pub fn shade(
 mod tests {
     use super::*;
     use crate::builtin::builtin_scene;
-    use crate::camera::CameraModel;
+    use crate::epipolar::test_support::rectified;
     use crate::epipolar::RectifyDesc;
     use crate::prefiltered::{PrefilteredDesc, PrefilteredPlan};
-    use crate::render::FlatGeometry;
-    use crate::shadow_map::ShadowMap;
 
     #[test]
     fn params_carry_the_layout_the_epipoles_and_the_storage() {
@@ -177,20 +175,11 @@ mod tests {
         scene.camera.width = 64;
         scene.camera.height = 36;
         scene.render.shadow_map_size = 128;
-        let camera = CameraModel::new(&scene.camera);
-        let geometry = FlatGeometry::from_scene(&scene);
-        let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
-        let map = EpipolarMap::rectify(
-            &camera,
-            &shadow,
-            &geometry.view(),
-            scene.sun.direction.as_dvec3().normalize(),
-            scene.render.max_distance as f64,
+        let (camera, _, map) = rectified(
+            &scene,
             crate::scene::Rectification::Epipolar,
             &RectifyDesc::prefiltered(0),
-        )
-        .unwrap()
-        .unwrap();
+        );
         let desc = PrefilteredDesc::from_settings(&scene.render);
         let plan = PrefilteredPlan::new(&map, &camera, &[], &desc, &scene.sun, &scene.medium);
         let tables = plan.tables();
