@@ -318,7 +318,7 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.dedup();
     println!(
         "\nsmap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); silh = silhouette enhancement (1D epipolar dilation or closure); hcreate = hole creation (noise holes in chosen objects); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
-         prefiltered evaluation with the reference near on-screen epipoles); prefix = \
+         prefiltered evaluation with the exact texel walk near on-screen epipoles and for the rays it declines); prefix = \
          prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
          evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `maps` = wall time of the shadow map, camera \
