@@ -16,10 +16,12 @@ const uint PROJECTIVE = 2u;
 const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
-// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES; core/src/epipolar.rs: SHORT_RAY_TEXELS.
+// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, ALONG_THE_LIGHT_SIN; core/src/epipolar.rs:
+// SHORT_RAY_TEXELS.
 const float BOX_PIECE_DEPTH = 0.1;
 const uint MAX_BOX_PIECES = 20u;
 const float SHORT_RAY_TEXELS = 16.0;
+const float ALONG_THE_LIGHT_SIN = 0.15;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -275,6 +277,12 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     }
     // Too short for the prefix sums' resolution: marched instead.
     if (q.map_layout != PROJECTIVE && located.z * (t_end - t_start) < SHORT_RAY_TEXELS) {
+        ok = false;
+        return vec3(0.0);
+    }
+    // Nearly along the light (is_along_the_light): walked instead.
+    float along = dot(direction, p.light_travel.xyz);
+    if (along > 0.0 && 1.0 - along * along < ALONG_THE_LIGHT_SIN * ALONG_THE_LIGHT_SIN) {
         ok = false;
         return vec3(0.0);
     }

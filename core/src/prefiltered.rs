@@ -285,6 +285,7 @@ pub struct Prefiltered<'a> {
     extinction: f64,
     near_plane_correction: bool,
     box_medium: Option<BoxMedium>,
+    light_travel: DVec3,
 }
 
 fn frequency(m: usize) -> f64 {
@@ -491,6 +492,7 @@ pub struct PrefilteredPlan<'a> {
     extinction: f64,
     near_plane_correction: bool,
     box_medium: Option<BoxMedium>,
+    light_travel: DVec3,
 }
 
 impl<'a> PrefilteredPlan<'a> {
@@ -577,6 +579,7 @@ impl<'a> PrefilteredPlan<'a> {
             extinction,
             near_plane_correction: desc.near_plane_correction,
             box_medium,
+            light_travel: sun.direction.as_dvec3().normalize(),
         }
     }
 
@@ -593,6 +596,7 @@ impl<'a> PrefilteredPlan<'a> {
             extinction,
             near_plane_correction,
             box_medium,
+            light_travel,
         } = self;
         let row = prefix.stride;
         Prefiltered {
@@ -608,6 +612,7 @@ impl<'a> PrefilteredPlan<'a> {
             extinction,
             near_plane_correction,
             box_medium,
+            light_travel,
         }
     }
 }
@@ -875,6 +880,9 @@ impl<'a> Prefiltered<'a> {
         if self.map.is_short(&located, t_start, t_end) {
             return None;
         }
+        if is_along_the_light(ray.direction, self.light_travel) {
+            return None;
+        }
         let key = self.map.order_key(located.threshold);
         let x = |t: f64| row_coordinate(self.map, located.s_origin + located.s_per_t * t);
         let sigma = self.extinction;
@@ -939,6 +947,22 @@ impl<'a> Prefiltered<'a> {
             visibility: weighted_visibility(scattering, unshadowed).unwrap_or(1.0),
         })
     }
+}
+
+/// Sine of the widest angle between a ray and the light's travel at which the ray is
+/// integrated exactly instead ([`is_along_the_light`]): about 8.6°.
+pub const ALONG_THE_LIGHT_SIN: f64 = 0.15;
+
+/// Whether a ray runs within [`ALONG_THE_LIGHT_SIN`] of the light's own direction. Such
+/// a ray closes in on the surface it ends on over many texels in key, and the smooth
+/// step reads about half along all of them: an orthographic view 6.7° off the light, the
+/// sun behind the camera, read fully lit rays at 0.81–0.95 (9.2% off). The exact walk
+/// costs texels crossed, which is what these rays cross fewest of. Rays towards the
+/// light end on surfaces lit from behind them, whose keys are an object's thickness away.
+#[inline]
+pub fn is_along_the_light(direction: DVec3, light_travel: DVec3) -> bool {
+    let cos = direction.dot(light_travel);
+    cos > 0.0 && 1.0 - cos * cos < ALONG_THE_LIGHT_SIN * ALONG_THE_LIGHT_SIN
 }
 
 /// Largest ratio of the weight before a ray to the weight along it. Past it the ray
@@ -1530,6 +1554,24 @@ mod tests {
         }
         assert!(compared >= 50, "only {compared} rays compared");
         assert!(worst < 1e-5, "{worst}");
+    }
+
+    #[test]
+    fn only_rays_travelling_with_the_light_and_close_to_it_count_as_along_it() {
+        let light = DVec3::new(0.0, 0.0, -1.0);
+        let tilted = |degrees: f64| {
+            let a = degrees.to_radians();
+            DVec3::new(a.sin(), 0.0, -a.cos())
+        };
+        assert!(is_along_the_light(light, light));
+        assert!(is_along_the_light(tilted(8.0), light));
+        assert!(!is_along_the_light(tilted(9.0), light));
+        assert!(!is_along_the_light(-light, light), "towards the light");
+        assert!(
+            !is_along_the_light(tilted(175.0), light),
+            "towards the light"
+        );
+        assert!(!is_along_the_light(tilted(90.0), light));
     }
 
     #[test]

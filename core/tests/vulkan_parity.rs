@@ -674,6 +674,20 @@ fn prefiltered_evaluation_matches_across_layouts() {
             * glam::Mat4::from_scale(glam::Vec3::new(11.0, 7.0, 3.0)),
     };
     variants.push(("colonnade looking up out of a box", out_of_fog));
+    // Orthographic, 6.7° off the light with the sun behind: every ray is walked.
+    let mut along = prefiltered("plane");
+    let eye = glam::Vec3::new(-8.23, 12.73, 7.47);
+    let looking = glam::Vec3::new(-0.165, 0.706, -0.688);
+    along.camera = Camera::pinhole_looking_at(eye, eye + looking, 35.0, width, height);
+    along.camera.projection = Projection::Orthographic {
+        ortho_scale: 11.05,
+        sensor_fit: SensorFit::Auto,
+        shift_x: 0.0,
+        shift_y: 0.0,
+    };
+    along.sun.direction = glam::Vec3::new(-0.063, 0.728, -0.682);
+    along.render.max_distance = 30.0;
+    variants.push(("plane nearly along the light", along));
     let mut supersampled = prefiltered("tree");
     supersampled.render.supersampling = 2;
     variants.push(("tree 2×2 samples", supersampled));
