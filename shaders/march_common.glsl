@@ -122,6 +122,16 @@ bool box_clip(out float near, out float far) {
     return near < far;
 }
 
+// The ray's stretch [a, b] of [t_start, t_end] inside the box, if it has one
+// (reference.rs, medium_segment). Needs begin_ray.
+bool box_segment(float t_start, float t_end, out float a, out float b) {
+    float near, far;
+    bool hit = box_clip(near, far);
+    a = max(near, t_start);
+    b = min(far, t_end);
+    return hit && b > a;
+}
+
 float sunward_depth(vec3 cube_point) {
     float depth = BIG;
     for (int axis = 0; axis < 3; ++axis) {
@@ -135,11 +145,8 @@ float sunward_depth(vec3 cube_point) {
 }
 
 vec3 march_box(float t_start, float t_end) {
-    float near, far;
-    bool hit = box_clip(near, far);
-    float a = max(near, t_start);
-    float b = min(far, t_end);
-    if (!hit || !(b > a)) {
+    float a, b;
+    if (!box_segment(t_start, t_end, a, b)) {
         return vec3(0.0, 0.0, average_visibility(t_start, t_end));
     }
     uint n = p.steps;
@@ -345,11 +352,8 @@ vec3 walk_texels(float t_start, float t_end) {
 // The walk in a box (reference.rs, Marcher::walk_box): the stretch inside it, each lit
 // part attenuated through the box; a ray that misses it gets the fraction that is lit.
 vec3 walk_box(float t_start, float t_end) {
-    float near, far;
-    bool hit = box_clip(near, far);
-    float a = max(near, t_start);
-    float b = min(far, t_end);
-    if (!hit || !(b > a)) {
+    float a, b;
+    if (!box_segment(t_start, t_end, a, b)) {
         float lit = walk_lit(t_start, t_end, BIG, WALK_LENGTH, t_start);
         return vec3(0.0, 0.0, clamp(lit / (t_end - t_start), 0.0, 1.0));
     }

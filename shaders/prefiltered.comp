@@ -292,11 +292,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     bool inside = true;
     if (p.box_medium != 0u) {
         begin_ray(origin, direction);
-        float near, far;
-        inside = box_clip(near, far);
-        a = max(near, t_start);
-        b = min(far, t_end);
-        inside = inside && b > a;
+        inside = box_segment(t_start, t_end, a, b);
     }
     float visibility;
     if (!inside) {

@@ -460,6 +460,26 @@ impl Camera {
         }
     }
 
+    /// An orthographic camera at `eye`, looking at `target`, `ortho_scale` across its
+    /// wider side, otherwise as [`Camera::pinhole_looking_at`].
+    pub fn orthographic_looking_at(
+        eye: Vec3,
+        target: Vec3,
+        ortho_scale: f32,
+        width: u32,
+        height: u32,
+    ) -> Self {
+        Camera {
+            projection: Projection::Orthographic {
+                ortho_scale,
+                sensor_fit: SensorFit::Auto,
+                shift_x: 0.0,
+                shift_y: 0.0,
+            },
+            ..Camera::pinhole_looking_at(eye, target, 50.0, width, height)
+        }
+    }
+
     pub fn validate(&self) -> Result<()> {
         check_size("camera.width", self.width, 1, MAX_IMAGE_SIZE)?;
         check_size("camera.height", self.height, 1, MAX_IMAGE_SIZE)?;

@@ -282,19 +282,13 @@ fn rays_too_short_for_rectified_lookups_are_integrated_exactly() {
     // its stretch inside the box crosses a few texels, and prefiltering read it 35% dark.
     let mut out_of_fog = builtin_scene("colonnade").expect("built-in scene");
     let eye = Vec3::new(-2.73, 12.76, 5.38);
-    out_of_fog.camera = Camera::pinhole_looking_at(
+    out_of_fog.camera = Camera::orthographic_looking_at(
         eye,
         eye + Vec3::new(-0.17, -0.09, 0.98),
-        35.0,
+        21.0,
         WIDTH,
         HEIGHT,
     );
-    out_of_fog.camera.projection = Projection::Orthographic {
-        ortho_scale: 21.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
     out_of_fog.sun.direction = Vec3::new(0.22, -0.02, -0.97);
     out_of_fog.medium.extinction = 0.2;
     out_of_fog.medium.extent = Extent::Box {
@@ -319,19 +313,13 @@ fn rays_too_short_for_rectified_lookups_are_integrated_exactly() {
 fn rays_nearly_along_the_light_are_integrated_exactly() {
     let mut scene = builtin_scene("plane").expect("built-in scene");
     let eye = Vec3::new(-8.23, 12.73, 7.47);
-    scene.camera = Camera::pinhole_looking_at(
+    scene.camera = Camera::orthographic_looking_at(
         eye,
         eye - Vec3::new(0.165, -0.706, 0.688),
-        35.0,
+        11.05,
         WIDTH,
         HEIGHT,
     );
-    scene.camera.projection = Projection::Orthographic {
-        ortho_scale: 11.05,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
     scene.sun.direction = Vec3::new(-0.063, 0.728, -0.682);
     scene.medium.extinction = 0.01;
     scene.render.max_distance = 30.0;

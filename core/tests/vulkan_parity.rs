@@ -660,13 +660,7 @@ fn prefiltered_evaluation_matches_across_layouts() {
     let eye = glam::Vec3::new(-2.73, 12.76, 5.38);
     let looking = glam::Vec3::new(-0.17, -0.09, 0.98);
     let (width, height) = (out_of_fog.camera.width, out_of_fog.camera.height);
-    out_of_fog.camera = Camera::pinhole_looking_at(eye, eye + looking, 35.0, width, height);
-    out_of_fog.camera.projection = Projection::Orthographic {
-        ortho_scale: 21.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    out_of_fog.camera = Camera::orthographic_looking_at(eye, eye + looking, 21.0, width, height);
     out_of_fog.sun.direction = glam::Vec3::new(0.22, -0.02, -0.97);
     out_of_fog.medium.extinction = 0.2;
     out_of_fog.medium.extent = Extent::Box {
@@ -678,13 +672,7 @@ fn prefiltered_evaluation_matches_across_layouts() {
     let mut along = prefiltered("plane");
     let eye = glam::Vec3::new(-8.23, 12.73, 7.47);
     let looking = glam::Vec3::new(-0.165, 0.706, -0.688);
-    along.camera = Camera::pinhole_looking_at(eye, eye + looking, 35.0, width, height);
-    along.camera.projection = Projection::Orthographic {
-        ortho_scale: 11.05,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    along.camera = Camera::orthographic_looking_at(eye, eye + looking, 11.05, width, height);
     along.sun.direction = glam::Vec3::new(-0.063, 0.728, -0.682);
     along.render.max_distance = 30.0;
     variants.push(("plane nearly along the light", along));
