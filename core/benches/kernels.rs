@@ -5,11 +5,13 @@
 
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
+use crepuscular::layers::Layers;
 use crepuscular::prefiltered::{Prefiltered, PrefilteredDesc};
 use crepuscular::raster::{rasterize, RasterDesc};
 use crepuscular::reference::Marcher;
 use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
+use crepuscular::upsample::{joint_bilateral, reduced_size, sample_pixel};
 use crepuscular::{builtin_scene, Scene, BUILTIN_SCENES};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 
@@ -121,5 +123,43 @@ fn prefiltering(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(kernels, rasterization, reference_march, prefiltering);
+/// Joint-bilateral upsampling of ½- and ¼-resolution layers to 1920×1080, guided by
+/// tree's rasterized camera depth (its leaves make many depth edges).
+fn upsampling(c: &mut Criterion) {
+    let mut group = c.benchmark_group("upsample_1080p");
+    group.sample_size(20);
+    let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
+    let geometry = FlatGeometry::from_scene(&scene);
+    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
+    let depth: Vec<f32> = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
+        .depth
+        .iter()
+        .map(|&d| d.min(scene.render.max_distance))
+        .collect();
+    for factor in [2u32, 4] {
+        let (width, height) = (reduced_size(1920, factor), reduced_size(1080, factor));
+        let mut low = Layers::new(width, height);
+        for y in 0..height {
+            for x in 0..width {
+                let i = (y * width + x) as usize;
+                let full = sample_pixel(y, factor, 1080) * 1920 + sample_pixel(x, factor, 1920);
+                low.depth[i] = depth[full as usize];
+                low.visibility[i] = ((x ^ y) % 7) as f32 / 6.0;
+                low.volume[i * 4..i * 4 + 4].fill(low.visibility[i]);
+            }
+        }
+        group.bench_function(BenchmarkId::new("joint_bilateral", factor), |b| {
+            b.iter(|| joint_bilateral(&low, &depth, 1920, 1080, factor))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(
+    kernels,
+    rasterization,
+    reference_march,
+    prefiltering,
+    upsampling
+);
 criterion_main!(kernels);
