@@ -76,7 +76,8 @@ fn reference_march(c: &mut Criterion) {
 }
 
 /// At 1920×1080 with a 1024² map: rectification, the filtered basis for M = 16/32/64,
-/// and 4096 rays spread over the image evaluated against it.
+/// and evaluation of 4096 rays spread over the image and of a block of 128×128 pixels
+/// at its centre.
 fn prefiltering(c: &mut Criterion) {
     let mut group = c.benchmark_group("prefiltering");
     group.sample_size(10);
@@ -114,6 +115,19 @@ fn prefiltering(c: &mut Criterion) {
         group.bench_function(BenchmarkId::new("evaluate_4096_rays_m32", name), |b| {
             b.iter(|| {
                 rays.iter()
+                    .filter_map(|ray| prefiltered.march(ray, 0.1, max_distance))
+                    .map(|sample| sample.scattering)
+                    .sum::<f64>()
+            })
+        });
+        // Neighbouring pixels, as a frame shades them: its rectified rows stay in cache.
+        let block: Vec<_> = (0..128 * 128)
+            .map(|i| camera.ray((896 + i % 128) as f64 + 0.5, (476 + i / 128) as f64 + 0.5))
+            .collect();
+        group.bench_function(BenchmarkId::new("evaluate_128x128_block_m32", name), |b| {
+            b.iter(|| {
+                block
+                    .iter()
                     .filter_map(|ray| prefiltered.march(ray, 0.1, max_distance))
                     .map(|sample| sample.scattering)
                     .sum::<f64>()

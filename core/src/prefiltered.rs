@@ -202,12 +202,23 @@ impl Band {
     fn boundary(&self, x: f64) -> (usize, f64) {
         let last = self.rows - 1;
         let x = x.clamp(0.0, last as f64);
-        let lower = (x as usize).min(last);
+        let lower = (x as u32 as usize).min(last);
         if lower == last {
             (last, 0.0)
         } else {
             (lower, x - lower as f64)
         }
+    }
+
+    /// [`Band::boundary`] as the two boundaries either side, the lower one below the
+    /// last (its fraction then 1 at the table's end), so that a read always blends two
+    /// rows: the empty prefix (boundary 0) is a stored row of zeros, of zero weight.
+    #[inline]
+    fn straddle(&self, x: f64) -> (usize, f64) {
+        let last = (self.rows - 1) as f64;
+        let x = x.clamp(0.0, last);
+        let lower = (x as u32 as usize).min(self.rows - 2);
+        (lower, x - lower as f64)
     }
 }
 
@@ -263,7 +274,7 @@ impl Tables {
     #[inline]
     fn index(z: f64) -> usize {
         // z ∈ [0, 1]: rounding by truncation avoids a libm call.
-        (z * TABLE_STEPS as f64 + 0.5) as usize
+        (z * TABLE_STEPS as f64 + 0.5) as u32 as usize
     }
 }
 
@@ -692,7 +703,7 @@ impl<'a> Prefiltered<'a> {
         let range = self.slice_bands[slice as usize];
         let first = range.first as usize;
         let position = self.frames[slice as usize].band_position(log2_rate, range.count as usize);
-        let j = (position as usize).min(range.count as usize - 1);
+        let j = (position as u32 as usize).min(range.count as usize - 1);
         let fraction = position - j as f64;
         let next = (j + 1).min(range.count as usize - 1);
         [
@@ -725,18 +736,18 @@ impl<'a> Prefiltered<'a> {
                     continue;
                 }
                 let weights = &self.weight[band.first_row..band.first_row + band.rows];
-                let weight_at = |(lower, fraction): (usize, f64)| {
-                    let w0 = weights[lower] as f64;
-                    if fraction == 0.0 {
-                        return w0;
-                    }
-                    w0 + fraction * (weights[lower + 1] as f64 - w0)
+                // Per boundary: its two rows and their weights.
+                let rows_at = |x: f64| {
+                    let (lower, fraction) = band.straddle(x);
+                    let (w0, w1) = (weights[lower] as f64, weights[lower + 1] as f64);
+                    let parts = [(1.0 - fraction) * w0, fraction * w1];
+                    (band.first_row + lower, parts)
                 };
-                let end = band.boundary(x1);
+                let end = rows_at(x1);
                 // Boundary 0 is the empty prefix, of no weight.
-                let start = (x0 > 0.0).then(|| band.boundary(x0));
-                let before = start.map_or(0.0, weight_at);
-                let dw = weight_at(end) - before;
+                let start = (x0 > 0.0).then(|| rows_at(x0));
+                let before = start.map_or(0.0, |(_, [a, b])| a + b);
+                let dw = end.1[0] + end.1[1] - before;
                 if dw <= 0.0 {
                     return Average::OffTheMap;
                 }
@@ -746,19 +757,14 @@ impl<'a> Prefiltered<'a> {
                 let read = &mut reads[read_count];
                 read_count += 1;
                 let scale = share * band_share / dw;
-                let mut add = |(lower, fraction): (usize, f64), sign: f64| {
-                    for (boundary, part) in [(lower, 1.0 - fraction), (lower + 1, fraction)] {
-                        if boundary == 0 || part == 0.0 {
-                            continue;
-                        }
-                        let factor = sign * scale * part * weights[boundary] as f64;
-                        read.rows[read.count] = ((band.first_row + boundary) as u32, factor as f32);
-                        read.count += 1;
-                    }
-                };
-                add(end, 1.0);
-                if let Some(start) = start {
-                    add(start, -1.0);
+                let (row, [lower, upper]) = end;
+                read.rows[0] = (row as u32, (scale * lower) as f32);
+                read.rows[1] = (row as u32 + 1, (scale * upper) as f32);
+                read.count = 2;
+                if let Some((row, [lower, upper])) = start {
+                    read.rows[2] = (row as u32, (-scale * lower) as f32);
+                    read.rows[3] = (row as u32 + 1, (-scale * upper) as f32);
+                    read.count = 4;
                 }
                 shares += share * band_share;
                 let z = band.warp.warp(key);
