@@ -31,9 +31,18 @@ impl BasisValue for i16 {
     const SCALE: f32 = 1.0 / i16::MAX as f32;
     #[inline(always)]
     fn store(value: f32) -> Self {
-        // Round half away from zero without a libm call; the clamp keeps ±1 in range.
-        let scaled = (value * i16::MAX as f32).clamp(-(i16::MAX as f32), i16::MAX as f32);
-        (scaled + 0.5f32.copysign(scaled)) as i16
+        // Round half away from zero without a libm call; the clamp keeps ±1 in range, and
+        // NaN (never expected) stores 0 as a saturating cast would. Saturating casts do not
+        // vectorize, and storing was most of the prefix sums' instructions.
+        let scaled = value * i16::MAX as f32;
+        let scaled = if scaled.is_nan() {
+            0.0
+        } else {
+            scaled.clamp(-(i16::MAX as f32), i16::MAX as f32)
+        };
+        let rounded = scaled + 0.5f32.copysign(scaled);
+        // SAFETY: `rounded` is finite and within ±32767.5, so its truncation fits an i32.
+        unsafe { rounded.to_int_unchecked::<i32>() as i16 }
     }
     #[inline(always)]
     fn load(self) -> f32 {
@@ -193,8 +202,67 @@ unsafe fn blend_dots_avx2<T: BasisValue>(stored: &[T], reads: &[BandRead<'_>]) -
     blend_dots(stored, reads)
 }
 
+/// Dispatches to [`prefix_sums_fixed`] for every padded stride of M = 4…64, as
+/// [`blend_dots`] does.
 #[inline(always)]
 fn prefix_sums<T: BasisValue>(
+    table: &[f32],
+    entries: &[u32],
+    weights: &[f32],
+    scales: &[f32],
+    out: &mut [T],
+) {
+    match out.len() / scales.len().max(1) {
+        8 => prefix_sums_fixed::<T, 8>(table, entries, weights, scales, out),
+        16 => prefix_sums_fixed::<T, 16>(table, entries, weights, scales, out),
+        24 => prefix_sums_fixed::<T, 24>(table, entries, weights, scales, out),
+        32 => prefix_sums_fixed::<T, 32>(table, entries, weights, scales, out),
+        40 => prefix_sums_fixed::<T, 40>(table, entries, weights, scales, out),
+        48 => prefix_sums_fixed::<T, 48>(table, entries, weights, scales, out),
+        56 => prefix_sums_fixed::<T, 56>(table, entries, weights, scales, out),
+        64 => prefix_sums_fixed::<T, 64>(table, entries, weights, scales, out),
+        _ => prefix_sums_any(table, entries, weights, scales, out),
+    }
+}
+
+/// [`prefix_sums_any`] with a constant stride: the running sums stay in registers. Same
+/// arithmetic in the same order, so the same result.
+#[inline(always)]
+fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
+    table: &[f32],
+    entries: &[u32],
+    weights: &[f32],
+    scales: &[f32],
+    out: &mut [T],
+) {
+    let per_row = entries.len() / scales.len().max(1);
+    debug_assert_eq!(entries.len(), per_row * scales.len());
+    let mut sums = [0.0f32; STRIDE];
+    let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
+    if entries.iter().any(|&entry| row_of(entry).is_none()) {
+        // Past the table: the general loop reports it.
+        return prefix_sums_any(table, entries, weights, scales, out);
+    }
+    for (((row_entries, row_weights), &scale), row_out) in entries
+        .chunks_exact(per_row.max(1))
+        .zip(weights.chunks_exact(per_row.max(1)))
+        .zip(scales)
+        .zip(out.chunks_exact_mut(STRIDE))
+    {
+        for (&entry, &weight) in row_entries.iter().zip(row_weights) {
+            let values = row_of(entry).unwrap_or(&[0.0; STRIDE]);
+            for (sum, &value) in sums.iter_mut().zip(values) {
+                *sum += weight * value;
+            }
+        }
+        for (sum, out) in sums.iter().zip(row_out.iter_mut()) {
+            *out = T::store(*sum * scale);
+        }
+    }
+}
+
+#[inline(always)]
+fn prefix_sums_any<T: BasisValue>(
     table: &[f32],
     entries: &[u32],
     weights: &[f32],
@@ -266,6 +334,17 @@ mod tests {
             (i16::store(1.0), i16::store(-1.0), i16::store(2.0)),
             (i16::MAX, -i16::MAX, i16::MAX)
         );
+        // Halves round away from zero; out-of-range values saturate, NaN stores 0.
+        let half = 0.5 / i16::MAX as f32;
+        assert_eq!((i16::store(half), i16::store(-half)), (1, -1));
+        assert_eq!(
+            (
+                i16::store(f32::INFINITY),
+                i16::store(f32::NEG_INFINITY),
+                i16::store(f32::NAN)
+            ),
+            (i16::MAX, -i16::MAX, 0)
+        );
     }
 
     #[test]
@@ -329,36 +408,45 @@ mod tests {
 
     #[test]
     fn prefix_sums_accumulate_and_scale_every_row() {
-        let stride = padded(12);
-        let table: Vec<f32> = (0..4 * stride)
-            .map(|i| ((i % 7) as f32 - 3.0) / 3.0)
-            .collect();
-        let entries = [2u32, 0, 3, 3, 1, 2];
-        let weights = [0.5f32, 0.25, 1.0, 0.125, 2.0, 0.75];
-        for per_row in [1, 2, 3] {
-            let rows = entries.len() / per_row;
-            let scales: Vec<f32> = (0..rows).map(|r| 1.0 / (r as f32 + 1.5)).collect();
-            for kernels in all_kernels() {
-                let mut out = vec![0i16; rows * stride];
-                kernels.prefix_sums(&table, &entries, &weights, &scales, &mut out);
-                let mut sums = vec![0.0f64; stride];
-                for (i, &entry) in entries.iter().enumerate() {
-                    for (k, sum) in sums.iter_mut().enumerate() {
-                        *sum += weights[i] as f64 * table[entry as usize * stride + k] as f64;
-                    }
-                    if (i + 1) % per_row != 0 {
-                        continue;
-                    }
-                    let r = i / per_row;
-                    for (k, sum) in sums.iter().enumerate() {
-                        let want = (sum * scales[r] as f64).clamp(-1.0, 1.0);
-                        let got = out[r * stride + k].load() * i16::SCALE;
-                        assert!(
-                            (got as f64 - want).abs() <= 0.6 / i16::MAX as f64,
-                            "{kernels:?}, {per_row} per row: row {r} lane {k}"
-                        );
+        // Every padded stride of M = 4…64.
+        for values in (4..=64).step_by(6) {
+            let stride = padded(values);
+            let table: Vec<f32> = (0..4 * stride)
+                .map(|i| ((i % 7) as f32 - 3.0) / 3.0)
+                .collect();
+            let entries = [2u32, 0, 3, 3, 1, 2];
+            let weights = [0.5f32, 0.25, 1.0, 0.125, 2.0, 0.75];
+            for per_row in [1, 2, 3] {
+                let rows = entries.len() / per_row;
+                let scales: Vec<f32> = (0..rows).map(|r| 1.0 / (r as f32 + 1.5)).collect();
+                for kernels in all_kernels() {
+                    let mut out = vec![0i16; rows * stride];
+                    kernels.prefix_sums(&table, &entries, &weights, &scales, &mut out);
+                    let mut sums = vec![0.0f64; stride];
+                    for (i, &entry) in entries.iter().enumerate() {
+                        for (k, sum) in sums.iter_mut().enumerate() {
+                            *sum += weights[i] as f64 * table[entry as usize * stride + k] as f64;
+                        }
+                        if (i + 1) % per_row != 0 {
+                            continue;
+                        }
+                        let r = i / per_row;
+                        for (k, sum) in sums.iter().enumerate() {
+                            let want = (sum * scales[r] as f64).clamp(-1.0, 1.0);
+                            let got = out[r * stride + k].load() * i16::SCALE;
+                            assert!(
+                                (got as f64 - want).abs() <= 0.6 / i16::MAX as f64,
+                                "{kernels:?}, stride {stride}, {per_row} per row: row {r} lane {k}"
+                            );
+                        }
                     }
                 }
+                // The fixed-stride kernels do the general loop's arithmetic in its order.
+                let mut fixed = vec![0.0f32; rows * stride];
+                let mut any = vec![0.0f32; rows * stride];
+                prefix_sums(&table, &entries, &weights, &scales, &mut fixed);
+                prefix_sums_any(&table, &entries, &weights, &scales, &mut any);
+                assert_eq!(fixed, any, "stride {stride}, {per_row} per row");
             }
         }
     }
