@@ -196,23 +196,10 @@ struct Band {
 }
 
 impl Band {
-    /// A continuous boundary position as (lower boundary, fraction towards the next),
-    /// clamped to the table.
-    #[inline]
-    fn boundary(&self, x: f64) -> (usize, f64) {
-        let last = self.rows - 1;
-        let x = x.clamp(0.0, last as f64);
-        let lower = (x as u32 as usize).min(last);
-        if lower == last {
-            (last, 0.0)
-        } else {
-            (lower, x - lower as f64)
-        }
-    }
-
-    /// [`Band::boundary`] as the two boundaries either side, the lower one below the
-    /// last (its fraction then 1 at the table's end), so that a read always blends two
-    /// rows: the empty prefix (boundary 0) is a stored row of zeros, of zero weight.
+    /// A continuous boundary position, clamped to the table, as the boundaries either side:
+    /// the lower one, below the last (its fraction then 1 at the table's end), and the
+    /// fraction towards the next. A read always blends both rows: the empty prefix
+    /// (boundary 0) is a stored row of zeros, of zero weight.
     #[inline]
     fn straddle(&self, x: f64) -> (usize, f64) {
         let last = (self.rows - 1) as f64;
@@ -820,24 +807,23 @@ impl<'a> Prefiltered<'a> {
                     if *x <= 0.0 {
                         continue;
                     }
-                    let (lower, fraction) = band.boundary(*x);
-                    let mut read = BandRead {
-                        rows: [(0, 0.0); 4],
-                        count: 0,
+                    let (lower, fraction) = band.straddle(*x);
+                    let parts = [
+                        (1.0 - fraction) * weights[lower] as f64,
+                        fraction * weights[lower + 1] as f64,
+                    ];
+                    let row = (band.first_row + lower) as u32;
+                    let read = BandRead {
+                        rows: [
+                            (row, parts[0] as f32),
+                            (row + 1, parts[1] as f32),
+                            (0, 0.0),
+                            (0, 0.0),
+                        ],
+                        count: 2,
                         coefficients,
                     };
-                    let mut weight = 0.0;
-                    for (boundary, part) in [(lower, 1.0 - fraction), (lower + 1, fraction)] {
-                        if part == 0.0 {
-                            continue;
-                        }
-                        let w = part * weights[boundary] as f64;
-                        weight += w;
-                        if boundary > 0 {
-                            read.rows[read.count] = ((band.first_row + boundary) as u32, w as f32);
-                            read.count += 1;
-                        }
-                    }
+                    let weight = parts[0] + parts[1];
                     let reads = std::slice::from_ref(&read);
                     let dot = match &self.basis {
                         FilteredBasis::F32(stored) => self.kernels.blend_dots(stored, reads),
