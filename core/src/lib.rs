@@ -30,6 +30,7 @@ mod running;
 pub mod scene;
 pub mod shadow_map;
 pub mod silhouette;
+mod spare;
 pub mod style;
 pub mod transfer_function;
 pub mod upsample;

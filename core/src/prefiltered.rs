@@ -38,6 +38,7 @@ use crate::epipolar::{EpipolarMap, RaySlice};
 use crate::error::{Error, Result};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{BasisStorage, Extent, Medium, RenderSettings, Sun};
+use crate::spare::Spare;
 
 /// Basis coefficients M: sine and cosine of M/2 frequencies.
 pub const MIN_BASES: u32 = 4;
@@ -265,6 +266,11 @@ impl Tables {
     }
 }
 
+// The last frame's filtered basis, kept for the next (see `crate::spare`). Its plan's
+// arrays, a third of its size, gained too little from the same treatment to keep.
+static SPARE_F32_BASIS: Spare<f32> = Spare::new();
+static SPARE_SNORM16_BASIS: Spare<i16> = Spare::new();
+
 /// The filtered-basis storage.
 pub struct Prefiltered<'a> {
     map: &'a EpipolarMap,
@@ -461,15 +467,16 @@ impl PrefixPlan {
                 );
             });
         }
+        // `fill` writes every value, so a kept buffer's old values do not matter.
         let values = self.total_rows * self.stride;
         match self.storage {
             BasisStorage::F32 => {
-                let mut basis = vec![0.0f32; values];
+                let mut basis = SPARE_F32_BASIS.take(values);
                 fill(self, kernels, &mut basis);
                 FilteredBasis::F32(basis)
             }
             BasisStorage::Snorm16 => {
-                let mut basis = vec![0i16; values];
+                let mut basis = SPARE_SNORM16_BASIS.take(values);
                 fill(self, kernels, &mut basis);
                 FilteredBasis::Snorm16(basis)
             }
@@ -670,6 +677,15 @@ impl<'a> PrefilteredPlan<'a> {
             coefficients: &self.tables.coefficients,
             near_plane_correction: self.near_plane_correction,
             samples_per_row: SAMPLES_PER_ROW,
+        }
+    }
+}
+
+impl Drop for Prefiltered<'_> {
+    fn drop(&mut self) {
+        match std::mem::replace(&mut self.basis, FilteredBasis::F32(Vec::new())) {
+            FilteredBasis::F32(values) => SPARE_F32_BASIS.keep(values),
+            FilteredBasis::Snorm16(values) => SPARE_SNORM16_BASIS.keep(values),
         }
     }
 }
