@@ -203,6 +203,8 @@ impl Band {
     /// (boundary 0) is a stored row of zeros, of zero weight.
     #[inline]
     fn straddle(&self, x: f64) -> (usize, f64) {
+        // `plan_bands` gives every band at least one row of samples besides the empty prefix.
+        debug_assert!(self.rows >= 2);
         let last = (self.rows - 1) as f64;
         let x = x.clamp(0.0, last);
         let lower = (x as u32 as usize).min(self.rows - 2);
