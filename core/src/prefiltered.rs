@@ -516,7 +516,8 @@ impl<'a> PrefilteredPlan<'a> {
         let frequencies = (desc.bases / 2) as usize;
         let row = padded(2 * frequencies);
         let extinction = medium.extinction as f64;
-        let box_medium = BoxMedium::new(&medium.extent, sun.direction.as_dvec3().normalize());
+        let light_travel = sun.direction.as_dvec3().normalize();
+        let box_medium = BoxMedium::new(&medium.extent, light_travel);
         // Transmittance weights decay from where a slice's first ray enters the medium
         // (`SliceFrame::medium_start`): counted from the slice's start, they had decayed to
         // rounding where the rays reach a box 15 m off at σ = 0.3, and every ray through it
@@ -586,7 +587,7 @@ impl<'a> PrefilteredPlan<'a> {
             extinction,
             near_plane_correction: desc.near_plane_correction,
             box_medium,
-            light_travel: sun.direction.as_dvec3().normalize(),
+            light_travel,
         }
     }
 
@@ -717,6 +718,35 @@ impl<'a> Prefiltered<'a> {
         ]
     }
 
+    /// `band`'s boundary at continuous position `x`: its lower row in the filtered basis,
+    /// and the cumulative weights of that row and the next, each times its share of the
+    /// position ([`Band::straddle`]).
+    #[inline]
+    fn boundary_rows(&self, band: &Band, x: f64) -> (u32, [f64; 2]) {
+        let (lower, fraction) = band.straddle(x);
+        let row = band.first_row + lower;
+        let (w0, w1) = (self.weight[row] as f64, self.weight[row + 1] as f64);
+        (row as u32, [(1.0 - fraction) * w0, fraction * w1])
+    }
+
+    /// The coefficients of a ray's `key` under `band`'s warp.
+    #[inline]
+    fn coefficients(&self, band: &Band, key: f64) -> &'static [f32] {
+        let z = band.warp.warp(key);
+        &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride]
+    }
+
+    /// The reads' blended prefix rows dotted with their coefficients, in the stored
+    /// precision.
+    #[inline]
+    fn blend_dots(&self, reads: &[BandRead<'_>]) -> f64 {
+        let dot = match &self.basis {
+            FilteredBasis::F32(stored) => self.kernels.blend_dots(stored, reads),
+            FilteredBasis::Snorm16(stored) => self.kernels.blend_dots(stored, reads),
+        };
+        dot as f64
+    }
+
     /// Weighted average visibility between continuous boundary positions `x0 < x1`
     /// (`x0` ≤ 0 is the slice's start), blended over the two slices and the bands that
     /// bracket the ray's speed. Per slice, its bands' prefix rows are blended and dotted
@@ -740,17 +770,9 @@ impl<'a> Prefiltered<'a> {
                 if band_share == 0.0 {
                     continue;
                 }
-                let weights = &self.weight[band.first_row..band.first_row + band.rows];
-                // Per boundary: its two rows and their weights.
-                let rows_at = |x: f64| {
-                    let (lower, fraction) = band.straddle(x);
-                    let (w0, w1) = (weights[lower] as f64, weights[lower + 1] as f64);
-                    let parts = [(1.0 - fraction) * w0, fraction * w1];
-                    (band.first_row + lower, parts)
-                };
-                let end = rows_at(x1);
+                let end = self.boundary_rows(band, x1);
                 // Boundary 0 is the empty prefix, of no weight.
-                let start = (x0 > 0.0).then(|| rows_at(x0));
+                let start = (x0 > 0.0).then(|| self.boundary_rows(band, x0));
                 let before = start.map_or(0.0, |(_, [a, b])| a + b);
                 let dw = end.1[0] + end.1[1] - before;
                 if dw <= 0.0 {
@@ -763,24 +785,18 @@ impl<'a> Prefiltered<'a> {
                 read_count += 1;
                 let scale = share * band_share / dw;
                 let (row, [lower, upper]) = end;
-                read.rows[0] = (row as u32, (scale * lower) as f32);
-                read.rows[1] = (row as u32 + 1, (scale * upper) as f32);
+                read.rows[0] = (row, (scale * lower) as f32);
+                read.rows[1] = (row + 1, (scale * upper) as f32);
                 read.count = 2;
                 if let Some((row, [lower, upper])) = start {
-                    read.rows[2] = (row as u32, (-scale * lower) as f32);
-                    read.rows[3] = (row as u32 + 1, (-scale * upper) as f32);
+                    read.rows[2] = (row, (-scale * lower) as f32);
+                    read.rows[3] = (row + 1, (-scale * upper) as f32);
                     read.count = 4;
                 }
                 shares += share * band_share;
-                let z = band.warp.warp(key);
-                read.coefficients =
-                    &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride];
+                read.coefficients = self.coefficients(band, key);
             }
-            let reads = &reads[..read_count];
-            let dot = match &self.basis {
-                FilteredBasis::F32(stored) => self.kernels.blend_dots(stored, reads),
-                FilteredBasis::Snorm16(stored) => self.kernels.blend_dots(stored, reads),
-            } as f64;
+            let dot = self.blend_dots(&reads[..read_count]);
             visibility += (0.5 * shares + dot).clamp(0.0, shares);
         }
         Average::Visibility(visibility)
@@ -814,10 +830,7 @@ impl<'a> Prefiltered<'a> {
                 if band_share == 0.0 {
                     continue;
                 }
-                let weights = &self.weight[band.first_row..band.first_row + band.rows];
-                let z = band.warp.warp(key);
-                let coefficients =
-                    &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride];
+                let coefficients = self.coefficients(band, key);
                 // Per boundary: its cumulative weight, and its prefix row dotted with the
                 // coefficients and scaled by that weight.
                 let mut cumulative = [(0.0f64, 0.0f64); MOST];
@@ -825,12 +838,7 @@ impl<'a> Prefiltered<'a> {
                     if *x <= 0.0 {
                         continue;
                     }
-                    let (lower, fraction) = band.straddle(*x);
-                    let parts = [
-                        (1.0 - fraction) * weights[lower] as f64,
-                        fraction * weights[lower + 1] as f64,
-                    ];
-                    let row = (band.first_row + lower) as u32;
+                    let (row, parts) = self.boundary_rows(band, *x);
                     let read = BandRead {
                         rows: [
                             (row, parts[0] as f32),
@@ -841,13 +849,10 @@ impl<'a> Prefiltered<'a> {
                         count: 2,
                         coefficients,
                     };
-                    let weight = parts[0] + parts[1];
-                    let reads = std::slice::from_ref(&read);
-                    let dot = match &self.basis {
-                        FilteredBasis::F32(stored) => self.kernels.blend_dots(stored, reads),
-                        FilteredBasis::Snorm16(stored) => self.kernels.blend_dots(stored, reads),
-                    };
-                    *at = (weight, dot as f64);
+                    *at = (
+                        parts[0] + parts[1],
+                        self.blend_dots(std::slice::from_ref(&read)),
+                    );
                 }
                 let part = share * band_share;
                 for k in 0..pieces {
@@ -1586,17 +1591,13 @@ mod tests {
 
     #[test]
     fn tables_reach_the_far_side_of_a_box_from_either_camera() {
-        use crate::scene::{Camera, Projection, SensorFit};
-        let mut camera = Camera::pinhole_looking_at(glam::Vec3::ZERO, glam::Vec3::X, 35.0, 64, 36);
+        use crate::scene::Camera;
+        let (eye, target) = (glam::Vec3::ZERO, glam::Vec3::X);
+        let camera = Camera::pinhole_looking_at(eye, target, 35.0, 64, 36);
         let cube = Mat4::from_translation(glam::Vec3::new(10.0, 0.0, 0.0));
         let far = farthest_in_box(&CameraModel::new(&camera), &cube);
         assert!((far - (121.0f64 + 2.0).sqrt()).abs() < 1e-5, "{far}");
-        camera.projection = Projection::Orthographic {
-            ortho_scale: 4.0,
-            sensor_fit: SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
+        let camera = Camera::orthographic_looking_at(eye, target, 4.0, 64, 36);
         let far = farthest_in_box(&CameraModel::new(&camera), &cube);
         assert!((far - 11.0).abs() < 1e-5, "{far}");
     }

@@ -153,7 +153,7 @@ fn scaling_variants() -> Vec<Variant> {
 
 /// A box around the scene's subject (everything but the ground, object 1): its
 /// footprint half as wide again on each side, from the ground to a fifth above its top.
-pub fn fog_box_around_subject(scene: &Scene) -> Extent {
+fn fog_box_around_subject(scene: &Scene) -> Extent {
     let points = |subject_only: bool| {
         scene
             .meshes
@@ -190,6 +190,17 @@ pub fn fog_box_around_subject(scene: &Scene) -> Extent {
     Extent::Box {
         world_from_cube: Mat4::from_translation(0.5 * (low + high))
             * Mat4::from_scale((0.5 * (high - low)).max(Vec3::splat(0.5))),
+    }
+}
+
+/// With `fog_box`, confines `scene`'s medium to [`fog_box_around_subject`]; the name its
+/// rows go by either way.
+pub fn in_fog_box_if(fog_box: bool, scene: &mut Scene, name: &str) -> String {
+    if fog_box {
+        scene.medium.extent = fog_box_around_subject(scene);
+        format!("{name} (box)")
+    } else {
+        name.to_owned()
     }
 }
 
@@ -245,12 +256,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         let mut base = builtin_scene(name)?;
         overrides.apply(&mut base)?;
         base.render.backend = Backend::Cpu;
-        let name = &if args.fog_box {
-            base.medium.extent = fog_box_around_subject(&base);
-            format!("{name} (box)")
-        } else {
-            name.clone()
-        };
+        let name = &in_fog_box_if(args.fog_box, &mut base, name);
         for variant in &variants {
             let mut scene = base.clone();
             variant.apply(&mut scene);

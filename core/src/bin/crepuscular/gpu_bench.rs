@@ -84,12 +84,7 @@ pub fn run(
         let mut base = builtin_scene(name)?;
         overrides.apply(&mut base)?;
         base.render.backend = Backend::Vulkan;
-        let name = &if fog_box {
-            base.medium.extent = crate::bench::fog_box_around_subject(&base);
-            format!("{name} (box)")
-        } else {
-            name.clone()
-        };
+        let name = &crate::bench::in_fog_box_if(fog_box, &mut base, name);
         let mut looks = vec![(
             if overrides.style.is_some() {
                 "--style"
