@@ -1295,63 +1295,73 @@ fn slice_frames(
     let (w, h) = (camera.width, camera.height);
     // Slices 2 px apart: at distance r from the epipole they are 2π·r/slices apart.
     let dense_radius = 2.0 * map.slices as f64 / std::f64::consts::TAU;
-    let within = |x: f64, y: f64, radius: f64| {
-        epipoles
-            .iter()
-            .any(|e| (x - e[0]).abs() <= radius && (y - e[1]).abs() <= radius)
-    };
-    let mut positions: Vec<(f64, f64)> = Vec::new();
-    for x in 0..=w {
-        positions.push((x as f64, 0.0));
-        positions.push((x as f64, h as f64));
-    }
-    for y in 0..=h {
-        positions.push((0.0, y as f64));
-        positions.push((w as f64, y as f64));
-    }
-    for y in 0..h {
-        for x in 0..w {
-            let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
-            let on_grid = x % interior_stride == 0 && y % interior_stride == 0;
-            if (on_grid || within(px, py, dense_radius)) && !within(px, py, block) {
-                positions.push((px, py));
-            }
-        }
-    }
-    let located: Vec<(RaySlice, Option<f64>)> = positions
-        .par_iter()
-        .filter_map(|&(x, y)| {
-            let ray = camera.ray(x, y);
-            let located = map.locate(&ray)?;
-            let entry_t = match box_medium {
-                None => Some(0.0),
-                Some(box_medium) => box_medium
-                    .clip(&ray)
-                    .filter(|&(_, far)| far > 0.0)
-                    .map(|(near, _)| near.max(0.0)),
-            };
-            Some((located, entry_t))
-        })
-        .collect();
-    let mut rays: Vec<Vec<SampledRay>> = vec![Vec::new(); map.slices as usize];
-    for (located, entry_t) in &located {
+    // A sampled ray, with the two slices it belongs to.
+    let sample = |x: f64, y: f64| -> Option<([u32; 2], SampledRay)> {
+        let ray = camera.ray(x, y);
+        let located = map.locate(&ray)?;
+        let entry_t = match box_medium {
+            None => Some(0.0),
+            Some(box_medium) => box_medium
+                .clip(&ray)
+                .filter(|&(_, far)| far > 0.0)
+                .map(|(near, _)| near.max(0.0)),
+        };
+        let [(lower, _), (upper, _)] = map.neighbours(located.slice);
         let sampled = SampledRay {
             key: map.order_key(located.threshold),
             rate: located.s_per_t,
             origin: located.s_origin,
             medium_entry: entry_t.map(|t| located.s_origin + located.s_per_t * t),
         };
-        for (slice, _) in map.neighbours(located.slice) {
-            rays[slice as usize].push(sampled);
+        Some(([lower, upper], sampled))
+    };
+    let border: Vec<(f64, f64)> = (0..=w)
+        .flat_map(|x| [(x as f64, 0.0), (x as f64, h as f64)])
+        .chain((0..=h).flat_map(|y| [(0.0, y as f64), (w as f64, y as f64)]))
+        .collect();
+    let mut sampled: Vec<([u32; 2], SampledRay)> = border
+        .par_iter()
+        .filter_map(|&(x, y)| sample(x, y))
+        .collect();
+    let interior = (0..h).into_par_iter().flat_map_iter(|y| {
+        let py = y as f64 + 0.5;
+        let columns = sampled_columns(y, w, interior_stride, epipoles, dense_radius, block);
+        columns
+            .into_iter()
+            .filter_map(move |x| sample(x as f64 + 0.5, py))
+    });
+    sampled.par_extend(interior);
+    // Each slice's rays by index: a counting sort by slice (a ray belongs to two). Slices
+    // gather their own rays in parallel.
+    let slices = map.slices as usize;
+    let mut offsets = vec![0usize; slices + 1];
+    for (pair, _) in &sampled {
+        for &slice in pair {
+            offsets[slice as usize + 1] += 1;
         }
     }
-    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = rays
-        .par_iter_mut()
+    for i in 0..slices {
+        offsets[i + 1] += offsets[i];
+    }
+    let mut members = vec![0u32; offsets[slices]];
+    let mut cursor = offsets[..slices].to_vec();
+    for (index, (pair, _)) in sampled.iter().enumerate() {
+        for &slice in pair {
+            members[cursor[slice as usize]] = index as u32;
+            cursor[slice as usize] += 1;
+        }
+    }
+    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = offsets
+        .par_windows(2)
         .enumerate()
-        .map(|(slice, rays)| {
+        .map(|(slice, range)| {
+            let mut rays: Vec<SampledRay> = members[range[0]..range[1]]
+                .iter()
+                .map(|&index| sampled[index as usize].1)
+                .collect();
             let texels = texel_keys(map, slice);
-            let frame = frame_of(rays, &texels)?;
-            Some((frame, band_warps(&frame, rays, &texels)))
+            let frame = frame_of(&mut rays, &texels)?;
+            Some((frame, band_warps(&frame, &rays, &texels)))
         })
         .collect();
     let frames: Vec<Option<SliceFrame>> = sampled_frames
@@ -1388,6 +1398,60 @@ fn slice_frames(
         })
         .collect();
     (frames, warps)
+}
+
+/// The columns of pixel row `y` (of `w`) that [`slice_frames`] samples: those on the grid
+/// of `stride`, and every one within `dense_radius` of an epipole (both axes), except
+/// those within `block` of one. Visits the grid and each epipole's dense square (with a
+/// pixel's margin) rather than the whole row; the exact test decides.
+fn sampled_columns(
+    y: u32,
+    w: u32,
+    stride: u32,
+    epipoles: &[[f64; 2]],
+    dense_radius: f64,
+    block: f64,
+) -> Vec<u32> {
+    let py = y as f64 + 0.5;
+    let within = |x: f64, radius: f64| {
+        epipoles
+            .iter()
+            .any(|e| (x - e[0]).abs() <= radius && (py - e[1]).abs() <= radius)
+    };
+    let on_grid_row = y % stride == 0;
+    let mut dense: Vec<(u32, u32)> = epipoles
+        .iter()
+        .filter(|e| (py - e[1]).abs() <= dense_radius + 1.0)
+        .map(|e| {
+            let column = |x: f64| x.clamp(0.0, w as f64) as u32;
+            (
+                column(e[0] - dense_radius - 1.5),
+                column(e[0] + dense_radius + 1.5),
+            )
+        })
+        .collect();
+    dense.sort_unstable();
+    let mut merged: Vec<(u32, u32)> = Vec::with_capacity(dense.len());
+    for (lo, hi) in dense {
+        match merged.last_mut() {
+            Some(last) if lo <= last.1 => last.1 = last.1.max(hi),
+            _ => merged.push((lo, hi)),
+        }
+    }
+    let in_dense = |x: u32| merged.iter().any(|&(lo, hi)| lo <= x && x < hi);
+    let grid = (0..if on_grid_row { w } else { 0 })
+        .step_by(stride as usize)
+        .filter(|&x| !in_dense(x));
+    merged
+        .iter()
+        .flat_map(|&(lo, hi)| lo..hi)
+        .chain(grid)
+        .filter(|&x| {
+            let px = x as f64 + 0.5;
+            let on_grid = on_grid_row && x % stride == 0;
+            (on_grid || within(px, dense_radius)) && !within(px, block)
+        })
+        .collect()
 }
 
 /// A slice's frame from its sampled rays (sorted here, by key) and its texels' keys.
@@ -1466,6 +1530,41 @@ impl Warp {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sampled_columns_are_the_grid_and_the_squares_around_epipoles() {
+        let (w, h, stride) = (97u32, 61u32, 5u32);
+        let layouts: [&[[f64; 2]]; 6] = [
+            &[],
+            &[[40.3, 30.7]],
+            &[[-3.0, 2.0]],
+            &[[96.5, 60.5], [10.0, 55.0]],
+            &[[50.0, 30.0], [58.0, 33.0]],
+            &[[f64::NAN, 20.0]],
+        ];
+        for epipoles in layouts {
+            for (dense_radius, block) in [(12.0, 3.0), (12.5, 0.0), (2.0, 4.0), (200.0, 16.0)] {
+                for y in 0..h {
+                    let py = y as f64 + 0.5;
+                    let within = |px: f64, radius: f64| {
+                        epipoles
+                            .iter()
+                            .any(|e| (px - e[0]).abs() <= radius && (py - e[1]).abs() <= radius)
+                    };
+                    let expected: Vec<u32> = (0..w)
+                        .filter(|&x| {
+                            let px = x as f64 + 0.5;
+                            let on_grid = x % stride == 0 && y % stride == 0;
+                            (on_grid || within(px, dense_radius)) && !within(px, block)
+                        })
+                        .collect();
+                    let mut got = sampled_columns(y, w, stride, epipoles, dense_radius, block);
+                    got.sort_unstable();
+                    assert_eq!(got, expected, "{epipoles:?}, r {dense_radius}, row {y}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn harmonics_match_direct_evaluation() {
