@@ -244,6 +244,7 @@ unsafe fn blend_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTOR
     reads: &[BandRead<'_>],
 ) -> f32 {
     use std::arch::x86_64::*;
+    const { assert!(STRIDE == VECTORS * LANES) };
     let mut totals = [_mm256_setzero_ps(); VECTORS];
     for read in reads {
         let Ok(coefficients) = <&[f32; STRIDE]>::try_from(read.coefficients) else {
@@ -265,6 +266,7 @@ unsafe fn blend_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTOR
             .zip(blended)
             .zip(coefficients.chunks_exact(LANES))
         {
+            // The chunk holds exactly LANES values, all that the unaligned load reads.
             let coefficients = _mm256_loadu_ps(coefficients.as_ptr());
             *total = _mm256_fmadd_ps(blended, coefficients, *total);
         }
