@@ -178,8 +178,15 @@ impl SliceFrame {
     /// Where a ray of log₂(rate) falls between the bands: band index plus fraction.
     #[inline]
     fn band_position(&self, log2_rate: f64, count: usize) -> f64 {
-        (self.log2_fastest - log2_rate).clamp(0.0, (count - 1) as f64)
+        band_position(self.log2_fastest, log2_rate, count)
     }
+}
+
+/// Where a ray of log₂(rate) falls among `count` bands an octave apart from a slice's
+/// fastest ray: band index plus fraction.
+#[inline]
+fn band_position(log2_fastest: f64, log2_rate: f64, count: usize) -> f64 {
+    (log2_fastest - log2_rate).clamp(0.0, (count - 1) as f64)
 }
 
 /// One reference ray's table: `rows` boundaries from `first_row` on.
@@ -212,11 +219,13 @@ impl Band {
     }
 }
 
-/// Per slice, where its bands are.
+/// Per slice, where its bands are, and its fastest ray's log₂ speed ([`SliceFrame`]'s),
+/// which places each pixel's ray among them without reading the whole frame.
 #[derive(Clone, Copy, Debug)]
 struct SliceBands {
     first: u32,
     count: u32,
+    log2_fastest: f64,
 }
 
 /// Basis and coefficients over warped keys, shared by every frame with the same M.
@@ -280,7 +289,6 @@ pub struct Prefiltered<'a> {
     stride: usize,
     kernels: Kernels,
     tables: &'static Tables,
-    frames: Vec<SliceFrame>,
     slice_bands: Vec<SliceBands>,
     bands: Vec<Band>,
     /// Per band, `rows` rows of M: the weighted mean of the basis over the slice's
@@ -597,7 +605,7 @@ impl<'a> PrefilteredPlan<'a> {
             prefix,
             kernels,
             tables,
-            frames,
+            frames: _,
             slice_bands,
             bands,
             weight,
@@ -612,7 +620,6 @@ impl<'a> PrefilteredPlan<'a> {
             stride: row,
             kernels,
             tables,
-            frames,
             slice_bands,
             bands,
             basis,
@@ -708,7 +715,7 @@ impl<'a> Prefiltered<'a> {
     fn bands_for(&self, slice: u32, log2_rate: f64) -> [(&Band, f64); 2] {
         let range = self.slice_bands[slice as usize];
         let first = range.first as usize;
-        let position = self.frames[slice as usize].band_position(log2_rate, range.count as usize);
+        let position = band_position(range.log2_fastest, log2_rate, range.count as usize);
         let j = (position as u32 as usize).min(range.count as usize - 1);
         let fraction = position - j as f64;
         let next = (j + 1).min(range.count as usize - 1);
@@ -1044,6 +1051,7 @@ fn plan_bands(
         slice_bands.push(SliceBands {
             first: bands.len() as u32,
             count: count as u32,
+            log2_fastest: frame.log2_fastest,
         });
         debug_assert_eq!(warps.len(), count);
         for (j, &warp) in warps.iter().enumerate() {
