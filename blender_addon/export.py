@@ -486,6 +486,7 @@ def settings_dict(light: Any, *, preview: bool = False) -> dict[str, Any]:
         "steps": int(light.steps),
         "max_distance": float(light.max_distance),
         "downsample": 1 if preview else downsample,
+        "adaptive_tolerance": float(light.adaptive_tolerance),
         # The core upsamples a downsampled frame along full-size depth edges instead.
         "supersampling": 1 if preview or downsample > 1 else int(light.edge_samples),
     }

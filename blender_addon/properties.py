@@ -180,6 +180,19 @@ class CrepuscularLight(PropertyGroup):
         update=_tag_preview,
         description="Evaluate scattering at reduced resolution and upsample along depth edges",
     )
+    adaptive_tolerance: FloatProperty(
+        name="Adaptive Tolerance",
+        description="Fast methods: shade every other pixel, and the pixels between only where "
+        "their neighbours differ by more than this fraction or lie on another surface; "
+        "0 shades every pixel",
+        min=0.0,
+        max=1.0,
+        soft_max=0.1,
+        default=0.01,
+        precision=3,
+        step=0.1,
+        update=_tag_preview,
+    )
     steps: IntProperty(
         name="Steps",
         description="Ray-march steps of the reference method",

@@ -319,6 +319,8 @@ class CREPUSCULAR_PT_sun(SunPanel, bpy.types.Panel):
             layout.prop(settings, "bases")
         if settings.method == "reference":
             layout.prop(settings, "steps")
+        else:
+            layout.prop(settings, "adaptive_tolerance")
         layout.prop(settings, "downsample")
         layout.prop(settings, "edge_samples")
         layout.prop(settings, "max_distance")

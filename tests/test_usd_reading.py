@@ -341,6 +341,7 @@ def test_schema_fallbacks_are_the_renderers_defaults() -> None:
         "crepuscular:supersampling": "supersampling",
         "crepuscular:epipoleBlock": "epipole_block",
         "crepuscular:downsample": "downsample",
+        "crepuscular:adaptiveTolerance": "adaptive_tolerance",
         "crepuscular:bases": "bases",
         "crepuscular:basisStorage": "basis_storage",
         "crepuscular:rectification": "rectification",
@@ -349,7 +350,7 @@ def test_schema_fallbacks_are_the_renderers_defaults() -> None:
         defaults = crepuscular.scene_from_json(json.dumps({**build_scene(), "render": {}}))[
             "render"
         ]
-        assert fallback(attribute) == defaults[key], attribute
+        assert fallback(attribute) == pytest.approx(defaults[key]), attribute
     assert core["steps"] == 32  # the test scene's own value, not a default
     styled = crepuscular.load_style({"closing": {}, "silhouette": {}, "holes": {}})
     for name, value in styled["holes"].items():

@@ -3,6 +3,7 @@
 //! and per-ray evaluation) on the built-in scenes. Whole-frame timings come from
 //! `crepuscular bench`.
 
+use crepuscular::adaptive::{shade_adaptively, Shaded, DEFAULT_TOLERANCE};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::layers::Layers;
@@ -12,7 +13,7 @@ use crepuscular::reference::Marcher;
 use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::upsample::{joint_bilateral, reduced_size, sample_pixel};
-use crepuscular::{builtin_scene, Scene, BUILTIN_SCENES};
+use crepuscular::{builtin_scene, RenderControl, Scene, BUILTIN_SCENES};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 
 fn rasterization(c: &mut Criterion) {
@@ -169,11 +170,49 @@ fn upsampling(c: &mut Criterion) {
     group.finish();
 }
 
+/// Adaptive shading's own cost at 1080p: a shading function that costs next to nothing,
+/// smooth but for tree's depth edges, so the time is the shaded grid's bookkeeping and
+/// the test of every pixel between.
+fn adaptive_shading(c: &mut Criterion) {
+    let mut group = c.benchmark_group("adaptive_1080p");
+    group.sample_size(20);
+    let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
+    let geometry = FlatGeometry::from_scene(&scene);
+    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
+    let depth = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc).depth;
+    let max_distance = scene.render.max_distance;
+    let surface = |x: usize, y: usize| Some(depth[y * 1920 + x] as f64);
+    let shade = |x: usize, y: usize| {
+        let v = 1.0 + 1e-4 * (x + y) as f32;
+        Shaded {
+            volume: [v, v, v, 0.5],
+            visibility: 0.5,
+            depth: depth[y * 1920 + x].min(max_distance),
+        }
+    };
+    group.bench_function("tree_depth_smooth_light", |b| {
+        b.iter(|| {
+            let control = RenderControl::new();
+            shade_adaptively(
+                1920,
+                1080,
+                DEFAULT_TOLERANCE,
+                max_distance,
+                &control,
+                surface,
+                shade,
+            )
+        })
+    });
+    group.finish();
+}
+
 criterion_group!(
     kernels,
     rasterization,
     reference_march,
     prefiltering,
-    upsampling
+    upsampling,
+    adaptive_shading
 );
 criterion_main!(kernels);

@@ -3,6 +3,7 @@
 //! The core turns a [`Scene`] into per-pixel [`Layers`]: it rasterizes the light's shadow
 //! map and the camera depth, then integrates single scattering along every view ray.
 
+pub mod adaptive;
 pub mod backend;
 pub mod basis_kernels;
 pub mod builtin;

@@ -3,6 +3,7 @@
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 
+use crate::adaptive::{shade_adaptively, Shaded};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
@@ -262,6 +263,7 @@ pub(crate) fn scatter_timed(
             &camera,
             &surfaces,
             frame.settings,
+            frame.settings.adaptive_tolerance(),
             control,
             |_, ray, t0, t1| reference(ray, t0, t1),
         )?;
@@ -317,6 +319,7 @@ pub(crate) fn scatter_timed(
         &camera,
         &surfaces,
         frame.settings,
+        frame.settings.adaptive_tolerance(),
         control,
         |pixel, ray, t0, t1| {
             if near_epipole(pixel) {
@@ -442,6 +445,15 @@ pub fn camera_raster(camera: &CameraModel, ss: u32) -> (DMat4, RasterDesc) {
 /// Relative spread of a pixel's depth samples below which no edge runs through it.
 pub const EDGE_DEPTH_SPREAD: f64 = 0.02;
 
+/// The depth layer's value for a ray ending at `surface`: the max distance for background.
+pub(crate) fn layer_depth(surface: f64, max_distance: f64) -> f64 {
+    if surface.is_finite() {
+        surface
+    } else {
+        max_distance
+    }
+}
+
 /// The mean of a pixel's depth samples when they agree (all background, +∞, or all
 /// surfaces within [`EDGE_DEPTH_SPREAD`] of each other); `None` at a depth edge.
 pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
@@ -465,115 +477,138 @@ pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
 /// continuous image position), averaging samples into pixels, in parallel over rows.
 /// With supersampling, a pixel whose depth samples agree ([`uniform_surface`]) is shaded
 /// once at its centre, as MSAA shades once per pixel: only pixels at depth edges pay for
-/// every sample. Each pixel depends only on its own inputs, so the
-/// output is bit-identical for any thread count.
+/// every sample. With a `tolerance` above 0, pixels are shaded adaptively
+/// ([`shade_adaptively`]). Each pixel depends only on its own inputs (and adaptively, on
+/// the shaded pixels next to it), so the output is bit-identical for any thread count.
 pub(crate) fn shade_pixels(
     camera: &CameraModel,
     surfaces: &SurfaceDistances,
     settings: &RenderSettings,
+    tolerance: f32,
     control: &RenderControl,
     shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
 ) -> Result<Layers> {
     let stride = settings.downsample;
-    let mut layers = Layers::new(
-        reduced_size(camera.width, stride),
-        reduced_size(camera.height, stride),
-    );
-    let width = layers.width as usize;
-    let full_width = camera.width as usize;
-    let ss = surfaces.supersampling;
-    let samples_per_pixel = (ss * ss) as f64;
-    let sample_width = full_width * ss as usize;
+    let ss = surfaces.supersampling as usize;
+    let sample_width = camera.width as usize * ss;
     let max_distance = settings.max_distance as f64;
-    // Bands of TILE rows shaded tile by tile: neighbouring pixels share epipolar slices,
-    // so a tile's rectified data stays in cache, where a whole image row would not.
-    const TILE: usize = 16;
     // One depth sample's shading, and its depth for the depth layer.
     let shade_at = |pixel: [f64; 2], surface: f64| {
         let ray = camera.ray(pixel[0], pixel[1]);
         let t_start = camera.clip_start * ray.distance_per_depth;
         let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
-        let depth = if surface.is_finite() {
-            surface
-        } else {
-            max_distance
-        };
-        (sample, depth)
+        (sample, layer_depth(surface, max_distance))
     };
-    layers
-        .volume
-        .par_chunks_mut(TILE * width * 4)
-        .zip(layers.visibility.par_chunks_mut(TILE * width))
-        .zip(layers.depth.par_chunks_mut(TILE * width))
-        .enumerate()
-        .for_each(|(band, ((volume, visibility), depth))| {
-            if control.is_cancelled() {
-                return;
+    // Output sample (x, y) is one exact full-size pixel, also with downsampling.
+    let full_pixel = |x: usize, y: usize| {
+        (
+            sample_pixel(x as u32, stride, camera.width) as usize,
+            sample_pixel(y as u32, stride, camera.height) as usize,
+        )
+    };
+    let surface_at = |full_x: usize, full_y: usize, sx: usize, sy: usize| {
+        surfaces.distances[(full_y * ss + sy) * sample_width + full_x * ss + sx]
+    };
+    // The surface a whole pixel sees; `None` where a depth edge runs through it.
+    let uniform = |full_x: usize, full_y: usize| {
+        if ss == 1 {
+            return Some(surface_at(full_x, full_y, 0, 0) as f64);
+        }
+        uniform_surface(
+            (0..ss)
+                .flat_map(|sy| (0..ss).map(move |sx| (sx, sy)))
+                .map(|(sx, sy)| surface_at(full_x, full_y, sx, sy)),
+        )
+    };
+    let shade_one = |x: usize, y: usize| {
+        let (full_x, full_y) = full_pixel(x, y);
+        let (sum, depth_sum, count) = match uniform(full_x, full_y) {
+            // Shaded once, like MSAA: no edge runs through the pixel.
+            Some(surface) => {
+                let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
+                let (sample, depth) = shade_at(centre, surface);
+                (sample, depth, 1.0)
             }
-            let rows = visibility.len() / width;
-            for tile_x in (0..width).step_by(TILE) {
-                for row in 0..rows {
-                    let y = band * TILE + row;
-                    // With downsampling, output sample (x, y) is one exact full-size pixel.
-                    let full_y = sample_pixel(y as u32, stride, camera.height) as usize;
-                    for x in tile_x..(tile_x + TILE).min(width) {
-                        let full_x = sample_pixel(x as u32, stride, camera.width) as usize;
-                        let surface_at = |sx: usize, sy: usize| {
-                            let sample_row = full_y * ss as usize + sy;
-                            surfaces.distances
-                                [sample_row * sample_width + full_x * ss as usize + sx]
-                        };
-                        let uniform = if ss > 1 {
-                            uniform_surface(
-                                (0..ss as usize)
-                                    .flat_map(|sy| (0..ss as usize).map(move |sx| (sx, sy)))
-                                    .map(|(sx, sy)| surface_at(sx, sy)),
-                            )
-                        } else {
-                            None
-                        };
-                        let (sum, depth_sum, count) = match uniform {
-                            // Shaded once, like MSAA: no edge runs through the pixel.
-                            Some(surface) => {
-                                let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
-                                let (sample, depth) = shade_at(centre, surface);
-                                (sample, depth, 1.0)
-                            }
-                            None => {
-                                let mut sum = PixelSample::default();
-                                let mut depth_sum = 0.0;
-                                for sy in 0..ss as usize {
-                                    for sx in 0..ss as usize {
-                                        let pixel = [
-                                            full_x as f64 + (sx as f64 + 0.5) / ss as f64,
-                                            full_y as f64 + (sy as f64 + 0.5) / ss as f64,
-                                        ];
-                                        let (sample, depth) =
-                                            shade_at(pixel, surface_at(sx, sy) as f64);
-                                        sum.radiance += sample.radiance;
-                                        sum.alpha += sample.alpha;
-                                        sum.visibility += sample.visibility;
-                                        depth_sum += depth;
-                                    }
-                                }
-                                (sum, depth_sum, samples_per_pixel)
-                            }
-                        };
-                        let radiance = sum.radiance / count;
-                        let i = row * width + x;
-                        volume[i * 4..i * 4 + 4].copy_from_slice(&[
-                            radiance.x as f32,
-                            radiance.y as f32,
-                            radiance.z as f32,
-                            (sum.alpha / count) as f32,
-                        ]);
-                        visibility[i] = (sum.visibility / count) as f32;
-                        depth[i] = (depth_sum / count) as f32;
+            None => {
+                let mut sum = PixelSample::default();
+                let mut depth_sum = 0.0;
+                for sy in 0..ss {
+                    for sx in 0..ss {
+                        let pixel = [
+                            full_x as f64 + (sx as f64 + 0.5) / ss as f64,
+                            full_y as f64 + (sy as f64 + 0.5) / ss as f64,
+                        ];
+                        let (sample, depth) =
+                            shade_at(pixel, surface_at(full_x, full_y, sx, sy) as f64);
+                        sum.radiance += sample.radiance;
+                        sum.alpha += sample.alpha;
+                        sum.visibility += sample.visibility;
+                        depth_sum += depth;
                     }
                 }
+                (sum, depth_sum, (ss * ss) as f64)
             }
-            control.advance(rows as u64);
-        });
+        };
+        let radiance = sum.radiance / count;
+        Shaded {
+            volume: [
+                radiance.x as f32,
+                radiance.y as f32,
+                radiance.z as f32,
+                (sum.alpha / count) as f32,
+            ],
+            visibility: (sum.visibility / count) as f32,
+            depth: (depth_sum / count) as f32,
+        }
+    };
+    let width = reduced_size(camera.width, stride) as usize;
+    let height = reduced_size(camera.height, stride) as usize;
+    let layers = if tolerance > 0.0 {
+        shade_adaptively(
+            width,
+            height,
+            tolerance,
+            settings.max_distance,
+            control,
+            |x, y| {
+                let (full_x, full_y) = full_pixel(x, y);
+                uniform(full_x, full_y)
+            },
+            shade_one,
+        )
+    } else {
+        let mut layers = Layers::new(width as u32, height as u32);
+        // Bands of TILE rows shaded tile by tile: neighbouring pixels share epipolar
+        // slices, so a tile's rectified data stays in cache, where a whole image row
+        // would not.
+        const TILE: usize = 16;
+        layers
+            .volume
+            .par_chunks_mut(TILE * width * 4)
+            .zip(layers.visibility.par_chunks_mut(TILE * width))
+            .zip(layers.depth.par_chunks_mut(TILE * width))
+            .enumerate()
+            .for_each(|(band, ((volume, visibility), depth))| {
+                if control.is_cancelled() {
+                    return;
+                }
+                let rows = visibility.len() / width;
+                for tile_x in (0..width).step_by(TILE) {
+                    for row in 0..rows {
+                        let y = band * TILE + row;
+                        for x in tile_x..(tile_x + TILE).min(width) {
+                            let pixel = shade_one(x, y);
+                            let i = row * width + x;
+                            volume[i * 4..i * 4 + 4].copy_from_slice(&pixel.volume);
+                            visibility[i] = pixel.visibility;
+                            depth[i] = pixel.depth;
+                        }
+                    }
+                }
+                control.advance(rows as u64);
+            });
+        layers
+    };
     control.check()?;
     if stride == 1 {
         return Ok(layers);

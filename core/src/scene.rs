@@ -324,6 +324,12 @@ pub struct RenderSettings {
     /// Evaluate scattering at 1/1, 1/2 or 1/4 of the resolution per axis, then upsample
     /// with the full-resolution depth as guide.
     pub downsample: u32,
+    /// Fast methods: shade every other pixel of every other row, and the pixels between
+    /// only where their shaded neighbours' RGBA spreads by more than this fraction of its
+    /// mean (visibility: by more than this), or they end on another surface; the rest are
+    /// interpolated ([`crate::adaptive`]). 0 shades every pixel, as the reference method
+    /// and the Vulkan backend always do.
+    pub adaptive_tolerance: f32,
     /// Fourier basis coefficients M of the prefiltered method (even, 4 to 64).
     pub bases: u32,
     /// Prefiltered method: subtract the stretch between the camera and the near clip
@@ -361,6 +367,7 @@ impl Default for RenderSettings {
             epipolar_slices: 0,
             epipole_block: 16,
             downsample: 1,
+            adaptive_tolerance: crate::adaptive::DEFAULT_TOLERANCE,
             bases: 32,
             near_plane_correction: true,
             basis_storage: BasisStorage::default(),
@@ -570,6 +577,14 @@ impl Mesh {
 }
 
 impl RenderSettings {
+    /// The tolerance adaptive shading runs at: 0 (every pixel) for the reference method.
+    pub fn adaptive_tolerance(&self) -> f32 {
+        match self.method {
+            Method::Reference => 0.0,
+            Method::MinMax | Method::Prefiltered => self.adaptive_tolerance,
+        }
+    }
+
     pub fn validate(&self) -> Result<()> {
         check_size(
             "render.shadow_map_size",
@@ -610,6 +625,12 @@ impl RenderSettings {
                     "{} is not an even number from {MIN_BASES} to {MAX_BASES}",
                     self.bases
                 ),
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.adaptive_tolerance) {
+            return Err(Error::invalid(
+                "render.adaptive_tolerance",
+                format!("{} is not a fraction from 0 to 1", self.adaptive_tolerance),
             ));
         }
         if ![1, 2, 4].contains(&self.downsample) {

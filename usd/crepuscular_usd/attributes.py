@@ -64,6 +64,7 @@ ATTRIBUTES: dict[str, Attribute] = {
     "crepuscular:epipolarSlices": Attribute("int", ("render", "epipolar_slices")),
     "crepuscular:epipoleBlock": Attribute("int", ("render", "epipole_block")),
     "crepuscular:downsample": Attribute("int", ("render", "downsample")),
+    "crepuscular:adaptiveTolerance": Attribute("float", ("render", "adaptive_tolerance")),
     "crepuscular:bases": Attribute("int", ("render", "bases")),
     "crepuscular:nearPlaneCorrection": Attribute("bool", ("render", "near_plane_correction")),
     "crepuscular:basisStorage": Attribute("token", ("render", "basis_storage")),

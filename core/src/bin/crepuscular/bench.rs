@@ -60,6 +60,8 @@ struct Variant {
     method: Method,
     downsample: u32,
     bases: Option<u32>,
+    /// 0 shades every pixel; `None` keeps the scene's.
+    adaptive_tolerance: Option<f32>,
     size: Option<(u32, u32)>,
     shadow_map_size: Option<u32>,
 }
@@ -70,6 +72,7 @@ impl Variant {
             method,
             downsample: 1,
             bases: None,
+            adaptive_tolerance: None,
             size: None,
             shadow_map_size: None,
         }
@@ -80,6 +83,9 @@ impl Variant {
         scene.render.downsample = self.downsample;
         if let Some(bases) = self.bases {
             scene.render.bases = bases;
+        }
+        if let Some(tolerance) = self.adaptive_tolerance {
+            scene.render.adaptive_tolerance = tolerance;
         }
         if let Some((width, height)) = self.size {
             scene.camera.width = width;
@@ -98,6 +104,9 @@ impl Variant {
         if self.downsample > 1 {
             label += &format!(" 1/{}", self.downsample);
         }
+        if self.method != Method::Reference && scene.render.adaptive_tolerance == 0.0 {
+            label += " every px";
+        }
         label
     }
 }
@@ -112,7 +121,8 @@ struct Row {
 }
 
 /// The table: every method at full size, prefiltering at M = 16/32/64, and the
-/// fast methods at half resolution with upsampling.
+/// fast methods at half resolution with upsampling; then the fast methods shading every
+/// pixel instead of adaptively.
 fn method_variants() -> Vec<Variant> {
     let prefiltered = |bases: u32, downsample: u32| Variant {
         bases: Some(bases),
@@ -129,6 +139,14 @@ fn method_variants() -> Vec<Variant> {
         Variant {
             downsample: 2,
             ..Variant::of(Method::MinMax)
+        },
+        Variant {
+            adaptive_tolerance: Some(0.0),
+            ..Variant::of(Method::MinMax)
+        },
+        Variant {
+            adaptive_tolerance: Some(0.0),
+            ..prefiltered(32, 1)
         },
     ]
 }
@@ -328,7 +346,7 @@ fn stylization_table(names: &[String], overrides: &Overrides, runs: usize) -> Re
 
 fn print_table(rows: &[Row]) {
     println!(
-        "\n{:<10} {:<18} {:<22} {:>10} {:>16} {:>9} {:>10} {:>9}",
+        "\n{:<10} {:<26} {:<22} {:>10} {:>16} {:>9} {:>10} {:>9}",
         "scene", "method", "frame", "scatter ms", "min–max", "speed-up", "frame ms", "speed-up"
     );
     for row in rows {
@@ -345,7 +363,7 @@ fn print_table(rows: &[Row]) {
             row.scattering_ms[row.scattering_ms.len() - 1]
         );
         println!(
-            "{:<10} {:<18} {:<22} {:>10.1} {:>16} {:>9} {:>10.1} {:>9}",
+            "{:<10} {:<26} {:<22} {:>10.1} {:>16} {:>9} {:>10.1} {:>9}",
             row.scene,
             row.label,
             row.detail,

@@ -81,6 +81,10 @@ pub struct Overrides {
     /// Evaluate at 1/1, 1/2 or 1/4 resolution and upsample.
     #[arg(long)]
     downsample: Option<u32>,
+    /// Fast methods: interpolate pixels whose shaded neighbours agree within this fraction
+    /// (0 shades every pixel).
+    #[arg(long)]
+    adaptive_tolerance: Option<f32>,
     /// A style preset (JSON) replacing the scene's style.
     #[arg(long)]
     style: Option<PathBuf>,
@@ -118,6 +122,9 @@ impl Overrides {
         }
         if let Some(factor) = self.downsample {
             scene.render.downsample = factor;
+        }
+        if let Some(tolerance) = self.adaptive_tolerance {
+            scene.render.adaptive_tolerance = tolerance;
         }
         if let Some(backend) = self.backend {
             scene.render.backend = backend;
