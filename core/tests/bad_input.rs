@@ -81,6 +81,12 @@ fn sizes_out_of_range_are_named() {
         "camera.clip_end",
     );
     check(|s| s.render.downsample = 3, "render.downsample");
+    for tolerance in [-0.01, 1.5, f32::NAN] {
+        check(
+            move |s| s.render.adaptive_tolerance = tolerance,
+            "render.adaptive_tolerance",
+        );
+    }
     check(|s| s.render.bases = 7, "render.bases");
     check(|s| s.render.bases = 66, "render.bases");
     check(|s| s.render.epipolar_slices = 1, "render.epipolar_slices");

@@ -584,6 +584,23 @@ def test_render_layers_operator_writes_the_layers(addon: ModuleType, tmp_path: P
     assert again["volume.R"].mean() < 0.5 * channels["volume.R"].mean()
 
 
+def test_adaptive_tolerance_reaches_the_renderer(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    settings = scene.objects["Sun"].data.crepuscular
+    assert settings.method == "prefiltered"
+    assert addon.export.settings_dict(settings)["adaptive_tolerance"] == pytest.approx(0.01)
+    layers = {}
+    for tolerance in (0.0, 1.0):
+        settings.adaptive_tolerance = tolerance
+        path = tmp_path / f"tolerance-{tolerance}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        layers[tolerance] = crepuscular.read_exr(path)
+    # Shading every pixel and interpolating wherever the surfaces allow give different
+    # layers over the same depth.
+    np.testing.assert_array_equal(layers[0.0]["depth"], layers[1.0]["depth"])
+    assert not np.array_equal(layers[0.0]["volume.R"], layers[1.0]["volume.R"])
+
+
 def test_world_constraints_follow_the_frame(addon: ModuleType, tmp_path: Path) -> None:
     """A 3D TF constraint (what 'pick in viewport' adds) takes V̄ and depth from the pixel
     where its point appears; a point the camera cannot see is an error naming it."""
