@@ -106,29 +106,41 @@ pub fn shade_adaptively(
                 return;
             }
             let rows = visibility.len() / width;
+            // Interpolated row by row, which streams through the shaded grid and the
+            // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
+            // for the locality of their rectified data.
+            let mut to_shade = vec![false; rows * width];
+            let mut write = |k: usize, pixel: Shaded| {
+                volume[k * 4..k * 4 + 4].copy_from_slice(&pixel.volume);
+                visibility[k] = pixel.visibility;
+                depth[k] = pixel.depth;
+            };
+            for row in 0..rows {
+                let y = band * TILE + row;
+                let above = shaded_row(y / 2);
+                // The last odd row of an even height has nothing below.
+                let below = (y % 2 == 1).then(|| shaded_row(y / 2 + 1));
+                for x in 0..width {
+                    let k = row * width + x;
+                    let pixel = match (above, below) {
+                        (Some(above), None) => between(x, y, above, None),
+                        (Some(above), Some(Some(below))) => between(x, y, above, Some(below)),
+                        _ => None,
+                    };
+                    match pixel {
+                        Some(pixel) => write(k, pixel),
+                        None => to_shade[k] = true,
+                    }
+                }
+            }
             for tile_x in (0..width).step_by(TILE) {
                 for row in 0..rows {
                     let y = band * TILE + row;
-                    let Some(above) = shaded_row(y / 2) else {
-                        continue;
-                    };
-                    let below = if y % 2 == 1 {
-                        // The last odd row of an even height has nothing below.
-                        Some(shaded_row(y / 2 + 1))
-                    } else {
-                        None
-                    };
                     for x in tile_x..(tile_x + TILE).min(width) {
-                        let pixel = match below {
-                            Some(None) => None,
-                            Some(Some(below)) => between(x, y, above, Some(below)),
-                            None => between(x, y, above, None),
-                        }
-                        .unwrap_or_else(|| shade(x, y));
                         let k = row * width + x;
-                        volume[k * 4..k * 4 + 4].copy_from_slice(&pixel.volume);
-                        visibility[k] = pixel.visibility;
-                        depth[k] = pixel.depth;
+                        if to_shade[k] {
+                            write(k, shade(x, y));
+                        }
                     }
                 }
             }
