@@ -8,6 +8,8 @@
 //! A feature narrower than two pixels that no shaded pixel touches, such as a shaft one
 //! pixel wide, can be missed; a tolerance of 0 shades every pixel.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+
 use rayon::prelude::*;
 
 use crate::control::RenderControl;
@@ -36,7 +38,8 @@ pub struct Shaded {
 /// Shades a `width` × `height` image adaptively. `shade(x, y)` gives a pixel's layers;
 /// `surface(x, y)` the distance to the surface its whole footprint sees (+∞ for
 /// background), or `None` where a depth edge runs through it, which is then shaded.
-/// `control` advances by one unit per row.
+/// `control` advances by one unit per row. Returns the layers and how many pixels were
+/// shaded.
 pub fn shade_adaptively(
     width: usize,
     height: usize,
@@ -45,7 +48,7 @@ pub fn shade_adaptively(
     control: &RenderControl,
     surface: impl Fn(usize, usize) -> Option<f64> + Sync,
     shade: impl Fn(usize, usize) -> Shaded + Sync,
-) -> Layers {
+) -> (Layers, usize) {
     let (shaded_width, shaded_height) = (width.div_ceil(2), height.div_ceil(2));
     let mut shaded = vec![Shaded::default(); shaded_width * shaded_height];
     shaded
@@ -94,6 +97,7 @@ pub fn shade_adaptively(
         let depth = layer_depth(surface, max_distance as f64) as f32;
         Some(Shaded { depth, ..mean })
     };
+    let between_shaded = AtomicUsize::new(0);
     let mut layers = Layers::new(width as u32, height as u32);
     layers
         .volume
@@ -144,10 +148,12 @@ pub fn shade_adaptively(
                     }
                 }
             }
+            let count = to_shade.iter().filter(|&&shade| shade).count();
+            between_shaded.fetch_add(count, Ordering::Relaxed);
             // The even rows were counted as they were shaded.
             control.advance((rows / 2) as u64);
         });
-    layers
+    (layers, shaded.len() + between_shaded.into_inner())
 }
 
 /// The mean of `neighbours` where they agree: each of RGBA spreads by at most
@@ -200,8 +206,6 @@ fn on_one_surface(nearest: f32, reach: f32) -> bool {
 
 #[cfg(test)]
 mod tests {
-    use std::sync::atomic::{AtomicUsize, Ordering};
-
     use super::*;
 
     fn pixel(rgb: f32, alpha: f32, visibility: f32, depth: f32) -> Shaded {
@@ -276,7 +280,7 @@ mod tests {
         let calls = AtomicUsize::new(0);
         let control = RenderControl::new();
         control.begin(height as u64);
-        let layers = shade_adaptively(
+        let (layers, shaded) = shade_adaptively(
             width,
             height,
             tolerance,
@@ -289,7 +293,8 @@ mod tests {
             },
         );
         assert_eq!(control.progress(), (height as u64, height as u64));
-        (layers, calls.into_inner())
+        assert_eq!(shaded, calls.into_inner(), "the count of shaded pixels");
+        (layers, shaded)
     }
 
     fn layer_value(layers: &Layers, x: usize, y: usize) -> Shaded {

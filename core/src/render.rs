@@ -130,6 +130,11 @@ pub struct StageTimes {
     /// Bytes held by the method's own structure: the min-max mipmap or the filtered
     /// basis with its cumulative weights.
     pub structure_bytes: usize,
+    /// Pixels evaluated (at the reduced size with downsampling) and how many of them were
+    /// shaded rather than interpolated (adaptive shading); 0 where not counted (the
+    /// Vulkan backend).
+    pub pixels: usize,
+    pub shaded_pixels: usize,
 }
 
 impl StageTimes {
@@ -259,7 +264,7 @@ pub(crate) fn scatter_timed(
     // Rectification is undefined for an orthographic camera looking straight along the
     // light; the reference handles that view as it does any other.
     let Some(map) = map else {
-        let layers = shade_pixels(
+        let (layers, shaded) = shade_pixels(
             &camera,
             &surfaces,
             frame.settings,
@@ -267,6 +272,7 @@ pub(crate) fn scatter_timed(
             control,
             |_, ray, t0, t1| reference(ray, t0, t1),
         )?;
+        (times.pixels, times.shaded_pixels) = (evaluated_pixels(&camera, frame.settings), shaded);
         times.shading = stopwatch.lap();
         return Ok((layers, times));
     };
@@ -315,7 +321,7 @@ pub(crate) fn scatter_timed(
         }
     };
     times.prepare = stopwatch.lap();
-    let layers = shade_pixels(
+    let (layers, shaded) = shade_pixels(
         &camera,
         &surfaces,
         frame.settings,
@@ -328,6 +334,7 @@ pub(crate) fn scatter_timed(
             fast(ray, t0, t1).unwrap_or_else(|| fallback(ray, t0, t1))
         },
     )?;
+    (times.pixels, times.shaded_pixels) = (evaluated_pixels(&camera, frame.settings), shaded);
     times.shading = stopwatch.lap();
     Ok((layers, times))
 }
@@ -445,6 +452,12 @@ pub fn camera_raster(camera: &CameraModel, ss: u32) -> (DMat4, RasterDesc) {
 /// Relative spread of a pixel's depth samples below which no edge runs through it.
 pub const EDGE_DEPTH_SPREAD: f64 = 0.02;
 
+/// Pixels that shading evaluates: the image's, or the reduced image's with downsampling.
+fn evaluated_pixels(camera: &CameraModel, settings: &RenderSettings) -> usize {
+    let stride = settings.downsample;
+    reduced_size(camera.width, stride) as usize * reduced_size(camera.height, stride) as usize
+}
+
 /// The depth layer's value for a ray ending at `surface`: the max distance for background.
 pub(crate) fn layer_depth(surface: f64, max_distance: f64) -> f64 {
     if surface.is_finite() {
@@ -480,6 +493,7 @@ pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
 /// every sample. With a `tolerance` above 0, pixels are shaded adaptively
 /// ([`shade_adaptively`]). Each pixel depends only on its own inputs (and adaptively, on
 /// the shaded pixels next to it), so the output is bit-identical for any thread count.
+/// Returns the layers and how many pixels were shaded (at the reduced size, if any).
 pub(crate) fn shade_pixels(
     camera: &CameraModel,
     surfaces: &SurfaceDistances,
@@ -487,7 +501,7 @@ pub(crate) fn shade_pixels(
     tolerance: f32,
     control: &RenderControl,
     shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
-) -> Result<Layers> {
+) -> Result<(Layers, usize)> {
     let stride = settings.downsample;
     let ss = surfaces.supersampling as usize;
     let sample_width = camera.width as usize * ss;
@@ -563,7 +577,7 @@ pub(crate) fn shade_pixels(
     };
     let width = reduced_size(camera.width, stride) as usize;
     let height = reduced_size(camera.height, stride) as usize;
-    let layers = if tolerance > 0.0 {
+    let (layers, shaded) = if tolerance > 0.0 {
         shade_adaptively(
             width,
             height,
@@ -607,11 +621,11 @@ pub(crate) fn shade_pixels(
                 }
                 control.advance(rows as u64);
             });
-        layers
+        (layers, width * height)
     };
     control.check()?;
     if stride == 1 {
-        return Ok(layers);
+        return Ok((layers, shaded));
     }
     let depth: Vec<f32> = surfaces
         .distances
@@ -624,13 +638,8 @@ pub(crate) fn shade_pixels(
             }
         })
         .collect();
-    Ok(joint_bilateral(
-        &layers,
-        &depth,
-        camera.width,
-        camera.height,
-        stride,
-    ))
+    let layers = joint_bilateral(&layers, &depth, camera.width, camera.height, stride);
+    Ok((layers, shaded))
 }
 
 impl<'a> Frame<'a> {

@@ -304,7 +304,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 scattering_ms,
             };
             eprintln!(
-                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}, shading {:.1}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB)",
+                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}, shading {:.1}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB; shaded {:.1}% of {} pixels)",
                 row.label,
                 row.detail,
                 median(&row.scattering_ms),
@@ -315,6 +315,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 stage.camera_depth * 1e3,
                 stage.rectified_bytes as f64 / (1 << 20) as f64,
                 stage.structure_bytes as f64 / (1 << 20) as f64,
+                100.0 * stage.shaded_pixels as f64 / stage.pixels.max(1) as f64,
+                stage.pixels,
             );
             rows.push(row);
         }
