@@ -99,60 +99,49 @@ pub fn shade_adaptively(
     };
     let between_shaded = AtomicUsize::new(0);
     let mut layers = Layers::new(width as u32, height as u32);
-    layers
-        .volume
-        .par_chunks_mut(TILE * width * 4)
-        .zip(layers.visibility.par_chunks_mut(TILE * width))
-        .zip(layers.depth.par_chunks_mut(TILE * width))
-        .enumerate()
-        .for_each(|(band, ((volume, visibility), depth))| {
-            if control.is_cancelled() {
-                return;
+    layers.par_bands_mut(TILE).for_each(|mut band| {
+        if control.is_cancelled() {
+            return;
+        }
+        let rows = band.rows;
+        // Interpolated row by row, which streams through the shaded grid and the
+        // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
+        // for the locality of their rectified data.
+        let mut to_shade = vec![false; rows * width];
+        for row in 0..rows {
+            let y = band.first_row + row;
+            let above = shaded_row(y / 2);
+            // The last odd row of an even height has nothing below.
+            let below = (y % 2 == 1).then(|| shaded_row(y / 2 + 1));
+            for x in 0..width {
+                let k = row * width + x;
+                let pixel = match (above, below) {
+                    (Some(above), None) => between(x, y, above, None),
+                    (Some(above), Some(Some(below))) => between(x, y, above, Some(below)),
+                    _ => None,
+                };
+                match pixel {
+                    Some(pixel) => band.set(k, &pixel),
+                    None => to_shade[k] = true,
+                }
             }
-            let rows = visibility.len() / width;
-            // Interpolated row by row, which streams through the shaded grid and the
-            // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
-            // for the locality of their rectified data.
-            let mut to_shade = vec![false; rows * width];
-            let mut write = |k: usize, pixel: Shaded| {
-                volume[k * 4..k * 4 + 4].copy_from_slice(&pixel.volume);
-                visibility[k] = pixel.visibility;
-                depth[k] = pixel.depth;
-            };
+        }
+        for tile_x in (0..width).step_by(TILE) {
             for row in 0..rows {
-                let y = band * TILE + row;
-                let above = shaded_row(y / 2);
-                // The last odd row of an even height has nothing below.
-                let below = (y % 2 == 1).then(|| shaded_row(y / 2 + 1));
-                for x in 0..width {
+                let y = band.first_row + row;
+                for x in tile_x..(tile_x + TILE).min(width) {
                     let k = row * width + x;
-                    let pixel = match (above, below) {
-                        (Some(above), None) => between(x, y, above, None),
-                        (Some(above), Some(Some(below))) => between(x, y, above, Some(below)),
-                        _ => None,
-                    };
-                    match pixel {
-                        Some(pixel) => write(k, pixel),
-                        None => to_shade[k] = true,
+                    if to_shade[k] {
+                        band.set(k, &shade(x, y));
                     }
                 }
             }
-            for tile_x in (0..width).step_by(TILE) {
-                for row in 0..rows {
-                    let y = band * TILE + row;
-                    for x in tile_x..(tile_x + TILE).min(width) {
-                        let k = row * width + x;
-                        if to_shade[k] {
-                            write(k, shade(x, y));
-                        }
-                    }
-                }
-            }
-            let count = to_shade.iter().filter(|&&shade| shade).count();
-            between_shaded.fetch_add(count, Ordering::Relaxed);
-            // The even rows were counted as they were shaded.
-            control.advance((rows / 2) as u64);
-        });
+        }
+        let count = to_shade.iter().filter(|&&shade| shade).count();
+        between_shaded.fetch_add(count, Ordering::Relaxed);
+        // The even rows were counted as they were shaded.
+        control.advance((rows / 2) as u64);
+    });
     (layers, shaded.len() + between_shaded.into_inner())
 }
 

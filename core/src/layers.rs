@@ -1,5 +1,9 @@
 //! The per-pixel output every scattering method writes (DESIGN §3, "Per-pixel layers").
 
+use rayon::prelude::*;
+
+use crate::adaptive::Shaded;
+
 /// Linear float layers at the camera's resolution, rows top to bottom.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Layers {
@@ -29,6 +33,27 @@ impl Layers {
         self.width as usize * self.height as usize
     }
 
+    /// The layers in bands of `rows` rows (the last one may be shorter), in parallel.
+    pub fn par_bands_mut(
+        &mut self,
+        rows: usize,
+    ) -> impl IndexedParallelIterator<Item = LayersBand<'_>> {
+        let width = (self.width as usize).max(1);
+        let pixels = (rows * width).max(1);
+        self.volume
+            .par_chunks_mut(4 * pixels)
+            .zip(self.visibility.par_chunks_mut(pixels))
+            .zip(self.depth.par_chunks_mut(pixels))
+            .enumerate()
+            .map(move |(band, ((volume, visibility), depth))| LayersBand {
+                first_row: band * rows,
+                rows: visibility.len() / width,
+                volume,
+                visibility,
+                depth,
+            })
+    }
+
     pub fn volume_rgba(&self, x: u32, y: u32) -> [f32; 4] {
         let i = (y as usize * self.width as usize + x as usize) * 4;
         [
@@ -37,5 +62,23 @@ impl Layers {
             self.volume[i + 2],
             self.volume[i + 3],
         ]
+    }
+}
+
+/// Rows `first_row..first_row + rows` of [`Layers`], borrowed for writing.
+pub struct LayersBand<'a> {
+    pub first_row: usize,
+    pub rows: usize,
+    pub volume: &'a mut [f32],
+    pub visibility: &'a mut [f32],
+    pub depth: &'a mut [f32],
+}
+
+impl LayersBand<'_> {
+    /// Sets pixel `k`, counted from the band's first pixel.
+    pub fn set(&mut self, k: usize, pixel: &Shaded) {
+        self.volume[k * 4..k * 4 + 4].copy_from_slice(&pixel.volume);
+        self.visibility[k] = pixel.visibility;
+        self.depth[k] = pixel.depth;
     }
 }

@@ -596,31 +596,20 @@ pub(crate) fn shade_pixels(
         // slices, so a tile's rectified data stays in cache, where a whole image row
         // would not.
         const TILE: usize = 16;
-        layers
-            .volume
-            .par_chunks_mut(TILE * width * 4)
-            .zip(layers.visibility.par_chunks_mut(TILE * width))
-            .zip(layers.depth.par_chunks_mut(TILE * width))
-            .enumerate()
-            .for_each(|(band, ((volume, visibility), depth))| {
-                if control.is_cancelled() {
-                    return;
-                }
-                let rows = visibility.len() / width;
-                for tile_x in (0..width).step_by(TILE) {
-                    for row in 0..rows {
-                        let y = band * TILE + row;
-                        for x in tile_x..(tile_x + TILE).min(width) {
-                            let pixel = shade_one(x, y);
-                            let i = row * width + x;
-                            volume[i * 4..i * 4 + 4].copy_from_slice(&pixel.volume);
-                            visibility[i] = pixel.visibility;
-                            depth[i] = pixel.depth;
-                        }
+        layers.par_bands_mut(TILE).for_each(|mut band| {
+            if control.is_cancelled() {
+                return;
+            }
+            for tile_x in (0..width).step_by(TILE) {
+                for row in 0..band.rows {
+                    let y = band.first_row + row;
+                    for x in tile_x..(tile_x + TILE).min(width) {
+                        band.set(row * width + x, &shade_one(x, y));
                     }
                 }
-                control.advance(rows as u64);
-            });
+            }
+            control.advance(band.rows as u64);
+        });
         (layers, width * height)
     };
     control.check()?;
