@@ -3,10 +3,10 @@
 //! and per-ray evaluation) on the built-in scenes. Whole-frame timings come from
 //! `crepuscular bench`.
 
-use crepuscular::adaptive::{shade_adaptively, Shaded, DEFAULT_TOLERANCE};
+use crepuscular::adaptive::{shade_adaptively, DEFAULT_TOLERANCE};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
-use crepuscular::layers::Layers;
+use crepuscular::layers::{Layers, Pixel};
 use crepuscular::prefiltered::{Prefiltered, PrefilteredDesc};
 use crepuscular::raster::{rasterize, RasterDesc};
 use crepuscular::reference::Marcher;
@@ -138,16 +138,23 @@ fn prefiltering(c: &mut Criterion) {
     group.finish();
 }
 
+/// `tree` at 1920×1080 and its rasterized camera depth (+∞ for background): its leaves
+/// make many depth edges.
+fn tree_camera_depth_1080p() -> (Scene, Vec<f32>) {
+    let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
+    let geometry = FlatGeometry::from_scene(&scene);
+    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
+    let depth = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc).depth;
+    (scene, depth)
+}
+
 /// Joint-bilateral upsampling of ½- and ¼-resolution layers to 1920×1080, guided by
 /// tree's rasterized camera depth (its leaves make many depth edges).
 fn upsampling(c: &mut Criterion) {
     let mut group = c.benchmark_group("upsample_1080p");
     group.sample_size(20);
-    let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
-    let geometry = FlatGeometry::from_scene(&scene);
-    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
-    let depth: Vec<f32> = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
-        .depth
+    let (scene, depth) = tree_camera_depth_1080p();
+    let depth: Vec<f32> = depth
         .iter()
         .map(|&d| d.min(scene.render.max_distance))
         .collect();
@@ -176,15 +183,12 @@ fn upsampling(c: &mut Criterion) {
 fn adaptive_shading(c: &mut Criterion) {
     let mut group = c.benchmark_group("adaptive_1080p");
     group.sample_size(20);
-    let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
-    let geometry = FlatGeometry::from_scene(&scene);
-    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
-    let depth = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc).depth;
+    let (scene, depth) = tree_camera_depth_1080p();
     let max_distance = scene.render.max_distance;
     let surface = |x: usize, y: usize| Some(depth[y * 1920 + x] as f64);
     let shade = |x: usize, y: usize| {
         let v = 1.0 + 1e-4 * (x + y) as f32;
-        Shaded {
+        Pixel {
             volume: [v, v, v, 0.5],
             visibility: 0.5,
             depth: depth[y * 1920 + x].min(max_distance),

@@ -13,7 +13,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use rayon::prelude::*;
 
 use crate::control::RenderControl;
-use crate::layers::Layers;
+use crate::layers::{Layers, Pixel};
 use crate::render::{layer_depth, EDGE_DEPTH_SPREAD};
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
@@ -25,15 +25,6 @@ pub const DEFAULT_TOLERANCE: f32 = 0.01;
 /// Rows per parallel task and columns per tile, as in full shading: neighbouring pixels
 /// share epipolar slices, so a tile's rectified data stays in cache.
 const TILE: usize = 16;
-
-/// One output pixel's layers.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Shaded {
-    /// Premultiplied RGBA ([`Layers::volume`]).
-    pub volume: [f32; 4],
-    pub visibility: f32,
-    pub depth: f32,
-}
 
 /// Shades a `width` × `height` image adaptively. `shade(x, y)` gives a pixel's layers;
 /// `surface(x, y)` the distance to the surface its whole footprint sees (+∞ for
@@ -47,10 +38,10 @@ pub fn shade_adaptively(
     max_distance: f32,
     control: &RenderControl,
     surface: impl Fn(usize, usize) -> Option<f64> + Sync,
-    shade: impl Fn(usize, usize) -> Shaded + Sync,
+    shade: impl Fn(usize, usize) -> Pixel + Sync,
 ) -> (Layers, usize) {
     let (shaded_width, shaded_height) = (width.div_ceil(2), height.div_ceil(2));
-    let mut shaded = vec![Shaded::default(); shaded_width * shaded_height];
+    let mut shaded = vec![Pixel::default(); shaded_width * shaded_height];
     shaded
         .par_chunks_mut(TILE * shaded_width)
         .enumerate()
@@ -73,7 +64,7 @@ pub fn shade_adaptively(
     // Pixel (x, y) as the mean of the shaded pixels beside it (left and right, above and
     // below, or the four diagonal ones) where they agree. `None` on the last column or
     // row where one is missing.
-    let between = |x: usize, y: usize, above: &[Shaded], below: Option<&[Shaded]>| {
+    let between = |x: usize, y: usize, above: &[Pixel], below: Option<&[Pixel]>| {
         let i = x / 2;
         let mean = match (x % 2 == 1, below) {
             (true, None) => {
@@ -95,7 +86,7 @@ pub fn shade_adaptively(
             return None;
         }
         let depth = layer_depth(surface, max_distance as f64) as f32;
-        Some(Shaded { depth, ..mean })
+        Some(Pixel { depth, ..mean })
     };
     let between_shaded = AtomicUsize::new(0);
     let mut layers = Layers::new(width as u32, height as u32);
@@ -151,10 +142,10 @@ pub fn shade_adaptively(
 /// `max_distance`). The mean's depth is their nearest ray end. NaN anywhere means
 /// disagreement.
 fn mean_if_agreeing<const N: usize>(
-    neighbours: [Shaded; N],
+    neighbours: [Pixel; N],
     tolerance: f32,
     max_distance: f32,
-) -> Option<Shaded> {
+) -> Option<Pixel> {
     let mut low = [f32::INFINITY; 6];
     let mut high = [f32::NEG_INFINITY; 6];
     let mut sum = [0.0f32; 5];
@@ -180,7 +171,7 @@ fn mean_if_agreeing<const N: usize>(
         };
         agree &= high[k] - low[k] <= allowed;
     }
-    agree.then_some(Shaded {
+    agree.then_some(Pixel {
         volume: [mean[0], mean[1], mean[2], mean[3]],
         visibility: mean[4],
         depth: low[5],
@@ -197,8 +188,8 @@ fn on_one_surface(nearest: f32, reach: f32) -> bool {
 mod tests {
     use super::*;
 
-    fn pixel(rgb: f32, alpha: f32, visibility: f32, depth: f32) -> Shaded {
-        Shaded {
+    fn pixel(rgb: f32, alpha: f32, visibility: f32, depth: f32) -> Pixel {
+        Pixel {
             volume: [rgb, 2.0 * rgb, 0.5 * rgb, alpha],
             visibility,
             depth,
@@ -264,7 +255,7 @@ mod tests {
         height: usize,
         tolerance: f32,
         surface: impl Fn(usize, usize) -> Option<f64> + Sync,
-        value: impl Fn(usize, usize) -> Shaded + Sync,
+        value: impl Fn(usize, usize) -> Pixel + Sync,
     ) -> (Layers, usize) {
         let calls = AtomicUsize::new(0);
         let control = RenderControl::new();
@@ -286,9 +277,9 @@ mod tests {
         (layers, shaded)
     }
 
-    fn layer_value(layers: &Layers, x: usize, y: usize) -> Shaded {
+    fn layer_value(layers: &Layers, x: usize, y: usize) -> Pixel {
         let k = y * layers.width as usize + x;
-        Shaded {
+        Pixel {
             volume: layers.volume[k * 4..k * 4 + 4].try_into().unwrap(),
             visibility: layers.visibility[k],
             depth: layers.depth[k],

@@ -2,7 +2,14 @@
 
 use rayon::prelude::*;
 
-use crate::adaptive::Shaded;
+/// One pixel of every layer.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Pixel {
+    /// Premultiplied RGBA ([`Layers::volume`]).
+    pub volume: [f32; 4],
+    pub visibility: f32,
+    pub depth: f32,
+}
 
 /// Linear float layers at the camera's resolution, rows top to bottom.
 #[derive(Clone, Debug, PartialEq)]
@@ -76,7 +83,7 @@ pub struct LayersBand<'a> {
 
 impl LayersBand<'_> {
     /// Sets pixel `k`, counted from the band's first pixel.
-    pub fn set(&mut self, k: usize, pixel: &Shaded) {
+    pub fn set(&mut self, k: usize, pixel: &Pixel) {
         self.volume[k * 4..k * 4 + 4].copy_from_slice(&pixel.volume);
         self.visibility[k] = pixel.visibility;
         self.depth[k] = pixel.depth;

@@ -3,12 +3,12 @@
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 
-use crate::adaptive::{shade_adaptively, Shaded};
+use crate::adaptive::shade_adaptively;
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::{Error, Result};
-use crate::layers::Layers;
+use crate::layers::{Layers, Pixel};
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
 use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
@@ -268,11 +268,11 @@ pub(crate) fn scatter_timed(
             &camera,
             &surfaces,
             frame.settings,
-            frame.settings.adaptive_tolerance(),
+            frame.settings.effective_adaptive_tolerance(),
             control,
             |_, ray, t0, t1| reference(ray, t0, t1),
         )?;
-        (times.pixels, times.shaded_pixels) = (evaluated_pixels(&camera, frame.settings), shaded);
+        (times.pixels, times.shaded_pixels) = shaded;
         times.shading = stopwatch.lap();
         return Ok((layers, times));
     };
@@ -325,7 +325,7 @@ pub(crate) fn scatter_timed(
         &camera,
         &surfaces,
         frame.settings,
-        frame.settings.adaptive_tolerance(),
+        frame.settings.effective_adaptive_tolerance(),
         control,
         |pixel, ray, t0, t1| {
             if near_epipole(pixel) {
@@ -334,7 +334,7 @@ pub(crate) fn scatter_timed(
             fast(ray, t0, t1).unwrap_or_else(|| fallback(ray, t0, t1))
         },
     )?;
-    (times.pixels, times.shaded_pixels) = (evaluated_pixels(&camera, frame.settings), shaded);
+    (times.pixels, times.shaded_pixels) = shaded;
     times.shading = stopwatch.lap();
     Ok((layers, times))
 }
@@ -452,12 +452,6 @@ pub fn camera_raster(camera: &CameraModel, ss: u32) -> (DMat4, RasterDesc) {
 /// Relative spread of a pixel's depth samples below which no edge runs through it.
 pub const EDGE_DEPTH_SPREAD: f64 = 0.02;
 
-/// Pixels that shading evaluates: the image's, or the reduced image's with downsampling.
-fn evaluated_pixels(camera: &CameraModel, settings: &RenderSettings) -> usize {
-    let stride = settings.downsample;
-    reduced_size(camera.width, stride) as usize * reduced_size(camera.height, stride) as usize
-}
-
 /// The depth layer's value for a ray ending at `surface`: the max distance for background.
 pub(crate) fn layer_depth(surface: f64, max_distance: f64) -> f64 {
     if surface.is_finite() {
@@ -493,7 +487,8 @@ pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
 /// every sample. With a `tolerance` above 0, pixels are shaded adaptively
 /// ([`shade_adaptively`]). Each pixel depends only on its own inputs (and adaptively, on
 /// the shaded pixels next to it), so the output is bit-identical for any thread count.
-/// Returns the layers and how many pixels were shaded (at the reduced size, if any).
+/// Returns the layers, and how many pixels were evaluated (at the reduced size, if any)
+/// and how many of those shaded.
 pub(crate) fn shade_pixels(
     camera: &CameraModel,
     surfaces: &SurfaceDistances,
@@ -501,7 +496,7 @@ pub(crate) fn shade_pixels(
     tolerance: f32,
     control: &RenderControl,
     shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
-) -> Result<(Layers, usize)> {
+) -> Result<(Layers, (usize, usize))> {
     let stride = settings.downsample;
     let ss = surfaces.supersampling as usize;
     let sample_width = camera.width as usize * ss;
@@ -564,7 +559,7 @@ pub(crate) fn shade_pixels(
             }
         };
         let radiance = sum.radiance / count;
-        Shaded {
+        Pixel {
             volume: [
                 radiance.x as f32,
                 radiance.y as f32,
@@ -613,22 +608,17 @@ pub(crate) fn shade_pixels(
         (layers, width * height)
     };
     control.check()?;
+    let counts = (width * height, shaded);
     if stride == 1 {
-        return Ok((layers, shaded));
+        return Ok((layers, counts));
     }
     let depth: Vec<f32> = surfaces
         .distances
         .iter()
-        .map(|&d| {
-            if d.is_finite() {
-                d
-            } else {
-                settings.max_distance
-            }
-        })
+        .map(|&d| layer_depth(d as f64, max_distance) as f32)
         .collect();
     let layers = joint_bilateral(&layers, &depth, camera.width, camera.height, stride);
-    Ok((layers, shaded))
+    Ok((layers, counts))
 }
 
 impl<'a> Frame<'a> {

@@ -578,7 +578,7 @@ impl Mesh {
 
 impl RenderSettings {
     /// The tolerance adaptive shading runs at: 0 (every pixel) for the reference method.
-    pub fn adaptive_tolerance(&self) -> f32 {
+    pub fn effective_adaptive_tolerance(&self) -> f32 {
         match self.method {
             Method::Reference => 0.0,
             Method::MinMax | Method::Prefiltered => self.adaptive_tolerance,
