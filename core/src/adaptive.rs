@@ -41,26 +41,33 @@ pub fn shade_adaptively(
     shade: impl Fn(usize, usize) -> Pixel + Sync,
 ) -> (Layers, usize) {
     let (shaded_width, shaded_height) = (width.div_ceil(2), height.div_ceil(2));
-    let mut shaded = vec![Pixel::default(); shaded_width * shaded_height];
-    shaded
-        .par_chunks_mut(TILE * shaded_width)
-        .enumerate()
-        .for_each(|(band, pixels)| {
+    // Kept band by band: each band's pixels are cleared while they are in cache, where
+    // clearing the whole grid first (12 MB at 1080p) cost a tenth of the pass between.
+    let shaded: Vec<Vec<Pixel>> = (0..shaded_height.div_ceil(TILE))
+        .into_par_iter()
+        .map(|band| {
+            let first = band * TILE;
+            let rows = TILE.min(shaded_height - first);
+            let mut pixels = vec![Pixel::default(); rows * shaded_width];
             if control.is_cancelled() {
-                return;
+                return pixels;
             }
-            let rows = pixels.len() / shaded_width;
             for tile_i in (0..shaded_width).step_by(TILE) {
                 for row in 0..rows {
-                    let j = band * TILE + row;
                     for i in tile_i..(tile_i + TILE).min(shaded_width) {
-                        pixels[row * shaded_width + i] = shade(2 * i, 2 * j);
+                        pixels[row * shaded_width + i] = shade(2 * i, 2 * (first + row));
                     }
                 }
             }
             control.advance(rows as u64);
-        });
-    let shaded_row = |j: usize| shaded.get(j * shaded_width..(j + 1) * shaded_width);
+            pixels
+        })
+        .collect();
+    let shaded_row = |j: usize| {
+        shaded
+            .get(j / TILE)?
+            .get(j % TILE * shaded_width..(j % TILE + 1) * shaded_width)
+    };
     // Pixel (x, y) as the mean of the shaded pixels beside it (left and right, above and
     // below, or the four diagonal ones) where they agree. `None` on the last column or
     // row where one is missing.
@@ -133,7 +140,10 @@ pub fn shade_adaptively(
         // The even rows were counted as they were shaded.
         control.advance((rows / 2) as u64);
     });
-    (layers, shaded.len() + between_shaded.into_inner())
+    (
+        layers,
+        shaded_width * shaded_height + between_shaded.into_inner(),
+    )
 }
 
 /// The mean of `neighbours` where they agree: each of RGBA spreads by at most

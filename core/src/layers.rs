@@ -83,6 +83,7 @@ pub struct LayersBand<'a> {
 
 impl LayersBand<'_> {
     /// Sets pixel `k`, counted from the band's first pixel.
+    #[inline]
     pub fn set(&mut self, k: usize, pixel: &Pixel) {
         self.volume[k * 4..k * 4 + 4].copy_from_slice(&pixel.volume);
         self.visibility[k] = pixel.visibility;
