@@ -182,8 +182,8 @@ class CrepuscularLight(PropertyGroup):
     )
     adaptive_tolerance: FloatProperty(
         name="Adaptive Tolerance",
-        description="Fast methods: shade every other pixel, and the pixels between only where "
-        "their neighbours differ by more than this fraction or lie on another surface; "
+        description="Fast methods: shade a sparse grid of pixels, and the pixels between only "
+        "where their neighbours differ by more than this fraction or lie on another surface; "
         "0 shades every pixel",
         min=0.0,
         max=1.0,

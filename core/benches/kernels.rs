@@ -3,7 +3,7 @@
 //! and per-ray evaluation) on the built-in scenes. Whole-frame timings come from
 //! `crepuscular bench`.
 
-use crepuscular::adaptive::{shade_adaptively, DEFAULT_TOLERANCE};
+use crepuscular::adaptive::{shade_adaptively, EpipolarLines, DEFAULT_TOLERANCE};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::layers::{Layers, Pixel};
@@ -178,12 +178,13 @@ fn upsampling(c: &mut Criterion) {
 }
 
 /// Adaptive shading's own cost at 1080p: a shading function that costs next to nothing,
-/// smooth but for tree's depth edges, so the time is the shaded grid's bookkeeping and
-/// the test of every pixel between.
+/// smooth but for tree's depth edges, so the time is the bookkeeping of the shaded grids
+/// and the test of every pixel between, without and with tree's epipolar lines.
 fn adaptive_shading(c: &mut Criterion) {
     let mut group = c.benchmark_group("adaptive_1080p");
     group.sample_size(20);
     let (scene, depth) = tree_camera_depth_1080p();
+    let camera = CameraModel::new(&scene.camera);
     let max_distance = scene.render.max_distance;
     let surface = |x: usize, y: usize| Some(depth[y * 1920 + x] as f64);
     let shade = |x: usize, y: usize| {
@@ -194,20 +195,27 @@ fn adaptive_shading(c: &mut Criterion) {
             depth: depth[y * 1920 + x].min(max_distance),
         }
     };
-    group.bench_function("tree_depth_smooth_light", |b| {
-        b.iter(|| {
-            let control = RenderControl::new();
-            shade_adaptively(
-                1920,
-                1080,
-                DEFAULT_TOLERANCE,
-                max_distance,
-                &control,
-                surface,
-                shade,
-            )
-        })
-    });
+    let lines = EpipolarLines::of_view(&camera, scene.sun.direction.as_dvec3(), 1);
+    for (name, lines) in [
+        ("tree_depth_smooth_light", None),
+        ("tree_depth_smooth_light_epipolar", Some(lines)),
+    ] {
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                let control = RenderControl::new();
+                shade_adaptively(
+                    1920,
+                    1080,
+                    DEFAULT_TOLERANCE,
+                    max_distance,
+                    lines,
+                    &control,
+                    surface,
+                    shade,
+                )
+            })
+        });
+    }
     group.finish();
 }
 

@@ -1,17 +1,31 @@
-//! Adaptive shading for the fast methods: shade every other pixel of every other row,
-//! then only the pixels between them whose shaded neighbours disagree or end on another
-//! surface; the rest take their neighbours' mean. In-scattering varies smoothly across
-//! the image except at depth edges and shadow boundaries, which is what the test looks
-//! for (epipolar sampling refines at the same places: Engelhardt and Dachsbacher 2010,
-//! Chen et al. 2011).
+//! Adaptive shading for the fast methods: shade a sparse grid of pixels, then only the
+//! pixels between them whose shaded neighbours disagree or end on another surface; the
+//! rest take their neighbours' mean. In-scattering varies smoothly across the image
+//! except at depth edges and shadow boundaries, which is what the test looks for
+//! (epipolar sampling refines at the same places: Engelhardt and Dachsbacher 2010, Chen
+//! et al. 2011).
 //!
-//! A feature narrower than two pixels that no shaded pixel touches, such as a shaft one
-//! pixel wide, can be missed; a tolerance of 0 shades every pixel.
+//! Shadow boundaries run along the epipolar lines, the images of the planes through the
+//! camera and the light: in such a plane, the free space a view ray crosses is lit or
+//! shadowed in strips parallel to the light, and turning the ray within the plane moves
+//! where it crosses each strip smoothly. So along an epipolar line the grid can be twice
+//! as sparse as across it. Every other pixel of every other row is found in two steps:
+//! every fourth pixel of every fourth row is shaded, and each pixel of the finer grid
+//! between them is interpolated from two of those on either side where the pair lies
+//! along the epipolar line through it, as they must to resolve shafts no worse than the
+//! finer grid would. The pixels between those are then interpolated from the finer
+//! grid in any direction.
+//!
+//! A feature narrower than two pixels across the epipolar lines that no shaded pixel
+//! touches, such as a shaft one pixel wide, can be missed; a tolerance of 0 shades every
+//! pixel.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::layers::{Layers, Pixel};
 use crate::render::{for_each_in_tiles, layer_depth, EDGE_DEPTH_SPREAD, SHADING_TILE as TILE};
@@ -22,70 +36,329 @@ use crate::render::{for_each_in_tiles, layer_depth, EDGE_DEPTH_SPREAD, SHADING_T
 /// mean radiance.
 pub const DEFAULT_TOLERANCE: f32 = 0.01;
 
+/// How far apart across the epipolar line through a pixel, in pixels, the two pixels it
+/// is interpolated from on the finer grid may lie: as far as the finer grid's own
+/// neighbours, two pixels apart.
+const MAX_ACROSS: f64 = 2.0;
+
+/// The image's epipolar lines: they all pass through the epipole, the image of the
+/// light's direction, or run parallel to its image when that lies at infinity.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EpipolarLines {
+    /// Homogeneous (x·w, y·w, w) in the shaded image's pixel indices; w = 0 for
+    /// parallel lines along (x, y).
+    epipole: [f64; 3],
+}
+
+impl EpipolarLines {
+    /// Lines through the homogeneous point `epipole`, in pixel indices.
+    pub fn through(epipole: [f64; 3]) -> Self {
+        Self { epipole }
+    }
+
+    /// The lines of `camera`'s image lit along `light_travel`, for an image whose pixel
+    /// (x, y) is `camera`'s pixel (`stride`·x + `stride`/2, `stride`·y + `stride`/2), as
+    /// with downsampling ([`crate::upsample::sample_pixel`]).
+    pub fn of_view(camera: &CameraModel, light_travel: DVec3, stride: u32) -> Self {
+        let image = camera.pixel_from_world() * light_travel.extend(0.0);
+        // The pixel's centre lies half a pixel past its index.
+        let offset = (stride / 2) as f64 + 0.5;
+        let scale = 1.0 / stride as f64;
+        Self::through([
+            (image.x - offset * image.w) * scale,
+            (image.y - offset * image.w) * scale,
+            image.w,
+        ])
+    }
+
+    /// The direction of the epipolar line through pixel (`x`, `y`), not normalized:
+    /// zero at the epipole, where it has none.
+    #[inline]
+    fn direction(&self, x: usize, y: usize) -> [f64; 2] {
+        let [ex, ey, ew] = self.epipole;
+        [ex - x as f64 * ew, ey - y as f64 * ew]
+    }
+
+    /// For pixel (`x`, `y`) interpolated from the pixels at ±`offset` from it: how far
+    /// apart they lie across the epipolar line through it, in pixels (∞ at the epipole).
+    #[cfg(test)]
+    fn across(&self, x: usize, y: usize, offset: [f64; 2]) -> f64 {
+        let [dx, dy] = self.direction(x, y);
+        let length = (dx * dx + dy * dy).sqrt();
+        if length.is_nan() || length <= 1e-12 {
+            return f64::INFINITY;
+        }
+        2.0 * (dx * offset[1] - dy * offset[0]).abs() / length
+    }
+}
+
+/// Interpolation from shaded neighbours, where they agree and the pixel sees the same
+/// surface.
+struct Interpolation<'s, S> {
+    tolerance: f32,
+    max_distance: f32,
+    surface: &'s S,
+}
+
+impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
+    /// Pixel (x, y) as the mean of `neighbours` ([`mean_if_agreeing`]), where it lies on
+    /// their surface.
+    #[inline]
+    fn between<const N: usize>(&self, neighbours: [Pixel; N], x: usize, y: usize) -> Option<Pixel> {
+        let mean = mean_if_agreeing(neighbours, self.tolerance, self.max_distance)?;
+        let surface = (self.surface)(x, y)?;
+        let reach = surface.min(self.max_distance as f64) as f32;
+        if !on_one_surface(mean.depth, reach) {
+            return None;
+        }
+        let depth = layer_depth(surface, self.max_distance as f64) as f32;
+        Some(Pixel { depth, ..mean })
+    }
+}
+
+/// The rows of the finer grid (every other pixel of every other row), even and odd
+/// ones apart so that each step writes one kind while reading the other, in bands of
+/// [`TILE`] rows.
+struct FinerGrid {
+    width: usize,
+    even: Vec<Vec<Pixel>>,
+    odd: Vec<Vec<Pixel>>,
+}
+
+impl FinerGrid {
+    /// Row `j` of the finer grid, `None` past the last.
+    #[inline]
+    fn row(&self, j: usize) -> Option<&[Pixel]> {
+        let bands = if j % 2 == 0 { &self.even } else { &self.odd };
+        band_row(bands, self.width, j / 2)
+    }
+}
+
+/// Row `k` of rows kept in bands of [`TILE`] rows of `width` pixels, `None` past the last.
+#[inline]
+fn band_row(bands: &[Vec<Pixel>], width: usize, k: usize) -> Option<&[Pixel]> {
+    bands
+        .get(k / TILE)?
+        .get(k % TILE * width..(k % TILE + 1) * width)
+}
+
+/// A pixel of the finer grid interpolated from its row and the others: (row, k, i) for
+/// pixel i of row k, `None` where it must be shaded.
+type Interpolated<'a> = dyn Fn(&[Pixel], usize, usize) -> Option<Pixel> + Sync + 'a;
+
+/// Of the ways to interpolate a pixel of the finer grid, each a pair of neighbours at
+/// ±offset: the one whose pair lies closest along the epipolar line through it, if any
+/// lies close enough ([`MAX_ACROSS`]; [`EpipolarLines::across`], without its root and
+/// division).
+#[inline]
+fn along_the_line<const K: usize>(
+    lines: Option<&EpipolarLines>,
+    x: usize,
+    y: usize,
+    pairs: [Option<([Pixel; 2], [f64; 2])>; K],
+) -> Option<[Pixel; 2]> {
+    let [dx, dy] = lines?.direction(x, y);
+    let mut best = None;
+    // The cross product with the direction: half the distance across times its length.
+    let mut closest = f64::INFINITY;
+    for (pair, [ox, oy]) in pairs.into_iter().flatten() {
+        let cross = (dx * oy - dy * ox).abs();
+        if cross < closest {
+            closest = cross;
+            best = Some(pair);
+        }
+    }
+    let length_squared = dx * dx + dy * dy;
+    let half = 0.5 * MAX_ACROSS;
+    (length_squared > 1e-24 && closest * closest <= half * half * length_squared)
+        .then_some(best)
+        .flatten()
+}
+
 /// Shades a `width` × `height` image adaptively. `shade(x, y)` gives a pixel's layers;
 /// `surface(x, y)` the distance to the surface its whole footprint sees (+∞ for
 /// background), or `None` where a depth edge runs through it, which is then shaded.
+/// `lines`, the image's epipolar lines where the light is directional, let the grid be
+/// sparser along them; without, every other pixel of every other row is shaded.
 /// `control` advances by one unit per row. Returns the layers and how many pixels were
 /// shaded.
+#[allow(clippy::too_many_arguments)]
 pub fn shade_adaptively(
     width: usize,
     height: usize,
     tolerance: f32,
     max_distance: f32,
+    lines: Option<EpipolarLines>,
     control: &RenderControl,
     surface: impl Fn(usize, usize) -> Option<f64> + Sync,
     shade: impl Fn(usize, usize) -> Pixel + Sync,
 ) -> (Layers, usize) {
-    let (shaded_width, shaded_height) = (width.div_ceil(2), height.div_ceil(2));
-    // Kept band by band: each band's pixels are cleared while they are in cache, where
-    // clearing the whole grid first (12 MB at 1080p) cost a tenth of the pass between.
-    let shaded: Vec<Vec<Pixel>> = (0..shaded_height.div_ceil(TILE))
-        .into_par_iter()
-        .map(|band| {
-            let first = band * TILE;
-            let rows = TILE.min(shaded_height - first);
-            let mut pixels = vec![Pixel::default(); rows * shaded_width];
-            if control.is_cancelled() {
-                return pixels;
-            }
-            for_each_in_tiles(shaded_width, rows, |i, row| {
-                pixels[row * shaded_width + i] = shade(2 * i, 2 * (first + row));
-            });
-            control.advance(rows as u64);
-            pixels
-        })
-        .collect();
-    let shaded_row = |j: usize| {
-        shaded
-            .get(j / TILE)?
-            .get(j % TILE * shaded_width..(j % TILE + 1) * shaded_width)
+    let lines = lines.as_ref();
+    let interpolation = Interpolation {
+        tolerance,
+        max_distance,
+        surface: &surface,
     };
-    // Pixel (x, y) as the mean of the shaded pixels beside it (left and right, above and
-    // below, or the four diagonal ones) where they agree. `None` on the last column or
-    // row where one is missing.
+    let grid_width = width.div_ceil(2);
+    let grid_height = height.div_ceil(2);
+    let shaded_count = AtomicUsize::new(0);
+    // Shades, tile by tile for the locality of their rectified data, the pixels of a band
+    // of finer-grid rows (from row `first` of one kind, image rows 4·(first + row) +
+    // `y0`) where `flagged(k)`.
+    let shade_flagged =
+        |pixels: &mut [Pixel], first: usize, y0: usize, flagged: &dyn Fn(usize) -> bool| {
+            let rows = pixels.len() / grid_width;
+            let mut count = 0;
+            for_each_in_tiles(grid_width, rows, |i, row| {
+                let k = row * grid_width + i;
+                if flagged(k) {
+                    pixels[k] = shade(2 * i, 4 * (first + row) + y0);
+                    count += 1;
+                }
+            });
+            shaded_count.fetch_add(count, Ordering::Relaxed);
+        };
+    let new_bands = |rows: usize| {
+        (0..rows.div_ceil(TILE))
+            .map(|band| vec![Pixel::default(); TILE.min(rows - band * TILE) * grid_width])
+            .collect::<Vec<_>>()
+    };
+    // Completes the pixels of one kind in a band of finer-grid rows, `first` on (image
+    // rows 4·(first + row) + `y0`): those in columns `first_column`, +2, … take
+    // `interpolated(row, k, i)` for pixel i of row k, or are shaded where it is `None`.
+    let complete = |pixels: &mut [Pixel],
+                    first: usize,
+                    y0: usize,
+                    first_column: usize,
+                    interpolated: &Interpolated| {
+        let mut flags = vec![false; pixels.len()];
+        for (row, (pixels, flags)) in pixels
+            .chunks_exact_mut(grid_width)
+            .zip(flags.chunks_exact_mut(grid_width))
+            .enumerate()
+        {
+            for i in (first_column..grid_width).step_by(2) {
+                match interpolated(pixels, first + row, i) {
+                    Some(value) => pixels[i] = value,
+                    None => flags[i] = true,
+                }
+            }
+        }
+        shade_flagged(pixels, first, y0, &|k| flags[k]);
+    };
+    let mut grid = FinerGrid {
+        width: grid_width,
+        even: new_bands(grid_height.div_ceil(2)),
+        odd: new_bands(grid_height / 2),
+    };
+    // The coarsest grid: every other pixel of the even rows.
+    grid.even
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(band, pixels)| {
+            if !control.is_cancelled() {
+                shade_flagged(pixels, band * TILE, 0, &|k| k % grid_width % 2 == 0);
+            }
+        });
+    // The odd rows' pixels below those: between one above and one below.
+    let even = &grid.even;
+    grid.odd
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(band, pixels)| {
+            if control.is_cancelled() {
+                return;
+            }
+            complete(pixels, band * TILE, 2, 0, &|_, k, i| {
+                let (above, below) = (
+                    band_row(even, grid_width, k)?,
+                    band_row(even, grid_width, k + 1)?,
+                );
+                let (x, y) = (2 * i, 4 * k + 2);
+                let pair = along_the_line(lines, x, y, [Some(([above[i], below[i]], [0.0, 2.0]))])?;
+                interpolation.between(pair, x, y)
+            });
+        });
+    // The even rows' other pixels: between their left and right neighbours, or the odd
+    // rows' pixels diagonally above and below.
+    let odd = &grid.odd;
+    grid.even
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(band, pixels)| {
+            if control.is_cancelled() {
+                return;
+            }
+            complete(pixels, band * TILE, 0, 1, &|row, k, i| {
+                let right = *row.get(i + 1)?;
+                let above = k.checked_sub(1).and_then(|k| band_row(odd, grid_width, k));
+                let below = band_row(odd, grid_width, k);
+                let diagonal = |up: usize, down: usize, offset: [f64; 2]| {
+                    above.zip(below).map(|(a, b)| ([a[up], b[down]], offset))
+                };
+                let (x, y) = (2 * i, 4 * k);
+                let pair = along_the_line(
+                    lines,
+                    x,
+                    y,
+                    [
+                        Some(([row[i - 1], right], [2.0, 0.0])),
+                        diagonal(i - 1, i + 1, [2.0, 2.0]),
+                        diagonal(i + 1, i - 1, [2.0, -2.0]),
+                    ],
+                )?;
+                interpolation.between(pair, x, y)
+            });
+            control.advance((pixels.len() / grid_width) as u64);
+        });
+    // The odd rows' other pixels, at the centres of the coarsest grid's squares: along
+    // the row, the column or a diagonal.
+    let even = &grid.even;
+    grid.odd
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(band, pixels)| {
+            if control.is_cancelled() {
+                return;
+            }
+            complete(pixels, band * TILE, 2, 1, &|row, k, i| {
+                let right = *row.get(i + 1)?;
+                let above = band_row(even, grid_width, k);
+                let below = band_row(even, grid_width, k + 1);
+                let between_rows = |up: usize, down: usize, offset: [f64; 2]| {
+                    above.zip(below).map(|(a, b)| ([a[up], b[down]], offset))
+                };
+                let (x, y) = (2 * i, 4 * k + 2);
+                let pair = along_the_line(
+                    lines,
+                    x,
+                    y,
+                    [
+                        Some(([row[i - 1], right], [2.0, 0.0])),
+                        between_rows(i, i, [0.0, 2.0]),
+                        between_rows(i - 1, i + 1, [2.0, 2.0]),
+                        between_rows(i + 1, i - 1, [2.0, -2.0]),
+                    ],
+                )?;
+                interpolation.between(pair, x, y)
+            });
+            control.advance((pixels.len() / grid_width) as u64);
+        });
+    // Pixel (x, y) as the mean of the finer grid's pixels beside it (left and right,
+    // above and below, or the four diagonal ones) where they agree. `None` on the last
+    // column or row where one is missing.
     let between = |x: usize, y: usize, above: &[Pixel], below: Option<&[Pixel]>| {
         let i = x / 2;
-        let mean = match (x % 2 == 1, below) {
-            (true, None) => {
-                mean_if_agreeing([above[i], *above.get(i + 1)?], tolerance, max_distance)?
-            }
-            (false, Some(below)) => {
-                mean_if_agreeing([above[i], below[i]], tolerance, max_distance)?
-            }
-            (true, Some(below)) => mean_if_agreeing(
+        match (x % 2 == 1, below) {
+            (true, None) => interpolation.between([above[i], *above.get(i + 1)?], x, y),
+            (false, Some(below)) => interpolation.between([above[i], below[i]], x, y),
+            (true, Some(below)) => interpolation.between(
                 [above[i], *above.get(i + 1)?, below[i], *below.get(i + 1)?],
-                tolerance,
-                max_distance,
-            )?,
-            (false, None) => return Some(above[i]),
-        };
-        let surface = surface(x, y)?;
-        let reach = surface.min(max_distance as f64) as f32;
-        if !on_one_surface(mean.depth, reach) {
-            return None;
+                x,
+                y,
+            ),
+            (false, None) => Some(above[i]),
         }
-        let depth = layer_depth(surface, max_distance as f64) as f32;
-        Some(Pixel { depth, ..mean })
     };
     let between_shaded = AtomicUsize::new(0);
     let mut layers = Layers::new(width as u32, height as u32);
@@ -94,15 +367,15 @@ pub fn shade_adaptively(
             return;
         }
         let rows = band.rows;
-        // Interpolated row by row, which streams through the shaded grid and the
+        // Interpolated row by row, which streams through the finer grid and the
         // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
         // for the locality of their rectified data.
         let mut to_shade = vec![false; rows * width];
         for row in 0..rows {
             let y = band.first_row + row;
-            let above = shaded_row(y / 2);
+            let above = grid.row(y / 2);
             // The last odd row of an even height has nothing below.
-            let below = (y % 2 == 1).then(|| shaded_row(y / 2 + 1));
+            let below = (y % 2 == 1).then(|| grid.row(y / 2 + 1));
             for x in 0..width {
                 let k = row * width + x;
                 let pixel = match (above, below) {
@@ -125,12 +398,12 @@ pub fn shade_adaptively(
         });
         let count = to_shade.iter().filter(|&&shade| shade).count();
         between_shaded.fetch_add(count, Ordering::Relaxed);
-        // The even rows were counted as they were shaded.
+        // The finer grid's rows were counted as they were completed.
         control.advance((rows / 2) as u64);
     });
     (
         layers,
-        shaded_width * shaded_height + between_shaded.into_inner(),
+        shaded_count.into_inner() + between_shaded.into_inner(),
     )
 }
 
@@ -252,6 +525,7 @@ mod tests {
         width: usize,
         height: usize,
         tolerance: f32,
+        lines: Option<EpipolarLines>,
         surface: impl Fn(usize, usize) -> Option<f64> + Sync,
         value: impl Fn(usize, usize) -> Pixel + Sync,
     ) -> (Layers, usize) {
@@ -263,6 +537,7 @@ mod tests {
             height,
             tolerance,
             100.0,
+            lines,
             &control,
             surface,
             |x, y| {
@@ -292,7 +567,7 @@ mod tests {
             pixel(v, 0.5 * v, 0.5 + 0.001 * v, 20.0)
         };
         for (width, height) in [(33, 17), (32, 18), (1, 1), (2, 2)] {
-            let (layers, shaded) = shade_image(width, height, 0.01, |_, _| Some(20.0), value);
+            let (layers, shaded) = shade_image(width, height, 0.01, None, |_, _| Some(20.0), value);
             // The even pixels of even rows, and the last column and row where they are
             // odd: nothing lies beyond them to interpolate from.
             let anchors = width.div_ceil(2) * height.div_ceil(2);
@@ -336,7 +611,8 @@ mod tests {
             let v = if lit { 1.0 } else { 0.2 } * depth(x, y) as f32 / 20.0;
             pixel(v, 0.3, if lit { 1.0 } else { 0.0 }, depth(x, y) as f32)
         };
-        let (layers, shaded) = shade_image(width, height, 0.01, |x, y| Some(depth(x, y)), value);
+        let (layers, shaded) =
+            shade_image(width, height, 0.01, None, |x, y| Some(depth(x, y)), value);
         for y in 0..height {
             for x in 0..width {
                 assert_eq!(layer_value(&layers, x, y), value(x, y), "({x}, {y})");
@@ -348,7 +624,155 @@ mod tests {
             width * height
         );
         // A pixel with a depth edge inside is always shaded.
-        let (_, every) = shade_image(8, 8, 1.0, |_, _| None, value);
+        let (_, every) = shade_image(8, 8, 1.0, None, |_, _| None, value);
         assert_eq!(every, 64);
+    }
+
+    #[test]
+    fn epipolar_lines_measure_how_far_a_pair_lies_across_them() {
+        // Parallel lines running down the image, and lines through (10, 10).
+        let parallel = EpipolarLines::through([0.0, 3.0, 0.0]);
+        assert_eq!(parallel.across(5, 7, [0.0, 2.0]), 0.0);
+        assert_eq!(parallel.across(5, 7, [2.0, 0.0]), 4.0);
+        assert!((parallel.across(5, 7, [2.0, 2.0]) - 4.0).abs() < 1e-12);
+        let radial = EpipolarLines::through([20.0, 20.0, 2.0]);
+        assert!(radial.across(10, 30, [0.0, 2.0]).abs() < 1e-12);
+        assert!((radial.across(10, 30, [2.0, 0.0]) - 4.0).abs() < 1e-12);
+        assert!(radial.across(14, 14, [2.0, 2.0]).abs() < 1e-12);
+        assert_eq!(radial.across(10, 10, [0.0, 2.0]), f64::INFINITY);
+    }
+
+    #[test]
+    fn a_view_s_epipolar_lines_are_the_images_of_light_rays() {
+        use crate::scene::{Camera, Projection, SensorFit};
+        use glam::{Mat4, Quat, Vec3};
+        let perspective = Projection::Perspective {
+            focal_length: 35.0,
+            sensor_width: 36.0,
+            sensor_height: 24.0,
+            sensor_fit: SensorFit::Auto,
+            shift_x: 0.1,
+            shift_y: 0.0,
+        };
+        let orthographic = Projection::Orthographic {
+            ortho_scale: 8.0,
+            sensor_fit: SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: -0.2,
+        };
+        let light_travel = DVec3::new(0.3, -0.5, -0.8).normalize();
+        for projection in [perspective, orthographic] {
+            let camera = CameraModel::new(&Camera {
+                world_from_camera: Mat4::from_rotation_translation(
+                    Quat::from_euler(glam::EulerRot::XYZ, 1.2, 0.1, 0.7),
+                    Vec3::new(1.0, -6.0, 2.0),
+                ),
+                projection,
+                clip_start: 0.1,
+                clip_end: 100.0,
+                width: 160,
+                height: 90,
+            });
+            for stride in [1, 2, 4] {
+                let lines = EpipolarLines::of_view(&camera, light_travel, stride);
+                for (x, y) in [(3, 4), (20, 11), (39, 21)] {
+                    // The point this pixel sees 10 units off, and one 5 units further
+                    // along the light: both lie in the pixel's epipolar plane.
+                    let centre = |i: usize| (i as u32 * stride + stride / 2) as f64 + 0.5;
+                    let seen = camera.ray(centre(x), centre(y)).at(10.0);
+                    let lit = camera.pixel_from_world() * (seen + 5.0 * light_travel).extend(1.0);
+                    let image = [lit.x / lit.w, lit.y / lit.w];
+                    let along = [image[0] - centre(x), image[1] - centre(y)];
+                    let length = along[0].hypot(along[1]);
+                    let along = [2.0 * along[0] / length, 2.0 * along[1] / length];
+                    let across = lines.across(x, y, along);
+                    assert!(across < 1e-6, "stride {stride} ({x}, {y}): {across}");
+                    let normal = lines.across(x, y, [-along[1], along[0]]);
+                    assert!((normal - 4.0).abs() < 1e-6, "{normal}");
+                }
+            }
+        }
+    }
+
+    /// Lit bands at least three pixels wide along `lines`' direction, so that no pixel
+    /// pair two pixels apart straddles one unseen: the layers are exact everywhere.
+    #[test]
+    fn shafts_along_the_epipolar_lines_are_kept_on_the_sparser_grid() {
+        let (width, height) = (61, 47);
+        let cases = [
+            ("parallel, steep", EpipolarLines::through([1.0, 3.0, 0.0])),
+            (
+                "parallel, diagonal",
+                EpipolarLines::through([1.0, -1.0, 0.0]),
+            ),
+            ("parallel, flat", EpipolarLines::through([4.0, -1.0, 0.0])),
+            (
+                "through a point above",
+                EpipolarLines::through([25.0, -40.0, 1.0]),
+            ),
+            (
+                "through a point beside",
+                EpipolarLines::through([-180.0, 60.0, -2.0]),
+            ),
+        ];
+        for (what, lines) in cases {
+            let [ex, ey, ew] = lines.epipole;
+            // A coordinate across the lines: the angle around the epipole, or the
+            // distance across parallel lines, scaled to pixels at the image's centre.
+            let across = |x: usize, y: usize| {
+                let (px, py) = (x as f64, y as f64);
+                if ew == 0.0 {
+                    (px * ey - py * ex) / ex.hypot(ey)
+                } else {
+                    let (cx, cy) = (ex / ew - 30.0, ey / ew - 23.0);
+                    (py - ey / ew).atan2(px - ex / ew) * cx.hypot(cy)
+                }
+            };
+            let value = |x: usize, y: usize| {
+                let lit = across(x, y).rem_euclid(11.0) < 3.5;
+                let v = if lit { 1.0 } else { 0.25 };
+                pixel(v, 0.4, if lit { 1.0 } else { 0.0 }, 20.0)
+            };
+            let surface = |_, _| Some(20.0);
+            let (layers, shaded) = shade_image(width, height, 0.01, Some(lines), surface, value);
+            for y in 0..height {
+                for x in 0..width {
+                    assert_eq!(layer_value(&layers, x, y), value(x, y), "{what} ({x}, {y})");
+                }
+            }
+            let (_, finer) = shade_image(width, height, 0.01, None, surface, value);
+            assert!(
+                shaded < finer,
+                "{what}: {shaded} shaded, {finer} without the lines"
+            );
+        }
+    }
+
+    #[test]
+    fn depth_edges_across_the_epipolar_lines_are_shaded() {
+        let (width, height) = (40, 30);
+        // Lines running down the image; a wire one pixel thick across them at y = 13, a
+        // pole one pixel wide at x = 11, and a nearer object at y ≥ 21.
+        let lines = EpipolarLines::through([0.0, 1.0, 0.0]);
+        let depth = |x: usize, y: usize| match (x, y) {
+            (_, 13) => 6.0,
+            (11, _) => 8.0,
+            (_, 21..) => 5.0,
+            _ => 20.0,
+        };
+        let value = |x: usize, y: usize| {
+            let lit = (20..23).contains(&x);
+            let v = if lit { 1.0 } else { 0.2 } * depth(x, y) as f32 / 20.0;
+            pixel(v, 0.3, if lit { 1.0 } else { 0.0 }, depth(x, y) as f32)
+        };
+        let surface = |x, y| Some(depth(x, y));
+        let (layers, shaded) = shade_image(width, height, 0.01, Some(lines), surface, value);
+        for y in 0..height {
+            for x in 0..width {
+                assert_eq!(layer_value(&layers, x, y), value(x, y), "({x}, {y})");
+            }
+        }
+        let (_, finer) = shade_image(width, height, 0.01, None, surface, value);
+        assert!(shaded < finer, "{shaded} shaded, {finer} without the lines");
     }
 }

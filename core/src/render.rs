@@ -3,7 +3,7 @@
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 
-use crate::adaptive::shade_adaptively;
+use crate::adaptive::{shade_adaptively, EpipolarLines};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
@@ -268,6 +268,7 @@ pub(crate) fn scatter_timed(
             &camera,
             &surfaces,
             frame.settings,
+            light_travel,
             frame.settings.effective_adaptive_tolerance(),
             control,
             |_, ray, t0, t1| reference(ray, t0, t1),
@@ -325,6 +326,7 @@ pub(crate) fn scatter_timed(
         &camera,
         &surfaces,
         frame.settings,
+        light_travel,
         frame.settings.effective_adaptive_tolerance(),
         control,
         |pixel, ray, t0, t1| {
@@ -512,6 +514,7 @@ pub(crate) fn shade_pixels(
     camera: &CameraModel,
     surfaces: &SurfaceDistances,
     settings: &RenderSettings,
+    light_travel: DVec3,
     tolerance: f32,
     control: &RenderControl,
     shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
@@ -597,6 +600,7 @@ pub(crate) fn shade_pixels(
             height,
             tolerance,
             settings.max_distance,
+            Some(EpipolarLines::of_view(camera, light_travel, stride)),
             control,
             |x, y| {
                 let (full_x, full_y) = full_pixel(x, y);

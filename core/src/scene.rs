@@ -324,11 +324,11 @@ pub struct RenderSettings {
     /// Evaluate scattering at 1/1, 1/2 or 1/4 of the resolution per axis, then upsample
     /// with the full-resolution depth as guide.
     pub downsample: u32,
-    /// Fast methods: shade every other pixel of every other row, and the pixels between
-    /// only where their shaded neighbours' RGBA spreads by more than this fraction of its
-    /// mean (visibility: by more than this), or they end on another surface; the rest are
-    /// interpolated ([`crate::adaptive`]). 0 shades every pixel, as the reference method
-    /// and the Vulkan backend always do.
+    /// Fast methods: shade a sparse grid of pixels (sparser along the epipolar lines than
+    /// across them), and the pixels between only where their shaded neighbours' RGBA
+    /// spreads by more than this fraction of its mean (visibility: by more than this), or
+    /// they end on another surface; the rest are interpolated ([`crate::adaptive`]). 0
+    /// shades every pixel, as the reference method and the Vulkan backend always do.
     pub adaptive_tolerance: f32,
     /// Fourier basis coefficients M of the prefiltered method (even, 4 to 64).
     pub bases: u32,
