@@ -19,6 +19,12 @@ pub trait BasisValue: Copy + Default + Send + Sync {
     /// The CPU must have AVX2.
     #[cfg(target_arch = "x86_64")]
     unsafe fn load_lanes(values: &[Self; LANES]) -> std::arch::x86_64::__m256;
+    /// [`BasisValue::store`] of eight values at once, bit for bit.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn store_lanes(values: std::arch::x86_64::__m256, out: &mut [Self; LANES]);
 }
 
 impl BasisValue for f32 {
@@ -35,6 +41,11 @@ impl BasisValue for f32 {
     #[inline(always)]
     unsafe fn load_lanes(values: &[Self; LANES]) -> std::arch::x86_64::__m256 {
         std::arch::x86_64::_mm256_loadu_ps(values.as_ptr())
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn store_lanes(values: std::arch::x86_64::__m256, out: &mut [Self; LANES]) {
+        std::arch::x86_64::_mm256_storeu_ps(out.as_mut_ptr(), values)
     }
 }
 
@@ -65,6 +76,25 @@ impl BasisValue for i16 {
         use std::arch::x86_64::*;
         let packed = _mm_loadu_si128(values.as_ptr().cast());
         _mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(packed))
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn store_lanes(values: std::arch::x86_64::__m256, out: &mut [Self; LANES]) {
+        use std::arch::x86_64::*;
+        let limit = _mm256_set1_ps(i16::MAX as f32);
+        let scaled = _mm256_mul_ps(values, limit);
+        let clamped = _mm256_min_ps(
+            _mm256_max_ps(scaled, _mm256_sub_ps(_mm256_setzero_ps(), limit)),
+            limit,
+        );
+        // NaN lanes store 0, as `store` does.
+        let scaled = _mm256_and_ps(clamped, _mm256_cmp_ps::<_CMP_ORD_Q>(scaled, scaled));
+        let sign = _mm256_and_ps(scaled, _mm256_set1_ps(-0.0));
+        let rounded = _mm256_add_ps(scaled, _mm256_or_ps(sign, _mm256_set1_ps(0.5)));
+        let integers = _mm256_cvttps_epi32(rounded);
+        // Packed per 128-bit half; the permute brings both halves' four values together.
+        let packed = _mm256_permute4x64_epi64::<0b1000>(_mm256_packs_epi32(integers, integers));
+        _mm_storeu_si128(out.as_mut_ptr().cast(), _mm256_castsi256_si128(packed));
     }
 }
 
@@ -384,7 +414,66 @@ unsafe fn prefix_sums_avx2<T: BasisValue>(
     scales: &[f32],
     out: &mut [T],
 ) {
-    prefix_sums(table, entries, weights, scales, out)
+    match out.len() / scales.len().max(1) {
+        8 => prefix_sums_fixed_avx2::<T, 8, 1>(table, entries, weights, scales, out),
+        16 => prefix_sums_fixed_avx2::<T, 16, 2>(table, entries, weights, scales, out),
+        24 => prefix_sums_fixed_avx2::<T, 24, 3>(table, entries, weights, scales, out),
+        32 => prefix_sums_fixed_avx2::<T, 32, 4>(table, entries, weights, scales, out),
+        40 => prefix_sums_fixed_avx2::<T, 40, 5>(table, entries, weights, scales, out),
+        48 => prefix_sums_fixed_avx2::<T, 48, 6>(table, entries, weights, scales, out),
+        56 => prefix_sums_fixed_avx2::<T, 56, 7>(table, entries, weights, scales, out),
+        64 => prefix_sums_fixed_avx2::<T, 64, 8>(table, entries, weights, scales, out),
+        _ => prefix_sums_any(table, entries, weights, scales, out),
+    }
+}
+
+/// [`prefix_sums_fixed`] in AVX2 with the running sums in `VECTORS` registers, and the
+/// same arithmetic in the same order (a multiply, then an add: no fusing), so the same
+/// result. Left to the compiler, the sums were spilled to the stack and reloaded at
+/// other offsets than they were stored, which stalled store forwarding on every sample
+/// and doubled the kernel's time, or not, depending on unrelated code in the crate.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn prefix_sums_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTORS: usize>(
+    table: &[f32],
+    entries: &[u32],
+    weights: &[f32],
+    scales: &[f32],
+    out: &mut [T],
+) {
+    use std::arch::x86_64::*;
+    const { assert!(STRIDE == VECTORS * LANES) };
+    let per_row = entries.len() / scales.len().max(1);
+    debug_assert_eq!(entries.len(), per_row * scales.len());
+    let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
+    if entries.iter().any(|&entry| row_of(entry).is_none()) {
+        // Past the table: the general loop reports it.
+        return prefix_sums_any(table, entries, weights, scales, out);
+    }
+    let mut sums = [_mm256_setzero_ps(); VECTORS];
+    for (((row_entries, row_weights), &scale), row_out) in entries
+        .chunks_exact(per_row.max(1))
+        .zip(weights.chunks_exact(per_row.max(1)))
+        .zip(scales)
+        .zip(out.chunks_exact_mut(STRIDE))
+    {
+        for (&entry, &weight) in row_entries.iter().zip(row_weights) {
+            let values = row_of(entry).unwrap_or(&[0.0; STRIDE]);
+            let weight = _mm256_set1_ps(weight);
+            for (sum, lanes) in sums.iter_mut().zip(values.chunks_exact(LANES)) {
+                // The chunk holds exactly LANES values, all that the unaligned load reads.
+                let lanes = _mm256_loadu_ps(lanes.as_ptr());
+                *sum = _mm256_add_ps(*sum, _mm256_mul_ps(weight, lanes));
+            }
+        }
+        let scale = _mm256_set1_ps(scale);
+        for (sum, out) in sums.iter().zip(row_out.chunks_exact_mut(LANES)) {
+            if let Ok(out) = <&mut [T; LANES]>::try_from(out) {
+                T::store_lanes(_mm256_mul_ps(*sum, scale), out);
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -423,6 +512,43 @@ mod tests {
             ),
             (i16::MAX, -i16::MAX, 0)
         );
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn storing_eight_lanes_matches_storing_each() {
+        if Kernels::detect() == Kernels::Portable {
+            return;
+        }
+        let special = [
+            0.0,
+            -0.0,
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            1.0,
+            -1.0,
+            2.5,
+            -7.0,
+            0.5 / i16::MAX as f32,
+            -0.5 / i16::MAX as f32,
+            1.5 / i16::MAX as f32,
+            f32::MIN_POSITIVE,
+            1e-30,
+        ];
+        let ramp = (0..4000).map(|i| (i as f32 - 2000.0) * 0.000_613);
+        let values: Vec<f32> = special.into_iter().chain(ramp).collect();
+        for chunk in values.chunks(LANES) {
+            let mut lanes = [0.0f32; LANES];
+            lanes[..chunk.len()].copy_from_slice(chunk);
+            let mut stored = [0i16; LANES];
+            // SAFETY: the CPU has AVX2 (checked above).
+            unsafe {
+                let loaded = std::arch::x86_64::_mm256_loadu_ps(lanes.as_ptr());
+                i16::store_lanes(loaded, &mut stored);
+            }
+            assert_eq!(stored, lanes.map(i16::store), "{lanes:?}");
+        }
     }
 
     #[test]
@@ -538,12 +664,25 @@ mod tests {
                         }
                     }
                 }
-                // The fixed-stride kernels do the general loop's arithmetic in its order.
+                // The fixed-stride kernels, and the AVX2 ones, do the general loop's
+                // arithmetic in its order.
                 let mut fixed = vec![0.0f32; rows * stride];
                 let mut any = vec![0.0f32; rows * stride];
                 prefix_sums(&table, &entries, &weights, &scales, &mut fixed);
                 prefix_sums_any(&table, &entries, &weights, &scales, &mut any);
                 assert_eq!(fixed, any, "stride {stride}, {per_row} per row");
+                let mut snorm16_any = vec![0i16; rows * stride];
+                prefix_sums_any(&table, &entries, &weights, &scales, &mut snorm16_any);
+                for kernels in all_kernels() {
+                    let mut f32s = vec![0.0f32; rows * stride];
+                    kernels.prefix_sums(&table, &entries, &weights, &scales, &mut f32s);
+                    let bits =
+                        |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(&f32s), bits(&any), "{kernels:?}, stride {stride}");
+                    let mut snorm16 = vec![0i16; rows * stride];
+                    kernels.prefix_sums(&table, &entries, &weights, &scales, &mut snorm16);
+                    assert_eq!(snorm16, snorm16_any, "{kernels:?}, stride {stride}");
+                }
             }
         }
     }
