@@ -734,17 +734,37 @@ mod tests {
                 pixel(v, 0.4, if lit { 1.0 } else { 0.0 }, 20.0)
             };
             let surface = |_, _| Some(20.0);
-            let (layers, shaded) = shade_image(width, height, 0.01, Some(lines), surface, value);
-            for y in 0..height {
-                for x in 0..width {
-                    assert_eq!(layer_value(&layers, x, y), value(x, y), "{what} ({x}, {y})");
+            // Sizes of every parity, down to images with no coarse square at all.
+            for (width, height) in [
+                (width, height),
+                (64, 32),
+                (1, 1),
+                (2, 3),
+                (5, 2),
+                (4, 4),
+                (9, 13),
+            ] {
+                let (layers, shaded) =
+                    shade_image(width, height, 0.01, Some(lines), surface, value);
+                for y in 0..height {
+                    for x in 0..width {
+                        let want = value(x, y);
+                        let got = layer_value(&layers, x, y);
+                        assert_eq!(got, want, "{what} {width}×{height} ({x}, {y})");
+                    }
+                }
+                let (_, finer) = shade_image(width, height, 0.01, None, surface, value);
+                assert!(
+                    shaded <= finer,
+                    "{what} {width}×{height}: {shaded} against {finer}"
+                );
+                if width * height > 1000 {
+                    assert!(
+                        shaded < finer,
+                        "{what}: {shaded} shaded, {finer} without the lines"
+                    );
                 }
             }
-            let (_, finer) = shade_image(width, height, 0.01, None, surface, value);
-            assert!(
-                shaded < finer,
-                "{what}: {shaded} shaded, {finer} without the lines"
-            );
         }
     }
 
