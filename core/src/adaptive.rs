@@ -142,6 +142,19 @@ fn band_row(bands: &[Vec<Pixel>], width: usize, k: usize) -> Option<&[Pixel]> {
         .get(k % TILE * width..(k % TILE + 1) * width)
 }
 
+/// Pixel `up` of row `above` and pixel `down` of row `below` as a pair to interpolate
+/// from, at ±`offset`, where both rows exist.
+#[inline]
+fn across_rows(
+    above: Option<&[Pixel]>,
+    below: Option<&[Pixel]>,
+    up: usize,
+    down: usize,
+    offset: [f64; 2],
+) -> Option<([Pixel; 2], [f64; 2])> {
+    Some(([*above?.get(up)?, *below?.get(down)?], offset))
+}
+
 /// A pixel of the finer grid interpolated from its row and the others: (row, k, i) for
 /// pixel i of row k, `None` where it must be shaded.
 type Interpolated<'a> = dyn Fn(&[Pixel], usize, usize) -> Option<Pixel> + Sync + 'a;
@@ -202,22 +215,6 @@ pub fn shade_adaptively(
     let grid_width = width.div_ceil(2);
     let grid_height = height.div_ceil(2);
     let shaded_count = AtomicUsize::new(0);
-    // Shades, tile by tile for the locality of their rectified data, the pixels of a band
-    // of finer-grid rows (from row `first` of one kind, image rows 4·(first + row) +
-    // `y0`) where `flagged(k)`.
-    let shade_flagged =
-        |pixels: &mut [Pixel], first: usize, y0: usize, flagged: &dyn Fn(usize) -> bool| {
-            let rows = pixels.len() / grid_width;
-            let mut count = 0;
-            for_each_in_tiles(grid_width, rows, |i, row| {
-                let k = row * grid_width + i;
-                if flagged(k) {
-                    pixels[k] = shade(2 * i, 4 * (first + row) + y0);
-                    count += 1;
-                }
-            });
-            shaded_count.fetch_add(count, Ordering::Relaxed);
-        };
     let new_bands = |rows: usize| {
         (0..rows.div_ceil(TILE))
             .map(|band| vec![Pixel::default(); TILE.min(rows - band * TILE) * grid_width])
@@ -225,7 +222,8 @@ pub fn shade_adaptively(
     };
     // Completes the pixels of one kind in a band of finer-grid rows, `first` on (image
     // rows 4·(first + row) + `y0`): those in columns `first_column`, +2, … take
-    // `interpolated(row, k, i)` for pixel i of row k, or are shaded where it is `None`.
+    // `interpolated(row, k, i)` for pixel i of row k; where it is `None` they are shaded
+    // afterwards, tile by tile for the locality of their rectified data.
     let complete = |pixels: &mut [Pixel],
                     first: usize,
                     y0: usize,
@@ -244,106 +242,94 @@ pub fn shade_adaptively(
                 }
             }
         }
-        shade_flagged(pixels, first, y0, &|k| flags[k]);
+        let mut count = 0;
+        for_each_in_tiles(grid_width, pixels.len() / grid_width, |i, row| {
+            let k = row * grid_width + i;
+            if flags[k] {
+                pixels[k] = shade(2 * i, 4 * (first + row) + y0);
+                count += 1;
+            }
+        });
+        shaded_count.fetch_add(count, Ordering::Relaxed);
+    };
+    // `complete` over every band of `bands` in parallel; with `advance`, their rows count
+    // as done.
+    let complete_all = |bands: &mut [Vec<Pixel>],
+                        y0: usize,
+                        first_column: usize,
+                        advance: bool,
+                        interpolated: &Interpolated| {
+        bands.par_iter_mut().enumerate().for_each(|(band, pixels)| {
+            if control.is_cancelled() {
+                return;
+            }
+            complete(pixels, band * TILE, y0, first_column, interpolated);
+            if advance {
+                control.advance((pixels.len() / grid_width) as u64);
+            }
+        });
     };
     let mut grid = FinerGrid {
         width: grid_width,
         even: new_bands(grid_height.div_ceil(2)),
         odd: new_bands(grid_height / 2),
     };
-    // The coarsest grid: every other pixel of the even rows.
-    grid.even
-        .par_iter_mut()
-        .enumerate()
-        .for_each(|(band, pixels)| {
-            if !control.is_cancelled() {
-                shade_flagged(pixels, band * TILE, 0, &|k| k % grid_width % 2 == 0);
-            }
-        });
+    // The coarsest grid: every other pixel of the even rows, all shaded.
+    complete_all(&mut grid.even, 0, 0, false, &|_, _, _| None);
     // The odd rows' pixels below those: between one above and one below.
     let even = &grid.even;
-    grid.odd
-        .par_iter_mut()
-        .enumerate()
-        .for_each(|(band, pixels)| {
-            if control.is_cancelled() {
-                return;
-            }
-            complete(pixels, band * TILE, 2, 0, &|_, k, i| {
-                let (above, below) = (
-                    band_row(even, grid_width, k)?,
-                    band_row(even, grid_width, k + 1)?,
-                );
-                let (x, y) = (2 * i, 4 * k + 2);
-                let pair = along_the_line(lines, x, y, [Some(([above[i], below[i]], [0.0, 2.0]))])?;
-                interpolation.between(pair, x, y)
-            });
-        });
+    complete_all(&mut grid.odd, 2, 0, false, &|_, k, i| {
+        let (above, below) = (
+            band_row(even, grid_width, k),
+            band_row(even, grid_width, k + 1),
+        );
+        let (x, y) = (2 * i, 4 * k + 2);
+        let pair = along_the_line(lines, x, y, [across_rows(above, below, i, i, [0.0, 2.0])])?;
+        interpolation.between(pair, x, y)
+    });
     // The even rows' other pixels: between their left and right neighbours, or the odd
     // rows' pixels diagonally above and below.
     let odd = &grid.odd;
-    grid.even
-        .par_iter_mut()
-        .enumerate()
-        .for_each(|(band, pixels)| {
-            if control.is_cancelled() {
-                return;
-            }
-            complete(pixels, band * TILE, 0, 1, &|row, k, i| {
-                let right = *row.get(i + 1)?;
-                let above = k.checked_sub(1).and_then(|k| band_row(odd, grid_width, k));
-                let below = band_row(odd, grid_width, k);
-                let diagonal = |up: usize, down: usize, offset: [f64; 2]| {
-                    above.zip(below).map(|(a, b)| ([a[up], b[down]], offset))
-                };
-                let (x, y) = (2 * i, 4 * k);
-                let pair = along_the_line(
-                    lines,
-                    x,
-                    y,
-                    [
-                        Some(([row[i - 1], right], [2.0, 0.0])),
-                        diagonal(i - 1, i + 1, [2.0, 2.0]),
-                        diagonal(i + 1, i - 1, [2.0, -2.0]),
-                    ],
-                )?;
-                interpolation.between(pair, x, y)
-            });
-            control.advance((pixels.len() / grid_width) as u64);
-        });
+    complete_all(&mut grid.even, 0, 1, true, &|row, k, i| {
+        let right = *row.get(i + 1)?;
+        let above = k.checked_sub(1).and_then(|k| band_row(odd, grid_width, k));
+        let below = band_row(odd, grid_width, k);
+        let (x, y) = (2 * i, 4 * k);
+        let pair = along_the_line(
+            lines,
+            x,
+            y,
+            [
+                Some(([row[i - 1], right], [2.0, 0.0])),
+                across_rows(above, below, i - 1, i + 1, [2.0, 2.0]),
+                across_rows(above, below, i + 1, i - 1, [2.0, -2.0]),
+            ],
+        )?;
+        interpolation.between(pair, x, y)
+    });
     // The odd rows' other pixels, at the centres of the coarsest grid's squares: along
     // the row, the column or a diagonal.
     let even = &grid.even;
-    grid.odd
-        .par_iter_mut()
-        .enumerate()
-        .for_each(|(band, pixels)| {
-            if control.is_cancelled() {
-                return;
-            }
-            complete(pixels, band * TILE, 2, 1, &|row, k, i| {
-                let right = *row.get(i + 1)?;
-                let above = band_row(even, grid_width, k);
-                let below = band_row(even, grid_width, k + 1);
-                let between_rows = |up: usize, down: usize, offset: [f64; 2]| {
-                    above.zip(below).map(|(a, b)| ([a[up], b[down]], offset))
-                };
-                let (x, y) = (2 * i, 4 * k + 2);
-                let pair = along_the_line(
-                    lines,
-                    x,
-                    y,
-                    [
-                        Some(([row[i - 1], right], [2.0, 0.0])),
-                        between_rows(i, i, [0.0, 2.0]),
-                        between_rows(i - 1, i + 1, [2.0, 2.0]),
-                        between_rows(i + 1, i - 1, [2.0, -2.0]),
-                    ],
-                )?;
-                interpolation.between(pair, x, y)
-            });
-            control.advance((pixels.len() / grid_width) as u64);
-        });
+    complete_all(&mut grid.odd, 2, 1, true, &|row, k, i| {
+        let right = *row.get(i + 1)?;
+        let (above, below) = (
+            band_row(even, grid_width, k),
+            band_row(even, grid_width, k + 1),
+        );
+        let (x, y) = (2 * i, 4 * k + 2);
+        let pair = along_the_line(
+            lines,
+            x,
+            y,
+            [
+                Some(([row[i - 1], right], [2.0, 0.0])),
+                across_rows(above, below, i, i, [0.0, 2.0]),
+                across_rows(above, below, i - 1, i + 1, [2.0, 2.0]),
+                across_rows(above, below, i + 1, i - 1, [2.0, -2.0]),
+            ],
+        )?;
+        interpolation.between(pair, x, y)
+    });
     // Pixel (x, y) as the mean of the finer grid's pixels beside it (left and right,
     // above and below, or the four diagonal ones) where they agree. `None` on the last
     // column or row where one is missing.
