@@ -289,7 +289,9 @@ impl<'a> Marcher<'a> {
 
     /// Calls `lit` with each lit part [t0, t1] of the ray within [`t_start`, `t_end`], in
     /// order, walking the shadow map's texels; the walk stops at `enough`, past which the
-    /// rest adds nothing that matters. Off the map counts as lit.
+    /// rest adds nothing that matters. Off the map counts as lit. Lit parts in consecutive
+    /// texels are joined into one call: each call integrates in closed form, with an
+    /// exponential or two, and a mostly lit ray crosses hundreds of texels.
     fn lit_spans(
         &self,
         ray: &Ray,
@@ -324,6 +326,8 @@ impl<'a> Marcher<'a> {
         let end = at(t_end);
         let cells = (end.x - start.x).abs().ceil() + (end.y - start.y).abs().ceil() + 2.0;
         let mut t = t_start;
+        // The lit part not yet reported, extended while the next texel's lit part joins it.
+        let mut pending: Option<(f64, f64)> = None;
         for _ in 0..cells.min(1e7) as usize {
             let exit = next[0].min(next[1]).min(t_end).max(t);
             let inside = (0..size).contains(&cell[0]) && (0..size).contains(&cell[1]);
@@ -349,7 +353,14 @@ impl<'a> Marcher<'a> {
                 }
             };
             if lit_to > lit_from {
-                lit(lit_from, lit_to);
+                pending = match pending {
+                    Some((from, to)) if lit_from <= to => Some((from, to.max(lit_to))),
+                    Some((from, to)) => {
+                        lit(from, to);
+                        Some((lit_from, lit_to))
+                    }
+                    None => Some((lit_from, lit_to)),
+                };
             }
             if exit >= t_end || exit > enough {
                 break;
@@ -358,6 +369,9 @@ impl<'a> Marcher<'a> {
             cell[k] += direction[k];
             next[k] += delta[k];
             t = exit;
+        }
+        if let Some((from, to)) = pending {
+            lit(from, to);
         }
     }
 
