@@ -343,14 +343,11 @@ fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
     scales: &[f32],
     out: &mut [T],
 ) {
-    let per_row = entries.len() / scales.len().max(1);
-    debug_assert_eq!(entries.len(), per_row * scales.len());
+    let Some(per_row) = samples_per_row::<STRIDE>(table, entries, scales) else {
+        return prefix_sums_any(table, entries, weights, scales, out);
+    };
     let mut sums = [0.0f32; STRIDE];
     let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
-    if entries.iter().any(|&entry| row_of(entry).is_none()) {
-        // Past the table: the general loop reports it.
-        return prefix_sums_any(table, entries, weights, scales, out);
-    }
     for (((row_entries, row_weights), &scale), row_out) in entries
         .chunks_exact(per_row.max(1))
         .zip(weights.chunks_exact(per_row.max(1)))
@@ -367,6 +364,24 @@ fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
             *out = T::store(*sum * scale);
         }
     }
+}
+
+/// For the fixed-stride prefix sums: the samples summed into each output row, where
+/// every entry names a whole row of `STRIDE` values in `table`; `None` where one lies
+/// past it, which the general loop reports.
+#[inline(always)]
+fn samples_per_row<const STRIDE: usize>(
+    table: &[f32],
+    entries: &[u32],
+    scales: &[f32],
+) -> Option<usize> {
+    let per_row = entries.len() / scales.len().max(1);
+    debug_assert_eq!(entries.len(), per_row * scales.len());
+    let rows = table.len() / STRIDE;
+    entries
+        .iter()
+        .all(|&entry| (entry as usize) < rows)
+        .then_some(per_row)
 }
 
 #[inline(always)]
@@ -444,13 +459,10 @@ unsafe fn prefix_sums_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTO
 ) {
     use std::arch::x86_64::*;
     const { assert!(STRIDE == VECTORS * LANES) };
-    let per_row = entries.len() / scales.len().max(1);
-    debug_assert_eq!(entries.len(), per_row * scales.len());
-    let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
-    if entries.iter().any(|&entry| row_of(entry).is_none()) {
-        // Past the table: the general loop reports it.
+    let Some(per_row) = samples_per_row::<STRIDE>(table, entries, scales) else {
         return prefix_sums_any(table, entries, weights, scales, out);
-    }
+    };
+    let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
     let mut sums = [_mm256_setzero_ps(); VECTORS];
     for (((row_entries, row_weights), &scale), row_out) in entries
         .chunks_exact(per_row.max(1))
