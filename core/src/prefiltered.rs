@@ -145,6 +145,60 @@ impl Warp {
         let z = RAY_MARGIN + Self::SEGMENT * index as f64 + (key - k[index]) * self.slopes[index];
         z.clamp(0.0, 1.0)
     }
+
+    /// The coefficient-table index of each key's warp, `Tables::index(self.warp(key))`,
+    /// into `entries` (as many as both hold); with AVX2, four keys at a time in the same
+    /// arithmetic, bit for bit.
+    fn table_indices(&self, kernels: Kernels, keys: &[f64], entries: &mut [u32]) {
+        let count = keys.len().min(entries.len());
+        let (keys, entries) = (&keys[..count], &mut entries[..count]);
+        let mut done = 0;
+        #[cfg(target_arch = "x86_64")]
+        if let Kernels::Avx2Fma = kernels {
+            // SAFETY: `Kernels::Avx2Fma` is only detected where AVX2 runs.
+            done = unsafe { self.table_indices_avx2(keys, entries) };
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = kernels;
+        for (entry, &key) in entries[done..].iter_mut().zip(&keys[done..]) {
+            *entry = Tables::index(self.warp(key)) as u32;
+        }
+    }
+
+    /// [`Warp::table_indices`] for whole groups of four keys; returns how many it did.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn table_indices_avx2(&self, keys: &[f64], entries: &mut [u32]) -> usize {
+        use std::arch::x86_64::*;
+        let inner: [__m256d; KNOTS - 2] =
+            std::array::from_fn(|j| _mm256_set1_pd(self.knots[j + 1]));
+        let (one, zero) = (_mm256_set1_pd(1.0), _mm256_setzero_pd());
+        let (margin, segment) = (_mm256_set1_pd(RAY_MARGIN), _mm256_set1_pd(Self::SEGMENT));
+        let (steps, half) = (_mm256_set1_pd(TABLE_STEPS as f64), _mm256_set1_pd(0.5));
+        for (keys, entries) in keys.chunks_exact(4).zip(entries.chunks_exact_mut(4)) {
+            let key = _mm256_loadu_pd(keys.as_ptr());
+            // How many inner knots lie at or below each key (none for NaN), as in `warp`.
+            let mut index = zero;
+            for knot in inner {
+                index = _mm256_add_pd(
+                    index,
+                    _mm256_and_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(knot, key), one),
+                );
+            }
+            let lanes = _mm256_cvttpd_epi32(index);
+            let knot = _mm256_i32gather_pd::<8>(self.knots.as_ptr(), lanes);
+            let slope = _mm256_i32gather_pd::<8>(self.slopes.as_ptr(), lanes);
+            let z = _mm256_add_pd(
+                _mm256_add_pd(margin, _mm256_mul_pd(segment, index)),
+                _mm256_mul_pd(_mm256_sub_pd(key, knot), slope),
+            );
+            // `clamp`; a NaN becomes 0 here, and index 0 in `Tables::index` either way.
+            let z = _mm256_min_pd(_mm256_max_pd(z, zero), one);
+            let table = _mm256_cvttpd_epi32(_mm256_add_pd(_mm256_mul_pd(z, steps), half));
+            _mm_storeu_si128(entries.as_mut_ptr().cast(), table);
+        }
+        keys.len() / 4 * 4
+    }
 }
 
 /// Per slice: the warp of all its rays, and their speeds.
@@ -555,8 +609,10 @@ impl<'a> PrefilteredPlan<'a> {
         let mut entries = vec![0u32; rows_total * SAMPLES_PER_ROW];
         let mut weights = vec![0.0f32; rows_total * SAMPLES_PER_ROW];
         let mut scales = vec![0.0f32; rows_total];
+        let kernels = Kernels::detect();
         plan_slices(
             map,
+            kernels,
             &frames,
             &slice_bands,
             &bands,
@@ -586,7 +642,7 @@ impl<'a> PrefilteredPlan<'a> {
         Self {
             map,
             prefix,
-            kernels: Kernels::detect(),
+            kernels,
             tables,
             frames,
             slice_bands,
@@ -1171,6 +1227,7 @@ fn from_total_order_bits(bits: u64) -> f64 {
 #[allow(clippy::too_many_arguments)]
 fn plan_slices(
     map: &EpipolarMap,
+    kernels: Kernels,
     frames: &[SliceFrame],
     slice_bands: &[SliceBands],
     bands: &[Band],
@@ -1214,9 +1271,8 @@ fn plan_slices(
             for band in own {
                 let count = (band.rows - 1) * SAMPLES_PER_ROW;
                 // A last row that the map's samples do not fill takes empty samples.
-                for (entry, key) in entries_part[sample..sample + count].iter_mut().zip(&keys) {
-                    *entry = Tables::index(band.warp.warp(*key)) as u32;
-                }
+                band.warp
+                    .table_indices(kernels, &keys, &mut entries_part[sample..sample + count]);
                 band_weights(
                     map,
                     frame.medium_start.unwrap_or(frame.origin),
@@ -1848,6 +1904,51 @@ mod tests {
             last = z;
         }
         assert_eq!((frame.fastest, frame.slowest), (100.0, 1.0));
+    }
+
+    /// Every kernel gives each key the table index of its warp bit for bit, in groups of
+    /// four and in the rest: keys on and between the knots, outside them, ±∞, NaN and ±0.
+    #[test]
+    fn table_indices_are_the_warps_indices_with_every_kernel() {
+        let texels: Vec<f64> = (0..40).map(|i| -1.0 + 0.1 * i as f64).collect();
+        let rays: Vec<f64> = (0..200).map(|i| (i as f64 * 0.61).sin() * 2.0).collect();
+        let mut sorted = rays.clone();
+        sorted.sort_by(f64::total_cmp);
+        let warp = Warp::of(&sorted, &texels);
+        let mut keys: Vec<f64> = warp.knots.to_vec();
+        keys.extend(warp.knots.iter().map(|k| k + 1e-12));
+        keys.extend((0..=400).map(|i| -3.0 + 6.0 * i as f64 / 400.0));
+        keys.extend([
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            0.0,
+            -0.0,
+            1e300,
+            -1e300,
+        ]);
+        let expected: Vec<u32> = keys
+            .iter()
+            .map(|&key| Tables::index(warp.warp(key)) as u32)
+            .collect();
+        let mut kernels = vec![Kernels::Portable];
+        #[cfg(target_arch = "x86_64")]
+        if let Kernels::Avx2Fma = Kernels::detect() {
+            kernels.push(Kernels::Avx2Fma);
+        }
+        for kernels in kernels {
+            for count in [keys.len(), keys.len() - 1, 5, 3, 0] {
+                // One entry more than keys: it keeps its value.
+                let mut entries = vec![u32::MAX; count + 1];
+                warp.table_indices(kernels, &keys[..count], &mut entries);
+                assert_eq!(
+                    &entries[..count],
+                    &expected[..count],
+                    "{kernels:?}, {count} keys"
+                );
+                assert_eq!(entries[count], u32::MAX);
+            }
+        }
     }
 
     /// Texel keys among the rays' share the knots with them: a cluster of occluder keys
