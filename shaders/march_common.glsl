@@ -266,12 +266,23 @@ const uint WALK_UNBOUNDED = 0u; // e^(−σ(t − origin)) integrated
 const uint WALK_BOX = 1u;       // box_integrate from origin
 const uint WALK_LENGTH = 2u;    // its length
 
+// The `mode` weight of the lit part [t0, t1] of a ray.
+float lit_weight(float t0, float t1, uint mode, float origin) {
+    float sigma = p.extinction;
+    if (mode == WALK_UNBOUNDED) {
+        return exp(-sigma * (t0 - origin)) * integral_exp(sigma, t1 - t0);
+    } else if (mode == WALK_BOX) {
+        return box_integrate(t0, t1, origin, sigma);
+    }
+    return t1 - t0;
+}
+
 // Walks the shadow map's texels along the ray over [t_start, t_end] (reference.rs,
 // Marcher::lit_spans), each crossing's lit part found where the ray's light depth meets
 // the texel's occluder, and sums the lit parts' `mode` weights; stops past `enough`.
-// Off the map counts as lit. Needs begin_ray.
+// Lit parts of consecutive texels are joined before they are weighed, as on the CPU:
+// each weight takes an exponential or two. Off the map counts as lit. Needs begin_ray.
 float walk_lit(float t_start, float t_end, float enough, uint mode, float origin) {
-    float sigma = p.extinction;
     vec3 start = texel_origin + texel_step * t_start;
     vec3 end = texel_origin + texel_step * t_end;
     ivec2 cell = ivec2(floor(start.xy));
@@ -290,6 +301,10 @@ float walk_lit(float t_start, float t_end, float enough, uint mode, float origin
     float cells = min(ceil(abs(end.x - start.x)) + ceil(abs(end.y - start.y)) + 2.0, 1e7);
     int size = int(p.map_size);
     float total = 0.0;
+    // The lit part not yet weighed, extended while the next texel's lit part joins it.
+    bool pending = false;
+    float pending_from = 0.0;
+    float pending_to = 0.0;
     float t = t_start;
     for (uint i = 0u; i < uint(cells); ++i) {
         float leave = max(min(min(next.x, next.y), t_end), t);
@@ -311,12 +326,15 @@ float walk_lit(float t_start, float t_end, float enough, uint mode, float origin
             }
         }
         if (lit_to > lit_from) {
-            if (mode == WALK_UNBOUNDED) {
-                total += exp(-sigma * (lit_from - origin)) * integral_exp(sigma, lit_to - lit_from);
-            } else if (mode == WALK_BOX) {
-                total += box_integrate(lit_from, lit_to, origin, sigma);
+            if (pending && lit_from <= pending_to) {
+                pending_to = max(pending_to, lit_to);
             } else {
-                total += lit_to - lit_from;
+                if (pending) {
+                    total += lit_weight(pending_from, pending_to, mode, origin);
+                }
+                pending = true;
+                pending_from = lit_from;
+                pending_to = lit_to;
             }
         }
         if (leave >= t_end || leave > enough) {
@@ -330,6 +348,9 @@ float walk_lit(float t_start, float t_end, float enough, uint mode, float origin
             next.x += delta.x;
         }
         t = leave;
+    }
+    if (pending) {
+        total += lit_weight(pending_from, pending_to, mode, origin);
     }
     return total;
 }
