@@ -403,30 +403,34 @@ fn mean_if_agreeing<const N: usize>(
     tolerance: f32,
     max_distance: f32,
 ) -> Option<Pixel> {
-    let mut low = [f32::INFINITY; 6];
-    let mut high = [f32::NEG_INFINITY; 6];
-    let mut sum = [0.0f32; 5];
+    // Eight lanes, RGBA, visibility, reach and two of padding, so that every step is one
+    // lane-wise operation.
+    let mut low = [f32::INFINITY; 8];
+    let mut high = [f32::NEG_INFINITY; 8];
+    let mut sum = [0.0f32; 8];
     for neighbour in neighbours {
         let [r, g, b, a] = neighbour.volume;
         let reach = neighbour.depth.min(max_distance);
-        let values = [r, g, b, a, neighbour.visibility, reach];
-        for k in 0..6 {
+        let values = [r, g, b, a, neighbour.visibility, reach, 0.0, 0.0];
+        for k in 0..8 {
             low[k] = low[k].min(values[k]);
             high[k] = high[k].max(values[k]);
-        }
-        for k in 0..5 {
             sum[k] += values[k];
         }
     }
     let mean = sum.map(|total| total / N as f32);
-    let mut agree = high[5] - low[5] <= EDGE_DEPTH_SPREAD as f32 * low[5];
-    for k in 0..5 {
-        let allowed = if k == 4 {
-            tolerance
-        } else {
-            tolerance * mean[k].abs()
-        };
-        agree &= high[k] - low[k] <= allowed;
+    // Per lane, the spread allowed: relative for RGBA, absolute for visibility, and
+    // relative to the nearest end for the reach.
+    let edge = EDGE_DEPTH_SPREAD as f32 * low[5];
+    let allowed: [f32; 8] = std::array::from_fn(|k| match k {
+        0..4 => tolerance * mean[k].abs(),
+        4 => tolerance,
+        5 => edge,
+        _ => 0.0,
+    });
+    let mut agree = true;
+    for k in 0..8 {
+        agree &= high[k] - low[k] <= allowed[k];
     }
     agree.then_some(Pixel {
         volume: [mean[0], mean[1], mean[2], mean[3]],
