@@ -152,14 +152,12 @@ impl Warp {
     fn table_indices(&self, kernels: Kernels, keys: &[f64], entries: &mut [u32]) {
         let count = keys.len().min(entries.len());
         let (keys, entries) = (&keys[..count], &mut entries[..count]);
-        let mut done = 0;
-        #[cfg(target_arch = "x86_64")]
-        if let Kernels::Avx2Fma = kernels {
-            // SAFETY: `Kernels::Avx2Fma` is only detected where AVX2 runs.
-            done = unsafe { self.table_indices_avx2(keys, entries) };
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = kernels;
+        let done = match kernels {
+            Kernels::Portable => 0,
+            // SAFETY: `Kernels::detect` only chose this variant where the CPU has AVX2.
+            #[cfg(target_arch = "x86_64")]
+            Kernels::Avx2Fma => unsafe { self.table_indices_avx2(keys, entries) },
+        };
         for (entry, &key) in entries[done..].iter_mut().zip(&keys[done..]) {
             *entry = Tables::index(self.warp(key)) as u32;
         }
@@ -185,6 +183,7 @@ impl Warp {
                     _mm256_and_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(knot, key), one),
                 );
             }
+            // At most KNOTS − 2: inside both gathered arrays.
             let lanes = _mm256_cvttpd_epi32(index);
             let knot = _mm256_i32gather_pd::<8>(self.knots.as_ptr(), lanes);
             let slope = _mm256_i32gather_pd::<8>(self.slopes.as_ptr(), lanes);
