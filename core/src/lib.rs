@@ -31,6 +31,7 @@ mod running;
 pub mod scene;
 pub mod shadow_map;
 pub mod silhouette;
+mod spans;
 mod spare;
 pub mod style;
 pub mod transfer_function;

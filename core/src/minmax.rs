@@ -14,6 +14,7 @@ use crate::camera::Ray;
 use crate::epipolar::{EpipolarMap, RaySlice};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
+use crate::spans::JoinedSpans;
 
 /// Minimum and maximum of K over aligned runs of samples, for levels 1 and up. Each
 /// slice's pyramid is contiguous, so that a ray's walk stays within a few cache lines.
@@ -98,22 +99,9 @@ impl MinMaxMipmap {
     ) {
         let samples = map.samples as usize;
         let (s_start_of_map, s_end_of_map) = map.s_range();
-        let mut pending: Option<(f64, f64)> = None;
-        let mut emit = |s0: f64, s1: f64, visit: &mut dyn FnMut(f64, f64)| {
-            if s1 <= s0 {
-                return;
-            }
-            match pending {
-                Some((p0, p1)) if p1 >= s0 => pending = Some((p0, s1.max(p1))),
-                Some((p0, p1)) => {
-                    visit(p0, p1);
-                    pending = Some((s0, s1));
-                }
-                None => pending = Some((s0, s1)),
-            }
-        };
+        let mut spans = JoinedSpans::default();
         if s_a < s_start_of_map {
-            emit(s_a, s_b.min(s_start_of_map), &mut visit);
+            spans.push(s_a, s_b.min(s_start_of_map), &mut visit);
         }
         let (inside_a, inside_b) = (s_a.max(s_start_of_map), s_b.min(s_end_of_map));
         if inside_b > inside_a {
@@ -128,7 +116,7 @@ impl MinMaxMipmap {
                 if low < threshold && high >= threshold {
                     // The ray crosses the occluder depth inside this sample: split it.
                     if let Some((s0, s1)) = map.lit_part(i, row[i], exact_threshold) {
-                        emit(s0.max(inside_a), s1.min(inside_b), &mut visit);
+                        spans.push(s0.max(inside_a), s1.min(inside_b), &mut visit);
                     }
                     i += 1;
                     continue;
@@ -156,17 +144,15 @@ impl MinMaxMipmap {
                 if lit {
                     let (s0, _) = map.sample_interval(i);
                     let (_, s1) = map.sample_interval(i + run - 1);
-                    emit(s0.max(inside_a), s1.min(inside_b), &mut visit);
+                    spans.push(s0.max(inside_a), s1.min(inside_b), &mut visit);
                 }
                 i += run;
             }
         }
         if s_b > s_end_of_map {
-            emit(s_a.max(s_end_of_map), s_b, &mut visit);
+            spans.push(s_a.max(s_end_of_map), s_b, &mut visit);
         }
-        if let Some((p0, p1)) = pending {
-            visit(p0, p1);
-        }
+        spans.finish(&mut visit);
     }
 }
 

@@ -9,6 +9,7 @@ use glam::{DMat4, DVec3};
 use crate::camera::Ray;
 use crate::scene::{Extent, Medium, Sun};
 use crate::shadow_map::ShadowMap;
+use crate::spans::JoinedSpans;
 
 /// What one view ray contributes.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -326,8 +327,7 @@ impl<'a> Marcher<'a> {
         let end = at(t_end);
         let cells = (end.x - start.x).abs().ceil() + (end.y - start.y).abs().ceil() + 2.0;
         let mut t = t_start;
-        // The lit part not yet reported, extended while the next texel's lit part joins it.
-        let mut pending: Option<(f64, f64)> = None;
+        let mut spans = JoinedSpans::default();
         for _ in 0..cells.min(1e7) as usize {
             let exit = next[0].min(next[1]).min(t_end).max(t);
             let inside = (0..size).contains(&cell[0]) && (0..size).contains(&cell[1]);
@@ -352,16 +352,7 @@ impl<'a> Marcher<'a> {
                     }
                 }
             };
-            if lit_to > lit_from {
-                pending = match pending {
-                    Some((from, to)) if lit_from <= to => Some((from, to.max(lit_to))),
-                    Some((from, to)) => {
-                        lit(from, to);
-                        Some((lit_from, lit_to))
-                    }
-                    None => Some((lit_from, lit_to)),
-                };
-            }
+            spans.push(lit_from, lit_to, &mut lit);
             if exit >= t_end || exit > enough {
                 break;
             }
@@ -370,9 +361,7 @@ impl<'a> Marcher<'a> {
             next[k] += delta[k];
             t = exit;
         }
-        if let Some((from, to)) = pending {
-            lit(from, to);
-        }
+        spans.finish(&mut lit);
     }
 
     fn march_in_steps(&self, ray: &Ray, t_start: f64, t_end: f64, steps: u32) -> RaySample {
