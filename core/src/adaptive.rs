@@ -8,13 +8,14 @@
 //! Shadow boundaries run along the epipolar lines, the images of the planes through the
 //! camera and the light: in such a plane, the free space a view ray crosses is lit or
 //! shadowed in strips parallel to the light, and turning the ray within the plane moves
-//! where it crosses each strip smoothly. So along an epipolar line the grid can be twice
-//! as sparse as across it. Every other pixel of every other row is found in two steps:
-//! every fourth pixel of every fourth row is shaded, and each pixel of the finer grid
-//! between them is interpolated from two of those on either side where the pair lies
-//! along the epipolar line through it, as they must to resolve shafts no worse than the
-//! finer grid would. The pixels between those are then interpolated from the finer
-//! grid in any direction.
+//! where it crosses each strip smoothly. So along an epipolar line the samples can lie
+//! farther apart than across it. Every other pixel of every other row (the finer grid)
+//! is found in two steps. In each square of the finer grid, the points on its lines
+//! along a short lattice vector close to the square's epipolar lines are shaded every
+//! few points ([`Lattice`]); each other point lies between two of those on its own line
+//! and is interpolated from them where that line runs along the epipolar line through
+//! it, closely enough to resolve shafts no worse than the finer grid would. The pixels
+//! between the finer grid's are then interpolated from it in any direction.
 //!
 //! A feature narrower than two pixels across the epipolar lines that no shaded pixel
 //! touches, such as a shaft one pixel wide, can be missed; a tolerance of 0 shades every
@@ -32,14 +33,20 @@ use crate::render::{for_each_in_tiles, layer_depth, EDGE_DEPTH_SPREAD, SHADING_T
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
 /// are interpolated. On the built-in scenes' default views at 1920×1080 this shades
-/// 13–52% of the pixels and moves the layers from shading every pixel by at most 0.023%
-/// of the mean radiance (prefiltering; 0.047% for min-max).
+/// 10–51% of the pixels and moves the layers from shading every pixel by at most 0.029%
+/// of the mean radiance (prefiltering; 0.054% for min-max).
 pub const DEFAULT_TOLERANCE: f32 = 0.01;
 
 /// How far apart across the epipolar line through a pixel, in pixels, the two pixels it
 /// is interpolated from on the finer grid may lie: as far as the finer grid's own
 /// neighbours, two pixels apart.
 const MAX_ACROSS: f64 = 2.0;
+
+/// The span along an epipolar line, in pixels, over which a pair may differ by the
+/// tolerance; pairs farther apart may differ in proportion. In-scattering varies smoothly
+/// along the lines, so what the test bounds there is its gradient, as the same tolerance
+/// over pairs four pixels apart did before the lattices grew sparser.
+const TOLERANCE_SPAN: f64 = 4.0;
 
 /// The image's epipolar lines: they all pass through the epipole, the image of the
 /// light's direction, or run parallel to its image when that lies at infinity.
@@ -101,91 +108,278 @@ struct Interpolation<'s, S> {
 }
 
 impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
-    /// Pixel (x, y) as the mean of `neighbours` ([`mean_if_agreeing`]), where it lies on
-    /// their surface.
+    /// Pixel (x, y) as the blend of `neighbours` by `weights` ([`blend_if_agreeing`]),
+    /// where it lies on their surface.
     #[inline]
-    fn between<const N: usize>(&self, neighbours: [Pixel; N], x: usize, y: usize) -> Option<Pixel> {
-        let mean = mean_if_agreeing(neighbours, self.tolerance, self.max_distance)?;
+    fn between<const N: usize>(
+        &self,
+        neighbours: [Pixel; N],
+        weights: [f32; N],
+        x: usize,
+        y: usize,
+    ) -> Option<Pixel> {
+        let blend = blend_if_agreeing(neighbours, weights, self.tolerance, self.max_distance)?;
         let surface = (self.surface)(x, y)?;
         let reach = surface.min(self.max_distance as f64) as f32;
-        if !on_one_surface(mean.depth, reach) {
+        if !on_one_surface(blend.depth, reach) {
             return None;
         }
         let depth = layer_depth(surface, self.max_distance as f64) as f32;
-        Some(Pixel { depth, ..mean })
+        Some(Pixel { depth, ..blend })
+    }
+
+    /// Pixel (x, y) as the mean of `neighbours`, where they agree and it lies on their
+    /// surface.
+    #[inline]
+    fn mean<const N: usize>(&self, neighbours: [Pixel; N], x: usize, y: usize) -> Option<Pixel> {
+        self.between(neighbours, [1.0 / N as f32; N], x, y)
+    }
+
+    /// Pixel (x, y) between `pair`, `span` pixels apart along the epipolar line through
+    /// it, `fraction` of the way from the first: the tolerance in proportion to the span
+    /// ([`TOLERANCE_SPAN`]).
+    #[inline]
+    fn along(
+        &self,
+        pair: [Pixel; 2],
+        fraction: f32,
+        span: f64,
+        x: usize,
+        y: usize,
+    ) -> Option<Pixel> {
+        let wider = Interpolation {
+            tolerance: self.tolerance * (span / TOLERANCE_SPAN).max(1.0) as f32,
+            ..*self
+        };
+        wider.between(pair, [1.0 - fraction, fraction], x, y)
     }
 }
 
-/// The rows of the finer grid (every other pixel of every other row), even and odd
-/// ones apart so that each step writes one kind while reading the other, in bands of
-/// [`TILE`] rows.
+/// The finer grid's points in bands of [`TILE`] rows, even and odd bands apart so that
+/// one parity's bands can be completed in parallel while their pairs read the lattice
+/// points of the others.
 struct FinerGrid {
     width: usize,
-    even: Vec<Vec<Pixel>>,
-    odd: Vec<Vec<Pixel>>,
+    bands: [Vec<Vec<Pixel>>; 2],
 }
+
+/// Pairs reach fewer rows up or down than a band has, so only into the bands beside.
+const _: () = assert!(MAX_STRIDE * MAX_STEP < TILE as i64);
 
 impl FinerGrid {
-    /// Row `j` of the finer grid, `None` past the last.
-    #[inline]
-    fn row(&self, j: usize) -> Option<&[Pixel]> {
-        let bands = if j % 2 == 0 { &self.even } else { &self.odd };
-        band_row(bands, self.width, j / 2)
-    }
-}
-
-/// Row `k` of rows kept in bands of [`TILE`] rows of `width` pixels, `None` past the last.
-#[inline]
-fn band_row(bands: &[Vec<Pixel>], width: usize, k: usize) -> Option<&[Pixel]> {
-    bands
-        .get(k / TILE)?
-        .get(k % TILE * width..(k % TILE + 1) * width)
-}
-
-/// Pixel `up` of row `above` and pixel `down` of row `below` as a pair to interpolate
-/// from, at ±`offset`, where both rows exist.
-#[inline]
-fn across_rows(
-    above: Option<&[Pixel]>,
-    below: Option<&[Pixel]>,
-    up: usize,
-    down: usize,
-    offset: [f64; 2],
-) -> Option<([Pixel; 2], [f64; 2])> {
-    Some(([*above?.get(up)?, *below?.get(down)?], offset))
-}
-
-/// A pixel of the finer grid interpolated from its row and the others: (row, k, i) for
-/// pixel i of row k, `None` where it must be shaded.
-type Interpolated<'a> = dyn Fn(&[Pixel], usize, usize) -> Option<Pixel> + Sync + 'a;
-
-/// Of the ways to interpolate a pixel of the finer grid, each a pair of neighbours at
-/// ±offset: the one whose pair lies closest along the epipolar line through it, if any
-/// lies close enough ([`MAX_ACROSS`]; [`EpipolarLines::across`], without its root and
-/// division).
-#[inline]
-fn along_the_line<const K: usize>(
-    lines: Option<&EpipolarLines>,
-    x: usize,
-    y: usize,
-    pairs: [Option<([Pixel; 2], [f64; 2])>; K],
-) -> Option<[Pixel; 2]> {
-    let [dx, dy] = lines?.direction(x, y);
-    let mut best = None;
-    // The cross product with the direction: half the distance across times its length.
-    let mut closest = f64::INFINITY;
-    for (pair, [ox, oy]) in pairs.into_iter().flatten() {
-        let cross = (dx * oy - dy * ox).abs();
-        if cross < closest {
-            closest = cross;
-            best = Some(pair);
+    fn new(width: usize, height: usize) -> Self {
+        let band = |band: usize| vec![Pixel::default(); TILE.min(height - band * TILE) * width];
+        let count = height.div_ceil(TILE);
+        Self {
+            width,
+            bands: [
+                (0..count).step_by(2).map(band).collect(),
+                (1..count).step_by(2).map(band).collect(),
+            ],
         }
     }
-    let length_squared = dx * dx + dy * dy;
-    let half = 0.5 * MAX_ACROSS;
-    (length_squared > 1e-24 && closest * closest <= half * half * length_squared)
-        .then_some(best)
-        .flatten()
+
+    /// Row `j`, `None` past the last.
+    #[inline]
+    fn row(&self, j: usize) -> Option<&[Pixel]> {
+        let band = j / TILE;
+        self.bands[band % 2]
+            .get(band / 2)?
+            .get(j % TILE * self.width..(j % TILE + 1) * self.width)
+    }
+}
+
+/// The most points of the finer grid a pair may lie apart along an epipolar line, so
+/// that at best one in this many is shaded.
+const MAX_STRIDE: i64 = 4;
+
+/// The largest component of a lattice's step.
+const MAX_STEP: i64 = 3;
+
+/// The longest a pair may span along an epipolar line, in pixels.
+const MAX_ALONG: f64 = 12.0;
+
+/// Side of the squares of the finer grid that share one [`Lattice`], in its points.
+const LATTICE_TILE: usize = 8;
+
+/// The points of the finer grid shaded first in a square of it: on each of its lines
+/// along `step` (a primitive vector of the finer grid, close to the square's epipolar
+/// lines), every `stride`-th point, so that every other point lies between two of them
+/// on its own line, at most [`MAX_ALONG`] pixels apart and [`MAX_ACROSS`] across the
+/// epipolar line through it. A stride of 1 shades every point.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Lattice {
+    step: [i64; 2],
+    stride: i64,
+    /// Integer coefficients with `position`·`step` = 1, so that `position`·p counts
+    /// steps along the lines.
+    position: [i64; 2],
+}
+
+impl Lattice {
+    const EVERY_POINT: Lattice = Lattice {
+        step: [1, 0],
+        stride: 1,
+        position: [1, 0],
+    };
+
+    /// The sparsest lattice for a square whose epipolar lines run along `directions`
+    /// (in pixels, at its corners: around an epipole off the square the extremes lie
+    /// there), with the shortest pairs among equally sparse ones.
+    fn along(directions: &[[f64; 2]; 4]) -> Self {
+        let mut units = [[0.0; 2]; 4];
+        for (unit, &[dx, dy]) in units.iter_mut().zip(directions) {
+            let norm = dx.hypot(dy);
+            if !(norm > 1e-12 && norm.is_finite()) {
+                return Self::EVERY_POINT;
+            }
+            *unit = [dx / norm, dy / norm];
+        }
+        let mut best = Self::EVERY_POINT;
+        let mut best_span = f64::INFINITY;
+        for a in -MAX_STEP..=MAX_STEP {
+            for b in 0..=MAX_STEP {
+                if (b == 0 && a != 1) || greatest_common_divisor(a.abs(), b) != 1 {
+                    continue;
+                }
+                // Pixels per step: the finer grid's points lie two pixels apart.
+                let length = 2.0 * ((a * a + b * b) as f64).sqrt();
+                let cross_max = units
+                    .iter()
+                    .map(|[dx, dy]| (dx * b as f64 - dy * a as f64).abs())
+                    .fold(0.0, f64::max);
+                let sin_max = 2.0 * cross_max / length;
+                let mut stride = MAX_STRIDE;
+                while stride > 1 {
+                    let span = stride as f64 * length;
+                    if span <= MAX_ALONG && span * sin_max <= MAX_ACROSS {
+                        break;
+                    }
+                    stride -= 1;
+                }
+                let span = stride as f64 * length;
+                if stride > best.stride || (stride == best.stride && stride > 1 && span < best_span)
+                {
+                    let position = bezout([a, b]);
+                    best = Lattice {
+                        step: [a, b],
+                        stride,
+                        position,
+                    };
+                    best_span = span;
+                }
+            }
+        }
+        best
+    }
+
+    /// How many steps point (i, j) of the finer grid lies past the lattice point behind
+    /// it on its line: 0 for the lattice's own points.
+    #[inline]
+    fn offset(&self, i: usize, j: usize) -> i64 {
+        (self.position[0] * i as i64 + self.position[1] * j as i64).rem_euclid(self.stride)
+    }
+}
+
+fn greatest_common_divisor(a: i64, b: i64) -> i64 {
+    if b == 0 {
+        a
+    } else {
+        greatest_common_divisor(b, a % b)
+    }
+}
+
+/// Integers (c, d) with c·a + d·b = 1 for a primitive `step` (a, b).
+fn bezout([a, b]: [i64; 2]) -> [i64; 2] {
+    // Extended Euclid on (a, b), tracking the coefficients of a and b.
+    let (mut r0, mut r1) = (a, b);
+    let (mut c0, mut c1) = (1i64, 0i64);
+    let (mut d0, mut d1) = (0i64, 1i64);
+    while r1 != 0 {
+        let q = r0.div_euclid(r1);
+        (r0, r1) = (r1, r0 - q * r1);
+        (c0, c1) = (c1, c0 - q * c1);
+        (d0, d1) = (d1, d0 - q * d1);
+    }
+    // r0 is ±1 for a primitive step.
+    [c0 * r0, d0 * r0]
+}
+
+/// The [`Lattice`] of each square of a finer grid.
+struct Lattices {
+    across: usize,
+    squares: Vec<Lattice>,
+}
+
+impl Lattices {
+    /// For a finer grid of `width` × `height` points, whose point (i, j) is pixel
+    /// (2i, 2j), under `lines` (every point shaded without).
+    fn of_grid(width: usize, height: usize, lines: Option<&EpipolarLines>) -> Self {
+        let across = width.div_ceil(LATTICE_TILE);
+        let down = height.div_ceil(LATTICE_TILE);
+        let squares = (0..down * across)
+            .map(|square| {
+                let Some(lines) = lines else {
+                    return Lattice::EVERY_POINT;
+                };
+                let (i0, j0) = (
+                    square % across * LATTICE_TILE,
+                    square / across * LATTICE_TILE,
+                );
+                let (i1, j1) = (
+                    (i0 + LATTICE_TILE).min(width) - 1,
+                    (j0 + LATTICE_TILE).min(height) - 1,
+                );
+                let corners = [(i0, j0), (i1, j0), (i0, j1), (i1, j1)]
+                    .map(|(i, j)| lines.direction(2 * i, 2 * j));
+                Lattice::along(&corners)
+            })
+            .collect();
+        Self { across, squares }
+    }
+
+    /// The index of the square of point (i, j).
+    #[inline]
+    fn square(&self, i: usize, j: usize) -> usize {
+        j / LATTICE_TILE * self.across + i / LATTICE_TILE
+    }
+
+    #[inline]
+    fn at(&self, i: usize, j: usize) -> &Lattice {
+        &self.squares[self.square(i, j)]
+    }
+
+    /// Whether point (i, j) is one of its square's lattice points.
+    #[inline]
+    fn contains(&self, i: usize, j: usize) -> bool {
+        self.at(i, j).offset(i, j) == 0
+    }
+
+    /// Calls `visit(i, offset)` for the points `columns` of row `j` with their
+    /// [`Lattice::offset`]s, found by adding rather than dividing.
+    #[inline]
+    fn offsets_in_row(
+        &self,
+        columns: std::ops::Range<usize>,
+        j: usize,
+        mut visit: impl FnMut(usize, i64),
+    ) {
+        let mut i = columns.start;
+        while i < columns.end {
+            let lattice = self.at(i, j);
+            let advance = lattice.position[0].rem_euclid(lattice.stride);
+            let mut offset = lattice.offset(i, j);
+            let square_end = ((i / LATTICE_TILE + 1) * LATTICE_TILE).min(columns.end);
+            for i in i..square_end {
+                visit(i, offset);
+                offset += advance;
+                if offset >= lattice.stride {
+                    offset -= lattice.stride;
+                }
+            }
+            i = square_end;
+        }
+    }
 }
 
 /// Shades a `width` × `height` image adaptively. `shade(x, y)` gives a pixel's layers;
@@ -214,131 +408,136 @@ pub fn shade_adaptively(
     };
     let grid_width = width.div_ceil(2);
     let grid_height = height.div_ceil(2);
+    let lattices = Lattices::of_grid(grid_width, grid_height, lines);
     let shaded_count = AtomicUsize::new(0);
-    let new_bands = |rows: usize| {
-        (0..rows.div_ceil(TILE))
-            .map(|band| vec![Pixel::default(); TILE.min(rows - band * TILE) * grid_width])
-            .collect::<Vec<_>>()
-    };
-    // Completes the pixels of one kind in a band of finer-grid rows, `first` on (image
-    // rows 4·(first + row) + `y0`): those in columns `first_column`, +2, … take
-    // `interpolated(row, k, i)` for pixel i of row k; where it is `None` they are shaded
-    // afterwards, tile by tile for the locality of their rectified data.
-    let complete = |pixels: &mut [Pixel],
-                    first: usize,
-                    y0: usize,
-                    first_column: usize,
-                    interpolated: &Interpolated| {
-        let mut flags = vec![false; pixels.len()];
-        for (row, (pixels, flags)) in pixels
-            .chunks_exact_mut(grid_width)
-            .zip(flags.chunks_exact_mut(grid_width))
-            .enumerate()
-        {
-            for i in (first_column..grid_width).step_by(2) {
-                match interpolated(pixels, first + row, i) {
-                    Some(value) => pixels[i] = value,
-                    None => flags[i] = true,
-                }
-            }
-        }
-        let mut count = 0;
-        for_each_in_tiles(grid_width, pixels.len() / grid_width, |i, row| {
-            let k = row * grid_width + i;
-            if flags[k] {
-                pixels[k] = shade(2 * i, 4 * (first + row) + y0);
-                count += 1;
-            }
-        });
-        shaded_count.fetch_add(count, Ordering::Relaxed);
-    };
-    // `complete` over every band of `bands` in parallel; with `advance`, their rows count
-    // as done.
-    let complete_all = |bands: &mut [Vec<Pixel>],
-                        y0: usize,
-                        first_column: usize,
-                        advance: bool,
-                        interpolated: &Interpolated| {
-        bands.par_iter_mut().enumerate().for_each(|(band, pixels)| {
+    let mut grid = FinerGrid::new(grid_width, grid_height);
+    // The lattices' points, shaded tile by tile for the locality of their rectified data.
+    let [even, odd] = &mut grid.bands;
+    let numbered = |parity: usize| move |(k, pixels)| (2 * k + parity, pixels);
+    even.par_iter_mut()
+        .enumerate()
+        .map(numbered(0))
+        .chain(odd.par_iter_mut().enumerate().map(numbered(1)))
+        .for_each(|(band, pixels): (usize, &mut Vec<Pixel>)| {
             if control.is_cancelled() {
                 return;
             }
-            complete(pixels, band * TILE, y0, first_column, interpolated);
-            if advance {
-                control.advance((pixels.len() / grid_width) as u64);
+            let first = band * TILE;
+            let mut count = 0;
+            for tile in (0..grid_width).step_by(TILE) {
+                for row in 0..pixels.len() / grid_width {
+                    let columns = tile..(tile + TILE).min(grid_width);
+                    lattices.offsets_in_row(columns, first + row, |i, offset| {
+                        if offset == 0 {
+                            pixels[row * grid_width + i] = shade(2 * i, 2 * (first + row));
+                            count += 1;
+                        }
+                    });
+                }
             }
+            shaded_count.fetch_add(count, Ordering::Relaxed);
         });
-    };
-    let mut grid = FinerGrid {
-        width: grid_width,
-        even: new_bands(grid_height.div_ceil(2)),
-        odd: new_bands(grid_height / 2),
-    };
-    // The coarsest grid: every other pixel of the even rows, all shaded.
-    complete_all(&mut grid.even, 0, 0, false, &|_, _, _| None);
-    // The odd rows' pixels below those: between one above and one below.
-    let even = &grid.even;
-    complete_all(&mut grid.odd, 2, 0, false, &|_, k, i| {
-        let (above, below) = (
-            band_row(even, grid_width, k),
-            band_row(even, grid_width, k + 1),
-        );
-        let (x, y) = (2 * i, 4 * k + 2);
-        let pair = along_the_line(lines, x, y, [across_rows(above, below, i, i, [0.0, 2.0])])?;
-        interpolation.between(pair, x, y)
-    });
-    // The even rows' other pixels: between their left and right neighbours, or the odd
-    // rows' pixels diagonally above and below.
-    let odd = &grid.odd;
-    complete_all(&mut grid.even, 0, 1, true, &|row, k, i| {
-        let right = *row.get(i + 1)?;
-        let above = k.checked_sub(1).and_then(|k| band_row(odd, grid_width, k));
-        let below = band_row(odd, grid_width, k);
-        let (x, y) = (2 * i, 4 * k);
-        let pair = along_the_line(
-            lines,
-            x,
-            y,
-            [
-                Some(([row[i - 1], right], [2.0, 0.0])),
-                across_rows(above, below, i - 1, i + 1, [2.0, 2.0]),
-                across_rows(above, below, i + 1, i - 1, [2.0, -2.0]),
-            ],
-        )?;
-        interpolation.between(pair, x, y)
-    });
-    // The odd rows' other pixels, at the centres of the coarsest grid's squares: along
-    // the row, the column or a diagonal.
-    let even = &grid.even;
-    complete_all(&mut grid.odd, 2, 1, true, &|row, k, i| {
-        let right = *row.get(i + 1)?;
-        let (above, below) = (
-            band_row(even, grid_width, k),
-            band_row(even, grid_width, k + 1),
-        );
-        let (x, y) = (2 * i, 4 * k + 2);
-        let pair = along_the_line(
-            lines,
-            x,
-            y,
-            [
-                Some(([row[i - 1], right], [2.0, 0.0])),
-                across_rows(above, below, i, i, [0.0, 2.0]),
-                across_rows(above, below, i - 1, i + 1, [2.0, 2.0]),
-                across_rows(above, below, i + 1, i - 1, [2.0, -2.0]),
-            ],
-        )?;
-        interpolation.between(pair, x, y)
-    });
+    // The other points, the bands of each parity in parallel: a band's pairs reach only
+    // into itself and the bands either side, of the other parity, whose lattice points
+    // stay as they are.
+    for parity in 0..2 {
+        let [even, odd] = &mut grid.bands;
+        let (completing, beside) = if parity == 0 {
+            (even, &*odd)
+        } else {
+            (odd, &*even)
+        };
+        completing
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(k, pixels)| {
+                if control.is_cancelled() {
+                    return;
+                }
+                let band = 2 * k + parity;
+                let first = band * TILE;
+                let rows = pixels.len() / grid_width;
+                // Lattice point (i, j), `None` off the grid or where (i, j) is none; the
+                // square `home`'s own lattice points need no test.
+                let lattice_point = |pixels: &[Pixel], i: i64, j: i64, home: usize| {
+                    let (i, j) = (usize::try_from(i).ok()?, usize::try_from(j).ok()?);
+                    if i >= grid_width || j >= grid_height {
+                        return None;
+                    }
+                    if lattices.square(i, j) != home && !lattices.contains(i, j) {
+                        return None;
+                    }
+                    let at = j % TILE * grid_width + i;
+                    Some(match j / TILE {
+                        b if b == band => pixels[at],
+                        b => beside[b / 2][at],
+                    })
+                };
+                // Point (i, j), `behind` steps past the lattice point behind it on its
+                // line, between that and the next where they lie along the epipolar line
+                // through it ([`MAX_ACROSS`]), agree and see its surface.
+                let interpolated = |pixels: &[Pixel], i: usize, j: usize, behind: i64| {
+                    let home = lattices.square(i, j);
+                    let lattice = &lattices.squares[home];
+                    let ahead = lattice.stride - behind;
+                    let [a, b] = lattice.step;
+                    let (pi, pj) = (i as i64, j as i64);
+                    let pair = [
+                        lattice_point(pixels, pi - behind * a, pj - behind * b, home)?,
+                        lattice_point(pixels, pi + ahead * a, pj + ahead * b, home)?,
+                    ];
+                    let (x, y) = (2 * i, 2 * j);
+                    let [dx, dy] = lines?.direction(x, y);
+                    let (sx, sy) = (
+                        (2 * lattice.stride * a) as f64,
+                        (2 * lattice.stride * b) as f64,
+                    );
+                    // The pair's distance across the line, times the direction's length.
+                    let cross = dx * sy - dy * sx;
+                    let length_squared = dx * dx + dy * dy;
+                    if !(length_squared > 1e-24
+                        && cross * cross <= MAX_ACROSS * MAX_ACROSS * length_squared)
+                    {
+                        return None;
+                    }
+                    let span = (sx * sx + sy * sy).sqrt();
+                    let fraction = behind as f32 / lattice.stride as f32;
+                    interpolation.along(pair, fraction, span, x, y)
+                };
+                let mut flags = vec![false; pixels.len()];
+                for row in 0..rows {
+                    let j = first + row;
+                    lattices.offsets_in_row(0..grid_width, j, |i, behind| {
+                        if behind != 0 {
+                            let k = row * grid_width + i;
+                            match interpolated(pixels, i, j, behind) {
+                                Some(value) => pixels[k] = value,
+                                None => flags[k] = true,
+                            }
+                        }
+                    });
+                }
+                let mut count = 0;
+                for_each_in_tiles(grid_width, rows, |i, row| {
+                    let k = row * grid_width + i;
+                    if flags[k] {
+                        pixels[k] = shade(2 * i, 2 * (first + row));
+                        count += 1;
+                    }
+                });
+                shaded_count.fetch_add(count, Ordering::Relaxed);
+                control.advance(rows as u64);
+            });
+    }
     // Pixel (x, y) as the mean of the finer grid's pixels beside it (left and right,
     // above and below, or the four diagonal ones) where they agree. `None` on the last
     // column or row where one is missing.
     let between = |x: usize, y: usize, above: &[Pixel], below: Option<&[Pixel]>| {
         let i = x / 2;
         match (x % 2 == 1, below) {
-            (true, None) => interpolation.between([above[i], *above.get(i + 1)?], x, y),
-            (false, Some(below)) => interpolation.between([above[i], below[i]], x, y),
-            (true, Some(below)) => interpolation.between(
+            (true, None) => interpolation.mean([above[i], *above.get(i + 1)?], x, y),
+            (false, Some(below)) => interpolation.mean([above[i], below[i]], x, y),
+            (true, Some(below)) => interpolation.mean(
                 [above[i], *above.get(i + 1)?, below[i], *below.get(i + 1)?],
                 x,
                 y,
@@ -393,13 +592,14 @@ pub fn shade_adaptively(
     )
 }
 
-/// The mean of `neighbours` where they agree: each of RGBA spreads by at most
-/// `tolerance` times its mean, visibility by at most `tolerance`, and their view rays end
-/// within [`EDGE_DEPTH_SPREAD`] of each other (background and surfaces beyond it at
-/// `max_distance`). The mean's depth is their nearest ray end. NaN anywhere means
-/// disagreement.
-fn mean_if_agreeing<const N: usize>(
+/// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of RGBA
+/// spreads by at most `tolerance` times its blend, visibility by at most `tolerance`, and
+/// their view rays end within [`EDGE_DEPTH_SPREAD`] of each other (background and
+/// surfaces beyond it at `max_distance`). The blend's depth is their nearest ray end.
+/// NaN anywhere means disagreement.
+fn blend_if_agreeing<const N: usize>(
     neighbours: [Pixel; N],
+    weights: [f32; N],
     tolerance: f32,
     max_distance: f32,
 ) -> Option<Pixel> {
@@ -407,23 +607,36 @@ fn mean_if_agreeing<const N: usize>(
     // lane-wise operation.
     let mut low = [f32::INFINITY; 8];
     let mut high = [f32::NEG_INFINITY; 8];
-    let mut sum = [0.0f32; 8];
-    for neighbour in neighbours {
-        let [r, g, b, a] = neighbour.volume;
-        let reach = neighbour.depth.min(max_distance);
-        let values = [r, g, b, a, neighbour.visibility, reach, 0.0, 0.0];
+    let lanes = |pixel: &Pixel| {
+        let [r, g, b, a] = pixel.volume;
+        [
+            r,
+            g,
+            b,
+            a,
+            pixel.visibility,
+            pixel.depth.min(max_distance),
+            0.0,
+            0.0,
+        ]
+    };
+    // The first neighbour plus the others' weighted differences from it, so that equal
+    // neighbours blend to exactly their value.
+    let first = lanes(&neighbours[0]);
+    let mut blend = first;
+    for (neighbour, weight) in neighbours.iter().zip(weights) {
+        let values = lanes(neighbour);
         for k in 0..8 {
             low[k] = low[k].min(values[k]);
             high[k] = high[k].max(values[k]);
-            sum[k] += values[k];
+            blend[k] += weight * (values[k] - first[k]);
         }
     }
-    let mean = sum.map(|total| total / N as f32);
     // Per lane, the spread allowed: relative for RGBA, absolute for visibility, and
     // relative to the nearest end for the reach.
     let edge = EDGE_DEPTH_SPREAD as f32 * low[5];
     let allowed: [f32; 8] = std::array::from_fn(|k| match k {
-        0..4 => tolerance * mean[k].abs(),
+        0..4 => tolerance * blend[k].abs(),
         4 => tolerance,
         5 => edge,
         _ => 0.0,
@@ -433,8 +646,8 @@ fn mean_if_agreeing<const N: usize>(
         agree &= high[k] - low[k] <= allowed[k];
     }
     agree.then_some(Pixel {
-        volume: [mean[0], mean[1], mean[2], mean[3]],
-        visibility: mean[4],
+        volume: [blend[0], blend[1], blend[2], blend[3]],
+        visibility: blend[4],
         depth: low[5],
     })
 }
@@ -448,6 +661,14 @@ fn on_one_surface(nearest: f32, reach: f32) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn mean_if_agreeing<const N: usize>(
+        neighbours: [Pixel; N],
+        tolerance: f32,
+        max_distance: f32,
+    ) -> Option<Pixel> {
+        blend_if_agreeing(neighbours, [1.0 / N as f32; N], tolerance, max_distance)
+    }
 
     fn pixel(rgb: f32, alpha: f32, visibility: f32, depth: f32) -> Pixel {
         Pixel {
@@ -756,6 +977,84 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn lattices_pair_every_other_point_along_the_epipolar_line_through_it() {
+        let mut strides = Vec::new();
+        for degrees in 0..360 {
+            let angle = (degrees as f64 + 0.3).to_radians();
+            let direction = [angle.cos(), angle.sin()];
+            let lattice = Lattice::along(&[direction; 4]);
+            let [a, b] = lattice.step;
+            assert_eq!(lattice.position[0] * a + lattice.position[1] * b, 1);
+            strides.push(lattice.stride);
+            // Every point off the lattice lies between two lattice points on its line,
+            // at most MAX_ALONG apart and MAX_ACROSS across the epipolar line.
+            let span = [
+                2.0 * (lattice.stride * a) as f64,
+                2.0 * (lattice.stride * b) as f64,
+            ];
+            assert!(span[0].hypot(span[1]) <= MAX_ALONG + 1e-9, "{degrees}°");
+            let across = (direction[0] * span[1] - direction[1] * span[0]).abs();
+            assert!(across <= MAX_ACROSS + 1e-9, "{degrees}°: {across}");
+            for (i, j) in [(10usize, 20usize), (11, 20), (12, 23), (17, 31)] {
+                let behind = lattice.offset(i, j);
+                let ahead = lattice.stride - behind;
+                let back = (
+                    (i as i64 - behind * a) as usize,
+                    (j as i64 - behind * b) as usize,
+                );
+                let front = (
+                    (i as i64 + ahead * a) as usize,
+                    (j as i64 + ahead * b) as usize,
+                );
+                assert_eq!(lattice.offset(back.0, back.1), 0, "{degrees}°");
+                assert_eq!(lattice.offset(front.0, front.1), 0, "{degrees}°");
+            }
+        }
+        // Along any direction at most half the finer grid is shaded first, and a quarter
+        // along the grid's axes and diagonals.
+        assert!(strides.iter().all(|&stride| stride >= 2), "{strides:?}");
+        for degrees in [0, 45, 90, 135, 180, 225, 270, 315] {
+            assert_eq!(strides[degrees], MAX_STRIDE, "{degrees}°");
+        }
+        // Around an epipole inside the square, and without a direction, every point.
+        let around = [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
+        assert_eq!(Lattice::along(&around), Lattice::EVERY_POINT);
+        assert_eq!(Lattice::along(&[[0.0, 0.0]; 4]), Lattice::EVERY_POINT);
+        assert_eq!(Lattice::along(&[[f64::NAN, 1.0]; 4]), Lattice::EVERY_POINT);
+    }
+
+    /// Along the lines the tolerance bounds the gradient: a pair twice as far apart may
+    /// differ twice as much ([`TOLERANCE_SPAN`]).
+    #[test]
+    fn along_the_lines_the_tolerance_bounds_the_gradient() {
+        let (width, height) = (128, 64);
+        let lines = EpipolarLines::through([1.0, 0.0, 0.0]);
+        let surface = |_, _| Some(20.0);
+        let shaded_with = |per_pixel: f32| {
+            let value = |x: usize, _: usize| pixel((per_pixel * x as f32).exp(), 0.4, 0.5, 20.0);
+            let (layers, shaded) = shade_image(width, height, 0.01, Some(lines), surface, value);
+            for y in 0..height {
+                for x in 0..width {
+                    let (got, want) = (layer_value(&layers, x, y), value(x, y));
+                    for (got, want) in got.volume.iter().zip(want.volume) {
+                        assert!((got - want).abs() <= 1e-4 * want, "({x}, {y})");
+                    }
+                }
+            }
+            shaded
+        };
+        let flat = shaded_with(0.0);
+        // Growing by 1.4% over the lattice's eight pixels along the rows (0.7% over four):
+        // shaded as a flat image is.
+        assert_eq!(shaded_with(0.0018), flat);
+        // By 2.4% over eight (1.2% over four): every point of the finer grid is shaded.
+        let steep = shaded_with(0.003);
+        let finer = width.div_ceil(2) * height.div_ceil(2);
+        assert!(flat < finer / 2, "{flat} of {finer}");
+        assert!(steep >= finer, "{steep} of {finer}");
     }
 
     #[test]
