@@ -12,7 +12,7 @@
 //! farther apart than across it. Every other pixel of every other row (the finer grid)
 //! is found in two steps. In each square of the finer grid, the points on its lines
 //! along a short lattice vector close to the square's epipolar lines are shaded every
-//! few points ([`Lattice`]); each other point lies between two of those on its own line
+//! few points (a lattice); each other point lies between two of those on its own line
 //! and is interpolated from them where that line runs along the epipolar line through
 //! it, closely enough to resolve shafts no worse than the finer grid would. The pixels
 //! between the finer grid's are then interpolated from it in any direction.
