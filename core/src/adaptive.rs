@@ -30,6 +30,7 @@ use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::layers::{Layers, Pixel};
 use crate::render::{for_each_in_tiles, layer_depth, EDGE_DEPTH_SPREAD, SHADING_TILE as TILE};
+use crate::spare::Spare;
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
 /// are interpolated. On the built-in scenes' default views at 1920×1080 this shades
@@ -157,24 +158,39 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
 
 /// The finer grid's points in bands of [`TILE`] rows, even and odd bands apart so that
 /// one parity's bands can be completed in parallel while their pairs read the lattice
-/// points of the others.
+/// points of the others. Every point is set before it is read, so the storage is an
+/// earlier frame's where one is kept (see `crate::spare`).
 struct FinerGrid {
     width: usize,
-    bands: [Vec<Vec<Pixel>>; 2],
+    /// The points of one band: [`TILE`] rows (the last band may have fewer).
+    band_len: usize,
+    /// The even bands one after another, then the odd ones.
+    parities: [Vec<Pixel>; 2],
 }
 
 /// Pairs reach fewer rows up or down than a band has, so only into the bands beside.
 const _: () = assert!(MAX_STRIDE * MAX_STEP < TILE as i64);
 
+static SPARE_EVEN_BANDS: Spare<Pixel> = Spare::new();
+static SPARE_ODD_BANDS: Spare<Pixel> = Spare::new();
+
 impl FinerGrid {
     fn new(width: usize, height: usize) -> Self {
-        let band = |band: usize| vec![Pixel::default(); TILE.min(height - band * TILE) * width];
+        let band_len = TILE * width;
         let count = height.div_ceil(TILE);
+        // Only the last band can be short, and it is the last of its parity.
+        let rows_of = |parity: usize| {
+            (parity..count)
+                .step_by(2)
+                .map(|band| TILE.min(height - band * TILE))
+                .sum::<usize>()
+        };
         Self {
             width,
-            bands: [
-                (0..count).step_by(2).map(band).collect(),
-                (1..count).step_by(2).map(band).collect(),
+            band_len,
+            parities: [
+                SPARE_EVEN_BANDS.take(rows_of(0) * width),
+                SPARE_ODD_BANDS.take(rows_of(1) * width),
             ],
         }
     }
@@ -183,9 +199,16 @@ impl FinerGrid {
     #[inline]
     fn row(&self, j: usize) -> Option<&[Pixel]> {
         let band = j / TILE;
-        self.bands[band % 2]
-            .get(band / 2)?
-            .get(j % TILE * self.width..(j % TILE + 1) * self.width)
+        let start = band / 2 * self.band_len + j % TILE * self.width;
+        self.parities[band % 2].get(start..start + self.width)
+    }
+}
+
+impl Drop for FinerGrid {
+    fn drop(&mut self) {
+        let [even, odd] = &mut self.parities;
+        SPARE_EVEN_BANDS.keep(std::mem::take(even));
+        SPARE_ODD_BANDS.keep(std::mem::take(odd));
     }
 }
 
@@ -412,13 +435,14 @@ pub fn shade_adaptively(
     let shaded_count = AtomicUsize::new(0);
     let mut grid = FinerGrid::new(grid_width, grid_height);
     // The lattices' points, shaded tile by tile for the locality of their rectified data.
-    let [even, odd] = &mut grid.bands;
+    let band_len = grid.band_len;
+    let [even, odd] = &mut grid.parities;
     let numbered = |parity: usize| move |(k, pixels)| (2 * k + parity, pixels);
-    even.par_iter_mut()
+    even.par_chunks_mut(band_len)
         .enumerate()
         .map(numbered(0))
-        .chain(odd.par_iter_mut().enumerate().map(numbered(1)))
-        .for_each(|(band, pixels): (usize, &mut Vec<Pixel>)| {
+        .chain(odd.par_chunks_mut(band_len).enumerate().map(numbered(1)))
+        .for_each(|(band, pixels): (usize, &mut [Pixel])| {
             if control.is_cancelled() {
                 return;
             }
@@ -441,14 +465,14 @@ pub fn shade_adaptively(
     // into itself and the bands either side, of the other parity, whose lattice points
     // stay as they are.
     for parity in 0..2 {
-        let [even, odd] = &mut grid.bands;
+        let [even, odd] = &mut grid.parities;
         let (completing, beside) = if parity == 0 {
             (even, &*odd)
         } else {
             (odd, &*even)
         };
         completing
-            .par_iter_mut()
+            .par_chunks_mut(band_len)
             .enumerate()
             .for_each(|(k, pixels)| {
                 if control.is_cancelled() {
@@ -470,7 +494,7 @@ pub fn shade_adaptively(
                     let at = j % TILE * grid_width + i;
                     Some(match j / TILE {
                         b if b == band => pixels[at],
-                        b => beside[b / 2][at],
+                        b => beside[b / 2 * band_len + at],
                     })
                 };
                 // Point (i, j), `behind` steps past the lattice point behind it on its
@@ -546,7 +570,7 @@ pub fn shade_adaptively(
         }
     };
     let between_shaded = AtomicUsize::new(0);
-    let mut layers = Layers::new(width as u32, height as u32);
+    let mut layers = Layers::for_overwrite(width as u32, height as u32);
     layers.par_bands_mut(TILE).for_each(|mut band| {
         if control.is_cancelled() {
             return;

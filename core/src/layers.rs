@@ -2,6 +2,8 @@
 
 use rayon::prelude::*;
 
+use crate::spare::Spare;
+
 /// One pixel of every layer.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Pixel {
@@ -24,7 +26,35 @@ pub struct Layers {
     pub depth: Vec<f32>,
 }
 
+// Dropped layers' buffers, kept for the next frame's (see `crate::spare`): at 1920×1080 the
+// layers take 50 MB, and faulting in fresh pages for them took a third of adaptive
+// shading's last pass.
+static SPARE_VOLUME: Spare<f32> = Spare::new();
+static SPARE_VISIBILITY: Spare<f32> = Spare::new();
+static SPARE_DEPTH: Spare<f32> = Spare::new();
+
+impl Drop for Layers {
+    fn drop(&mut self) {
+        SPARE_VOLUME.keep(std::mem::take(&mut self.volume));
+        SPARE_VISIBILITY.keep(std::mem::take(&mut self.visibility));
+        SPARE_DEPTH.keep(std::mem::take(&mut self.depth));
+    }
+}
+
 impl Layers {
+    /// Layers whose values are whatever an earlier frame's were, for callers that set
+    /// every pixel.
+    pub(crate) fn for_overwrite(width: u32, height: u32) -> Self {
+        let pixels = width as usize * height as usize;
+        Self {
+            width,
+            height,
+            volume: SPARE_VOLUME.take(pixels * 4),
+            visibility: SPARE_VISIBILITY.take(pixels),
+            depth: SPARE_DEPTH.take(pixels),
+        }
+    }
+
     pub fn new(width: u32, height: u32) -> Self {
         let pixels = width as usize * height as usize;
         Self {

@@ -609,7 +609,7 @@ pub(crate) fn shade_pixels(
             shade_one,
         )
     } else {
-        let mut layers = Layers::new(width as u32, height as u32);
+        let mut layers = Layers::for_overwrite(width as u32, height as u32);
         layers.par_bands_mut(SHADING_TILE).for_each(|mut band| {
             if control.is_cancelled() {
                 return;

@@ -1745,7 +1745,7 @@ mod tests {
                 )
             })
             .unwrap();
-            copy.volume
+            std::mem::take(&mut copy.volume)
         };
         let one = run(1);
         assert_ne!(one, layers.volume);

@@ -70,3 +70,44 @@ fn output_is_bit_identical_across_thread_counts_and_runs() {
         .count();
     assert!(partial > 100, "only {partial} partly shadowed pixels");
 }
+
+/// Layers reuse an earlier frame's dropped buffers without clearing them: every method,
+/// shading adaptively or every pixel, at full and half resolution, must set every pixel,
+/// so a frame rendered after another scene's is bit for bit the frame rendered before it.
+#[test]
+fn frames_do_not_keep_values_from_earlier_frames() {
+    use crepuscular::scene::Method;
+    let base = scattered_quads_scene();
+    for method in [Method::Reference, Method::MinMax, Method::Prefiltered] {
+        for (tolerance, downsample) in [(0.01, 1), (0.0, 1), (0.01, 2)] {
+            let mut scene = base.clone();
+            scene.render.method = method;
+            scene.render.adaptive_tolerance = tolerance;
+            scene.render.downsample = downsample;
+            scene.render.supersampling = 1;
+            let mut other = scene.clone();
+            other.sun.direction = Vec3::new(-0.5, 0.4, -1.0).normalize();
+            other.medium.extinction *= 3.0;
+            let first = render_scene(&scene, &RenderControl::new()).expect("render succeeds");
+            let kept = (
+                bits(&first.volume),
+                bits(&first.visibility),
+                bits(&first.depth),
+            );
+            drop(first);
+            let between = render_scene(&other, &RenderControl::new()).expect("render succeeds");
+            assert!(bits(&between.volume) != kept.0, "the other frame differs");
+            drop(between);
+            let again = render_scene(&scene, &RenderControl::new()).expect("render succeeds");
+            let what = format!("{method:?}, tolerance {tolerance}, 1/{downsample}");
+            for (layer, now, before) in [
+                ("volume", bits(&again.volume), &kept.0),
+                ("visibility", bits(&again.visibility), &kept.1),
+                ("depth", bits(&again.depth), &kept.2),
+            ] {
+                let differs = now.iter().zip(before).position(|(a, b)| a != b);
+                assert_eq!(differs, None, "{what}: {layer} differs first at this index");
+            }
+        }
+    }
+}

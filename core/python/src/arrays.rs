@@ -71,15 +71,12 @@ impl<'a> DepthMap<'a> {
 
 /// `(width, height, volume, visibility, depth)`: the layers' buffers become numpy arrays
 /// without a copy, shaped `(H, W, 4)`, `(H, W)` and `(H, W)`.
-pub fn layers_to_py(py: Python<'_>, layers: Layers) -> PyResult<Bound<'_, PyTuple>> {
-    let Layers {
-        width,
-        height,
-        volume,
-        visibility,
-        depth,
-        ..
-    } = layers;
+pub fn layers_to_py(py: Python<'_>, mut layers: Layers) -> PyResult<Bound<'_, PyTuple>> {
+    // Taken rather than destructured: `Layers` keeps its buffers for reuse when dropped.
+    let (width, height) = (layers.width, layers.height);
+    let volume = std::mem::take(&mut layers.volume);
+    let visibility = std::mem::take(&mut layers.visibility);
+    let depth = std::mem::take(&mut layers.depth);
     let (w, h) = (width as usize, height as usize);
     let volume = PyArray1::from_vec(py, volume).reshape([h, w, 4])?;
     let visibility = PyArray1::from_vec(py, visibility).reshape([h, w])?;
