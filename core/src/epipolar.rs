@@ -28,6 +28,7 @@ use crate::raster::{rasterize, RasterDesc};
 use crate::render::Geometry;
 use crate::scene::Rectification;
 use crate::shadow_map::ShadowMap;
+use crate::spare::Spare;
 
 /// How densely to rectify.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -238,6 +239,15 @@ pub struct EpipolarMap {
 /// parallel to the light: they belong to the epipole.
 const MIN_PROJECTED_LENGTH: f64 = 1e-9;
 
+// The last frame's rectified values, kept for the next (see `crate::spare`).
+static SPARE_VALUES: Spare<f32> = Spare::new();
+
+impl Drop for EpipolarMap {
+    fn drop(&mut self) {
+        SPARE_VALUES.keep(std::mem::take(&mut self.values));
+    }
+}
+
 impl EpipolarMap {
     /// Rectifies `shadow` for `camera` as `desc` says. Returns `None` when the
     /// camera looks exactly along the light (an orthographic camera whose rays all
@@ -270,7 +280,8 @@ impl EpipolarMap {
         Ok(Some(map))
     }
 
-    /// The map's layout and spacing for `desc`, its values not yet sampled (zeros).
+    /// The map's layout and spacing for `desc`, its values not yet sampled (left as a kept
+    /// buffer's: resampling sets every one).
     fn layout_for(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
         let texel_from_world = shadow.texel_from_world;
         let size = shadow.size as f64;
@@ -364,7 +375,7 @@ impl EpipolarMap {
             slices,
             samples,
             spacing,
-            values: vec![0.0; slices as usize * samples as usize],
+            values: SPARE_VALUES.take(slices as usize * samples as usize),
             layout,
             texel_from_world,
             bound_factors: Vec::new(),

@@ -15,6 +15,7 @@ use crate::epipolar::{EpipolarMap, RaySlice};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 use crate::spans::JoinedSpans;
+use crate::spare::Spare;
 
 /// Minimum and maximum of K over aligned runs of samples, for levels 1 and up. Each
 /// slice's pyramid is contiguous, so that a ray's walk stays within a few cache lines.
@@ -25,6 +26,15 @@ pub struct MinMaxMipmap {
     /// Nodes per slice over all levels.
     stride: usize,
     nodes: Vec<[f32; 2]>,
+}
+
+// The last frame's pyramids, kept for the next (see `crate::spare`).
+static SPARE_NODES: Spare<[f32; 2]> = Spare::new();
+
+impl Drop for MinMaxMipmap {
+    fn drop(&mut self) {
+        SPARE_NODES.keep(std::mem::take(&mut self.nodes));
+    }
 }
 
 impl MinMaxMipmap {
@@ -38,7 +48,8 @@ impl MinMaxMipmap {
             width = width.div_ceil(2);
             stride += width;
         }
-        let mut nodes = vec![[0.0f32; 2]; map.slices as usize * stride];
+        // Every node is set below, so a kept buffer's old values do not matter.
+        let mut nodes = SPARE_NODES.take(map.slices as usize * stride);
         if stride > 0 {
             nodes
                 .par_chunks_mut(stride)
