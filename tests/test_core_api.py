@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import copy
+import gc
 import inspect
 import json
 import math
@@ -522,6 +524,30 @@ def test_render_outputs_are_not_copied(scene: dict[str, Any]) -> None:
         assert flat.ndim == 1
         assert not flat.flags.owndata
         assert not isinstance(flat.base, np.ndarray)
+
+
+def test_released_layers_serve_later_frames_without_stale_values(
+    scene: dict[str, Any],
+) -> None:
+    # Arrays numpy lets go of hand their buffers back for a later frame's layers: every
+    # value of that frame must be its own, and arrays still alive (or viewed) keep theirs.
+    first = render(scene)
+    expected = {name: getattr(first, name).copy() for name in ("volume", "visibility", "depth")}
+    kept_view = first.volume[5:9, 10:20]
+    kept_copy = kept_view.copy()
+    del first
+    gc.collect()
+    other = copy.deepcopy(scene)
+    other["sun"]["direction"] = [-0.5, 0.4, -1.0]
+    for _ in range(2):
+        between = render(other)
+        assert between.volume.tobytes() != expected["volume"].tobytes()
+        del between
+        gc.collect()
+    again = render(scene)
+    for name, values in expected.items():
+        assert getattr(again, name).tobytes() == values.tobytes(), name
+    np.testing.assert_array_equal(kept_view, kept_copy)
 
 
 def test_render_is_deterministic(scene: dict[str, Any]) -> None:

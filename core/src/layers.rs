@@ -35,13 +35,34 @@ static SPARE_DEPTH: Spare<f32> = Spare::new();
 
 impl Drop for Layers {
     fn drop(&mut self) {
-        SPARE_VOLUME.keep(std::mem::take(&mut self.volume));
-        SPARE_VISIBILITY.keep(std::mem::take(&mut self.visibility));
-        SPARE_DEPTH.keep(std::mem::take(&mut self.depth));
+        Self::keep_buffer(LayerBuffer::Volume, std::mem::take(&mut self.volume));
+        Self::keep_buffer(
+            LayerBuffer::Visibility,
+            std::mem::take(&mut self.visibility),
+        );
+        Self::keep_buffer(LayerBuffer::Depth, std::mem::take(&mut self.depth));
     }
 }
 
+/// Which of the layers' buffers one is, for [`Layers::keep_buffer`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LayerBuffer {
+    Volume,
+    Visibility,
+    Depth,
+}
+
 impl Layers {
+    /// Keeps a buffer taken out of layers (lent to numpy, say) for a later frame's, as
+    /// dropping the layers would have.
+    pub fn keep_buffer(buffer: LayerBuffer, values: Vec<f32>) {
+        match buffer {
+            LayerBuffer::Volume => SPARE_VOLUME.keep(values),
+            LayerBuffer::Visibility => SPARE_VISIBILITY.keep(values),
+            LayerBuffer::Depth => SPARE_DEPTH.keep(values),
+        }
+    }
+
     /// Layers whose values are whatever an earlier frame's were, for callers that set
     /// every pixel.
     pub(crate) fn for_overwrite(width: u32, height: u32) -> Self {
