@@ -4,9 +4,13 @@
 
 use std::sync::Mutex;
 
-/// At most one buffer of `T` kept for reuse: the largest recently handed back.
+/// How many buffers of one kind are kept: a downsampled frame needs two sizes of layers at
+/// once (the reduced ones, then the upsampled ones).
+const KEPT: usize = 2;
+
+/// A few buffers of `T` kept for reuse: the most recently handed back.
 pub(crate) struct Spare<T> {
-    kept: Mutex<Vec<T>>,
+    kept: Mutex<Vec<Vec<T>>>,
 }
 
 impl<T: Copy + Default> Spare<T> {
@@ -16,32 +20,35 @@ impl<T: Copy + Default> Spare<T> {
         }
     }
 
-    /// A buffer of `len` values. It is the kept one where that is large enough and not
-    /// more than twice the size (so a small frame does not hold a large frame's memory),
-    /// and then its values are whatever they were: callers overwrite every one.
+    /// A buffer of `len` values. It is a kept one where one is large enough and not more
+    /// than twice the size (so a small frame does not hold a large frame's memory), and
+    /// then its values are whatever they were: callers overwrite every one.
     pub(crate) fn take(&self, len: usize) -> Vec<T> {
         // A poisoned lock only means another frame panicked while swapping: allocate anew.
-        let kept = match self.kept.lock() {
-            Ok(mut kept) => std::mem::take(&mut *kept),
-            Err(_) => Vec::new(),
-        };
-        let mut buffer = if kept.capacity() >= len && kept.capacity() <= 2 * len {
-            kept
-        } else {
-            drop(kept);
-            Vec::with_capacity(len)
-        };
+        let found = self.kept.lock().ok().and_then(|mut kept| {
+            let fitting = kept
+                .iter()
+                .enumerate()
+                .filter(|(_, buffer)| (len..=2 * len).contains(&buffer.capacity()))
+                .min_by_key(|(_, buffer)| buffer.capacity())
+                .map(|(index, _)| index)?;
+            Some(kept.swap_remove(fitting))
+        });
+        let mut buffer = found.unwrap_or_else(|| Vec::with_capacity(len));
         buffer.truncate(len);
         buffer.resize(len, T::default());
         buffer
     }
 
-    /// Keeps `buffer` for the next [`Spare::take`] unless a larger one is kept already.
+    /// Keeps `buffer` for a later [`Spare::take`], letting go of the least recently kept
+    /// one beyond [`KEPT`]: a large frame's memory is released two smaller frames later.
     pub(crate) fn keep(&self, buffer: Vec<T>) {
+        if buffer.capacity() == 0 {
+            return;
+        }
         if let Ok(mut kept) = self.kept.lock() {
-            if buffer.capacity() > kept.capacity() {
-                *kept = buffer;
-            }
+            kept.insert(0, buffer);
+            kept.truncate(KEPT);
         }
     }
 }
@@ -51,7 +58,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_kept_buffer_is_reused_when_it_fits_and_not_when_far_too_large() {
+    fn kept_buffers_are_reused_when_they_fit_and_released_two_frames_later() {
         let spare = Spare::<u16>::new();
         let first = spare.take(1000);
         assert_eq!(first.len(), 1000);
@@ -60,12 +67,32 @@ mod tests {
         let again = spare.take(800);
         assert_eq!((again.len(), again.as_ptr()), (800, address));
         spare.keep(again);
-        // Far smaller: a fresh buffer, and the large one is dropped rather than held.
+        // Far smaller: a fresh buffer; the large one stays kept for a while.
         let small = spare.take(100);
         assert_eq!(small.len(), 100);
         assert!(small.capacity() < 1000);
+        let small_address = small.as_ptr();
         spare.keep(small);
-        // Larger than what is kept: fresh, zeroed.
+        // Two sizes in one frame, as downsampling takes them: each finds its own.
+        let (large, small) = (spare.take(900), spare.take(90));
+        assert_eq!((large.as_ptr(), small.as_ptr()), (address, small_address));
+        spare.keep(small);
+        spare.keep(large);
+        // Two newer keeps release the large one.
+        spare.keep(spare.take(50));
+        spare.keep(spare.take(40));
+        let capacities: Vec<usize> = spare
+            .kept
+            .lock()
+            .unwrap()
+            .iter()
+            .map(Vec::capacity)
+            .collect();
+        assert!(
+            capacities.iter().all(|&capacity| capacity < 900),
+            "{capacities:?}"
+        );
+        // Larger than anything kept: fresh, zeroed.
         let large = spare.take(5000);
         assert!(large.len() == 5000 && large.iter().all(|&v| v == 0));
     }

@@ -78,14 +78,10 @@ pub fn joint_bilateral(
     let (lw, lh) = (low.width as usize, low.height as usize);
     let columns: Vec<Between> = (0..width).map(|x| Between::of(x, factor, lw)).collect();
     let width = width as usize;
-    let pixels = width * height as usize;
-    let mut out = Layers {
-        width: width as u32,
-        height,
-        volume: vec![0.0; pixels * 4],
-        visibility: vec![0.0; pixels],
-        depth: depth.to_vec(),
-    };
+    // Every pixel's volume and visibility is set below.
+    let mut out = Layers::for_overwrite(width as u32, height);
+    out.depth.clear();
+    out.depth.extend_from_slice(depth);
     out.volume
         .par_chunks_mut(width * 4)
         .zip(out.visibility.par_chunks_mut(width))
