@@ -29,9 +29,9 @@ pub struct Layers {
 // Dropped layers' buffers, kept for the next frame's (see `crate::spare`): at 1920×1080 the
 // layers take 50 MB, and faulting in fresh pages for them took a third of adaptive
 // shading's last pass.
-static SPARE_VOLUME: Spare<f32> = Spare::new();
-static SPARE_VISIBILITY: Spare<f32> = Spare::new();
-static SPARE_DEPTH: Spare<f32> = Spare::new();
+static SPARE_VOLUME: Spare<f32> = Spare::with_slots(2);
+static SPARE_VISIBILITY: Spare<f32> = Spare::with_slots(2);
+static SPARE_DEPTH: Spare<f32> = Spare::with_slots(2);
 
 impl Drop for Layers {
     fn drop(&mut self) {

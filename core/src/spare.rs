@@ -4,19 +4,25 @@
 
 use std::sync::Mutex;
 
-/// How many buffers of one kind are kept: a downsampled frame needs two sizes of layers at
-/// once (the reduced ones, then the upsampled ones).
-const KEPT: usize = 2;
-
 /// A few buffers of `T` kept for reuse: the most recently handed back.
 pub(crate) struct Spare<T> {
     kept: Mutex<Vec<Vec<T>>>,
+    /// How many are kept at most.
+    slots: usize,
 }
 
 impl<T: Copy + Default> Spare<T> {
+    /// One buffer kept: for what a frame needs once.
     pub(crate) const fn new() -> Self {
+        Self::with_slots(1)
+    }
+
+    /// `slots` buffers kept: a downsampled frame needs its layers in two sizes at once
+    /// (the reduced ones, then the upsampled ones).
+    pub(crate) const fn with_slots(slots: usize) -> Self {
         Self {
             kept: Mutex::new(Vec::new()),
+            slots,
         }
     }
 
@@ -41,14 +47,15 @@ impl<T: Copy + Default> Spare<T> {
     }
 
     /// Keeps `buffer` for a later [`Spare::take`], letting go of the least recently kept
-    /// one beyond [`KEPT`]: a large frame's memory is released two smaller frames later.
+    /// one beyond the slots: a large frame's memory is released as soon as as many smaller
+    /// buffers have been kept.
     pub(crate) fn keep(&self, buffer: Vec<T>) {
         if buffer.capacity() == 0 {
             return;
         }
         if let Ok(mut kept) = self.kept.lock() {
             kept.insert(0, buffer);
-            kept.truncate(KEPT);
+            kept.truncate(self.slots);
         }
     }
 }
@@ -59,7 +66,7 @@ mod tests {
 
     #[test]
     fn kept_buffers_are_reused_when_they_fit_and_released_two_frames_later() {
-        let spare = Spare::<u16>::new();
+        let spare = Spare::<u16>::with_slots(2);
         let first = spare.take(1000);
         assert_eq!(first.len(), 1000);
         let address = first.as_ptr();
@@ -95,5 +102,17 @@ mod tests {
         // Larger than anything kept: fresh, zeroed.
         let large = spare.take(5000);
         assert!(large.len() == 5000 && large.iter().all(|&v| v == 0));
+        // One slot: the next buffer kept replaces the last.
+        let single = Spare::<u16>::new();
+        single.keep(vec![0; 1000]);
+        single.keep(vec![0; 10]);
+        let capacities: Vec<usize> = single
+            .kept
+            .lock()
+            .unwrap()
+            .iter()
+            .map(Vec::capacity)
+            .collect();
+        assert_eq!(capacities, [10]);
     }
 }
