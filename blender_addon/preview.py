@@ -223,3 +223,5 @@ def unregister() -> None:
     CONTROLLER.cancel()
     CONTROLLER.result = None
     CONTROLLER.cache.invalidate()
+    # Nothing renders once the add-on is off: the core's kept frame buffers can go.
+    crepuscular.release_kept_buffers()

@@ -174,6 +174,12 @@ const _: () = assert!(MAX_STRIDE * MAX_STEP < TILE as i64);
 static SPARE_EVEN_BANDS: Spare<Pixel> = Spare::new();
 static SPARE_ODD_BANDS: Spare<Pixel> = Spare::new();
 
+/// Lets go of the finer grid's kept buffers ([`crate::release_kept_buffers`]).
+pub(crate) fn release_kept_buffers() {
+    SPARE_EVEN_BANDS.clear();
+    SPARE_ODD_BANDS.clear();
+}
+
 impl FinerGrid {
     fn new(width: usize, height: usize) -> Self {
         let band_len = TILE * width;

@@ -242,6 +242,11 @@ const MIN_PROJECTED_LENGTH: f64 = 1e-9;
 // The last frame's rectified values, kept for the next (see `crate::spare`).
 static SPARE_VALUES: Spare<f32> = Spare::new();
 
+/// Lets go of the kept rectified values ([`crate::release_kept_buffers`]).
+pub(crate) fn release_kept_buffers() {
+    SPARE_VALUES.clear();
+}
+
 impl Drop for EpipolarMap {
     fn drop(&mut self) {
         SPARE_VALUES.keep(std::mem::take(&mut self.values));

@@ -33,6 +33,13 @@ static SPARE_VOLUME: Spare<f32> = Spare::with_slots(2);
 static SPARE_VISIBILITY: Spare<f32> = Spare::with_slots(2);
 static SPARE_DEPTH: Spare<f32> = Spare::with_slots(2);
 
+/// Lets go of the layers' kept buffers ([`crate::release_kept_buffers`]).
+pub(crate) fn release_kept_buffers() {
+    for spare in [&SPARE_VOLUME, &SPARE_VISIBILITY, &SPARE_DEPTH] {
+        spare.clear();
+    }
+}
+
 impl Drop for Layers {
     fn drop(&mut self) {
         Self::keep_buffer(LayerBuffer::Volume, std::mem::take(&mut self.volume));

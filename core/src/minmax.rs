@@ -31,6 +31,11 @@ pub struct MinMaxMipmap {
 // The last frame's pyramids, kept for the next (see `crate::spare`).
 static SPARE_NODES: Spare<[f32; 2]> = Spare::new();
 
+/// Lets go of the kept pyramids ([`crate::release_kept_buffers`]).
+pub(crate) fn release_kept_buffers() {
+    SPARE_NODES.clear();
+}
+
 impl Drop for MinMaxMipmap {
     fn drop(&mut self) {
         SPARE_NODES.keep(std::mem::take(&mut self.nodes));

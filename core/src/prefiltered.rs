@@ -339,6 +339,16 @@ static SPARE_SAMPLE_WEIGHTS: Spare<f32> = Spare::new();
 static SPARE_SCALES: Spare<f32> = Spare::new();
 static SPARE_ROW_WEIGHTS: Spare<f32> = Spare::new();
 
+/// Lets go of the kept filtered bases and plans ([`crate::release_kept_buffers`]).
+pub(crate) fn release_kept_buffers() {
+    SPARE_F32_BASIS.clear();
+    SPARE_SNORM16_BASIS.clear();
+    SPARE_ENTRIES.clear();
+    SPARE_SAMPLE_WEIGHTS.clear();
+    SPARE_SCALES.clear();
+    SPARE_ROW_WEIGHTS.clear();
+}
+
 /// The filtered-basis storage.
 pub struct Prefiltered<'a> {
     map: &'a EpipolarMap,

@@ -46,6 +46,13 @@ impl<T: Copy + Default> Spare<T> {
         buffer
     }
 
+    /// Lets go of every kept buffer.
+    pub(crate) fn clear(&self) {
+        if let Ok(mut kept) = self.kept.lock() {
+            *kept = Vec::new();
+        }
+    }
+
     /// Keeps `buffer` for a later [`Spare::take`], letting go of the least recently kept
     /// one beyond the slots: a large frame's memory is released as soon as as many smaller
     /// buffers have been kept.
@@ -114,5 +121,7 @@ mod tests {
             .map(Vec::capacity)
             .collect();
         assert_eq!(capacities, [10]);
+        single.clear();
+        assert!(single.kept.lock().unwrap().is_empty());
     }
 }

@@ -32,6 +32,12 @@ use crate::run::run_detached;
 ///
 /// Returns `(width, height, volume, visibility, depth)` with arrays shaped `(H, W, 4)`,
 /// `(H, W)` and `(H, W)`.
+/// Lets go of the buffers kept from earlier frames for the next.
+#[pyfunction]
+fn release_kept_buffers() {
+    crepuscular::release_kept_buffers();
+}
+
 #[pyfunction]
 #[pyo3(signature = (
     scene_json, /, *, base_dir=None, style_json=None, camera_depth=None, depth_kind="planar",
@@ -248,6 +254,7 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add("__version__", env!("CARGO_PKG_VERSION"))?;
     module.add("SCENE_VERSION", SCENE_VERSION)?;
     errors::register(module)?;
+    module.add_function(wrap_pyfunction!(release_kept_buffers, module)?)?;
     module.add_function(wrap_pyfunction!(render_json, module)?)?;
     module.add_function(wrap_pyfunction!(render_arrays, module)?)?;
     module.add_function(wrap_pyfunction!(normalize_scene_json, module)?)?;

@@ -46,6 +46,7 @@ __all__ = [
     "composite",
     "load_style",
     "read_exr",
+    "release_kept_buffers",
     "render",
     "render_arrays",
     "scene_from_json",
@@ -88,6 +89,16 @@ class Layers:
 
     def __repr__(self) -> str:
         return f"Layers(width={self.width}, height={self.height})"
+
+
+def release_kept_buffers() -> None:
+    """Lets go of the buffers kept from earlier frames for the next.
+
+    Frames rendered one after another reuse the previous frame's large buffers (about 170 MB
+    for a 1920x1080 frame), which saves faulting in fresh memory every frame. A host that stops
+    rendering for a while can hand that memory back; the next frame allocates it afresh.
+    """
+    _core.release_kept_buffers()
 
 
 def render(
