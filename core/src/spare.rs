@@ -71,6 +71,16 @@ impl<T: Copy + Default> Spare<T> {
 mod tests {
     use super::*;
 
+    fn kept_capacities<T>(spare: &Spare<T>) -> Vec<usize> {
+        spare
+            .kept
+            .lock()
+            .unwrap()
+            .iter()
+            .map(Vec::capacity)
+            .collect()
+    }
+
     #[test]
     fn kept_buffers_are_reused_when_they_fit_and_released_two_frames_later() {
         let spare = Spare::<u16>::with_slots(2);
@@ -95,13 +105,7 @@ mod tests {
         // Two newer keeps release the large one.
         spare.keep(spare.take(50));
         spare.keep(spare.take(40));
-        let capacities: Vec<usize> = spare
-            .kept
-            .lock()
-            .unwrap()
-            .iter()
-            .map(Vec::capacity)
-            .collect();
+        let capacities = kept_capacities(&spare);
         assert!(
             capacities.iter().all(|&capacity| capacity < 900),
             "{capacities:?}"
@@ -113,13 +117,7 @@ mod tests {
         let single = Spare::<u16>::new();
         single.keep(vec![0; 1000]);
         single.keep(vec![0; 10]);
-        let capacities: Vec<usize> = single
-            .kept
-            .lock()
-            .unwrap()
-            .iter()
-            .map(Vec::capacity)
-            .collect();
+        let capacities = kept_capacities(&single);
         assert_eq!(capacities, [10]);
         single.clear();
         assert!(single.kept.lock().unwrap().is_empty());
