@@ -268,9 +268,13 @@ impl Lattice {
         let mut best_span = f64::INFINITY;
         for a in -MAX_STEP..=MAX_STEP {
             for b in 0..=MAX_STEP {
-                if (b == 0 && a != 1) || greatest_common_divisor(a.abs(), b) != 1 {
+                // (−1, 0) is (1, 0) the other way round.
+                if b == 0 && a != 1 {
                     continue;
                 }
+                let Some(position) = bezout([a, b]) else {
+                    continue;
+                };
                 // Pixels per step: the finer grid's points lie two pixels apart.
                 let length = 2.0 * ((a * a + b * b) as f64).sqrt();
                 let cross_max = units
@@ -289,7 +293,6 @@ impl Lattice {
                 let span = stride as f64 * length;
                 if stride > best.stride || (stride == best.stride && stride > 1 && span < best_span)
                 {
-                    let position = bezout([a, b]);
                     best = Lattice {
                         step: [a, b],
                         stride,
@@ -310,16 +313,9 @@ impl Lattice {
     }
 }
 
-fn greatest_common_divisor(a: i64, b: i64) -> i64 {
-    if b == 0 {
-        a
-    } else {
-        greatest_common_divisor(b, a % b)
-    }
-}
-
-/// Integers (c, d) with c·a + d·b = 1 for a primitive `step` (a, b).
-fn bezout([a, b]: [i64; 2]) -> [i64; 2] {
+/// Integers (c, d) with c·a + d·b = 1 for `step` (a, b), `None` where it is not primitive
+/// (a and b share a factor, or both are 0).
+fn bezout([a, b]: [i64; 2]) -> Option<[i64; 2]> {
     // Extended Euclid on (a, b), tracking the coefficients of a and b.
     let (mut r0, mut r1) = (a, b);
     let (mut c0, mut c1) = (1i64, 0i64);
@@ -330,8 +326,8 @@ fn bezout([a, b]: [i64; 2]) -> [i64; 2] {
         (c0, c1) = (c1, c0 - q * c1);
         (d0, d1) = (d1, d0 - q * d1);
     }
-    // r0 is ±1 for a primitive step.
-    [c0 * r0, d0 * r0]
+    // r0 is the greatest common divisor, up to its sign.
+    (r0.abs() == 1).then(|| [c0 * r0, d0 * r0])
 }
 
 /// The [`Lattice`] of each square of a finer grid.

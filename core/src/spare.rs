@@ -27,8 +27,9 @@ impl<T: Copy + Default> Spare<T> {
     }
 
     /// A buffer of `len` values. It is a kept one where one is large enough and not more
-    /// than twice the size (so a small frame does not hold a large frame's memory), and
-    /// then its values are whatever they were: callers overwrite every one.
+    /// than twice the size (a small frame does not take on a large frame's memory; that is
+    /// released by later [`Spare::keep`]s), and then its values are whatever they were:
+    /// callers overwrite every one.
     pub(crate) fn take(&self, len: usize) -> Vec<T> {
         // A poisoned lock only means another frame panicked while swapping: allocate anew.
         let found = self.kept.lock().ok().and_then(|mut kept| {

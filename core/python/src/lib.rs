@@ -27,17 +27,17 @@ use crate::arrays::{layers_to_py, rows, values, DepthMap};
 use crate::errors::to_py_err;
 use crate::run::run_detached;
 
-/// Renders a JSON scene description; relative file paths in its style are made relative
-/// to `base_dir` (the directory of the file the text came from) when given.
-///
-/// Returns `(width, height, volume, visibility, depth)` with arrays shaped `(H, W, 4)`,
-/// `(H, W)` and `(H, W)`.
 /// Lets go of the buffers kept from earlier frames for the next.
 #[pyfunction]
 fn release_kept_buffers() {
     crepuscular::release_kept_buffers();
 }
 
+/// Renders a JSON scene description; relative file paths in its style are made relative
+/// to `base_dir` (the directory of the file the text came from) when given.
+///
+/// Returns `(width, height, volume, visibility, depth)` with arrays shaped `(H, W, 4)`,
+/// `(H, W)` and `(H, W)`.
 #[pyfunction]
 #[pyo3(signature = (
     scene_json, /, *, base_dir=None, style_json=None, camera_depth=None, depth_kind="planar",
