@@ -63,6 +63,23 @@ pub struct GpuTimes {
 }
 
 impl GpuTimes {
+    /// The scattering stages' total, as [`StageTimes::scattering`] counts them on the CPU:
+    /// rectification, the basis and its prefix sums, per-pixel evaluation (or the
+    /// reference march) and upsampling; not the depth maps, the occluder operators or the
+    /// transfer function.
+    pub fn scattering(&self) -> f64 {
+        [
+            self.rectification,
+            self.prefix_sums,
+            self.prefiltered,
+            self.ray_march,
+            self.upsampling,
+        ]
+        .into_iter()
+        .flatten()
+        .sum()
+    }
+
     /// The GPU stages' total.
     pub fn total(&self) -> f64 {
         [
@@ -316,4 +333,34 @@ fn manipulate_occluders(
         }
     }
     Ok(shadow)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scattering_counts_the_stages_after_the_depth_maps_and_occluders() {
+        let times = GpuTimes {
+            shadow_map: Some(1.0),
+            camera_depth: Some(2.0),
+            hole_filling: Some(4.0),
+            silhouettes: Some(8.0),
+            hole_creation: Some(16.0),
+            ray_march: None,
+            rectification: Some(32.0),
+            prefix_sums: Some(64.0),
+            prefiltered: Some(128.0),
+            upsampling: Some(256.0),
+            transfer_function: Some(512.0),
+            cpu_stages: Vec::new(),
+        };
+        assert_eq!(times.scattering(), 480.0);
+        assert_eq!(times.total(), 1023.0);
+        let march = GpuTimes {
+            ray_march: Some(3.0),
+            ..GpuTimes::default()
+        };
+        assert_eq!(march.scattering(), 3.0);
+    }
 }

@@ -8,7 +8,7 @@ use crepuscular::builtin::{builtin_scene, torus_tessellated};
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
 use crepuscular::gpu::{Device, DeviceKind};
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
-use crepuscular::scene::{Method, Rectification};
+use crepuscular::scene::{Method, Rectification, Scene};
 use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
 
 use crate::bench::{median, peak_memory};
@@ -47,6 +47,10 @@ struct Row {
     prefix: Option<f64>,
     upsampling: Option<f64>,
     transfer: Option<f64>,
+    /// The scattering stages' GPU time ([`GpuTimes::scattering`]), median ms.
+    scattering: f64,
+    /// A lower bound on the scattering stages' memory traffic, MiB ([`least_traffic`]).
+    traffic: f64,
     gpu_total: f64,
     /// Wall time of the Vulkan path's depth maps and rectification (GPU passes with their
     /// uploads and read-backs, CPU work such as projective rasterization), median ms.
@@ -144,6 +148,8 @@ pub fn run(
                 prefix: median_option(&gpu, |t| t.prefix_sums),
                 upsampling: median_option(&gpu, |t| t.upsampling),
                 transfer: median_option(&gpu, |t| t.transfer_function),
+                scattering: median_of(gpu.iter().map(GpuTimes::scattering)),
+                traffic: least_traffic(&scene, &walls[0]) as f64 / (1024.0 * 1024.0),
                 gpu_total: median_of(gpu.iter().map(GpuTimes::total)),
                 cpu_side: median_of(cpu_side.into_iter()),
                 frame: median_of(wall.into_iter()),
@@ -229,6 +235,22 @@ fn raster_row(
     Ok(())
 }
 
+/// The least memory traffic of `scene`'s scattering stages, in bytes: the shadow map
+/// and the camera depth read once, the rectified map and the method's structure (the
+/// filtered basis) written once and read once, and the layers (RGBA, visibility, depth,
+/// four bytes each) written once. `stages` gives the structures' sizes.
+fn least_traffic(scene: &Scene, stages: &StageTimes) -> usize {
+    const FLOAT: usize = 4;
+    let render = &scene.render;
+    let map = render.shadow_map_size as usize;
+    let pixels = scene.camera.width as usize * scene.camera.height as usize;
+    let depth_samples = pixels * (render.supersampling as usize).pow(2);
+    map * map * FLOAT
+        + depth_samples * FLOAT
+        + 2 * (stages.rectified_bytes + stages.structure_bytes)
+        + pixels * 6 * FLOAT
+}
+
 /// A GPU time in ms, or "-" for a stage that did not run.
 fn gpu_ms(v: Option<f64>) -> String {
     v.map_or("-".to_owned(), |v| format!("{v:.3}"))
@@ -251,7 +273,7 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         );
     }
     println!(
-        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
         "method",
         "look",
@@ -265,6 +287,8 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         "prefix",
         "up",
         "TF",
+        "scatter",
+        "min MiB",
         "GPU sum",
         "maps",
         "frame",
@@ -284,7 +308,7 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         };
         let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
-            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<10} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
             row.method,
             row.look,
@@ -298,6 +322,8 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
             ms(row.prefix),
             ms(row.upsampling),
             ms(row.transfer),
+            row.scattering,
+            row.traffic,
             row.gpu_total,
             row.cpu_side,
             row.frame,
@@ -315,7 +341,11 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         "\nsmap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); silh = silhouette enhancement (1D epipolar dilation or closure); hcreate = hole creation (noise holes in chosen objects); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
          prefiltered evaluation with the exact texel walk near on-screen epipoles and for the rays it declines); prefix = \
          prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
-         evaluation at 1/2 size; TF = transfer-function application. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
+         evaluation at 1/2 size; TF = transfer-function application; scatter = rect + prefix + shade + up, \
+         the scattering stages after the depth maps and occluder operators; min MiB = the least \
+         memory traffic those stages can have (the shadow map and camera depth read once, the \
+         rectified map and the filtered basis written and read once, the layers written once): \
+         divided by the device's memory bandwidth, the time they cannot beat. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `maps` = wall time of the shadow map, camera \
          depth and rectification stages (GPU passes with their transfers, and CPU work). Stages the Vulkan path still runs on the CPU: {}.",
         on_cpu.join(", ")
