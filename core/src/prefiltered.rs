@@ -1392,8 +1392,8 @@ struct SampledRay {
 /// Per slice, key quantiles and ray speeds, from the rays of the image's border (where
 /// each slice's extreme rays are, with the epipoles), a regular grid of pixels inside
 /// dense enough for about `RAYS_PER_SLICE` rays per slice (the quantiles need no more),
-/// and every pixel near an epipole, where slices are closer than two pixels, but none
-/// in the block around it that is ray-marched instead.
+/// and a denser grid near an epipole, where slices are closer than two pixels
+/// ([`sampled_columns`]), but none in the block around it that is ray-marched instead.
 /// Slices that no sampled ray touches take their nearest sampled neighbour's frame.
 fn slice_frames(
     map: &EpipolarMap,
@@ -1512,10 +1512,20 @@ fn slice_frames(
     (frames, warps)
 }
 
+/// Within this many pixels of an epipole (both axes) [`slice_frames`] samples every pixel;
+/// farther in its dense square, every other pixel of every other row. The slices are long
+/// wedges there, so that grid still gives each of 1024 slices about 80 rays within 326 px
+/// (a quarter as many as every pixel, and colonnade's preparation 18% faster), while the
+/// slowest rays, next to the ray-marched block, are all sampled. Errors against the
+/// reference at 1920×1080 moved by −0.025 to +0.012 points on the sun-in-view views.
+const EVERY_PIXEL_RADIUS: f64 = 64.0;
+
 /// The columns of pixel row `y` (of `w`) that [`slice_frames`] samples: those on the grid
-/// of `stride`, and every one within `dense_radius` of an epipole (both axes), except
-/// those within `block` of one. Visits the grid and each epipole's dense square (with a
-/// pixel's margin) rather than the whole row; the exact test decides.
+/// of `stride`, and within `dense_radius` of an epipole (both axes) every one up to
+/// [`EVERY_PIXEL_RADIUS`] and the even ones of even rows beyond, except those within
+/// `block` of one.
+/// Visits the grid and each epipole's dense square (with a pixel's margin) rather than the
+/// whole row; the exact test decides.
 fn sampled_columns(
     y: u32,
     w: u32,
@@ -1561,7 +1571,9 @@ fn sampled_columns(
         .filter(|&x| {
             let px = x as f64 + 0.5;
             let on_grid = on_grid_row && x % stride == 0;
-            (on_grid || within(px, dense_radius)) && !within(px, block)
+            let every = within(px, EVERY_PIXEL_RADIUS.min(dense_radius));
+            let even = within(px, dense_radius) && x % 2 == 0 && y % 2 == 0;
+            (on_grid || every || even) && !within(px, block)
         })
         .collect()
 }
@@ -1669,12 +1681,13 @@ mod tests {
 
     #[test]
     fn sampled_columns_are_the_grid_and_the_squares_around_epipoles() {
-        let (w, h, stride) = (97u32, 61u32, 5u32);
-        let layouts: [&[[f64; 2]]; 6] = [
+        let (w, h, stride) = (297u32, 161u32, 5u32);
+        let layouts: [&[[f64; 2]]; 7] = [
             &[],
             &[[40.3, 30.7]],
+            &[[140.3, 80.7]],
             &[[-3.0, 2.0]],
-            &[[96.5, 60.5], [10.0, 55.0]],
+            &[[296.5, 160.5], [10.0, 55.0]],
             &[[50.0, 30.0], [58.0, 33.0]],
             &[[f64::NAN, 20.0]],
         ];
@@ -1691,7 +1704,9 @@ mod tests {
                         .filter(|&x| {
                             let px = x as f64 + 0.5;
                             let on_grid = x % stride == 0 && y % stride == 0;
-                            (on_grid || within(px, dense_radius)) && !within(px, block)
+                            let every = within(px, EVERY_PIXEL_RADIUS.min(dense_radius));
+                            let even = within(px, dense_radius) && x % 2 == 0 && y % 2 == 0;
+                            (on_grid || every || even) && !within(px, block)
                         })
                         .collect();
                     let mut got = sampled_columns(y, w, stride, epipoles, dense_radius, block);
