@@ -1523,9 +1523,8 @@ const EVERY_PIXEL_RADIUS: f64 = 64.0;
 /// The columns of pixel row `y` (of `w`) that [`slice_frames`] samples: those on the grid
 /// of `stride`, and within `dense_radius` of an epipole (both axes) every one up to
 /// [`EVERY_PIXEL_RADIUS`] and the even ones of even rows beyond, except those within
-/// `block` of one.
-/// Visits the grid and each epipole's dense square (with a pixel's margin) rather than the
-/// whole row; the exact test decides.
+/// `block` of one. Visits the grid and each epipole's dense square (with a pixel's margin)
+/// rather than the whole row; the exact test decides.
 fn sampled_columns(
     y: u32,
     w: u32,
