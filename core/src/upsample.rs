@@ -74,28 +74,19 @@ fn exp_negative(x: f32) -> f32 {
 /// Output pixels whose weights are computed together.
 const LANES: usize = 8;
 
-/// The two rows of samples an output row lies between, and the fraction towards the second.
-#[derive(Clone, Copy)]
-struct Rows {
-    above: usize,
-    below: usize,
-    fraction: f32,
-}
-
-/// One output row of [`joint_bilateral`]: `depth`, `volume` and `visibility` are its
-/// pixels', `columns` where each falls between the samples.
+/// One output row of [`joint_bilateral`], lying at `row` between the rows of samples:
+/// `depth`, `volume` and `visibility` are its pixels', `columns` where each falls between
+/// the samples.
 fn upsample_row(
     low: &Layers,
     columns: &[Between],
-    Rows {
-        above,
-        below,
-        fraction: fy,
-    }: Rows,
+    row: Between,
     depth: &[f32],
     volume: &mut [f32],
     visibility: &mut [f32],
 ) {
+    let lw = low.width as usize;
+    let (above, below, fy) = (row.lower * lw, row.upper * lw, row.fraction);
     // Pixels in groups of `LANES`: their weights are computed lane by lane in
     // fixed-length loops, which vectorize (one pixel at a time did not).
     for (((columns, depth), volume), visibility) in columns
@@ -197,12 +188,7 @@ pub fn joint_bilateral(
         .enumerate()
         .for_each(|(y, ((volume, visibility), depth))| {
             let row = Between::of(y as u32, factor, lh);
-            let rows = Rows {
-                above: row.lower * lw,
-                below: row.upper * lw,
-                fraction: row.fraction,
-            };
-            upsample_row(low, &columns, rows, depth, volume, visibility);
+            upsample_row(low, &columns, row, depth, volume, visibility);
         });
     out
 }
