@@ -17,10 +17,11 @@ const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
 // core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, ALONG_THE_LIGHT_SIN; core/src/epipolar.rs:
-// SHORT_RAY_TEXELS.
+// SHORT_RAY_TEXELS, LOOKUP_DEPTH.
 const float BOX_PIECE_DEPTH = 0.1;
 const uint MAX_BOX_PIECES = 20u;
 const float SHORT_RAY_TEXELS = 16.0;
+const float LOOKUP_DEPTH = 1.0;
 const float ALONG_THE_LIGHT_SIN = 0.15;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
@@ -311,6 +312,12 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     float from = (q.near_plane_correction != 0u || a > t_start) ? a : 0.0;
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
+    // Dense fog: the first LOOKUP_DEPTH of optical depth is what counts (is_short_in_medium).
+    float counted = sigma > 0.0 ? min(b - a, LOOKUP_DEPTH / sigma) : b - a;
+    if (q.map_layout != PROJECTIVE && located.z * counted < SHORT_RAY_TEXELS) {
+        ok = false;
+        return vec3(0.0);
+    }
     if (p.box_medium == 0u) {
         float x0 = sample_coordinate(located.y + located.z * from);
         float x1 = sample_coordinate(located.y + located.z * b);

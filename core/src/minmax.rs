@@ -197,8 +197,9 @@ impl<'a> MinMaxMethod<'a> {
     }
 
     /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light
-    /// or crosses too few texels for the rectified map ([`EpipolarMap::is_short`]): the
-    /// caller computes those exactly.
+    /// or crosses too few texels for the rectified map, in all or within its first optical
+    /// depth ([`EpipolarMap::is_short`], [`EpipolarMap::is_short_in_medium`]): the caller
+    /// computes those exactly.
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
         let located = self.map.locate(ray)?;
         if t_end <= t_start {
@@ -209,6 +210,11 @@ impl<'a> MinMaxMethod<'a> {
         }
         let sigma = self.medium.extinction as f64;
         let medium_segment = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end);
+        if let Some((a, b)) = medium_segment {
+            if self.map.is_short_in_medium(&located, a, b, sigma) {
+                return None;
+            }
+        }
         let along_box = self.box_medium.as_ref().map(|b| b.along(ray));
         let mut blended = RaySample::default();
         for (slice, weight) in self.map.neighbours(located.slice) {

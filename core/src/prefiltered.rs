@@ -995,6 +995,9 @@ impl<'a> Prefiltered<'a> {
                 ..RaySample::EMPTY
             });
         };
+        if self.map.is_short_in_medium(&located, a, b, sigma) {
+            return None;
+        }
         // Rays start at the slice's origin; what lies before the medium is subtracted when
         // asked to, or when the medium begins later than the near clip plane.
         let from = if self.near_plane_correction || a > t_start {

@@ -678,6 +678,11 @@ fn prefiltered_evaluation_matches_across_layouts() {
     along.sun.direction = glam::Vec3::new(-0.063, 0.728, -0.682);
     along.render.max_distance = 30.0;
     variants.push(("plane nearly along the light", along));
+    // Dense fog towards the sun: rays crossing few texels within their first optical depth
+    // are walked, the others looked up.
+    let mut dense = prefiltered("colonnade");
+    dense.medium.extinction = 0.6;
+    variants.push(("colonnade in dense fog", dense));
     let mut supersampled = prefiltered("tree");
     supersampled.render.supersampling = 2;
     variants.push(("tree 2×2 samples", supersampled));
