@@ -355,10 +355,10 @@ float walk_lit(float t_start, float t_end, float enough, uint mode, float origin
     return total;
 }
 
-// Where a walk from `t` on may stop: the rest adds less than e^−20 of its light
+// Where a walk from `t` on may stop: the rest adds less than e^−10 of its light
 // (reference.rs: WALK_DEPTH).
 float walk_enough(float t) {
-    return p.extinction > 0.0 ? t + 20.0 / p.extinction : BIG;
+    return p.extinction > 0.0 ? t + 10.0 / p.extinction : BIG;
 }
 
 // Exact single scattering outside any box (reference.rs, Marcher::walk_texels).

@@ -156,9 +156,9 @@ pub const SHORT_RAY_TEXELS: f64 = 16.0;
 /// with prefiltering (2.7% with min-max) at σ = 0.6 /m and 9.4% (4.9%) at σ = 1.5 /m,
 /// from ringing and texel-sized errors near the camera that a long ray averages out. With
 /// one optical depth they read 1.6% (1.2%) and 0.4% (0.4%), and at σ = 0.2 /m 2.3 → 2.0%;
-/// frames at the scenes' own 0.05 /m are unchanged, at 0.6 /m cost 0–13% more, and at
-/// 1.5 /m up to 2.7× (`plane`, most of whose rays are then walked). Half an optical depth
-/// reads 0.2% at 0.6 /m but costs up to 4.4× there.
+/// frames at the scenes' own 0.05 /m are unchanged, at 0.6 /m cost 0–7% more, and at
+/// 1.5 /m up to 1.5× (`plane` and `torus`, most of whose rays are then walked). Half an
+/// optical depth reads 0.2% at 0.6 /m but costs up to 3× there.
 pub const LOOKUP_DEPTH: f64 = 1.0;
 
 /// Where one view ray lies in the rectified map.
