@@ -266,6 +266,12 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
     return AVERAGE_VISIBILITY;
 }
 
+// Whether a `stretch` of a ray `located` crosses too few texels for the prefix sums'
+// resolution (EpipolarMap::is_short); the projective layout resolves any length.
+bool is_short(vec4 located, float stretch) {
+    return q.map_layout != PROJECTIVE && located.z * stretch < SHORT_RAY_TEXELS;
+}
+
 // (scattering, alpha, visibility); `ok` false where the ray cannot be located.
 vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end, out bool ok) {
     vec4 located;
@@ -277,7 +283,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         return vec3(0.0, 0.0, 1.0);
     }
     // Too short for the prefix sums' resolution: marched instead.
-    if (q.map_layout != PROJECTIVE && located.z * (t_end - t_start) < SHORT_RAY_TEXELS) {
+    if (is_short(located, t_end - t_start)) {
         ok = false;
         return vec3(0.0);
     }
@@ -313,8 +319,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
     // Dense fog: the first LOOKUP_DEPTH of optical depth is what counts (is_short_in_medium).
-    float counted = sigma > 0.0 ? min(b - a, LOOKUP_DEPTH / sigma) : b - a;
-    if (q.map_layout != PROJECTIVE && located.z * counted < SHORT_RAY_TEXELS) {
+    if (is_short(located, sigma > 0.0 ? min(b - a, LOOKUP_DEPTH / sigma) : b - a)) {
         ok = false;
         return vec3(0.0);
     }
@@ -336,7 +341,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     // optical depth, each its own average times its own integral (box_pieces on the CPU).
     uint pieces = uint(clamp(ceil(sigma * (b - a) / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
     // A piece crossing too few texels is too short for its own lookup: marched instead.
-    if (q.map_layout != PROJECTIVE && located.z * (b - a) / float(pieces) < SHORT_RAY_TEXELS) {
+    if (is_short(located, (b - a) / float(pieces))) {
         ok = false;
         return vec3(0.0);
     }
