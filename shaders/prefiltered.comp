@@ -17,10 +17,11 @@ const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
 // core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, ALONG_THE_LIGHT_SIN; core/src/epipolar.rs:
-// SHORT_RAY_TEXELS, LOOKUP_DEPTH.
+// SHORT_RAY_TEXELS, SHORT_STRETCH_TEXELS, LOOKUP_DEPTH.
 const float BOX_PIECE_DEPTH = 0.1;
 const uint MAX_BOX_PIECES = 20u;
-const float SHORT_RAY_TEXELS = 16.0;
+const float SHORT_RAY_TEXELS = 64.0;
+const float SHORT_STRETCH_TEXELS = 16.0;
 const float LOOKUP_DEPTH = 1.0;
 const float ALONG_THE_LIGHT_SIN = 0.15;
 
@@ -266,10 +267,11 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
     return AVERAGE_VISIBILITY;
 }
 
-// Whether a `stretch` of a ray `located` crosses too few texels for the prefix sums'
-// resolution (EpipolarMap::is_short); the projective layout resolves any length.
-bool is_short(vec4 located, float stretch) {
-    return q.map_layout != PROJECTIVE && located.z * stretch < SHORT_RAY_TEXELS;
+// Whether a `stretch` of a ray `located` crosses fewer than `texels` texels, too few for
+// the prefix sums' resolution (EpipolarMap::is_short, is_short_stretch); the projective
+// layout resolves any length.
+bool is_short(vec4 located, float stretch, float texels) {
+    return q.map_layout != PROJECTIVE && located.z * stretch < texels;
 }
 
 // (scattering, alpha, visibility); `ok` false where the ray cannot be located.
@@ -283,7 +285,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         return vec3(0.0, 0.0, 1.0);
     }
     // Too short for the prefix sums' resolution: marched instead.
-    if (is_short(located, t_end - t_start)) {
+    if (is_short(located, t_end - t_start, SHORT_RAY_TEXELS)) {
         ok = false;
         return vec3(0.0);
     }
@@ -319,7 +321,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
     // Dense fog: the first LOOKUP_DEPTH of optical depth is what counts (is_short_in_medium).
-    if (is_short(located, sigma > 0.0 ? min(b - a, LOOKUP_DEPTH / sigma) : b - a)) {
+    if (is_short(located, sigma > 0.0 ? min(b - a, LOOKUP_DEPTH / sigma) : b - a, SHORT_STRETCH_TEXELS)) {
         ok = false;
         return vec3(0.0);
     }
@@ -341,7 +343,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     // optical depth, each its own average times its own integral (box_pieces on the CPU).
     uint pieces = uint(clamp(ceil(sigma * (b - a) / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
     // A piece crossing too few texels is too short for its own lookup: marched instead.
-    if (is_short(located, (b - a) / float(pieces))) {
+    if (is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS)) {
         ok = false;
         return vec3(0.0);
     }

@@ -142,15 +142,24 @@ impl Spacing {
 
 /// Rays crossing fewer shadow-map texels than this are declined by the fast methods and
 /// computed exactly instead ([`crate::reference::Marcher::march_fallback`], one lookup per
-/// texel). Rectified lookups resolve a ray's ends to a sample, and near the camera, where
-/// an occluder's key changes fastest along a slice, a texel's worth of error is most of
-/// such a ray. Rays hitting a surface close to the camera, or running nearly along the
-/// light, were off by 5–10% of a dark image's light with prefiltering in views of
-/// `plane`, and min-max was 1.9% off (5.2% with hole filling) with the camera inside
-/// `tree`'s crown in dense fog (random views, not in the tests; 0.06% and 0.13% now).
-pub const SHORT_RAY_TEXELS: f64 = 16.0;
+/// texel). A ray ending on lit ground closes in on the ground's key over its last texels,
+/// where prefiltering's smooth step reads it partly shadowed, and rectified lookups resolve
+/// a ray's ends only to a sample: on a short ray those texels are much of its light. An
+/// orthographic view of `tree` 10–30° off the light's travel, the sun behind the camera,
+/// read 8.5–3.7% too dark with 16 texels (0–0.8% with 64), `colonnade` near its on-screen
+/// sun 0.74% (0.24%). A walk costs about what a lookup does at this length: 1080p frames of
+/// the default views took as long or less (exact neighbours agree, so adaptive shading
+/// shades fewer pixels: `colonnade` 43% instead of 51%, and 23% less time with the sun in
+/// view), orthographic and sideways views up to 12% more; 128 texels cost the default
+/// views 8–10% more.
+pub const SHORT_RAY_TEXELS: f64 = 64.0;
+/// Fewest texels a stretch of a ray must cross to be looked up on its own: its first
+/// [`LOOKUP_DEPTH`] of optical depth in dense fog ([`EpipolarMap::is_short_in_medium`]) and
+/// each piece of it inside a box. Fewer than the whole ray needs, because such rays are
+/// long and walking them exactly would cost more than their stretch's lookups.
+pub const SHORT_STRETCH_TEXELS: f64 = 16.0;
 /// Optical depth from a ray's entry into the medium within which it must cross
-/// [`SHORT_RAY_TEXELS`] for the fast methods' lookups ([`EpipolarMap::is_short_in_medium`]).
+/// [`SHORT_STRETCH_TEXELS`] for the fast methods' lookups ([`EpipolarMap::is_short_in_medium`]).
 /// In dense fog a ray's light comes from its first few optical depths, so it is as short
 /// as that stretch however long it runs: `colonnade` seen towards the sun read 3.9% off
 /// with prefiltering (2.7% with min-max) at σ = 0.6 /m and 9.4% (4.9%) at σ = 1.5 /m,
@@ -519,21 +528,38 @@ impl EpipolarMap {
         matches!(self.layout, Layout::Projective { .. })
     }
 
-    /// Whether `located`'s stretch [`t_start`, `t_end`] is too short for the fast methods'
-    /// rectified lookups ([`SHORT_RAY_TEXELS`]); the projective layout resolves any length.
+    /// Whether the ray `located`, from `t_start` to `t_end`, is too short for the fast
+    /// methods' rectified lookups ([`SHORT_RAY_TEXELS`]); the projective layout resolves any
+    /// length.
     pub fn is_short(&self, located: &RaySlice, t_start: f64, t_end: f64) -> bool {
-        !self.is_projective() && located.s_per_t * (t_end - t_start) < SHORT_RAY_TEXELS
+        self.crosses_fewer_than(located, t_start, t_end, SHORT_RAY_TEXELS)
     }
 
-    /// [`EpipolarMap::is_short`] for the stretch of medium from `a` to `b` of a ray, counting
-    /// only its first [`LOOKUP_DEPTH`] of optical depth at `extinction`.
+    /// Whether a stretch [`t_start`, `t_end`] of a ray is too short for a lookup of its own
+    /// ([`SHORT_STRETCH_TEXELS`]).
+    pub fn is_short_stretch(&self, located: &RaySlice, t_start: f64, t_end: f64) -> bool {
+        self.crosses_fewer_than(located, t_start, t_end, SHORT_STRETCH_TEXELS)
+    }
+
+    /// [`EpipolarMap::is_short_stretch`] for the stretch of medium from `a` to `b` of a ray,
+    /// counting only its first [`LOOKUP_DEPTH`] of optical depth at `extinction`.
     pub fn is_short_in_medium(&self, located: &RaySlice, a: f64, b: f64, extinction: f64) -> bool {
         let end = if extinction > 0.0 {
             b.min(a + LOOKUP_DEPTH / extinction)
         } else {
             b
         };
-        self.is_short(located, a, end)
+        self.is_short_stretch(located, a, end)
+    }
+
+    fn crosses_fewer_than(
+        &self,
+        located: &RaySlice,
+        t_start: f64,
+        t_end: f64,
+        texels: f64,
+    ) -> bool {
+        !self.is_projective() && located.s_per_t * (t_end - t_start) < texels
     }
 
     /// Slice line: a point at s = 0 and the unit direction of growing s.

@@ -1027,7 +1027,10 @@ impl<'a> Prefiltered<'a> {
         // step around keys it cannot resolve: a short stretch of box in a long view ray
         // (looking up out of a fog layer towards the sun) read 35% too dark.
         let pieces = box_pieces(sigma * (b - a));
-        if self.map.is_short(&located, a, a + (b - a) / pieces as f64) {
+        if self
+            .map
+            .is_short_stretch(&located, a, a + (b - a) / pieces as f64)
+        {
             return None;
         }
         let along = box_medium.along(ray);

@@ -276,11 +276,13 @@ fn assert_methods_within(
 /// - from inside `tree`'s crown looking down through dense fog, where rays end on leaves
 ///   close by (min-max was 1.9% off);
 /// - orthographic, looking up out of a `box` of fog towards the sun, where only the
-///   stretch inside the box scatters (prefiltering was 9.5% off).
+///   stretch inside the box scatters (prefiltering was 9.5% off);
+/// - orthographic, looking down at `tree` 18° off the light's travel (prefiltering read
+///   7% too dark at the ends of rays on lit ground).
 ///
 /// Both methods walk such rays texel by texel and integrate them exactly
-/// (`SHORT_RAY_TEXELS`); prefiltering also declines rays whose pieces inside a box are
-/// that short.
+/// (`SHORT_RAY_TEXELS`); prefiltering also declines rays whose pieces inside a box cross
+/// fewer than `SHORT_STRETCH_TEXELS`.
 #[test]
 fn rays_too_short_for_rectified_lookups_are_integrated_exactly() {
     let mut under_roof = builtin_scene("plane").expect("built-in scene");
@@ -321,10 +323,24 @@ fn rays_too_short_for_rectified_lookups_are_integrated_exactly() {
         world_from_cube: Mat4::from_translation(Vec3::new(2.5, 2.4, 3.6))
             * Mat4::from_scale(Vec3::new(11.0, 7.0, 3.0)),
     };
+    // Orthographic, looking down at `tree` 18° off the light's travel with the sun behind
+    // the camera: each ray crosses some 60 texels before it ends on lit ground, closing in
+    // on the ground's key over the last of them, and prefiltering read 7% too dark.
+    let mut down_the_light = builtin_scene("tree").expect("built-in scene");
+    let eye = Vec3::new(0.65, 1.58, 4.12);
+    down_the_light.camera = Camera::orthographic_looking_at(
+        eye,
+        eye + Vec3::new(0.175, -0.052, -0.983),
+        24.1,
+        WIDTH,
+        HEIGHT,
+    );
+    down_the_light.sun.direction = Vec3::new(0.008, 0.212, -0.977);
     for (name, scene) in [
         ("under the roof", under_roof),
         ("in the crown", in_crown),
         ("out of fog", out_of_fog),
+        ("down the light", down_the_light),
     ] {
         let reference = render_with(&scene, Method::Reference, 4096);
         assert_fast_methods_match(&format!("short rays {name:<14}"), &scene, &reference);
@@ -384,7 +400,7 @@ fn rays_too_far_along_a_slice_are_integrated_exactly() {
 /// so, which near the sun crosses few texels however long the ray runs. Over so few
 /// texels the prefiltered step's ringing and texel-sized errors near the camera do not
 /// average out: `colonnade` read 3.9% off with prefiltering (2.7% with min-max) at
-/// σ = 0.6 /m and 9.4% (4.9%) at 1.5 /m. Rays crossing fewer than `SHORT_RAY_TEXELS`
+/// σ = 0.6 /m and 9.4% (4.9%) at 1.5 /m. Rays crossing fewer than `SHORT_STRETCH_TEXELS`
 /// within their first `LOOKUP_DEPTH` are walked exactly.
 #[test]
 fn rays_in_dense_fog_count_only_their_first_optical_depth() {
@@ -524,11 +540,14 @@ fn adaptive_shading_stays_close_to_shading_every_pixel() {
 }
 
 /// The prefiltered method: at M = 32 it meets the bounds (2%, 4% on `plane`) in
-/// every view, and its error falls as M grows everywhere.
+/// every view, and its error falls as M grows in every view that it looks up. A view whose
+/// rays all cross too few texels (`plane` sideways) is walked exactly at any M; at least
+/// three views of each scene must show the trend.
 #[test]
 fn prefiltered_error_falls_with_more_bases() {
     let mut failures = Vec::new();
     for name in BUILTIN_SCENES {
+        let mut trends = 0;
         for (view, scene) in views(name) {
             let reference = render_with(&scene, Method::Reference, 4096);
             let bound = if name == "plane" { 0.04 } else { 0.02 };
@@ -561,10 +580,14 @@ fn prefiltered_error_falls_with_more_bases() {
                 errors[1] * 100.0,
                 errors[2] * 100.0
             );
-            if !(errors[0] > errors[1] && errors[1] >= 0.95 * errors[2]) {
-                failures.push(format!(
-                    "{name} {view}: error does not fall with M: {errors:?}"
-                ));
+            let walked = errors[0] == errors[1] && errors[1] == errors[2];
+            if !walked {
+                trends += 1;
+                if !(errors[0] > errors[1] && errors[1] >= 0.95 * errors[2]) {
+                    failures.push(format!(
+                        "{name} {view}: error does not fall with M: {errors:?}"
+                    ));
+                }
             }
             if errors[1] > bound {
                 failures.push(format!(
@@ -573,6 +596,9 @@ fn prefiltered_error_falls_with_more_bases() {
                     bound * 100.0
                 ));
             }
+        }
+        if trends < 3 {
+            failures.push(format!("{name}: only {trends} views looked up"));
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
