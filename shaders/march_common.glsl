@@ -205,7 +205,8 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
 }
 
 // ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (the sunward
-// depth ℓ is piecewise linear), as BoxRay::integrate. Needs begin_ray.
+// depth ℓ is piecewise linear), as BoxRay::integrate: each piece takes the line lowest at
+// its middle (a wall the sun grazes has a nearly vertical line). Needs begin_ray.
 float box_integrate(float t0, float t1, float a, float sigma) {
     vec2 lines[3];
     bool finite_line[3];
@@ -247,16 +248,15 @@ float box_integrate(float t0, float t1, float a, float sigma) {
         if (!(p1 > p0)) {
             continue;
         }
-        float d0 = BIG;
-        float d1 = BIG;
-        for (int axis = 0; axis < 3; ++axis) {
-            d0 = min(d0, lines[axis].x + lines[axis].y * p0);
-            d1 = min(d1, lines[axis].x + lines[axis].y * p1);
+        float middle = 0.5 * (p0 + p1);
+        vec2 lowest = lines[0];
+        for (int axis = 1; axis < 3; ++axis) {
+            if (lines[axis].x + lines[axis].y * middle < lowest.x + lowest.y * middle) {
+                lowest = lines[axis];
+            }
         }
-        d0 = max(d0, 0.0);
-        d1 = max(d1, 0.0);
-        float slope = (d1 - d0) / (p1 - p0);
-        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + slope), p1 - p0);
+        float d0 = max(lowest.x + lowest.y * p0, 0.0);
+        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + lowest.y), p1 - p0);
     }
     return total;
 }

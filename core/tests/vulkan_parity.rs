@@ -640,6 +640,14 @@ fn prefiltered_evaluation_matches_across_layouts() {
         ),
     };
     variants.push(("torus in a box", boxed));
+    // Aligned with the axes: torus's sun has no x component, so it grazes the x walls.
+    let mut aligned = prefiltered("torus");
+    aligned.medium.extinction = 0.2;
+    aligned.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_translation(glam::Vec3::new(0.0, 0.0, 4.0))
+            * glam::Mat4::from_scale(glam::Vec3::new(3.5, 3.8, 4.0)),
+    };
+    variants.push(("torus in an aligned box", aligned));
     let mut epipolar = prefiltered("colonnade");
     epipolar.render.rectification = Rectification::Epipolar;
     epipolar.render.basis_storage = BasisStorage::F32;
