@@ -204,11 +204,13 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
     return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
 }
 
-// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (the sunward
-// depth ℓ is piecewise linear), as BoxRay::integrate: each piece takes the line lowest at
-// its middle (a wall the sun grazes has a nearly vertical line). Needs begin_ray.
-float box_integrate(float t0, float t1, float a, float sigma) {
-    vec2 lines[3];
+// core/src/reference.rs: NEGLIGIBLE_STRETCH.
+const float NEGLIGIBLE_STRETCH = 1e-3;
+
+// The ray's sunward depth ℓ(t) = min over the walls the sun points at of x + y·t, and the
+// points in (t0, t1) where the minimum may switch, sorted after t0 and before t1: `count`
+// stretches, as BoxRay::for_each_line. Needs begin_ray.
+void box_lines(float t0, float t1, out vec2 lines[3], out float cuts[5], out uint count) {
     bool finite_line[3];
     for (int axis = 0; axis < 3; ++axis) {
         float s = p.towards_sun[axis];
@@ -220,8 +222,8 @@ float box_integrate(float t0, float t1, float a, float sigma) {
             lines[axis] = vec2(BIG, 0.0);
         }
     }
-    float cuts[5] = float[5](t0, t1, t1, t1, t1);
-    uint count = 1u;
+    cuts = float[5](t0, t1, t1, t1, t1);
+    count = 1u;
     for (int i = 0; i < 3; ++i) {
         for (int k = i + 1; k < 3; ++k) {
             if (finite_line[i] && finite_line[k] && lines[i].y != lines[k].y) {
@@ -241,6 +243,28 @@ float box_integrate(float t0, float t1, float a, float sigma) {
             cuts[k - 1u] = swap;
         }
     }
+}
+
+// The line ℓ follows over a stretch: the lowest at its middle (a wall the sun grazes has
+// a nearly vertical line), as BoxRay::for_each_line.
+vec2 box_line_over(vec2 lines[3], float p0, float p1) {
+    float middle = 0.5 * (p0 + p1);
+    vec2 lowest = lines[0];
+    for (int axis = 1; axis < 3; ++axis) {
+        if (lines[axis].x + lines[axis].y * middle < lowest.x + lowest.y * middle) {
+            lowest = lines[axis];
+        }
+    }
+    return lowest;
+}
+
+// ∫ e^(−σ·ℓ(t)) · e^(−σ·(t − a)) dt over [t0, t1] inside the box, exactly (ℓ is piecewise
+// linear), as BoxRay::integrate. Needs begin_ray.
+float box_integrate(float t0, float t1, float a, float sigma) {
+    vec2 lines[3];
+    float cuts[5];
+    uint count;
+    box_lines(t0, t1, lines, cuts, count);
     float total = 0.0;
     for (uint i = 0u; i < count; ++i) {
         float p0 = cuts[i];
@@ -248,17 +272,30 @@ float box_integrate(float t0, float t1, float a, float sigma) {
         if (!(p1 > p0)) {
             continue;
         }
-        float middle = 0.5 * (p0 + p1);
-        vec2 lowest = lines[0];
-        for (int axis = 1; axis < 3; ++axis) {
-            if (lines[axis].x + lines[axis].y * middle < lowest.x + lowest.y * middle) {
-                lowest = lines[axis];
-            }
-        }
-        float d0 = max(lowest.x + lowest.y * p0, 0.0);
-        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + lowest.y), p1 - p0);
+        vec2 line = box_line_over(lines, p0, p1);
+        float d0 = max(line.x + line.y * p0, 0.0);
+        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + line.y), p1 - p0);
     }
     return total;
+}
+
+// How far ℓ rises and falls over [t0, t1], leaving out stretches shorter than
+// NEGLIGIBLE_STRETCH of it, as BoxRay::sunward_change. Needs begin_ray.
+float box_sunward_change(float t0, float t1) {
+    vec2 lines[3];
+    float cuts[5];
+    uint count;
+    box_lines(t0, t1, lines, cuts, count);
+    float shortest = NEGLIGIBLE_STRETCH * (t1 - t0);
+    float change = 0.0;
+    for (uint i = 0u; i < count; ++i) {
+        float p0 = cuts[i];
+        float p1 = cuts[i + 1u];
+        if (p1 - p0 > shortest) {
+            change += abs(box_line_over(lines, p0, p1).y) * (p1 - p0);
+        }
+    }
+    return change;
 }
 
 // What walk_lit sums over each lit part of a ray.

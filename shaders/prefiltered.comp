@@ -18,7 +18,7 @@ const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
 // core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, ALONG_THE_LIGHT_SIN; core/src/epipolar.rs:
 // SHORT_RAY_TEXELS, SHORT_STRETCH_TEXELS, LOOKUP_DEPTH.
-const float BOX_PIECE_DEPTH = 0.1;
+const float BOX_PIECE_DEPTH = 0.05;
 const uint MAX_BOX_PIECES = 20u;
 const float SHORT_RAY_TEXELS = 64.0;
 const float SHORT_STRETCH_TEXELS = 16.0;
@@ -339,9 +339,11 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
         return vec3(visibility * unshadowed, alpha, visibility);
     }
-    // Inside a box the sunlight's attenuation varies along the ray: pieces of bounded
-    // optical depth, each its own average times its own integral (box_pieces on the CPU).
-    uint pieces = uint(clamp(ceil(sigma * (b - a) / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
+    // Inside a box the sunlight's attenuation varies along the ray: pieces over which it
+    // changes by a bounded optical depth, each its own average times its own integral
+    // (box_pieces on the CPU).
+    float change = sigma * box_sunward_change(a, b);
+    uint pieces = uint(clamp(ceil(change / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
     // A piece crossing too few texels is too short for its own lookup: marched instead.
     if (is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS)) {
         ok = false;

@@ -194,9 +194,11 @@ fn fast_methods_match_the_reference_in_a_box_medium() {
 }
 
 /// A box of fog lit through a slotted roof, as in the Blender test against Cycles, the
-/// box some 10 m from the camera: 0.3% off. Before the transmittance weights started at the
-/// box, every ray here was declined as too imprecise and walked (exact, at 4× the time);
-/// with even weights in pieces of 0.25 optical depth it was 2.9% off, at 0.1 1.2%.
+/// box some 10 m from the camera: 0.14% off. Before the transmittance weights started at
+/// the box, every ray here was declined as too imprecise and walked (exact, at 4× the
+/// time); with even weights in pieces of 0.25 optical depth it was 2.9% off, at 0.1 1.2%;
+/// with transmittance weights in pieces of 0.1 of the view ray's optical depth 0.30%,
+/// and in pieces over which the sunlight's optical depth changes by 0.1 0.66%.
 #[test]
 fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
     let mut scene = builtin_scene("plane").expect("built-in scene");
@@ -229,7 +231,7 @@ fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
     scene.render.shadow_map_size = 2048;
     scene.render.max_distance = 60.0;
     let reference = render_with(&scene, Method::Reference, 4096);
-    assert_fast_methods_within("box under a slotted roof", &scene, &reference, 0.006);
+    assert_fast_methods_within("box under a slotted roof", &scene, &reference, 0.0025);
 }
 
 /// Min-max within 1% and prefiltering within 2% of `reference`, a render of `scene`.
