@@ -187,12 +187,14 @@ fn adaptive_shading(c: &mut Criterion) {
     let camera = CameraModel::new(&scene.camera);
     let max_distance = scene.render.max_distance;
     let surface = |x: usize, y: usize| Some(depth[y * 1920 + x] as f64);
-    let shade = |x: usize, y: usize| {
-        let v = 1.0 + 1e-4 * (x + y) as f32;
-        Pixel {
-            volume: [v, v, v, 0.5],
-            visibility: 0.5,
-            depth: depth[y * 1920 + x].min(max_distance),
+    let shade = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
+        for (&(x, y), out) in pixels.iter().zip(out) {
+            let v = 1.0 + 1e-4 * (x + y) as f32;
+            *out = Pixel {
+                volume: [v, v, v, 0.5],
+                visibility: 0.5,
+                depth: depth[y * 1920 + x].min(max_distance),
+            };
         }
     };
     let lines = EpipolarLines::of_view(&camera, scene.sun.direction.as_dvec3(), 1);

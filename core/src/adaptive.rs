@@ -407,7 +407,8 @@ impl Lattices {
     }
 }
 
-/// Shades a `width` × `height` image adaptively. `shade(x, y)` gives a pixel's layers;
+/// Shades a `width` × `height` image adaptively. `shade(pixels, out)` gives the layers of
+/// a batch of pixels (x, y), in shading order (tile by tile);
 /// `surface(x, y)` the distance to the surface its whole footprint sees (+∞ for
 /// background), or `None` where a depth edge runs through it, which is then shaded.
 /// `lines`, the image's epipolar lines where the light is directional, let the grid be
@@ -423,7 +424,7 @@ pub fn shade_adaptively(
     lines: Option<EpipolarLines>,
     control: &RenderControl,
     surface: impl Fn(usize, usize) -> Option<f64> + Sync,
-    shade: impl Fn(usize, usize) -> Pixel + Sync,
+    shade: impl Fn(&[(usize, usize)], &mut [Pixel]) + Sync,
 ) -> (Layers, usize) {
     let lines = lines.as_ref();
     let interpolation = Interpolation {
@@ -449,19 +450,18 @@ pub fn shade_adaptively(
                 return;
             }
             let first = band * TILE;
-            let mut count = 0;
+            let mut batch = Batch::default();
             for tile in (0..grid_width).step_by(TILE) {
                 for row in 0..pixels.len() / grid_width {
                     let columns = tile..(tile + TILE).min(grid_width);
                     lattices.offsets_in_row(columns, first + row, |i, offset| {
                         if offset == 0 {
-                            pixels[row * grid_width + i] = shade(2 * i, 2 * (first + row));
-                            count += 1;
+                            batch.push(row * grid_width + i, (2 * i, 2 * (first + row)));
                         }
                     });
                 }
             }
-            shaded_count.fetch_add(count, Ordering::Relaxed);
+            shaded_count.fetch_add(batch.shade(&shade, pixels), Ordering::Relaxed);
         });
     // The other points, the bands of each parity in parallel: a band's pairs reach only
     // into itself and the bands either side, of the other parity, whose lattice points
@@ -543,15 +543,14 @@ pub fn shade_adaptively(
                         }
                     });
                 }
-                let mut count = 0;
+                let mut batch = Batch::default();
                 for_each_in_tiles(grid_width, rows, |i, row| {
                     let k = row * grid_width + i;
                     if flags[k] {
-                        pixels[k] = shade(2 * i, 2 * (first + row));
-                        count += 1;
+                        batch.push(k, (2 * i, 2 * (first + row)));
                     }
                 });
-                shaded_count.fetch_add(count, Ordering::Relaxed);
+                shaded_count.fetch_add(batch.shade(&shade, pixels), Ordering::Relaxed);
                 control.advance(rows as u64);
             });
     }
@@ -601,14 +600,15 @@ pub fn shade_adaptively(
             }
         }
         let first_row = band.first_row;
+        let mut batch = Batch::default();
         for_each_in_tiles(width, rows, |x, row| {
             let k = row * width + x;
             if to_shade[k] {
-                band.set(k, &shade(x, first_row + row));
+                batch.push(k, (x, first_row + row));
             }
         });
-        let count = to_shade.iter().filter(|&&shade| shade).count();
-        between_shaded.fetch_add(count, Ordering::Relaxed);
+        let shaded = batch.shade_each(&shade, |k, pixel| band.set(k, pixel));
+        between_shaded.fetch_add(shaded, Ordering::Relaxed);
         // The finer grid's rows were counted as they were completed.
         control.advance((rows / 2) as u64);
     });
@@ -616,6 +616,41 @@ pub fn shade_adaptively(
         layers,
         shaded_count.into_inner() + between_shaded.into_inner(),
     )
+}
+
+/// Pixels to shade, in shading order, with where each result goes; shaded together so
+/// that a method can look ahead along the batch (prefiltering prefetches the next rays'
+/// rows while it blends the current one's).
+#[derive(Default)]
+struct Batch {
+    slots: Vec<usize>,
+    pixels: Vec<(usize, usize)>,
+}
+
+impl Batch {
+    fn push(&mut self, slot: usize, pixel: (usize, usize)) {
+        self.slots.push(slot);
+        self.pixels.push(pixel);
+    }
+
+    /// Shades the batch into `out[slot]`; returns how many were shaded.
+    fn shade(&self, shade: &impl Fn(&[(usize, usize)], &mut [Pixel]), out: &mut [Pixel]) -> usize {
+        self.shade_each(shade, |slot, pixel| out[slot] = *pixel)
+    }
+
+    /// Shades the batch, handing each result to `store` with its slot.
+    fn shade_each(
+        &self,
+        shade: &impl Fn(&[(usize, usize)], &mut [Pixel]),
+        mut store: impl FnMut(usize, &Pixel),
+    ) -> usize {
+        let mut results = vec![Pixel::default(); self.pixels.len()];
+        shade(&self.pixels, &mut results);
+        for (&slot, pixel) in self.slots.iter().zip(&results) {
+            store(slot, pixel);
+        }
+        self.pixels.len()
+    }
 }
 
 /// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of RGBA
@@ -777,9 +812,11 @@ mod tests {
             lines,
             &control,
             surface,
-            |x, y| {
-                calls.fetch_add(1, Ordering::Relaxed);
-                value(x, y)
+            |pixels, out| {
+                calls.fetch_add(pixels.len(), Ordering::Relaxed);
+                for (&(x, y), out) in pixels.iter().zip(out) {
+                    *out = value(x, y);
+                }
             },
         );
         assert_eq!(control.progress(), (height as u64, height as u64));

@@ -974,7 +974,86 @@ impl<'a> Prefiltered<'a> {
 
     /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
-        let located = self.map.locate(ray)?;
+        self.march_located(ray, t_start, t_end, self.map.locate(ray))
+    }
+
+    /// [`Prefiltered::march`] for `count` rays, `ray(i)` giving ray i and its span, into
+    /// `out`, bit for bit. Each ray is located eight rays ahead and its end rows
+    /// prefetched: frames shade sparse pixels, whose rows are rarely in cache, and about
+    /// 100 of tree's 335 ns a ray went to waiting for them. Prefetching from `march`
+    /// itself, with no lead, gained nothing.
+    pub fn march_many<'r>(
+        &self,
+        count: usize,
+        ray: impl Fn(usize) -> (&'r Ray, f64, f64),
+        out: &mut [Option<RaySample>],
+    ) {
+        const AHEAD: usize = 8;
+        let locate = |i: usize| {
+            let (ray, _, t_end) = ray(i);
+            let located = self.map.locate(ray);
+            if let Some(located) = &located {
+                self.prefetch_rows(located, t_end);
+            }
+            located
+        };
+        let mut ahead: [Option<RaySlice>; AHEAD] =
+            std::array::from_fn(|i| if i < count { locate(i) } else { None });
+        for (i, out) in out.iter_mut().enumerate().take(count) {
+            let located = ahead[i % AHEAD];
+            if i + AHEAD < count {
+                ahead[i % AHEAD] = locate(i + AHEAD);
+            }
+            let (ray, t_start, t_end) = ray(i);
+            *out = self.march_located(ray, t_start, t_end, located);
+        }
+    }
+
+    /// Asks the CPU to fetch the rows a ray ending at `t_end` reads at its end.
+    #[inline]
+    fn prefetch_rows(&self, located: &RaySlice, t_end: f64) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let x = row_coordinate(self.map, located.s_origin + located.s_per_t * t_end);
+            let log2_rate = located.s_per_t.log2();
+            let (basis, value_bytes) = match &self.basis {
+                FilteredBasis::F32(values) => (values.as_ptr().cast::<i8>(), 4),
+                FilteredBasis::Snorm16(values) => (values.as_ptr().cast::<i8>(), 2),
+            };
+            // Two consecutive rows per band.
+            let row_bytes = 2 * self.stride * value_bytes;
+            for (slice, share) in self.map.neighbours(located.slice) {
+                if share == 0.0 {
+                    continue;
+                }
+                for (band, band_share) in self.bands_for(slice, log2_rate) {
+                    if band_share == 0.0 {
+                        continue;
+                    }
+                    let row = band.first_row + band.straddle(x).0;
+                    let first = basis.wrapping_add(row * self.stride * value_bytes);
+                    // SAFETY: prefetching is only a hint, and never faults.
+                    unsafe {
+                        _mm_prefetch::<_MM_HINT_T0>(self.weight.as_ptr().wrapping_add(row).cast());
+                        for offset in (0..row_bytes).step_by(64) {
+                            _mm_prefetch::<_MM_HINT_T0>(first.wrapping_add(offset));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// [`Prefiltered::march`] with the ray already located (`None`: along the light).
+    fn march_located(
+        &self,
+        ray: &Ray,
+        t_start: f64,
+        t_end: f64,
+        located: Option<RaySlice>,
+    ) -> Option<RaySample> {
+        let located = located?;
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
         }

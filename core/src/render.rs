@@ -271,7 +271,11 @@ pub(crate) fn scatter_timed(
             light_travel,
             frame.settings.effective_adaptive_tolerance(),
             control,
-            |_, ray, t0, t1| reference(ray, t0, t1),
+            |queries, out| {
+                for (query, out) in queries.iter().zip(out) {
+                    *out = reference(&query.ray, query.t_start, query.t_end);
+                }
+            },
         )?;
         (times.pixels, times.shaded_pixels) = shaded;
         times.shading = stopwatch.lap();
@@ -289,16 +293,18 @@ pub(crate) fn scatter_timed(
     };
     let mipmap;
     let prefiltered;
-    type FastMethod<'f> = Box<dyn Fn(&Ray, f64, f64) -> Option<PixelSample> + Sync + 'f>;
+    // A batch of rays at a time, `None` for each the method declines.
+    type FastMethod<'f> = Box<dyn Fn(&[RayQuery], &mut [Option<RaySample>]) + Sync + 'f>;
     let fast: FastMethod = match frame.settings.method {
-        Method::Reference => Box::new(|_, _, _| None),
+        Method::Reference => Box::new(|_, out| out.fill(None)),
         Method::MinMax => {
             mipmap = MinMaxMipmap::build(&map);
             times.structure_bytes = mipmap.memory_bytes();
             let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
-            Box::new(move |ray, t0, t1| {
-                let sample = method.march(ray, t0, t1)?;
-                Some(to_pixel(sample, ray))
+            Box::new(move |queries, out| {
+                for (query, out) in queries.iter().zip(out) {
+                    *out = method.march(&query.ray, query.t_start, query.t_end);
+                }
             })
         }
         Method::Prefiltered => {
@@ -315,9 +321,12 @@ pub(crate) fn scatter_timed(
             )?;
             times.structure_bytes = prefiltered.memory_bytes();
             let method = &prefiltered;
-            Box::new(move |ray, t0, t1| {
-                let sample = method.march(ray, t0, t1)?;
-                Some(to_pixel(sample, ray))
+            Box::new(move |queries, out| {
+                method.march_many(
+                    queries.len(),
+                    |i| (&queries[i].ray, queries[i].t_start, queries[i].t_end),
+                    out,
+                )
             })
         }
     };
@@ -329,16 +338,31 @@ pub(crate) fn scatter_timed(
         light_travel,
         frame.settings.effective_adaptive_tolerance(),
         control,
-        |pixel, ray, t0, t1| {
-            if near_epipole(pixel) {
-                return fallback(ray, t0, t1);
+        |queries, out| {
+            let mut fast_samples = vec![None; queries.len()];
+            fast(queries, &mut fast_samples);
+            for ((query, fast_sample), out) in queries.iter().zip(fast_samples).zip(out) {
+                let (ray, t0, t1) = (&query.ray, query.t_start, query.t_end);
+                *out = match fast_sample {
+                    Some(sample) if !near_epipole(query.pixel) => to_pixel(sample, ray),
+                    _ => fallback(ray, t0, t1),
+                };
             }
-            fast(ray, t0, t1).unwrap_or_else(|| fallback(ray, t0, t1))
         },
     )?;
     (times.pixels, times.shaded_pixels) = shaded;
     times.shading = stopwatch.lap();
     Ok((layers, times))
+}
+
+/// One depth sample's ray, from the camera's clip start to its surface or the max
+/// distance, and the pixel position it was shot through.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RayQuery {
+    pub pixel: [f64; 2],
+    pub ray: Ray,
+    pub t_start: f64,
+    pub t_end: f64,
 }
 
 /// One sample's result, before averaging into its pixel.
@@ -501,8 +525,8 @@ pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
     (high <= low * (1.0 + EDGE_DEPTH_SPREAD)).then(|| sum / count as f64)
 }
 
-/// Runs `shade(pixel, ray, t_start, t_end)` for every depth sample (`pixel` is its
-/// continuous image position), averaging samples into pixels, in parallel over rows.
+/// Runs `shade(queries, out)` on batches of depth samples' rays ([`RayQuery`]), averaging
+/// samples into pixels, in parallel over rows.
 /// With supersampling, a pixel whose depth samples agree ([`uniform_surface`]) is shaded
 /// once at its centre, as MSAA shades once per pixel: only pixels at depth edges pay for
 /// every sample. With a `tolerance` above 0, pixels are shaded adaptively
@@ -517,18 +541,22 @@ pub(crate) fn shade_pixels(
     light_travel: DVec3,
     tolerance: f32,
     control: &RenderControl,
-    shade: impl Fn([f64; 2], &Ray, f64, f64) -> PixelSample + Sync,
+    shade: impl Fn(&[RayQuery], &mut [PixelSample]) + Sync,
 ) -> Result<(Layers, (usize, usize))> {
     let stride = settings.downsample;
     let ss = surfaces.supersampling as usize;
     let sample_width = camera.width as usize * ss;
     let max_distance = settings.max_distance as f64;
-    // One depth sample's shading, and its depth for the depth layer.
-    let shade_at = |pixel: [f64; 2], surface: f64| {
+    // One depth sample's ray.
+    let query = |pixel: [f64; 2], surface: f64| {
         let ray = camera.ray(pixel[0], pixel[1]);
         let t_start = camera.clip_start * ray.distance_per_depth;
-        let sample = shade(pixel, &ray, t_start, surface.min(max_distance));
-        (sample, layer_depth(surface, max_distance))
+        RayQuery {
+            pixel,
+            ray,
+            t_start,
+            t_end: surface.min(max_distance),
+        }
     };
     // Output sample (x, y) is one exact full-size pixel, also with downsampling.
     let full_pixel = |x: usize, y: usize| {
@@ -551,45 +579,58 @@ pub(crate) fn shade_pixels(
                 .map(|(sx, sy)| surface_at(full_x, full_y, sx, sy)),
         )
     };
-    let shade_one = |x: usize, y: usize| {
-        let (full_x, full_y) = full_pixel(x, y);
-        let (sum, depth_sum, count) = match uniform(full_x, full_y) {
-            // Shaded once, like MSAA: no edge runs through the pixel.
-            Some(surface) => {
-                let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
-                let (sample, depth) = shade_at(centre, surface);
-                (sample, depth, 1.0)
-            }
-            None => {
-                let mut sum = PixelSample::default();
-                let mut depth_sum = 0.0;
-                for sy in 0..ss {
-                    for sx in 0..ss {
-                        let pixel = [
-                            full_x as f64 + (sx as f64 + 0.5) / ss as f64,
-                            full_y as f64 + (sy as f64 + 0.5) / ss as f64,
-                        ];
-                        let (sample, depth) =
-                            shade_at(pixel, surface_at(full_x, full_y, sx, sy) as f64);
-                        sum.radiance += sample.radiance;
-                        sum.alpha += sample.alpha;
-                        sum.visibility += sample.visibility;
-                        depth_sum += depth;
+    // The pixels' rays, shaded together, then averaged per pixel.
+    let shade_batch = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
+        let mut queries = Vec::with_capacity(pixels.len());
+        // Per ray: its pixel's index in the batch and its depth for the depth layer.
+        let mut owners = Vec::with_capacity(pixels.len());
+        for (n, &(x, y)) in pixels.iter().enumerate() {
+            let (full_x, full_y) = full_pixel(x, y);
+            match uniform(full_x, full_y) {
+                // Shaded once, like MSAA: no edge runs through the pixel.
+                Some(surface) => {
+                    let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
+                    queries.push(query(centre, surface));
+                    owners.push((n, layer_depth(surface, max_distance)));
+                }
+                None => {
+                    for sy in 0..ss {
+                        for sx in 0..ss {
+                            let pixel = [
+                                full_x as f64 + (sx as f64 + 0.5) / ss as f64,
+                                full_y as f64 + (sy as f64 + 0.5) / ss as f64,
+                            ];
+                            let surface = surface_at(full_x, full_y, sx, sy) as f64;
+                            queries.push(query(pixel, surface));
+                            owners.push((n, layer_depth(surface, max_distance)));
+                        }
                     }
                 }
-                (sum, depth_sum, (ss * ss) as f64)
             }
-        };
-        let radiance = sum.radiance / count;
-        Pixel {
-            volume: [
-                radiance.x as f32,
-                radiance.y as f32,
-                radiance.z as f32,
-                (sum.alpha / count) as f32,
-            ],
-            visibility: (sum.visibility / count) as f32,
-            depth: (depth_sum / count) as f32,
+        }
+        let mut samples = vec![PixelSample::default(); queries.len()];
+        shade(&queries, &mut samples);
+        let mut sums = vec![(PixelSample::default(), 0.0, 0.0); pixels.len()];
+        for (&(n, depth), sample) in owners.iter().zip(&samples) {
+            let (sum, depth_sum, count) = &mut sums[n];
+            sum.radiance += sample.radiance;
+            sum.alpha += sample.alpha;
+            sum.visibility += sample.visibility;
+            *depth_sum += depth;
+            *count += 1.0;
+        }
+        for (out, (sum, depth_sum, count)) in out.iter_mut().zip(sums) {
+            let radiance = sum.radiance / count;
+            *out = Pixel {
+                volume: [
+                    radiance.x as f32,
+                    radiance.y as f32,
+                    radiance.z as f32,
+                    (sum.alpha / count) as f32,
+                ],
+                visibility: (sum.visibility / count) as f32,
+                depth: (depth_sum / count) as f32,
+            };
         }
     };
     let width = reduced_size(camera.width, stride) as usize;
@@ -606,7 +647,7 @@ pub(crate) fn shade_pixels(
                 let (full_x, full_y) = full_pixel(x, y);
                 uniform(full_x, full_y)
             },
-            shade_one,
+            shade_batch,
         )
     } else {
         let mut layers = Layers::for_overwrite(width as u32, height as u32);
@@ -615,9 +656,13 @@ pub(crate) fn shade_pixels(
                 return;
             }
             let first_row = band.first_row;
-            for_each_in_tiles(width, band.rows, |x, row| {
-                band.set(row * width + x, &shade_one(x, first_row + row));
-            });
+            let mut pixels = Vec::with_capacity(width * band.rows);
+            for_each_in_tiles(width, band.rows, |x, row| pixels.push((x, first_row + row)));
+            let mut shaded = vec![Pixel::default(); pixels.len()];
+            shade_batch(&pixels, &mut shaded);
+            for (&(x, y), pixel) in pixels.iter().zip(&shaded) {
+                band.set((y - first_row) * width + x, pixel);
+            }
             control.advance(band.rows as u64);
         });
         (layers, width * height)
