@@ -101,7 +101,13 @@ def random_case(rng: random.Random, width: int, height: int) -> tuple[str, dict]
     medium["extinction"] = rng.choice([0.01, 0.05, 0.2, 0.6])
     medium["anisotropy"] = rng.uniform(-0.5, 0.8)
     if rng.random() < 0.25:
-        cx, cy, cz = rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(1, 4)
+        # Around what the camera looks at, so that the box is in view: centred on the
+        # scene's middle, five of seed 40's nine boxes lay outside the image.
+        cx, cy, cz = (
+            target[0] + rng.uniform(-3, 3),
+            target[1] + rng.uniform(-3, 3),
+            rng.uniform(1, 4),
+        )
         sx, sy, sz = rng.uniform(3, 12), rng.uniform(3, 12), rng.uniform(2, 6)
         medium["extent"] = {
             "kind": "box",
