@@ -173,6 +173,13 @@ class CrepuscularLight(PropertyGroup):
         step=2,
         update=_tag_preview,
     )
+    exact_ray_ends: BoolProperty(
+        name="Exact Ray Ends",
+        description="Prefiltered method: integrate exactly where a ray closes in on the surface "
+        "it ends on (ground it grazes, views near the sun's direction); slower",
+        default=False,
+        update=_tag_preview,
+    )
     downsample: EnumProperty(
         name="Downsample",
         items=[("1", "1/1", ""), ("2", "1/2", ""), ("4", "1/4", "")],

@@ -317,6 +317,7 @@ class CREPUSCULAR_PT_sun(SunPanel, bpy.types.Panel):
         layout.prop(settings, "shadow_map_size")
         if settings.method == "prefiltered":
             layout.prop(settings, "bases")
+            layout.prop(settings, "exact_ray_ends")
         if settings.method == "reference":
             layout.prop(settings, "steps")
         else:

@@ -24,6 +24,10 @@ const float SHORT_RAY_TEXELS = 64.0;
 const float SHORT_STRETCH_TEXELS = 16.0;
 const float LOOKUP_DEPTH = 1.0;
 const float ALONG_THE_LIGHT_SIN = 0.15;
+// core/src/prefiltered.rs: EXACT_END_WIDTH, MAX_EXACT_END_SAMPLES, SAMPLES_PER_ROW.
+const float EXACT_END_WIDTH = 0.35;
+const uint MAX_EXACT_END_SAMPLES = 64u;
+const float SAMPLES_PER_ROW = 2.0;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -44,7 +48,8 @@ layout(std430, binding = 6) readonly buffer PrefilteredParams {
     uint snorm;
     uint epipole_count;
     uint near_plane_correction;
-    uint unused;
+    uint exact_ray_ends;
+    uint frequencies;   // M/2
 } q;
 
 // Per band: its warp's KNOTS knots.
@@ -57,6 +62,8 @@ layout(std430, binding = 11) readonly buffer Basis { uvec4 basis4[]; };
 layout(std430, binding = 12) readonly buffer Coefficients { vec4 coefficients4[]; };
 // Per slice: log₂ of its fastest ray's speed.
 layout(std430, binding = 13) readonly buffer SliceSpeeds { float log2_fastest[]; };
+// The rectified map (EpipolarMap::values): `samples` values per slice.
+layout(std430, binding = 14) readonly buffer Rectified { float rectified[]; };
 
 const float TAU = 6.28318530717959;
 
@@ -175,6 +182,23 @@ float blend_dot(uint rows[4], float factors[4], uint coefficient_row) {
     return dot_;
 }
 
+// The two slices to blend at slice coordinate `x`, and the share of the upper one
+// (EpipolarMap::neighbours).
+void neighbours(float x, out uint lower, out uint upper, out float fraction) {
+    uint last = q.slices - 1u;
+    float clamped;
+    if (q.full_circle != 0u) {
+        float count = float(q.slices);
+        float c = x < 0.0 ? x + count : (x >= count ? x - count : x);
+        clamped = clamp(c, 0.0, count);
+    } else {
+        clamped = clamp(x, 0.0, float(last));
+    }
+    lower = min(uint(clamped), last);
+    fraction = clamped - float(lower);
+    upper = lower == last ? (q.full_circle != 0u ? 0u : last) : lower + 1u;
+}
+
 // What average() makes of a stretch of a ray (prefiltered.rs: Average).
 const uint AVERAGE_VISIBILITY = 0u;
 const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
@@ -184,19 +208,9 @@ const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
 uint average(vec4 located, float key, float x0, float x1, out float visibility) {
     visibility = 0.0;
     float log2_rate = log2(located.z);
-    // Neighbouring slices and their shares.
-    uint last = q.slices - 1u;
-    float clamped;
-    if (q.full_circle != 0u) {
-        float count = float(q.slices);
-        float c = located.x < 0.0 ? located.x + count : (located.x >= count ? located.x - count : located.x);
-        clamped = clamp(c, 0.0, count);
-    } else {
-        clamped = clamp(located.x, 0.0, float(last));
-    }
-    uint lower_slice = min(uint(clamped), last);
-    float slice_fraction = clamped - float(lower_slice);
-    uint upper_slice = lower_slice == last ? (q.full_circle != 0u ? 0u : last) : lower_slice + 1u;
+    uint lower_slice, upper_slice;
+    float slice_fraction;
+    neighbours(located.x, lower_slice, upper_slice, slice_fraction);
     for (uint n = 0u; n < 2u; ++n) {
         uint slice = n == 0u ? lower_slice : upper_slice;
         float share = n == 0u ? 1.0 - slice_fraction : slice_fraction;
@@ -267,6 +281,116 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
     return AVERAGE_VISIBILITY;
 }
 
+float infinity() {
+    return uintBitsToFloat(0x7f800000u);
+}
+
+// The value whose order_key is `key`, ±∞ beyond the keys' range (EpipolarMap::value_of_key).
+float value_of_key(float key) {
+    if (q.map_layout == PARALLEL) {
+        return -key;
+    }
+    if (key <= -1.0) {
+        return infinity();
+    }
+    if (key >= 1.0) {
+        return -infinity();
+    }
+    return -key / (1.0 - abs(key));
+}
+
+// The key that `band`'s warp takes to `z` (Warp::unwarp).
+float unwarp(uint band, float z) {
+    const float segment = (1.0 - 2.0 * WARP_MARGIN) / float(KNOTS - 1u);
+    uint base = band * KNOTS;
+    uint index = min(uint(max((z - WARP_MARGIN) / segment, 0.0)), KNOTS - 2u);
+    float gap = band_knots[base + index + 1u] - band_knots[base + index];
+    return band_knots[base + index] + (z - WARP_MARGIN - segment * float(index)) / segment * gap;
+}
+
+// Where rectified sample i begins along its slice.
+float sample_start(uint i) {
+    float step_ = q.spacing_step / SAMPLES_PER_ROW;
+    if (q.reciprocal_spacing == 0u) {
+        return q.spacing_first + float(i) * step_;
+    }
+    return 1.0 / (q.spacing_first - float(i) * step_);
+}
+
+// The stretch before a ray's end where its dominant slice's samples lie within the step's
+// width of the ray's key (Prefiltered::exact_end): false where there is none; else where
+// it starts, and its in-scattering with weights e^−σ(t − t_cut) (`all_lit`: every sample
+// lit, the in-scattering left to the caller).
+bool exact_end(vec4 located, float t_from, float t_end, out float t_cut, out float scattering, out bool all_lit) {
+    t_cut = t_end;
+    scattering = 0.0;
+    all_lit = false;
+    uint lower_slice, upper_slice;
+    float slice_fraction;
+    neighbours(located.x, lower_slice, upper_slice, slice_fraction);
+    uint slice = slice_fraction > 1.0 - slice_fraction ? upper_slice : lower_slice;
+    uvec2 range = slice_bands[slice];
+    float position = clamp(log2_fastest[slice] - log2(located.z), 0.0, float(range.y - 1u));
+    uint j = min(uint(position), range.y - 1u);
+    float band_fraction = position - float(j);
+    uint band = range.x + (band_fraction > 1.0 - band_fraction ? min(j + 1u, range.y - 1u) : j);
+    float z = warp(band, order_key(located.w));
+    float width = EXACT_END_WIDTH / float(q.frequencies);
+    float low = z + width >= 1.0 ? -infinity() : value_of_key(unwarp(band, z + width));
+    float high = z - width <= 0.0 ? infinity() : value_of_key(unwarp(band, z - width));
+    float s_from = located.y + located.z * t_from;
+    float s_end = located.y + located.z * t_end;
+    float end = sample_coordinate(s_end) * SAMPLES_PER_ROW;
+    if (!(end > 0.0 && end < float(q.samples))) {
+        return false;
+    }
+    uint last = uint(end);
+    uint row = slice * q.samples;
+    float value = rectified[row + last];
+    if (!(low < value && value < high)) {
+        return false;
+    }
+    uint first = uint(max(sample_coordinate(s_from) * SAMPLES_PER_ROW, 0.0));
+    first = min(max(first, last >= MAX_EXACT_END_SAMPLES - 1u ? last - (MAX_EXACT_END_SAMPLES - 1u) : 0u), last);
+    uint cut = last;
+    while (cut > first) {
+        float before = rectified[row + cut - 1u];
+        if (!(low < before && before < high)) {
+            break;
+        }
+        cut -= 1u;
+    }
+    float s_cut = max(sample_start(cut), s_from);
+    t_cut = (s_cut - located.y) / located.z;
+    all_lit = true;
+    for (uint i = cut; i <= last; ++i) {
+        if (!(located.w <= rectified[row + i])) {
+            all_lit = false;
+            break;
+        }
+    }
+    if (all_lit) {
+        return true;
+    }
+    // Runs of lit samples, each integrated in closed form.
+    float sigma = p.extinction;
+    bool in_run = false;
+    float run_start = 0.0;
+    for (uint i = cut; i <= last + 1u; ++i) {
+        bool lit = i <= last && located.w <= rectified[row + i];
+        if (lit && !in_run) {
+            in_run = true;
+            run_start = max(sample_start(i), s_cut);
+        } else if (!lit && in_run) {
+            in_run = false;
+            float t0 = (run_start - located.y) / located.z;
+            float t1 = ((i <= last ? sample_start(i) : s_end) - located.y) / located.z;
+            scattering += exp(-sigma * (t0 - t_cut)) * integral_exp(sigma, t1 - t0);
+        }
+    }
+    return true;
+}
+
 // Whether a `stretch` of a ray `located` crosses fewer than `texels` texels, too few for
 // the prefix sums' resolution (EpipolarMap::is_short, is_short_stretch); the projective
 // layout resolves any length.
@@ -326,8 +450,18 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         return vec3(0.0);
     }
     if (p.box_medium == 0u) {
+        float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
+        float t_cut, end_scattering;
+        bool all_lit;
+        bool has_end = q.exact_ray_ends != 0u && exact_end(located, from, b, t_cut, end_scattering, all_lit);
+        // The end is integrated exactly, the rest looked up: unless that rest is too short
+        // for a lookup of its own.
+        if (has_end && (t_cut <= a || is_short(located, t_cut - from, SHORT_STRETCH_TEXELS))) {
+            ok = false;
+            return vec3(0.0);
+        }
         float x0 = sample_coordinate(located.y + located.z * from);
-        float x1 = sample_coordinate(located.y + located.z * b);
+        float x1 = sample_coordinate(located.y + located.z * (has_end ? t_cut : b));
         uint outcome = average(located, key, x0, x1, visibility);
         if (outcome == AVERAGE_IMPRECISE) {
             ok = false;
@@ -336,8 +470,14 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         if (outcome == AVERAGE_OFF_THE_MAP) {
             visibility = 1.0;
         }
-        float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
-        return vec3(visibility * unshadowed, alpha, visibility);
+        if (!has_end) {
+            return vec3(visibility * unshadowed, alpha, visibility);
+        }
+        float before = integral_exp(sigma, t_cut - a);
+        float after = all_lit ? unshadowed - before : exp(-sigma * (t_cut - a)) * end_scattering;
+        float scattering = visibility * before + after;
+        float weighted = unshadowed > 1e-30 ? clamp(scattering / unshadowed, 0.0, 1.0) : visibility;
+        return vec3(scattering, alpha, weighted);
     }
     // Inside a box the sunlight's attenuation varies along the ray: pieces over which it
     // changes by a bounded optical depth, each its own average times its own integral

@@ -346,6 +346,7 @@ def test_schema_fallbacks_are_the_renderers_defaults() -> None:
         "crepuscular:basisStorage": "basis_storage",
         "crepuscular:rectification": "rectification",
         "crepuscular:nearPlaneCorrection": "near_plane_correction",
+        "crepuscular:exactRayEnds": "exact_ray_ends",
     }.items():
         defaults = crepuscular.scene_from_json(json.dumps({**build_scene(), "render": {}}))[
             "render"

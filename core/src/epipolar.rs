@@ -742,6 +742,21 @@ impl EpipolarMap {
         }
     }
 
+    /// The value whose [`EpipolarMap::order_key`] is `key`, ±∞ beyond the keys' range:
+    /// keys fall as values rise.
+    #[inline]
+    pub fn value_of_key(&self, key: f64) -> f64 {
+        if !self.layout.is_reciprocal() {
+            -key
+        } else if key <= -1.0 {
+            f64::INFINITY
+        } else if key >= 1.0 {
+            f64::NEG_INFINITY
+        } else {
+            -key / (1.0 - key.abs())
+        }
+    }
+
     /// Sample i's interval along its slice.
     #[inline]
     pub fn sample_interval(&self, i: usize) -> (f64, f64) {
@@ -1057,6 +1072,40 @@ mod tests {
         );
         map.lit_part(i, map.row(slice)[i], located.threshold)
             .is_some_and(|(a, b)| a <= s && s <= b)
+    }
+
+    /// `value_of_key` inverts `order_key` for the radial (reciprocal) and parallel layouts,
+    /// and takes keys at or past ±1 to the infinite values they stand for.
+    #[test]
+    fn value_of_key_inverts_order_key() {
+        let mut scene = crate::builtin::builtin_scene("torus").expect("built-in scene");
+        scene.camera.width = 64;
+        scene.camera.height = 36;
+        let desc = RectifyDesc::prefiltered(64);
+        let (_, _, radial) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        scene.camera.projection = crate::scene::Projection::Orthographic {
+            ortho_scale: 20.0,
+            sensor_fit: crate::scene::SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: 0.0,
+        };
+        let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        assert!(radial.layout.is_reciprocal() && !parallel.layout.is_reciprocal());
+        for map in [&radial, &parallel] {
+            for value in [-1e6, -3.5, -1.0, -0.01, 0.0, 0.2, 1.0, 7.0, 1e6] {
+                let back = map.value_of_key(map.order_key(value));
+                assert!(
+                    (back - value).abs() <= 1e-9 * (1.0 + value.abs()),
+                    "{value}: {back}"
+                );
+            }
+        }
+        assert_eq!(radial.value_of_key(-1.0), f64::INFINITY);
+        assert_eq!(radial.value_of_key(1.0), f64::NEG_INFINITY);
+        assert_eq!(
+            radial.value_of_key(radial.order_key(f64::INFINITY)),
+            f64::INFINITY
+        );
     }
 
     /// Seen from the side by a shallow frustum, with the shadow bias given in scene units.

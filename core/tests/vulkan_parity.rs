@@ -655,7 +655,15 @@ fn prefiltered_evaluation_matches_across_layouts() {
     variants.push(("colonnade epipolar f32 M=16", epipolar));
     let mut projective = prefiltered("torus");
     projective.render.rectification = Rectification::Projective;
-    variants.push(("torus projective", projective));
+    variants.push(("torus projective", projective.clone()));
+    // The exact ends read the rectified map on the GPU too: rays' keys sit on the warps'
+    // knots, and a width taken from the warp's slope there differed between f32 and f64.
+    let mut exact_ends = projective;
+    exact_ends.render.exact_ray_ends = true;
+    variants.push(("torus projective, exact ray ends", exact_ends));
+    let mut grazing = prefiltered("plane");
+    grazing.render.exact_ray_ends = true;
+    variants.push(("plane, exact ray ends", grazing));
     let mut orthographic = prefiltered("plane");
     orthographic.camera.projection = Projection::Orthographic {
         ortho_scale: 30.0,

@@ -75,7 +75,8 @@ pub fn prefiltered_params(
         .u32(snorm as u32)
         .u32(epipoles.len() as u32)
         .u32(tables.near_plane_correction as u32)
-        .u32(0)
+        .u32(tables.exact_ray_ends as u32)
+        .u32(tables.frequencies as u32)
         .finish())
 }
 
@@ -113,7 +114,7 @@ pub fn shade(
     let slice_bands: Vec<u32> = tables.slice_bands.iter().flatten().copied().collect();
     let bands: Vec<u32> = tables.bands.iter().flatten().copied().collect();
     let run = || -> GpuResult<(Layers, Option<f64>)> {
-        let mut rec = Recorder::new(device, STAGE, 1, 14)?;
+        let mut rec = Recorder::new(device, STAGE, 1, 15)?;
         let params = rec.upload(&march_params(inputs), "march parameters")?;
         let shadow = rec.upload(&inputs.shadow.depth, "shadow map")?;
         let surfaces = rec.upload(&surface_values(inputs.surfaces), "surface distances")?;
@@ -128,8 +129,9 @@ pub fn shade(
         let bands = rec.upload(&bands, "bands")?;
         let weight = rec.upload(tables.weight, "cumulative weights")?;
         let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
+        let rectified = rec.upload(&map.values, "rectified map")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 14);
+        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 15);
         rec.timed(STAGE, |rec| {
             rec.dispatch(
                 &desc,
@@ -148,6 +150,7 @@ pub fn shade(
                     basis,
                     &coefficients,
                     &log2_fastest,
+                    &rectified,
                 ],
                 &[],
                 groups,
@@ -188,7 +191,7 @@ mod tests {
             prefiltered_params(&map, &tables, BasisStorage::Snorm16, &epipoles, 16.0).unwrap();
         let word = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
         let float = |o: usize| f32::from_bits(word(o));
-        assert_eq!(bytes.len(), 160);
+        assert_eq!(bytes.len(), 176);
         assert_eq!((float(64), float(68)), (10.0, 20.0));
         assert_eq!(float(116), 16.0, "block");
         assert_eq!(word(120), 0, "radial layout");
@@ -196,6 +199,8 @@ mod tests {
         assert_eq!(word(140), tables.stride as u32);
         assert_eq!(word(144), 1, "snorm");
         assert_eq!(word(148), 1, "one epipole");
+        assert_eq!(word(156), 0, "exact ray ends off by default");
+        assert_eq!(word(160), scene.render.bases / 2, "frequencies");
         assert!(prefiltered_params(&map, &tables, BasisStorage::F32, &[[0.0; 2]; 3], 1.0).is_err());
     }
 }

@@ -85,6 +85,10 @@ pub struct Overrides {
     /// (0 shades every pixel).
     #[arg(long)]
     adaptive_tolerance: Option<f32>,
+    /// Prefiltered method: integrate exactly the stretch before each ray's end where the
+    /// shadow map closes in on the ray (grazed ground, views near the light); slower.
+    #[arg(long)]
+    exact_ray_ends: bool,
     /// A style preset (JSON) replacing the scene's style.
     #[arg(long)]
     style: Option<PathBuf>,
@@ -128,6 +132,9 @@ impl Overrides {
         }
         if let Some(backend) = self.backend {
             scene.render.backend = backend;
+        }
+        if self.exact_ray_ends {
+            scene.render.exact_ray_ends = true;
         }
         Ok(())
     }
