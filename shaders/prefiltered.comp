@@ -319,9 +319,9 @@ float sample_start(uint i) {
 
 // The stretch before a ray's end where its dominant slice's samples lie within the step's
 // width of the ray's key (Prefiltered::exact_end): false where there is none; else where
-// it starts, and its in-scattering with weights e^−σ(t − t_cut) (`all_lit`: every sample
-// lit, the in-scattering left to the caller).
-bool exact_end(vec4 located, float t_from, float t_end, out float t_cut, out float scattering, out bool all_lit) {
+// it starts, and its in-scattering in the medium that starts at `a` (a box's needs
+// begin_ray; `all_lit`: every sample lit, the in-scattering left to the caller).
+bool exact_end(vec4 located, float t_from, float t_end, float a, bool in_box, out float t_cut, out float scattering, out bool all_lit) {
     t_cut = t_end;
     scattering = 0.0;
     all_lit = false;
@@ -385,7 +385,8 @@ bool exact_end(vec4 located, float t_from, float t_end, out float t_cut, out flo
             in_run = false;
             float t0 = (run_start - located.y) / located.z;
             float t1 = ((i <= last ? sample_start(i) : s_end) - located.y) / located.z;
-            scattering += exp(-sigma * (t0 - t_cut)) * integral_exp(sigma, t1 - t0);
+            scattering += in_box ? box_integrate(t0, t1, a, sigma)
+                                 : exp(-sigma * (t0 - a)) * integral_exp(sigma, t1 - t0);
         }
     }
     return true;
@@ -453,7 +454,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
         float t_cut, end_scattering;
         bool all_lit;
-        bool has_end = q.exact_ray_ends != 0u && exact_end(located, from, b, t_cut, end_scattering, all_lit);
+        bool has_end = q.exact_ray_ends != 0u && exact_end(located, from, b, a, false, t_cut, end_scattering, all_lit);
         // The end is integrated exactly, the rest looked up: unless that rest is too short
         // for a lookup of its own.
         if (has_end && (t_cut <= a || is_short(located, t_cut - from, SHORT_STRETCH_TEXELS))) {
@@ -474,7 +475,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
             return vec3(visibility * unshadowed, alpha, visibility);
         }
         float before = integral_exp(sigma, t_cut - a);
-        float after = all_lit ? unshadowed - before : exp(-sigma * (t_cut - a)) * end_scattering;
+        float after = all_lit ? unshadowed - before : end_scattering;
         float scattering = visibility * before + after;
         float weighted = unshadowed > 1e-30 ? clamp(scattering / unshadowed, 0.0, 1.0) : visibility;
         return vec3(scattering, alpha, weighted);
@@ -489,14 +490,45 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         ok = false;
         return vec3(0.0);
     }
+    // A ray that ends on a surface inside the box may close in on it in its last piece:
+    // that piece is then looked up only to the cut, or not at all.
+    uint last = pieces - 1u;
+    float t_last = a + (b - a) * float(last) / float(pieces);
+    float last_start = last == 0u ? from : t_last;
+    float t_cut, end_scattering;
+    bool all_lit;
+    bool has_end = q.exact_ray_ends != 0u && b >= t_end
+        && exact_end(located, last_start, b, a, true, t_cut, end_scattering, all_lit);
+    uint looked_up = pieces;
+    float last_end = b;
+    if (has_end) {
+        if (t_cut <= t_last) {
+            if (last == 0u) {
+                ok = false;
+                return vec3(0.0);
+            }
+            looked_up = last;
+            last_end = t_last;
+        } else {
+            if (is_short(located, t_cut - last_start, SHORT_STRETCH_TEXELS)) {
+                ok = false;
+                return vec3(0.0);
+            }
+            last_end = t_cut;
+        }
+    }
     float scattering = 0.0;
     float unshadowed = 0.0;
     for (uint k = 0u; k < pieces; ++k) {
         float t0 = a + (b - a) * float(k) / float(pieces);
         float t1 = a + (b - a) * float(k + 1u) / float(pieces);
-        float piece = box_integrate(t0, t1, a, sigma);
+        unshadowed += box_integrate(t0, t1, a, sigma);
+        if (k >= looked_up) {
+            continue;
+        }
+        float until = has_end && k == last ? last_end : t1;
         float x0 = sample_coordinate(located.y + located.z * (k == 0u ? from : t0));
-        float x1 = sample_coordinate(located.y + located.z * t1);
+        float x1 = sample_coordinate(located.y + located.z * until);
         float v;
         uint outcome = average(located, key, x0, x1, v);
         if (outcome == AVERAGE_IMPRECISE) {
@@ -506,8 +538,10 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         if (outcome == AVERAGE_OFF_THE_MAP) {
             v = 1.0;
         }
-        scattering += v * piece;
-        unshadowed += piece;
+        scattering += v * box_integrate(t0, until, a, sigma);
+    }
+    if (has_end) {
+        scattering += all_lit ? box_integrate(t_cut, b, a, sigma) : end_scattering;
     }
     visibility = unshadowed > 1e-30 ? clamp(scattering / unshadowed, 0.0, 1.0) : 1.0;
     return vec3(scattering, alpha, visibility);

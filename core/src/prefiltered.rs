@@ -91,7 +91,7 @@ pub struct PrefilteredDesc {
     /// per slice). Media that begin later along the ray (a `box`) always subtract it.
     pub near_plane_correction: bool,
     /// Integrate exactly the stretch before each ray's end where the samples close in on
-    /// the ray (`Prefiltered::exact_end`); open media only.
+    /// the ray (`Prefiltered::exact_end`); in a box, in a ray's last piece.
     pub exact_ray_ends: bool,
     pub storage: BasisStorage,
     /// Half-width in pixels of the block around an on-screen epipole that is ray-marched
@@ -1013,7 +1013,8 @@ impl<'a> Prefiltered<'a> {
     }
 
     /// [`Prefiltered::exact_end`] of a ray over [`t_start`, `t_end`] in an open medium,
-    /// from where its lookup starts; `None` in a box.
+    /// from where its lookup starts; `None` in a box, whose rays find theirs in
+    /// [`Prefiltered::march`] itself, in their last piece.
     #[inline]
     fn exact_end_of(&self, located: &RaySlice, t_start: f64, t_end: f64) -> Option<ExactEnd> {
         if !self.exact_ray_ends || self.box_medium.is_some() || t_end <= t_start {
@@ -1024,7 +1025,10 @@ impl<'a> Prefiltered<'a> {
         } else {
             0.0
         };
-        self.exact_end(located, from, t_end)
+        let sigma = self.extinction;
+        self.exact_end(located, from, t_end, |t0, t1| {
+            (-sigma * (t0 - t_start)).exp() * integral_exp(sigma, t1 - t0)
+        })
     }
 
     /// The stretch before a ray's end, after `t_from`, where the samples of its slice (the
@@ -1036,7 +1040,13 @@ impl<'a> Prefiltered<'a> {
     /// light read 2.2% dark), a shadowed one where the surface is nearly its own occluder.
     /// So the stretch is integrated exactly on the rectified samples, each lit or not at
     /// its centre, and only the rest is looked up.
-    fn exact_end(&self, located: &RaySlice, t_from: f64, t_end: f64) -> Option<ExactEnd> {
+    fn exact_end(
+        &self,
+        located: &RaySlice,
+        t_from: f64,
+        t_end: f64,
+        mut lit_light: impl FnMut(f64, f64) -> f64,
+    ) -> Option<ExactEnd> {
         let slice = self.dominant_slice(located);
         let [(band, share), (other, other_share)] = self.bands_for(slice, located.s_per_t.log2());
         let band = if other_share > share { other } else { band };
@@ -1088,12 +1098,8 @@ impl<'a> Prefiltered<'a> {
             });
         }
         // Runs of lit samples, each integrated in closed form.
-        let sigma = self.extinction;
         let mut scattering = 0.0;
-        let mut run = |s0: f64, s1: f64| {
-            let (t0, t1) = (t_at(s0), t_at(s1));
-            scattering += (-sigma * (t0 - t_cut)).exp() * integral_exp(sigma, t1 - t0);
-        };
+        let mut run = |s0: f64, s1: f64| scattering += lit_light(t_at(s0), t_at(s1));
         let mut run_start = None;
         for (i, &value) in (cut..).zip(stretch) {
             match (lit(value), run_start) {
@@ -1289,10 +1295,7 @@ impl<'a> Prefiltered<'a> {
             }
             let visibility = self.average(&located, key, x(from), x(end.t_cut)).value()?;
             let before = integral_exp(sigma, end.t_cut - a);
-            let after = match end.scattering {
-                None => unshadowed - before,
-                Some(scattering) => (-sigma * (end.t_cut - a)).exp() * scattering,
-            };
+            let after = end.scattering.unwrap_or(unshadowed - before);
             let scattering = visibility * before + after;
             return Some(RaySample {
                 scattering,
@@ -1316,18 +1319,60 @@ impl<'a> Prefiltered<'a> {
             return None;
         }
         let t_at = |k: u32| a + (b - a) * k as f64 / pieces as f64;
+        let start_of = |k: u32| if k == 0 { from } else { t_at(k) };
+        // A ray that ends on a surface inside the box may close in on it in its last piece
+        // ([`Prefiltered::exact_end`]): that piece is then looked up only to the cut, or
+        // not at all.
+        let last = pieces - 1;
+        let end = if self.exact_ray_ends && b >= t_end {
+            self.exact_end(&located, start_of(last), b, |t0, t1| {
+                along.integrate(t0, t1, a, sigma)
+            })
+        } else {
+            None
+        };
+        let (looked_up, last_end) = match &end {
+            None => (pieces, t_at(pieces)),
+            Some(end) if end.t_cut <= t_at(last) => {
+                if last == 0 {
+                    return None;
+                }
+                (last, t_at(last))
+            }
+            Some(end) => {
+                if self
+                    .map
+                    .is_short_stretch(&located, start_of(last), end.t_cut)
+                {
+                    return None;
+                }
+                (pieces, end.t_cut)
+            }
+        };
+        let end_of = |k: u32| if k == last { last_end } else { t_at(k + 1) };
         let mut boundaries = [0.0; MAX_BOX_PIECES as usize + 1];
-        for (k, boundary) in boundaries[..=pieces as usize].iter_mut().enumerate() {
-            *boundary = x(if k == 0 { from } else { t_at(k as u32) });
+        for (k, boundary) in boundaries[..=looked_up as usize].iter_mut().enumerate() {
+            *boundary = x(if k == 0 { from } else { end_of(k as u32 - 1) });
         }
         let mut visibilities = [0.0; MAX_BOX_PIECES as usize];
-        let visibilities = &mut visibilities[..pieces as usize];
-        self.average_pieces(&located, key, &boundaries[..=pieces as usize], visibilities)?;
+        let visibilities = &mut visibilities[..looked_up as usize];
+        self.average_pieces(
+            &located,
+            key,
+            &boundaries[..=looked_up as usize],
+            visibilities,
+        )?;
         let (mut scattering, mut unshadowed) = (0.0, 0.0);
-        for (k, visibility) in (0..pieces).zip(visibilities.iter()) {
-            let piece = along.integrate(t_at(k), t_at(k + 1), a, sigma);
-            scattering += visibility * piece;
-            unshadowed += piece;
+        for (k, visibility) in (0..looked_up).zip(visibilities.iter()) {
+            scattering += visibility * along.integrate(t_at(k), end_of(k), a, sigma);
+        }
+        for k in 0..pieces {
+            unshadowed += along.integrate(t_at(k), t_at(k + 1), a, sigma);
+        }
+        if let Some(end) = end {
+            scattering += end
+                .scattering
+                .unwrap_or_else(|| along.integrate(end.t_cut, b, a, sigma));
         }
         Some(RaySample {
             scattering,
@@ -1349,7 +1394,8 @@ pub const EXACT_END_WIDTH: f64 = 0.35;
 pub const MAX_EXACT_END_SAMPLES: usize = 64;
 
 /// Where a ray's exact end starts, and its in-scattering exact on the rectified samples
-/// (weights e^−σ(t − `t_cut`)); `None` where every sample of it is lit.
+/// (its lit runs weighed as the caller's medium weighs them); `None` where every sample of
+/// it is lit.
 #[derive(Clone, Copy, Debug)]
 struct ExactEnd {
     t_cut: f64,

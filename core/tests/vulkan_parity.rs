@@ -639,7 +639,11 @@ fn prefiltered_evaluation_matches_across_layouts() {
             glam::Vec3::new(0.0, 0.0, 2.0),
         ),
     };
-    variants.push(("torus in a box", boxed));
+    variants.push(("torus in a box", boxed.clone()));
+    // Rays ending inside the box close in on their surface in their last piece.
+    let mut boxed_exact = boxed;
+    boxed_exact.render.exact_ray_ends = true;
+    variants.push(("torus in a box, exact ray ends", boxed_exact));
     // Aligned with the axes: torus's sun has no x component, so it grazes the x walls.
     let mut aligned = prefiltered("torus");
     aligned.medium.extinction = 0.2;
