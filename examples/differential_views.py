@@ -12,6 +12,8 @@ it before chasing one. Against a black reference each method's mean is printed i
 and a case is flagged when one leaves more than `BLACK_LEAK` there.
 
     .venv/bin/python examples/differential_views.py --seed 2 --cases 60 --out /tmp/cases
+
+`--exact-ray-ends` renders the same cases with prefiltering's exact ray ends.
 """
 
 from __future__ import annotations
@@ -156,6 +158,11 @@ def main() -> int:
     parser.add_argument("--height", type=int, default=108)
     parser.add_argument("--flag", type=float, default=3.0, help="percent error to flag")
     parser.add_argument("--out", type=Path, help="folder for the flagged cases' scene JSON")
+    parser.add_argument(
+        "--exact-ray-ends",
+        action="store_true",
+        help="prefiltering with exact ray ends (the same cases as without)",
+    )
     args = parser.parse_args()
     rng = random.Random(args.seed)
     if args.out is not None:
@@ -163,6 +170,7 @@ def main() -> int:
     flagged = 0
     for case in range(args.cases):
         name, scene = random_case(rng, args.width, args.height)
+        scene["render"]["exact_ray_ends"] = args.exact_ray_ends
         volumes = {}
         try:
             for method in ("reference", "minmax", "prefiltered"):
