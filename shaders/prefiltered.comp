@@ -199,6 +199,16 @@ void neighbours(float x, out uint lower, out uint upper, out float fraction) {
     upper = lower == last ? (q.full_circle != 0u ? 0u : last) : lower + 1u;
 }
 
+// The two bands of `slice` (indices within it) that bracket a ray crossing 2^log2_rate
+// texels per unit t, and the share of the second (Prefiltered::bands_for).
+void bands_at(uint slice, float log2_rate, out uint j, out uint next, out float fraction) {
+    uint count = slice_bands[slice].y;
+    float position = clamp(log2_fastest[slice] - log2_rate, 0.0, float(count - 1u));
+    j = min(uint(position), count - 1u);
+    fraction = position - float(j);
+    next = min(j + 1u, count - 1u);
+}
+
 // What average() makes of a stretch of a ray (prefiltered.rs: Average).
 const uint AVERAGE_VISIBILITY = 0u;
 const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
@@ -218,10 +228,9 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
             continue;
         }
         uvec2 range = slice_bands[slice];
-        float position = clamp(log2_fastest[slice] - log2_rate, 0.0, float(range.y - 1u));
-        uint j = min(uint(position), range.y - 1u);
-        float band_fraction = position - float(j);
-        uint next = min(j + 1u, range.y - 1u);
+        uint j, next;
+        float band_fraction;
+        bands_at(slice, log2_rate, j, next, band_fraction);
         float shares = 0.0;
         float dot_ = 0.0;
         for (uint k = 0u; k < 2u; ++k) {
@@ -329,11 +338,10 @@ bool exact_end(vec4 located, float t_from, float t_end, float a, bool in_box, ou
     float slice_fraction;
     neighbours(located.x, lower_slice, upper_slice, slice_fraction);
     uint slice = slice_fraction > 1.0 - slice_fraction ? upper_slice : lower_slice;
-    uvec2 range = slice_bands[slice];
-    float position = clamp(log2_fastest[slice] - log2(located.z), 0.0, float(range.y - 1u));
-    uint j = min(uint(position), range.y - 1u);
-    float band_fraction = position - float(j);
-    uint band = range.x + (band_fraction > 1.0 - band_fraction ? min(j + 1u, range.y - 1u) : j);
+    uint j, next;
+    float band_fraction;
+    bands_at(slice, log2(located.z), j, next, band_fraction);
+    uint band = slice_bands[slice].x + (band_fraction > 1.0 - band_fraction ? next : j);
     float z = warp(band, order_key(located.w));
     float width = EXACT_END_WIDTH / float(q.frequencies);
     float low = z + width >= 1.0 ? -infinity() : value_of_key(unwarp(band, z + width));
@@ -522,7 +530,8 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     for (uint k = 0u; k < pieces; ++k) {
         float t0 = a + (b - a) * float(k) / float(pieces);
         float t1 = a + (b - a) * float(k + 1u) / float(pieces);
-        unshadowed += box_integrate(t0, t1, a, sigma);
+        float piece = box_integrate(t0, t1, a, sigma);
+        unshadowed += piece;
         if (k >= looked_up) {
             continue;
         }
@@ -538,7 +547,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         if (outcome == AVERAGE_OFF_THE_MAP) {
             v = 1.0;
         }
-        scattering += v * box_integrate(t0, until, a, sigma);
+        scattering += v * (has_end && k == last ? box_integrate(t0, until, a, sigma) : piece);
     }
     if (has_end) {
         scattering += all_lit ? box_integrate(t_cut, b, a, sigma) : end_scattering;

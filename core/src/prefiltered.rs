@@ -1363,11 +1363,17 @@ impl<'a> Prefiltered<'a> {
             visibilities,
         )?;
         let (mut scattering, mut unshadowed) = (0.0, 0.0);
-        for (k, visibility) in (0..looked_up).zip(visibilities.iter()) {
-            scattering += visibility * along.integrate(t_at(k), end_of(k), a, sigma);
-        }
         for k in 0..pieces {
-            unshadowed += along.integrate(t_at(k), t_at(k + 1), a, sigma);
+            let piece = along.integrate(t_at(k), t_at(k + 1), a, sigma);
+            unshadowed += piece;
+            if let Some(visibility) = visibilities.get(k as usize) {
+                let looked_up_light = if end.is_some() && k == last {
+                    along.integrate(t_at(k), last_end, a, sigma)
+                } else {
+                    piece
+                };
+                scattering += visibility * looked_up_light;
+            }
         }
         if let Some(end) = end {
             scattering += end

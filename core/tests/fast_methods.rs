@@ -401,18 +401,18 @@ fn exact_ray_ends_integrate_rays_closing_in_on_the_ground_exactly() {
     let mut off_the_light = builtin_scene("tree").expect("built-in scene");
     off_the_light.camera = Camera::orthographic_looking_at(eye, eye + view, 24.1, WIDTH, HEIGHT);
     off_the_light.sun.direction = light;
-    let mut grazing = builtin_scene("plane").expect("built-in scene");
-    grazing.camera.width = WIDTH;
-    grazing.camera.height = HEIGHT;
+    let plane = views("plane");
+    let view = |name: &str| {
+        let (_, scene) = plane
+            .iter()
+            .find(|(view, _)| *view == name)
+            .expect("a test view");
+        scene.clone()
+    };
+    let grazing = view("default");
     // Seen orthographically in a 75 m deep box of fog (as `bench --fog-box` confines it),
     // rays end on surfaces that are nearly their own occluders, in their last box piece.
-    let mut in_a_box = grazing.clone();
-    in_a_box.camera.projection = Projection::Orthographic {
-        ortho_scale: 24.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    let mut in_a_box = view("orthographic");
     in_a_box.medium.extent = Extent::Box {
         world_from_cube: Mat4::from_translation(Vec3::new(0.0, 5.0, 3.06))
             * Mat4::from_scale(Vec3::new(15.0, 37.5, 3.06)),
