@@ -1060,25 +1060,29 @@ impl<'a> Prefiltered<'a> {
         let last = end as usize;
         let z = band.warp.warp(self.map.order_key(located.threshold));
         let width = EXACT_END_WIDTH / self.frequencies as f64;
+        // Warps clamp to [0, 1], which leaves the range open on a side it reaches past.
+        let (upper, lower) = (z + width, z - width);
+        let (open_upper, open_lower) = (upper >= 1.0, lower <= 0.0);
         // Most rays' ends are far from closing in: told apart by the end sample's warped
         // key, before the range's ends are unwarped (four divisions, a quarter of this
-        // function's samples in perf). Warps clamp to [0, 1], leaving the range open there.
+        // function's samples in perf). The rest test it again in values below, as the
+        // scan tests its samples, so that both agree at the range's rounding edges.
         let end_z = band.warp.warp(self.map.order_key(row[last] as f64));
-        if !((z + width >= 1.0 || end_z < z + width) && (z - width <= 0.0 || end_z > z - width)) {
+        if !((open_upper || end_z < upper) && (open_lower || end_z > lower)) {
             return None;
         }
         // Keys within the width of the ray's in warped units, as values. Keys fall as
         // values rise. (Not the warp's slope at the ray's key: rays' keys are the knots,
         // where the slope jumps, and which side a ray took differed between f64 and f32.)
-        let low = if z + width >= 1.0 {
+        let low = if open_upper {
             f64::NEG_INFINITY
         } else {
-            self.map.value_of_key(band.warp.unwarp(z + width))
+            self.map.value_of_key(band.warp.unwarp(upper))
         };
-        let high = if z - width <= 0.0 {
+        let high = if open_lower {
             f64::INFINITY
         } else {
-            self.map.value_of_key(band.warp.unwarp(z - width))
+            self.map.value_of_key(band.warp.unwarp(lower))
         };
         let near = |value: f32| low < value as f64 && (value as f64) < high;
         if !near(row[last]) {
