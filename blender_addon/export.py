@@ -483,7 +483,7 @@ def settings_dict(light: Any, *, preview: bool = False) -> dict[str, Any]:
         "method": light.method,
         "shadow_map_size": int(light.shadow_map_size),
         "bases": int(light.bases),
-        "exact_ray_ends": bool(light.exact_ray_ends),
+        "exact_ray_ends": light.exact_ray_ends,
         "steps": int(light.steps),
         "max_distance": float(light.max_distance),
         "downsample": 1 if preview else downsample,

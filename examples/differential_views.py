@@ -13,7 +13,8 @@ and a case is flagged when one leaves more than `BLACK_LEAK` there.
 
     .venv/bin/python examples/differential_views.py --seed 2 --cases 60 --out /tmp/cases
 
-`--exact-ray-ends` renders the same cases with prefiltering's exact ray ends.
+`--exact-ray-ends on` (or `off`) renders the same cases with prefiltering's exact ray ends
+everywhere (or nowhere); by default they are on in box media only.
 """
 
 from __future__ import annotations
@@ -160,8 +161,10 @@ def main() -> int:
     parser.add_argument("--out", type=Path, help="folder for the flagged cases' scene JSON")
     parser.add_argument(
         "--exact-ray-ends",
-        action="store_true",
-        help="prefiltering with exact ray ends (the same cases as without)",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="prefiltering's exact ray ends (the same cases whichever): auto (in box media), "
+        "on or off",
     )
     args = parser.parse_args()
     rng = random.Random(args.seed)

@@ -364,6 +364,40 @@ def test_schema_fallbacks_are_the_renderers_defaults() -> None:
     assert fallback("crepuscular:silhouette:operation") == styled["silhouette"]["operation"]
 
 
+def test_exact_ray_ends_read_tokens_and_the_bools_of_older_layers(tmp_path: Path) -> None:
+    stage = author_stage(str(tmp_path / "ends.usda"), build_scene(**SMALL))
+    light = stage.GetPrimAtPath("/World/Sun")
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64, height=36)
+    assert reader.read(Usd.TimeCode.Default()).settings["exact_ray_ends"] == "auto"
+    attribute = light.GetAttribute("crepuscular:exactRayEnds")
+    assert attribute.Set("off")
+    assert reader.read(Usd.TimeCode.Default()).settings["exact_ray_ends"] == "off"
+    # A layer saved while the attribute was a bool.
+    text = "\n".join(
+        line
+        for line in stage.GetRootLayer().ExportToString().splitlines()
+        if "crepuscular:exactRayEnds" not in line
+    )
+    sun = text.index("{", text.index('def DistantLight "Sun"')) + 1
+    for flag, setting in (("1", "on"), ("0", "off")):
+        old = Sdf.Layer.CreateAnonymous(".usda")
+        assert old.ImportFromString(
+            f"{text[:sun]}\n        bool crepuscular:exactRayEnds = {flag}{text[sun:]}"
+        )
+        opened = Usd.Stage.Open(old)
+        assert opened.GetPrimAtPath("/World/Sun").GetAttribute(
+            "crepuscular:exactRayEnds"
+        ).Get() is bool(int(flag))
+        frame = StageReader(opened, "/World/Camera", "/World/Sun", width=64, height=36).read(
+            Usd.TimeCode.Default()
+        )
+        assert frame.settings["exact_ray_ends"] == setting, flag
+        assert np.isfinite(crepuscular.render_arrays(**frame.render_kwargs()).volume).all()
+    assert attribute.Set("always")
+    with pytest.raises(crepuscular.InvalidInputError, match=r"render\.exact_ray_ends"):
+        crepuscular.render_arrays(**reader.read(Usd.TimeCode.Default()).render_kwargs())
+
+
 def test_transfer_function_inline_and_as_asset_and_holes_objects(tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     stage = author_stage(str(tmp_path / "tf.usda"), scene)

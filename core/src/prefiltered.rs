@@ -37,7 +37,7 @@ use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
 use crate::error::{Error, Result};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
-use crate::scene::{BasisStorage, Extent, Medium, RenderSettings, Sun};
+use crate::scene::{BasisStorage, ExactRayEnds, Extent, Medium, RenderSettings, Sun};
 use crate::spare::Spare;
 
 /// Basis coefficients M: sine and cosine of M/2 frequencies.
@@ -92,7 +92,7 @@ pub struct PrefilteredDesc {
     pub near_plane_correction: bool,
     /// Integrate exactly the stretch before each ray's end where the samples close in on
     /// the ray (`Prefiltered::exact_end`); in a box, in a ray's last piece.
-    pub exact_ray_ends: bool,
+    pub exact_ray_ends: ExactRayEnds,
     pub storage: BasisStorage,
     /// Half-width in pixels of the block around an on-screen epipole that is ray-marched
     /// instead: its rays need no tables.
@@ -685,7 +685,7 @@ impl<'a> PrefilteredPlan<'a> {
             box_medium,
             light_travel,
             frequencies,
-            exact_ray_ends: desc.exact_ray_ends,
+            exact_ray_ends: desc.exact_ray_ends.applies(box_medium.is_some()),
         }
     }
 

@@ -4,7 +4,7 @@ mod common;
 
 use common::*;
 use crepuscular::render::{CameraDepth, DepthKind, FlatGeometry, Frame};
-use crepuscular::scene::{Scene, MAX_SHADOW_MAP_SIZE};
+use crepuscular::scene::{ExactRayEnds, Scene, MAX_SHADOW_MAP_SIZE};
 use crepuscular::{render, render_scene, Error, RenderControl};
 use glam::{Mat4, Vec3};
 
@@ -212,4 +212,43 @@ fn an_unknown_rectification_is_named_with_its_path() {
         ),
         other => panic!("expected a format error, got {other:?}"),
     }
+}
+
+#[test]
+fn exact_ray_ends_read_names_and_the_old_flags_and_name_what_they_refuse() {
+    let json = valid_scene().to_json();
+    let default = "\"exact_ray_ends\": \"auto\"";
+    assert!(json.contains(default), "the default is written");
+    for (given, read) in [
+        ("\"auto\"", ExactRayEnds::Auto),
+        ("\"on\"", ExactRayEnds::On),
+        ("\"off\"", ExactRayEnds::Off),
+        ("true", ExactRayEnds::On),
+        ("false", ExactRayEnds::Off),
+    ] {
+        let scene =
+            Scene::from_json(&json.replacen(default, &format!("\"exact_ray_ends\": {given}"), 1))
+                .expect("a known setting");
+        assert_eq!(scene.render.exact_ray_ends, read, "{given}");
+        let again = Scene::from_json(&scene.to_json()).expect("round trip");
+        assert_eq!(again.render.exact_ray_ends, read, "{given} written back");
+    }
+    for given in ["\"always\"", "1", "null"] {
+        let json = json.replacen(default, &format!("\"exact_ray_ends\": {given}"), 1);
+        match Scene::from_json(&json) {
+            Err(Error::SceneFormat(message)) => assert!(
+                message.contains("render.exact_ray_ends") && message.contains("\"auto\", \"on\""),
+                "{given}: {message}"
+            ),
+            other => panic!("{given}: expected a format error, got {other:?}"),
+        }
+    }
+    for (text, read) in [("auto", ExactRayEnds::Auto), ("true", ExactRayEnds::On)] {
+        assert_eq!(text.parse::<ExactRayEnds>().expect(text), read);
+    }
+    let refused = "sometimes".parse::<ExactRayEnds>().unwrap_err().to_string();
+    assert!(
+        refused.contains("render.exact_ray_ends") && refused.contains("sometimes"),
+        "{refused}"
+    );
 }

@@ -19,7 +19,7 @@ use crepuscular::prefiltered::{
 use crepuscular::raster::{rasterize, DepthTarget, Rasterizer, NO_OBJECT};
 use crepuscular::render::{camera_raster, render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{
-    BasisStorage, Camera, Extent, Method, Projection, Rectification, Scene, SensorFit,
+    BasisStorage, Camera, ExactRayEnds, Extent, Method, Projection, Rectification, Scene, SensorFit,
 };
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{self, Epipole, SilhouetteDesc};
@@ -639,11 +639,12 @@ fn prefiltered_evaluation_matches_across_layouts() {
             glam::Vec3::new(0.0, 0.0, 2.0),
         ),
     };
+    // Exact ray ends, by default in a box: rays ending inside it close in on their surface
+    // in their last piece.
     variants.push(("torus in a box", boxed.clone()));
-    // Rays ending inside the box close in on their surface in their last piece.
-    let mut boxed_exact = boxed;
-    boxed_exact.render.exact_ray_ends = true;
-    variants.push(("torus in a box, exact ray ends", boxed_exact));
+    let mut boxed_looked_up = boxed;
+    boxed_looked_up.render.exact_ray_ends = ExactRayEnds::Off;
+    variants.push(("torus in a box, exact ray ends off", boxed_looked_up));
     // Aligned with the axes: torus's sun has no x component, so it grazes the x walls.
     let mut aligned = prefiltered("torus");
     aligned.medium.extinction = 0.2;
@@ -663,10 +664,10 @@ fn prefiltered_evaluation_matches_across_layouts() {
     // The exact ends read the rectified map on the GPU too: rays' keys sit on the warps'
     // knots, and a width taken from the warp's slope there differed between f32 and f64.
     let mut exact_ends = projective;
-    exact_ends.render.exact_ray_ends = true;
+    exact_ends.render.exact_ray_ends = ExactRayEnds::On;
     variants.push(("torus projective, exact ray ends", exact_ends));
     let mut grazing = prefiltered("plane");
-    grazing.render.exact_ray_ends = true;
+    grazing.render.exact_ray_ends = ExactRayEnds::On;
     variants.push(("plane, exact ray ends", grazing));
     let mut orthographic = prefiltered("plane");
     orthographic.camera.projection = Projection::Orthographic {

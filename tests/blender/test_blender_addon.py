@@ -601,6 +601,34 @@ def test_adaptive_tolerance_reaches_the_renderer(addon: ModuleType, tmp_path: Pa
     assert not np.array_equal(layers[0.0]["volume.R"], layers[1.0]["volume.R"])
 
 
+def test_exact_ray_ends_reach_the_renderer_and_auto_follows_the_medium(
+    addon: ModuleType, tmp_path: Path
+) -> None:
+    scene = _basic_scene()
+    ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
+    blender_scenes.add_quad(scene, "Ground", ground)
+    settings = scene.objects["Sun"].data.crepuscular
+    assert settings.exact_ray_ends == "auto"
+    assert addon.export.settings_dict(settings)["exact_ray_ends"] == "auto"
+    # At 256² every ray crosses so few texels that it is walked exactly whichever setting.
+    settings.shadow_map_size = 1024
+
+    def volume(setting: str) -> np.ndarray:
+        settings.exact_ray_ends = setting
+        path = tmp_path / f"{scene.crepuscular.medium_source}-{setting}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        return crepuscular.read_exr(path)["volume.R"]
+
+    # Open fog: auto is off. In a fog box around the roof and the ground it is on, and
+    # rays that end on the ground in the box differ.
+    np.testing.assert_array_equal(volume("auto"), volume("off"))
+    box = Matrix.Translation((0, 0, 3.5)) @ Matrix.Diagonal((12, 12, 4, 1))
+    blender_scenes.add_fog_box(scene, box, blender_scenes.volume_material("scatter", Density=0.1))
+    boxed = {setting: volume(setting) for setting in ("auto", "on", "off")}
+    np.testing.assert_array_equal(boxed["auto"], boxed["on"])
+    assert not np.array_equal(boxed["on"], boxed["off"])
+
+
 def test_world_constraints_follow_the_frame(addon: ModuleType, tmp_path: Path) -> None:
     """A 3D TF constraint (what 'pick in viewport' adds) takes V̄ and depth from the pixel
     where its point appears; a point the camera cannot see is an error naming it."""

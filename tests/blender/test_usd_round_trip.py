@@ -145,6 +145,7 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
     assert holes == [Sdf.Path("/root/slat_1")]
     values = {name: light.GetAttribute(name).Get() for name in authored}
     assert values["crepuscular:method"] == "prefiltered"
+    assert values["crepuscular:exactRayEnds"] == "auto"
     assert values["crepuscular:supersampling"] == 2  # the add-on's edge samples
     assert values["crepuscular:intensityScale"] == pytest.approx(4.0)
     # Blender writes the lamp's Temperature checkbox as true; the hook writes its value.

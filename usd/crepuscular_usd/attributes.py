@@ -67,7 +67,7 @@ ATTRIBUTES: dict[str, Attribute] = {
     "crepuscular:adaptiveTolerance": Attribute("float", ("render", "adaptive_tolerance")),
     "crepuscular:bases": Attribute("int", ("render", "bases")),
     "crepuscular:nearPlaneCorrection": Attribute("bool", ("render", "near_plane_correction")),
-    "crepuscular:exactRayEnds": Attribute("bool", ("render", "exact_ray_ends")),
+    "crepuscular:exactRayEnds": Attribute("token", ("render", "exact_ray_ends")),
     "crepuscular:basisStorage": Attribute("token", ("render", "basis_storage")),
     "crepuscular:rectification": Attribute("token", ("render", "rectification")),
     "crepuscular:closing:enable": Attribute("bool", ("style", "closing", "enable")),

@@ -86,6 +86,13 @@ def _token_to_snake(value: Any) -> str:
     return "".join("_" + c.lower() if c.isupper() else c for c in text)
 
 
+def _setting_or_flag(value: Any) -> str:
+    # Layers written while the attribute was a bool still author one.
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return str(value)
+
+
 def _vec3(value: Any) -> list[float]:
     return [float(c) for c in value]
 
@@ -101,6 +108,7 @@ _CONVERT_BY_TYPE: dict[str, Callable[[Any], Any]] = {
 }
 _CONVERT_BY_NAME: dict[str, Callable[[Any], Any]] = {
     "crepuscular:medium:phase": _token_to_snake,
+    "crepuscular:exactRayEnds": _setting_or_flag,
 }
 
 #: The attributes that map onto one scene-description value (the shared table in

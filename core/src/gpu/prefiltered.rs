@@ -199,7 +199,11 @@ mod tests {
         assert_eq!(word(140), tables.stride as u32);
         assert_eq!(word(144), 1, "snorm");
         assert_eq!(word(148), 1, "one epipole");
-        assert_eq!(word(156), 0, "exact ray ends off by default");
+        assert_eq!(
+            word(156),
+            0,
+            "exact ray ends off by default in an open medium"
+        );
         assert_eq!(word(160), scene.render.bases / 2, "frequencies");
         assert!(prefiltered_params(&map, &tables, BasisStorage::F32, &[[0.0; 2]; 3], 1.0).is_err());
     }

@@ -347,8 +347,13 @@ fn stylization_table(names: &[String], overrides: &Overrides, runs: usize) -> Re
 }
 
 fn print_table(rows: &[Row]) {
+    // "colonnade (box)" with `--fog-box`.
+    let width = rows
+        .iter()
+        .map(|row| row.scene.chars().count())
+        .fold(10, usize::max);
     println!(
-        "\n{:<10} {:<26} {:<22} {:>10} {:>16} {:>9} {:>10} {:>9}",
+        "\n{:<width$} {:<26} {:<22} {:>10} {:>16} {:>9} {:>10} {:>9}",
         "scene", "method", "frame", "scatter ms", "min–max", "speed-up", "frame ms", "speed-up"
     );
     for row in rows {
@@ -365,7 +370,7 @@ fn print_table(rows: &[Row]) {
             row.scattering_ms[row.scattering_ms.len() - 1]
         );
         println!(
-            "{:<10} {:<26} {:<22} {:>10.1} {:>16} {:>9} {:>10.1} {:>9}",
+            "{:<width$} {:<26} {:<22} {:>10.1} {:>16} {:>9} {:>10.1} {:>9}",
             row.scene,
             row.label,
             row.detail,

@@ -13,7 +13,7 @@ use clap::{Args, Parser, Subcommand};
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::exr_file::{write_layers, Precision};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
-use crepuscular::scene::{Method, Rectification, Scene};
+use crepuscular::scene::{ExactRayEnds, Method, Rectification, Scene};
 use crepuscular::{render_scene, Backend, Error, Layers, RenderControl, Result, Style};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -86,9 +86,10 @@ pub struct Overrides {
     #[arg(long)]
     adaptive_tolerance: Option<f32>,
     /// Prefiltered method: integrate exactly the stretch before each ray's end where the
-    /// shadow map closes in on the ray (grazed ground, views near the light); slower.
-    #[arg(long)]
-    exact_ray_ends: bool,
+    /// shadow map closes in on the ray (grazed ground, views near the light): auto (in box
+    /// media), on (the flag alone) or off.
+    #[arg(long, num_args = 0..=1, default_missing_value = "on", value_name = "auto|on|off")]
+    exact_ray_ends: Option<ExactRayEnds>,
     /// A style preset (JSON) replacing the scene's style.
     #[arg(long)]
     style: Option<PathBuf>,
@@ -133,8 +134,8 @@ impl Overrides {
         if let Some(backend) = self.backend {
             scene.render.backend = backend;
         }
-        if self.exact_ray_ends {
-            scene.render.exact_ray_ends = true;
+        if let Some(setting) = self.exact_ray_ends {
+            scene.render.exact_ray_ends = setting;
         }
         Ok(())
     }
