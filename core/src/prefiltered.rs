@@ -1579,13 +1579,18 @@ fn band_warps(frame: &SliceFrame, rays: &SortedRays, texels: &[f64]) -> Vec<Warp
     warps
 }
 
-/// One key per texel of a slice (enough for quantiles), sorted.
-fn texel_keys(map: &EpipolarMap, slice: usize) -> Vec<f64> {
+/// One key per texel of a slice (enough for quantiles), sorted: those strictly between
+/// `lowest` and `highest`, the slice's ray keys, which are all that its warps read
+/// ([`Warp::of`]). On the built-in scenes that is from a half (torus, plane) to an eighth
+/// (colonnade) of them, and sorting only those took 1–2 ms off a frame's preparation.
+fn texel_keys(map: &EpipolarMap, slice: usize, lowest: f64, highest: f64) -> Vec<f64> {
     let mut keys: Vec<u64> = map
         .row(slice as u32)
         .iter()
         .step_by(SAMPLES_PER_ROW)
-        .map(|&value| total_order_bits(map.order_key(value as f64)))
+        .map(|&value| map.order_key(value as f64))
+        .filter(|&key| key > lowest && key < highest)
+        .map(total_order_bits)
         .collect();
     keys.sort_unstable();
     keys.into_iter().map(from_total_order_bits).collect()
@@ -1842,8 +1847,9 @@ fn slice_frames(
             let rays = members[range[0]..range[1]]
                 .iter()
                 .map(|&index| &sampled[index as usize].1);
-            let texels = texel_keys(map, slice);
-            let (frame, sorted) = frame_of(rays, &texels)?;
+            let (frame, sorted, texels) = frame_of(rays, |lowest, highest| {
+                texel_keys(map, slice, lowest, highest)
+            })?;
             Some((frame, band_warps(&frame, &sorted, &texels)))
         })
         .collect();
@@ -1954,13 +1960,14 @@ struct SortedRays {
     rates: Vec<f64>,
 }
 
-/// A slice's frame from its sampled rays and its texels' keys, with the rays sorted by key.
-/// The rays are read in one pass where they lie: gathering them first copied 70 MB for
-/// colonnade's slices.
+/// A slice's frame from its sampled rays and its texels' sorted keys between the rays'
+/// lowest and highest (`texels` gets those two), with the rays sorted by key and the
+/// texels' keys. The rays are read in one pass where they lie: gathering them first copied
+/// 70 MB for colonnade's slices.
 fn frame_of<'r>(
     rays: impl ExactSizeIterator<Item = &'r SampledRay>,
-    texels: &[f64],
-) -> Option<(SliceFrame, SortedRays)> {
+    texels: impl FnOnce(f64, f64) -> Vec<f64>,
+) -> Option<(SliceFrame, SortedRays, Vec<f64>)> {
     if rays.len() == 0 {
         return None;
     }
@@ -1986,15 +1993,16 @@ fn frame_of<'r>(
             .collect(),
         rates: order.iter().map(|&(_, rate)| rate).collect(),
     };
+    let texels = texels(sorted.keys[0], sorted.keys[sorted.keys.len() - 1]);
     let frame = SliceFrame {
-        warp: Warp::of(&sorted.keys, texels),
+        warp: Warp::of(&sorted.keys, &texels),
         fastest,
         slowest,
         origin,
         medium_start,
         log2_fastest: fastest.log2(),
     };
-    Some((frame, sorted))
+    Some((frame, sorted, texels))
 }
 
 impl Warp {
@@ -2304,7 +2312,7 @@ mod tests {
                 medium_entry: Some(0.0),
             })
             .collect();
-        let (frame, sorted) = frame_of(rays.iter(), &[]).expect("a frame");
+        let (frame, sorted, _) = frame_of(rays.iter(), |_, _| Vec::new()).expect("a frame");
         let mut keys: Vec<f64> = rays.iter().map(|ray| ray.key).collect();
         keys.sort_by(f64::total_cmp);
         assert_eq!(sorted.keys, keys);
@@ -2399,11 +2407,23 @@ mod tests {
                 medium_entry: Some(0.0),
             })
             .collect();
-        let (alone, _) = frame_of(rays.iter(), &[]).expect("a frame");
+        let (alone, ..) = frame_of(rays.iter(), |_, _| Vec::new()).expect("a frame");
         let mut texels: Vec<f64> = (0..1000).map(|i| 0.5 + i as f64 * 1e-4).collect();
-        texels.extend([-5.0, 7.0]);
+        texels.extend([-5.0, 0.0, 1.0, 7.0]);
         texels.sort_unstable_by(|a, b| a.total_cmp(b));
-        let (mixed, _) = frame_of(rays.iter(), &texels).expect("a frame");
+        // The warps read only the texels strictly between the rays' keys, all that
+        // `texel_keys` gives them.
+        let (mixed, ..) = frame_of(rays.iter(), |lowest, highest| {
+            assert_eq!((lowest, highest), (0.0, 1.0));
+            texels
+                .iter()
+                .copied()
+                .filter(|&key| key > lowest && key < highest)
+                .collect()
+        })
+        .expect("a frame");
+        let (unfiltered, ..) = frame_of(rays.iter(), |_, _| texels.clone()).expect("a frame");
+        assert_eq!(mixed.warp.knots, unfiltered.warp.knots);
         assert_eq!(
             (mixed.warp.knots[0], mixed.warp.knots[KNOTS - 1]),
             (0.0, 1.0)
