@@ -129,7 +129,13 @@ pub fn shade(
         let bands = rec.upload(&bands, "bands")?;
         let weight = rec.upload(tables.weight, "cumulative weights")?;
         let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
-        let rectified = rec.upload(&map.values, "rectified map")?;
+        // Only exact ray ends read the map (5–13 MB a frame at 1024²: a few tenths of a
+        // millisecond of upload on a discrete GPU); the binding still needs a buffer.
+        let rectified = if tables.exact_ray_ends {
+            rec.upload(&map.values, "rectified map")?
+        } else {
+            rec.upload(&[0.0f32], "rectified map (unread)")?
+        };
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
         let desc = ComputePipelineDesc::new(Shader::Prefiltered, 15);
         rec.timed(STAGE, |rec| {
