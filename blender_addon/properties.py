@@ -181,7 +181,7 @@ class CrepuscularLight(PropertyGroup):
         # Numbered so that files saved while this was a checkbox read off and on as before.
         items=[
             ("auto", "Auto", "In a fog box, where it costs little (open fog: off)", 2),
-            ("on", "On", "Always; in open fog frames take 11-64% longer", 1),
+            ("on", "On", "Always; in open fog frames take up to 60% longer", 1),
             ("off", "Off", "Never; a fog box may glow where surfaces shadow themselves", 0),
         ],
         default="auto",

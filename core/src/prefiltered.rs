@@ -1960,10 +1960,10 @@ struct SortedRays {
     rates: Vec<f64>,
 }
 
-/// A slice's frame from its sampled rays and its texels' sorted keys between the rays'
-/// lowest and highest (`texels` gets those two), with the rays sorted by key and the
-/// texels' keys. The rays are read in one pass where they lie: gathering them first copied
-/// 70 MB for colonnade's slices.
+/// A slice's frame from its sampled rays, and those rays sorted by key. `texels` gives the
+/// slice's texel keys between the rays' lowest and highest, which it is called with; they
+/// are returned too, for the bands' warps. The rays are read in one pass where they lie:
+/// gathering them first copied 70 MB for colonnade's slices.
 fn frame_of<'r>(
     rays: impl ExactSizeIterator<Item = &'r SampledRay>,
     texels: impl FnOnce(f64, f64) -> Vec<f64>,
