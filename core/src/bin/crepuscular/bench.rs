@@ -346,12 +346,14 @@ fn stylization_table(names: &[String], overrides: &Overrides, runs: usize) -> Re
     Ok(())
 }
 
+/// Width of a table's scene column: its longest name ("colonnade (box)" with
+/// `--fog-box`), at least 10.
+pub fn scene_column<'s>(names: impl Iterator<Item = &'s str>) -> usize {
+    names.map(|name| name.chars().count()).fold(10, usize::max)
+}
+
 fn print_table(rows: &[Row]) {
-    // "colonnade (box)" with `--fog-box`.
-    let width = rows
-        .iter()
-        .map(|row| row.scene.chars().count())
-        .fold(10, usize::max);
+    let width = scene_column(rows.iter().map(|row| row.scene.as_str()));
     println!(
         "\n{:<width$} {:<26} {:<22} {:>10} {:>16} {:>9} {:>10} {:>9}",
         "scene", "method", "frame", "scatter ms", "min–max", "speed-up", "frame ms", "speed-up"

@@ -11,7 +11,7 @@ use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{Method, Rectification, Scene};
 use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
 
-use crate::bench::{median, peak_memory};
+use crate::bench::{median, peak_memory, scene_column};
 use crate::Overrides;
 
 /// The stylized rows' look when no `--style` is given: a disk closing of 0.25 scene units
@@ -272,11 +272,7 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
              wall times)"
         );
     }
-    // "colonnade (box)" with `--fog-box`.
-    let width = rows
-        .iter()
-        .map(|row| row.scene.chars().count())
-        .fold(10, usize::max);
+    let width = scene_column(rows.iter().map(|row| row.scene.as_str()));
     println!(
         "{:<width$} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
