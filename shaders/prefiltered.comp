@@ -64,6 +64,12 @@ layout(std430, binding = 12) readonly buffer Coefficients { vec4 coefficients4[]
 layout(std430, binding = 13) readonly buffer SliceSpeeds { float log2_fastest[]; };
 // The rectified map (EpipolarMap::values): `samples` values per slice.
 layout(std430, binding = 14) readonly buffer Rectified { float rectified[]; };
+// Per sample index: what turns K at its centre into K at its ends (sample_bounds).
+layout(std430, binding = 15) readonly buffer BoundFactors { vec2 bound_factors[]; };
+// The uniformity table (uniformity.comp, core/src/uniformity.rs).
+layout(std430, binding = 16) readonly buffer Runs { vec2 runs[]; };
+// core/src/uniformity.rs: BLOCK.
+const uint UNIFORMITY_BLOCK = 16u;
 
 const float TAU = 6.28318530717959;
 
@@ -209,6 +215,107 @@ void bands_at(uint slice, float log2_rate, out uint j, out uint next, out float 
     next = min(j + 1u, count - 1u);
 }
 
+// The smallest and largest K over sample i's interval (EpipolarMap::sample_bounds).
+vec2 sample_bounds(uint i, float centre) {
+    vec2 f = bound_factors[i];
+    if (q.map_layout == PARALLEL) {
+        return vec2(centre - f.x, centre + f.x);
+    }
+    if (centre == 0.0 || isinf(centre)) {
+        return vec2(centre);
+    }
+    return centre > 0.0 ? vec2(centre * f.y, centre * f.x) : vec2(centre * f.x, centre * f.y);
+}
+
+// Whether bounds (lowest, highest K) are all lit, or all shadowed, for `threshold`.
+bool is_uniform(vec2 bounds, float threshold, bool lit) {
+    return lit ? bounds.x >= threshold : bounds.y < threshold;
+}
+
+// Whether samples [from, to) of the slice starting at `row` are all as `lit` says.
+bool run_is_uniform(uint row, uint from, uint to, float threshold, bool lit) {
+    for (uint i = from; i < to; ++i) {
+        if (!is_uniform(sample_bounds(i, rectified[row + i]), threshold, lit)) {
+            return false;
+        }
+    }
+    return true;
+}
+
+// Whether a ray with `threshold` is lit (`lit` true) or shadowed over all of samples
+// first..=last of `slice` (UniformityTable::uniformity).
+bool uniformity(uint slice, float threshold, uint first, uint last, out bool lit) {
+    uint row = slice * q.samples;
+    vec2 b = sample_bounds(first, rectified[row + first]);
+    if (b.x >= threshold) {
+        lit = true;
+    } else if (b.y < threshold) {
+        lit = false;
+    } else {
+        return false;
+    }
+    if (last == first) {
+        return true;
+    }
+    if (!is_uniform(sample_bounds(last, rectified[row + last]), threshold, lit)) {
+        return false;
+    }
+    uint first_block = first / UNIFORMITY_BLOCK;
+    uint last_block = last / UNIFORMITY_BLOCK;
+    if (first_block == last_block) {
+        return run_is_uniform(row, first + 1u, last, threshold, lit);
+    }
+    if (!run_is_uniform(row, first + 1u, (first_block + 1u) * UNIFORMITY_BLOCK, threshold, lit)
+        || !run_is_uniform(row, last_block * UNIFORMITY_BLOCK, last, threshold, lit)) {
+        return false;
+    }
+    uint whole = last_block - first_block - 1u;
+    if (whole > 0u) {
+        uint blocks = (q.samples + UNIFORMITY_BLOCK - 1u) / UNIFORMITY_BLOCK;
+        uint levels = uint(findMSB(blocks)) + 1u;
+        uint k = uint(findMSB(whole));
+        uint level = (slice * levels + k) * blocks;
+        if (!is_uniform(runs[level + first_block + 1u], threshold, lit)
+            || !is_uniform(runs[level + last_block - (1u << k)], threshold, lit)) {
+            return false;
+        }
+    }
+    return true;
+}
+
+// The exact visibility between boundary positions x0 < x1 where each slice the ray reads
+// is lit, or shadowed, all along (Prefiltered::uniform_visibility); false otherwise.
+bool uniform_visibility(vec4 located, float x0, float x1, out float visibility) {
+    visibility = 0.0;
+    float samples = float(q.samples);
+    float c0 = max(x0, 0.0) * SAMPLES_PER_ROW;
+    float c1 = x1 * SAMPLES_PER_ROW;
+    if (!(c0 < c1 && c0 < samples)) {
+        return false;
+    }
+    bool past_the_end = c1 > samples;
+    uint first = uint(c0);
+    uint last = min(uint(ceil(c1)), q.samples) - 1u;
+    uint lower_slice, upper_slice;
+    float slice_fraction;
+    neighbours(located.x, lower_slice, upper_slice, slice_fraction);
+    for (uint n = 0u; n < 2u; ++n) {
+        uint slice = n == 0u ? lower_slice : upper_slice;
+        float share = n == 0u ? 1.0 - slice_fraction : slice_fraction;
+        if (share == 0.0) {
+            continue;
+        }
+        bool lit;
+        if (!uniformity(slice, located.w, first, last, lit) || (!lit && past_the_end)) {
+            return false;
+        }
+        if (lit) {
+            visibility += share;
+        }
+    }
+    return true;
+}
+
 // What average() makes of a stretch of a ray (prefiltered.rs: Average).
 const uint AVERAGE_VISIBILITY = 0u;
 const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
@@ -216,6 +323,9 @@ const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
 
 // Weighted average visibility between boundary positions x0 < x1.
 uint average(vec4 located, float key, float x0, float x1, out float visibility) {
+    if (uniform_visibility(located, x0, x1, visibility)) {
+        return AVERAGE_VISIBILITY;
+    }
     visibility = 0.0;
     float log2_rate = log2(located.z);
     uint lower_slice, upper_slice;

@@ -826,6 +826,35 @@ impl EpipolarMap {
         }
     }
 
+    /// Per sample index, what turns K at its centre into K at its ends
+    /// ([`EpipolarMap::sample_bounds`]), for backends that bound samples themselves.
+    pub fn bound_factors(&self) -> &[[f32; 2]] {
+        &self.bound_factors
+    }
+
+    /// The smallest and largest K over the intervals of samples `range` of `row` (one of
+    /// this map's slices): [`EpipolarMap::sample_bounds`] over a run, with the layout
+    /// matched once.
+    #[inline]
+    pub fn run_bounds(&self, row: &[f32], range: std::ops::Range<usize>) -> [f32; 2] {
+        let start = range.start;
+        let (values, factors) = (&row[range.clone()], &self.bound_factors[range]);
+        let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
+        if !self.layout.is_reciprocal() {
+            for (&centre, &[near, _]) in values.iter().zip(factors) {
+                low = low.min(centre - near);
+                high = high.max(centre + near);
+            }
+        } else {
+            for (i, &centre) in values.iter().enumerate() {
+                let (a, b) = self.sample_bounds(start + i, centre);
+                low = low.min(a);
+                high = high.max(b);
+            }
+        }
+        [low, high]
+    }
+
     /// The part of sample i's interval where a ray with `threshold` is lit.
     pub fn lit_part(&self, i: usize, centre: f32, threshold: f64) -> Option<(f64, f64)> {
         let (s0, s1) = self.sample_interval(i);

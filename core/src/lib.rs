@@ -35,6 +35,7 @@ mod spans;
 mod spare;
 pub mod style;
 pub mod transfer_function;
+pub mod uniformity;
 pub mod upsample;
 
 pub use backend::Backend;
@@ -56,6 +57,7 @@ pub fn release_kept_buffers() {
     layers::release_kept_buffers();
     adaptive::release_kept_buffers();
     epipolar::release_kept_buffers();
+    uniformity::release_kept_buffers();
     minmax::release_kept_buffers();
     prefiltered::release_kept_buffers();
 }

@@ -25,6 +25,10 @@
 //!   by a bounded optical depth ([`box_pieces`]), and each piece's weighted visibility
 //!   multiplies its exact unshadowed in-scattering. One piece per ray was 11% off where
 //!   light enters the box through an opening and dims farther in.
+//! - A stretch of a ray that the rectified map shows lit, or shadowed, over every sample
+//!   it crosses is answered exactly from a table of the map's sample bounds
+//!   ([`UniformityTable`]) instead of from the series, whose damped residue was most of
+//!   the error on views where many rays never cross a shadow (torus 0.34% → 0.07%).
 
 use std::f64::consts::PI;
 use std::sync::OnceLock;
@@ -39,6 +43,7 @@ use crate::error::{Error, Result};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{BasisStorage, ExactRayEnds, Extent, Medium, RenderSettings, Sun};
 use crate::spare::Spare;
+use crate::uniformity::UniformityTable;
 
 /// Basis coefficients M: sine and cosine of M/2 frequencies.
 pub const MIN_BASES: u32 = 4;
@@ -383,6 +388,8 @@ pub struct Prefiltered<'a> {
     /// M/2: the step's width in warped keys is about 1/`frequencies`.
     frequencies: usize,
     exact_ray_ends: bool,
+    /// Where a stretch of a ray is lit or shadowed all along, it needs no lookup.
+    uniformity: UniformityTable,
 }
 
 fn frequency(m: usize) -> f64 {
@@ -722,6 +729,7 @@ impl<'a> PrefilteredPlan<'a> {
             light_travel,
             frequencies,
             exact_ray_ends,
+            uniformity: UniformityTable::build(map),
         }
     }
 }
@@ -868,6 +876,9 @@ impl<'a> Prefiltered<'a> {
     /// with the coefficients of the ray's key under each band's warp in one kernel call.
     #[inline]
     fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Average {
+        if let Some(visibility) = self.uniform_visibility(located, x0, x1) {
+            return Average::Visibility(visibility);
+        }
         let log2_rate = located.s_per_t.log2();
         let mut visibility = 0.0;
         for (slice, share) in self.map.neighbours(located.slice) {
@@ -917,6 +928,38 @@ impl<'a> Prefiltered<'a> {
         Average::Visibility(visibility)
     }
 
+    /// The visibility between continuous boundary positions `x0 < x1` where each slice
+    /// the ray reads is lit, or shadowed, over the whole of every sample between them
+    /// ([`UniformityTable`]): exact, where the series would leave its residue. `None`
+    /// otherwise. Past the map's end counts as lit, as in [`Prefiltered::average`].
+    #[inline]
+    fn uniform_visibility(&self, located: &RaySlice, x0: f64, x1: f64) -> Option<f64> {
+        let samples = self.map.samples as usize;
+        let c0 = x0.max(0.0) * SAMPLES_PER_ROW as f64;
+        let c1 = x1 * SAMPLES_PER_ROW as f64;
+        if !(c0 < c1 && c0 < samples as f64) {
+            return None;
+        }
+        let past_the_end = c1 > samples as f64;
+        let (first, last) = (c0 as usize, (c1.ceil() as usize).min(samples) - 1);
+        let threshold = located.threshold as f32;
+        let mut visibility = 0.0;
+        for (slice, share) in self.map.neighbours(located.slice) {
+            if share == 0.0 {
+                continue;
+            }
+            match self
+                .uniformity
+                .uniformity(self.map, slice, threshold, first, last)?
+            {
+                true => visibility += share,
+                false if past_the_end => return None,
+                false => {}
+            }
+        }
+        Some(visibility)
+    }
+
     /// [`Prefiltered::average`] over each stretch between consecutive `boundaries` (the
     /// first ≤ 0 is the slice's start) into `visibilities`: the pieces of a ray in a box
     /// share their boundaries, so each boundary's rows are read and dotted once per band
@@ -932,6 +975,17 @@ impl<'a> Prefiltered<'a> {
         let log2_rate = located.s_per_t.log2();
         let pieces = visibilities.len();
         debug_assert_eq!(boundaries.len(), pieces + 1);
+        // Pieces lit or shadowed all along are exact, as in `average`.
+        let mut uniform = [None; MOST];
+        for (k, uniform) in uniform[..pieces].iter_mut().enumerate() {
+            *uniform = self.uniform_visibility(located, boundaries[k], boundaries[k + 1]);
+        }
+        if uniform[..pieces].iter().all(Option::is_some) {
+            for (visibility, uniform) in visibilities.iter_mut().zip(uniform) {
+                *visibility = uniform.unwrap_or(1.0);
+            }
+            return Some(());
+        }
         visibilities.fill(0.0);
         // Pieces off the map in some band count as lit, as in `average`.
         let mut off_the_map = [false; MOST];
@@ -973,7 +1027,7 @@ impl<'a> Prefiltered<'a> {
                 for k in 0..pieces {
                     // As in `average`, the first band to find a piece off the map or
                     // imprecise decides it.
-                    if off_the_map[k] {
+                    if off_the_map[k] || uniform[k].is_some() {
                         continue;
                     }
                     let ((w0, d0), (w1, d1)) = (cumulative[k], cumulative[k + 1]);
@@ -993,8 +1047,10 @@ impl<'a> Prefiltered<'a> {
                 *visibility += (0.5 * shares + dot).clamp(0.0, shares);
             }
         }
-        for (visibility, off) in visibilities.iter_mut().zip(off_the_map) {
-            if off {
+        for ((visibility, off), uniform) in visibilities.iter_mut().zip(off_the_map).zip(uniform) {
+            if let Some(exact) = uniform {
+                *visibility = exact;
+            } else if off {
                 *visibility = 1.0;
             }
         }
@@ -2230,6 +2286,96 @@ mod tests {
         }
         assert!(compared >= 50, "only {compared} rays compared");
         assert!(worst < 1e-5, "{worst}");
+    }
+
+    /// Where the rectified map says a ray is lit, or shadowed, over every sample it
+    /// crosses, prefiltering gives min-max's exact answer, not its series' estimate.
+    #[test]
+    fn rays_lit_or_shadowed_all_along_are_exact() {
+        use crate::epipolar::test_support::rectified;
+        use crate::epipolar::{epipoles_in_image, RectifyDesc};
+        use crate::minmax::{MinMaxMethod, MinMaxMipmap};
+        use rand::{RngExt, SeedableRng};
+        let mut scene = crate::builtin_scene("torus").expect("built-in scene");
+        scene.camera.width = 96;
+        scene.camera.height = 54;
+        let (camera, shadow, map) = rectified(
+            &scene,
+            scene.render.rectification,
+            &RectifyDesc::prefiltered(scene.render.epipolar_slices),
+        );
+        let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+        let desc = PrefilteredDesc::from_settings(&scene.render);
+        let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
+        let mipmap = MinMaxMipmap::build(&map);
+        let exact = MinMaxMethod::new(&map, &mipmap, &scene.sun, &scene.medium);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let (mut lit, mut shadowed, mut mixed) = (0, 0, 0);
+        for pixel in 0..96 * 54 {
+            let ray = camera.ray((pixel % 96) as f64 + 0.5, (pixel / 96) as f64 + 0.5);
+            // Stretches of rays, so that some lie wholly in the torus' shadow.
+            let t_start = rng.random_range(0.0..25.0) + camera.clip_start * ray.distance_per_depth;
+            let t_end = t_start + rng.random_range(2.0..20.0);
+            let Some(located) = map.locate(&ray) else {
+                continue;
+            };
+            let Some(sample) = method.march(&ray, t_start, t_end) else {
+                continue;
+            };
+            let coordinate = |t: f64| map.sample_coordinate(located.s_origin + located.s_per_t * t);
+            let (c0, c1) = (coordinate(t_start), coordinate(t_end));
+            if !(c0 >= 0.0 && c1 <= map.samples as f64) {
+                continue;
+            }
+            let (first, last) = (c0 as usize, c1.ceil() as usize - 1);
+            let threshold = located.threshold as f32;
+            let mut states = map
+                .neighbours(located.slice)
+                .into_iter()
+                .filter(|&(_, share)| share > 0.0)
+                .map(|(slice, _)| {
+                    let row = map.row(slice);
+                    let bounds = (first..=last).map(|i| map.sample_bounds(i, row[i]));
+                    let bounds: Vec<(f32, f32)> = bounds.collect();
+                    if bounds.iter().all(|&(low, _)| low >= threshold) {
+                        Some(true)
+                    } else if bounds.iter().all(|&(_, high)| high < threshold) {
+                        Some(false)
+                    } else {
+                        None
+                    }
+                });
+            let Some(state) = states.next().flatten() else {
+                mixed += 1;
+                continue;
+            };
+            if !states.all(|other| other == Some(state)) {
+                mixed += 1;
+                continue;
+            }
+            let expected = exact.march(&ray, t_start, t_end).expect("min-max walks it");
+            assert_eq!(
+                sample.visibility,
+                if state { 1.0 } else { 0.0 },
+                "pixel {pixel}"
+            );
+            assert!(
+                (sample.scattering - expected.scattering).abs()
+                    <= 1e-9 * expected.scattering.max(1e-9),
+                "pixel {pixel}: {} against min-max's {}",
+                sample.scattering,
+                expected.scattering
+            );
+            if state {
+                lit += 1;
+            } else {
+                shadowed += 1;
+            }
+        }
+        assert!(
+            lit > 200 && shadowed > 20 && mixed > 200,
+            "{lit} lit, {shadowed} shadowed, {mixed} mixed"
+        );
     }
 
     #[test]

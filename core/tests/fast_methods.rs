@@ -391,9 +391,11 @@ fn rays_nearly_along_the_light_are_integrated_exactly() {
 /// the sun behind the camera, its rays 10 m longer than those the short-ray rule walks
 /// (`SHORT_RAY_TEXELS`) and too far off the light to be walked as along it, end on lit ground
 /// after closing in on it over many texels. Prefiltering read them 2.2% dark without, 0.1%
-/// with; the default view of `plane`, whose rays graze its ground, 1.9% against 0.6%; and
-/// `plane` seen orthographically in a fog box, 4.9% against 1.7%. The default, `auto`, is
-/// the rule in the box and the lookups in the open.
+/// with (1.1% without since rays lit all along are exact); the default view of `plane`,
+/// whose rays graze its ground, 1.9% against 0.6%. `plane` seen orthographically in a fog
+/// box read 4.9% against 1.7% before rays shadowed all along were exact; now 1.3% and 1.4%,
+/// so there both must merely stay within the bound. The default, `auto`, is the rule in
+/// the box and the lookups in the open.
 #[test]
 fn exact_ray_ends_integrate_rays_closing_in_on_the_ground_exactly() {
     let light = Vec3::new(0.008, 0.212, -0.977).normalize();
@@ -420,10 +422,10 @@ fn exact_ray_ends_integrate_rays_closing_in_on_the_ground_exactly() {
         world_from_cube: Mat4::from_translation(Vec3::new(0.0, 5.0, 3.06))
             * Mat4::from_scale(Vec3::new(15.0, 37.5, 3.06)),
     };
-    for (name, scene, bound) in [
-        ("12° off the light", off_the_light, 0.01),
-        ("plane", grazing, 0.01),
-        ("plane in a box", in_a_box, 0.02),
+    for (name, scene, bound, must_halve) in [
+        ("12° off the light", off_the_light, 0.01, true),
+        ("plane", grazing, 0.01, true),
+        ("plane in a box", in_a_box, 0.02, false),
     ] {
         let with = |setting| {
             let mut scene = scene.clone();
@@ -450,8 +452,13 @@ fn exact_ray_ends_integrate_rays_closing_in_on_the_ground_exactly() {
             exact_ends * 100.0,
             looked_up * 100.0
         );
+        let within = if must_halve {
+            exact_ends < 0.5 * looked_up
+        } else {
+            looked_up <= bound
+        };
         assert!(
-            exact_ends < 0.5 * looked_up && exact_ends <= bound,
+            within && exact_ends <= bound,
             "{name}: {:.3}% with exact ends, {:.3}% without",
             exact_ends * 100.0,
             looked_up * 100.0

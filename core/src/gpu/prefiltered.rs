@@ -13,15 +13,19 @@ use super::dispatch::{groups_2d, Std430};
 use super::error::{GpuError, GpuResult};
 use super::layer_buffers::LayerBuffers;
 use super::march::{march_params, surface_values, MarchInputs};
+use super::prefix::band_groups;
 use super::shader::Shader;
 use crate::basis_kernels::LANES;
 use crate::epipolar::{EpipolarMap, MapLayout};
 use crate::layers::Layers;
 use crate::prefiltered::{PrefilteredTables, WARP_KNOTS};
 use crate::scene::BasisStorage;
+use crate::uniformity::table_shape;
 use crate::upsample::reduced_size;
 
 pub const STAGE: &str = "prefiltered evaluation";
+const UNIFORMITY_STAGE: &str = "uniformity table";
+const UNIFORMITY_PUSH_BYTES: u32 = 12;
 const LOCAL: [u32; 2] = [8, 8];
 
 /// The shader's `PrefilteredParams` block.
@@ -80,6 +84,16 @@ pub fn prefiltered_params(
         .finish())
 }
 
+/// The uniformity shader's push constants: slices, samples, and whether K scales with
+/// 1/s.
+fn uniformity_push(map: &EpipolarMap) -> Vec<u8> {
+    let reciprocal = map.geometry().layout != MapLayout::Parallel;
+    [map.slices, map.samples, reciprocal as u32]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect()
+}
+
 /// Evaluates every output pixel from the plan's tables and the filtered basis already on
 /// the device (as [`super::prefix::resident`] leaves it); returns the layers and the
 /// dispatch's GPU time.
@@ -114,7 +128,7 @@ pub fn shade(
     let slice_bands: Vec<u32> = tables.slice_bands.iter().flatten().copied().collect();
     let bands: Vec<u32> = tables.bands.iter().flatten().copied().collect();
     let run = || -> GpuResult<(Layers, Option<f64>)> {
-        let mut rec = Recorder::new(device, STAGE, 1, 15)?;
+        let mut rec = Recorder::new(device, STAGE, 2, 20)?;
         let params = rec.upload(&march_params(inputs), "march parameters")?;
         let shadow = rec.upload(&inputs.shadow.depth, "shadow map")?;
         let surfaces = rec.upload(&surface_values(inputs.surfaces), "surface distances")?;
@@ -129,15 +143,27 @@ pub fn shade(
         let bands = rec.upload(&bands, "bands")?;
         let weight = rec.upload(tables.weight, "cumulative weights")?;
         let coefficients = rec.upload(tables.coefficients, "coefficient table")?;
-        // Only exact ray ends read the map (5–13 MB a frame at 1024²: a few tenths of a
-        // millisecond of upload on a discrete GPU); the binding still needs a buffer.
-        let rectified = if tables.exact_ray_ends {
-            rec.upload(&map.values, "rectified map")?
-        } else {
-            rec.upload(&[0.0f32], "rectified map (unread)")?
-        };
+        // Exact ray ends and the uniformity table read the map.
+        let rectified = rec.upload(&map.values, "rectified map")?;
+        let bound_factors = rec.upload(map.bound_factors().as_flattened(), "sample bounds")?;
+        let (blocks, levels) = table_shape(map.samples as usize);
+        let runs_bytes = (map.slices as usize * levels * blocks).max(1) * 8;
+        let runs = rec.storage(runs_bytes as u64, "uniformity table")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 15);
+        let table_desc =
+            ComputePipelineDesc::new(Shader::Uniformity, 3).push_constants(UNIFORMITY_PUSH_BYTES);
+        let push = uniformity_push(map);
+        let table_groups = band_groups(map.slices, device.physical.max_workgroup_count)?;
+        rec.timed(UNIFORMITY_STAGE, |rec| {
+            rec.dispatch(
+                &table_desc,
+                &[&rectified, &bound_factors, &runs],
+                &push,
+                table_groups,
+            )
+        })?;
+        rec.barrier(Access::ComputeWrite, Access::ComputeRead);
+        let desc = ComputePipelineDesc::new(Shader::Prefiltered, 17);
         rec.timed(STAGE, |rec| {
             rec.dispatch(
                 &desc,
@@ -157,6 +183,8 @@ pub fn shade(
                     &coefficients,
                     &log2_fastest,
                     &rectified,
+                    &bound_factors,
+                    &runs,
                 ],
                 &[],
                 groups,
@@ -165,7 +193,11 @@ pub fn shade(
         let back = out.download(&mut rec)?;
         let done = rec.submit_and_wait()?;
         let layers = back.read(&done)?;
-        Ok((layers, done.milliseconds(STAGE)))
+        let ms = [STAGE, UNIFORMITY_STAGE]
+            .iter()
+            .map(|stage| done.milliseconds(stage))
+            .sum::<Option<f64>>();
+        Ok((layers, ms))
     };
     run().map_err(|err| err.in_stage(STAGE))
 }

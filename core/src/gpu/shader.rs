@@ -13,6 +13,8 @@ pub enum Shader {
     Transfer,
     Prefix,
     Prefiltered,
+    /// The rectified map's uniformity table, which prefiltered evaluation reads.
+    Uniformity,
     Upsample,
     Rectify,
     Silhouette,
@@ -24,12 +26,13 @@ pub enum Shader {
 }
 
 impl Shader {
-    pub const ALL: [Shader; 11] = [
+    pub const ALL: [Shader; 12] = [
         Shader::March,
         Shader::Morphology,
         Shader::Transfer,
         Shader::Prefix,
         Shader::Prefiltered,
+        Shader::Uniformity,
         Shader::Upsample,
         Shader::Rectify,
         Shader::Silhouette,
@@ -46,6 +49,7 @@ impl Shader {
             Shader::Transfer => "transfer.comp",
             Shader::Prefix => "prefix.comp",
             Shader::Prefiltered => "prefiltered.comp",
+            Shader::Uniformity => "uniformity.comp",
             Shader::Upsample => "upsample.comp",
             Shader::Rectify => "rectify.comp",
             Shader::Silhouette => "silhouette.comp",
@@ -74,6 +78,9 @@ impl Shader {
             Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.comp.spv")),
             Shader::Prefiltered => {
                 include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.comp.spv"))
+            }
+            Shader::Uniformity => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/uniformity.comp.spv"))
             }
             Shader::Upsample => include_bytes!(concat!(env!("OUT_DIR"), "/upsample.comp.spv")),
             Shader::Rectify => include_bytes!(concat!(env!("OUT_DIR"), "/rectify.comp.spv")),
