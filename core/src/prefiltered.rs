@@ -822,7 +822,7 @@ impl<'a> Prefiltered<'a> {
             FilteredBasis::F32(values) => std::mem::size_of_val(values.as_slice()),
             FilteredBasis::Snorm16(values) => std::mem::size_of_val(values.as_slice()),
         };
-        basis + std::mem::size_of_val(self.weight.as_slice())
+        basis + std::mem::size_of_val(self.weight.as_slice()) + self.uniformity.memory_bytes()
     }
 
     /// The one or two bands whose references bracket a ray crossing 2^`log2_rate` texels

@@ -52,6 +52,12 @@ pub fn table_shape(samples: usize) -> (usize, usize) {
     (blocks, levels)
 }
 
+/// Bytes of the table over `slices` slices of `samples` samples.
+pub fn table_bytes(slices: u32, samples: u32) -> usize {
+    let (blocks, levels) = table_shape(samples as usize);
+    slices as usize * levels * blocks * std::mem::size_of::<[f32; 2]>()
+}
+
 impl UniformityTable {
     pub fn build(map: &EpipolarMap) -> Self {
         let samples = map.samples as usize;
@@ -256,5 +262,6 @@ mod tests {
         assert_eq!(table_shape(BLOCK), (1, 1));
         assert_eq!(table_shape(BLOCK + 1), (2, 2));
         assert_eq!(table_shape(100 * BLOCK), (100, 7));
+        assert_eq!(table_bytes(3, 100 * BLOCK as u32), 3 * 100 * 7 * 8);
     }
 }

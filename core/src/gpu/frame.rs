@@ -246,7 +246,9 @@ fn gpu_frame(
             let (basis, ms) = super::prefix::resident(device, plan.prefix())?;
             gpu.prefix_sums = ms;
             let tables = plan.tables();
-            times.structure_bytes = basis.size() as usize + std::mem::size_of_val(tables.weight);
+            times.structure_bytes = basis.size() as usize
+                + std::mem::size_of_val(tables.weight)
+                + crate::uniformity::table_bytes(map.slices, map.samples);
             times.rectified_bytes = map.memory_bytes();
             times.prepare = stopwatch.lap();
             super::prefiltered::shade(

@@ -20,7 +20,7 @@ use crate::epipolar::{EpipolarMap, MapLayout};
 use crate::layers::Layers;
 use crate::prefiltered::{PrefilteredTables, WARP_KNOTS};
 use crate::scene::BasisStorage;
-use crate::uniformity::table_shape;
+use crate::uniformity::table_bytes;
 use crate::upsample::reduced_size;
 
 pub const STAGE: &str = "prefiltered evaluation";
@@ -146,8 +146,7 @@ pub fn shade(
         // Exact ray ends and the uniformity table read the map.
         let rectified = rec.upload(&map.values, "rectified map")?;
         let bound_factors = rec.upload(map.bound_factors().as_flattened(), "sample bounds")?;
-        let (blocks, levels) = table_shape(map.samples as usize);
-        let runs_bytes = (map.slices as usize * levels * blocks).max(1) * 8;
+        let runs_bytes = table_bytes(map.slices, map.samples).max(8);
         let runs = rec.storage(runs_bytes as u64, "uniformity table")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
         let table_desc =
