@@ -321,11 +321,9 @@ const uint AVERAGE_VISIBILITY = 0u;
 const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
 const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
 
-// Weighted average visibility between boundary positions x0 < x1.
-uint average(vec4 located, float key, float x0, float x1, out float visibility) {
-    if (uniform_visibility(located, x0, x1, visibility)) {
-        return AVERAGE_VISIBILITY;
-    }
+// The weighted average visibility between boundary positions x0 < x1 from the filtered
+// basis alone (Prefiltered::look_up).
+uint look_up(vec4 located, float key, float x0, float x1, out float visibility) {
     visibility = 0.0;
     float log2_rate = log2(located.z);
     uint lower_slice, upper_slice;
@@ -398,6 +396,15 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
         visibility += clamp(0.5 * shares + dot_, 0.0, shares);
     }
     return AVERAGE_VISIBILITY;
+}
+
+// Weighted average visibility between boundary positions x0 < x1: exact where the ray is
+// lit or shadowed all along, else looked up (Prefiltered::average).
+uint average(vec4 located, float key, float x0, float x1, out float visibility) {
+    if (uniform_visibility(located, x0, x1, visibility)) {
+        return AVERAGE_VISIBILITY;
+    }
+    return look_up(located, key, x0, x1, visibility);
 }
 
 float infinity() {
@@ -635,6 +642,11 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
             last_end = t_cut;
         }
     }
+    // A ray lit or shadowed all along is exact; pieces are not tested one by one
+    // (Prefiltered::average_pieces).
+    float whole;
+    bool uniform_ = uniform_visibility(located, sample_coordinate(located.y + located.z * from),
+                                       sample_coordinate(located.y + located.z * last_end), whole);
     float scattering = 0.0;
     float unshadowed = 0.0;
     for (uint k = 0u; k < pieces; ++k) {
@@ -648,8 +660,8 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         float until = has_end && k == last ? last_end : t1;
         float x0 = sample_coordinate(located.y + located.z * (k == 0u ? from : t0));
         float x1 = sample_coordinate(located.y + located.z * until);
-        float v;
-        uint outcome = average(located, key, x0, x1, v);
+        float v = whole;
+        uint outcome = uniform_ ? AVERAGE_VISIBILITY : look_up(located, key, x0, x1, v);
         if (outcome == AVERAGE_IMPRECISE) {
             ok = false;
             return vec3(0.0);

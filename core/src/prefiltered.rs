@@ -876,9 +876,15 @@ impl<'a> Prefiltered<'a> {
     /// with the coefficients of the ray's key under each band's warp in one kernel call.
     #[inline]
     fn average(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Average {
-        if let Some(visibility) = self.uniform_visibility(located, x0, x1) {
-            return Average::Visibility(visibility);
+        match self.uniform_visibility(located, x0, x1) {
+            Some(visibility) => Average::Visibility(visibility),
+            None => self.look_up(located, key, x0, x1),
         }
+    }
+
+    /// [`Prefiltered::average`] from the filtered basis alone.
+    #[inline]
+    fn look_up(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Average {
         let log2_rate = located.s_per_t.log2();
         let mut visibility = 0.0;
         for (slice, share) in self.map.neighbours(located.slice) {
@@ -960,10 +966,12 @@ impl<'a> Prefiltered<'a> {
         Some(visibility)
     }
 
-    /// [`Prefiltered::average`] over each stretch between consecutive `boundaries` (the
-    /// first ≤ 0 is the slice's start) into `visibilities`: the pieces of a ray in a box
-    /// share their boundaries, so each boundary's rows are read and dotted once per band
-    /// rather than twice. `None` where a piece is too imprecise ([`CONDITION_LIMIT`]).
+    /// [`Prefiltered::look_up`] over each stretch between consecutive `boundaries` (the
+    /// first ≤ 0 is the slice's start) into `visibilities`, or the exact visibility for all
+    /// where the whole is uniform ([`Prefiltered::uniform_visibility`]): the pieces of a ray
+    /// in a box share their boundaries, so each boundary's rows are read and dotted once
+    /// per band rather than twice. `None` where a piece is too imprecise
+    /// ([`CONDITION_LIMIT`]).
     fn average_pieces(
         &self,
         located: &RaySlice,
@@ -975,15 +983,13 @@ impl<'a> Prefiltered<'a> {
         let log2_rate = located.s_per_t.log2();
         let pieces = visibilities.len();
         debug_assert_eq!(boundaries.len(), pieces + 1);
-        // Pieces lit or shadowed all along are exact, as in `average`.
-        let mut uniform = [None; MOST];
-        for (k, uniform) in uniform[..pieces].iter_mut().enumerate() {
-            *uniform = self.uniform_visibility(located, boundaries[k], boundaries[k + 1]);
-        }
-        if uniform[..pieces].iter().all(Option::is_some) {
-            for (visibility, uniform) in visibilities.iter_mut().zip(uniform) {
-                *visibility = uniform.unwrap_or(1.0);
-            }
+        // A ray lit or shadowed all along is exact, as in `average`. Pieces are not tested
+        // one by one: on tree's box that cost 10%, and exact pieces beside looked-up ones
+        // read the box under a slotted roof 0.163% off, against 0.057% for the whole ray.
+        if let Some(visibility) =
+            self.uniform_visibility(located, boundaries[0], boundaries[pieces])
+        {
+            visibilities.fill(visibility);
             return Some(());
         }
         visibilities.fill(0.0);
@@ -1027,7 +1033,7 @@ impl<'a> Prefiltered<'a> {
                 for k in 0..pieces {
                     // As in `average`, the first band to find a piece off the map or
                     // imprecise decides it.
-                    if off_the_map[k] || uniform[k].is_some() {
+                    if off_the_map[k] {
                         continue;
                     }
                     let ((w0, d0), (w1, d1)) = (cumulative[k], cumulative[k + 1]);
@@ -1047,10 +1053,8 @@ impl<'a> Prefiltered<'a> {
                 *visibility += (0.5 * shares + dot).clamp(0.0, shares);
             }
         }
-        for ((visibility, off), uniform) in visibilities.iter_mut().zip(off_the_map).zip(uniform) {
-            if let Some(exact) = uniform {
-                *visibility = exact;
-            } else if off {
+        for (visibility, off) in visibilities.iter_mut().zip(off_the_map) {
+            if off {
                 *visibility = 1.0;
             }
         }
@@ -2269,9 +2273,14 @@ mod tests {
             let shared = method
                 .average_pieces(&located, key, &boundaries, &mut shared)
                 .map(|()| shared);
+            // Pieces are tested for uniformity only as a whole ray.
+            let whole = method.uniform_visibility(&located, boundaries[0], boundaries[5]);
             let alone: Option<Vec<f64>> = boundaries
                 .windows(2)
-                .map(|ends| method.average(&located, key, ends[0], ends[1]).value())
+                .map(|ends| match whole {
+                    Some(visibility) => Some(visibility),
+                    None => method.look_up(&located, key, ends[0], ends[1]).value(),
+                })
                 .collect();
             match (shared, alone) {
                 (Some(shared), Some(alone)) => {
