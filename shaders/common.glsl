@@ -34,3 +34,17 @@ float unit(float v) {
 float finite_or_zero(float v) {
     return (isnan(v) || isinf(v)) ? 0.0 : v;
 }
+
+// The smallest and largest K over a rectified sample's interval from K at its centre and
+// its index's (near, far) factors; `reciprocal` where K scales with 1/s
+// (EpipolarMap::sample_bounds).
+vec2 sample_bounds_from(vec2 factors, float centre, bool reciprocal) {
+    if (!reciprocal) {
+        return vec2(centre - factors.x, centre + factors.x);
+    }
+    if (centre == 0.0 || isinf(centre)) {
+        return vec2(centre);
+    }
+    return centre > 0.0 ? vec2(centre * factors.y, centre * factors.x)
+                        : vec2(centre * factors.x, centre * factors.y);
+}

@@ -217,14 +217,7 @@ void bands_at(uint slice, float log2_rate, out uint j, out uint next, out float 
 
 // The smallest and largest K over sample i's interval (EpipolarMap::sample_bounds).
 vec2 sample_bounds(uint i, float centre) {
-    vec2 f = bound_factors[i];
-    if (q.map_layout == PARALLEL) {
-        return vec2(centre - f.x, centre + f.x);
-    }
-    if (centre == 0.0 || isinf(centre)) {
-        return vec2(centre);
-    }
-    return centre > 0.0 ? vec2(centre * f.y, centre * f.x) : vec2(centre * f.x, centre * f.y);
+    return sample_bounds_from(bound_factors[i], centre, q.map_layout != PARALLEL);
 }
 
 // Whether bounds (lowest, highest K) are all lit, or all shadowed, for `threshold`.

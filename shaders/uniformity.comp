@@ -1,4 +1,5 @@
 #version 450
+#extension GL_GOOGLE_include_directive : require
 // The rectified map's uniformity table (core/src/uniformity.rs): per slice, the lowest
 // and highest K over each block of BLOCK samples (each sample over its whole interval,
 // EpipolarMap::sample_bounds), then over runs of 2^k blocks. One workgroup per slice;
@@ -17,19 +18,9 @@ layout(std430, binding = 0) readonly buffer Rectified { float rectified[]; };
 layout(std430, binding = 1) readonly buffer BoundFactors { vec2 bound_factors[]; };
 layout(std430, binding = 2) buffer Runs { vec2 runs[]; };
 
-const uint BLOCK = 16u;
+#include "common.glsl"
 
-// The smallest and largest K over sample i's interval (EpipolarMap::sample_bounds).
-vec2 sample_bounds(uint i, float centre) {
-    vec2 f = bound_factors[i];
-    if (pc.reciprocal == 0u) {
-        return vec2(centre - f.x, centre + f.x);
-    }
-    if (centre == 0.0 || isinf(centre)) {
-        return vec2(centre);
-    }
-    return centre > 0.0 ? vec2(centre * f.y, centre * f.x) : vec2(centre * f.x, centre * f.y);
-}
+const uint BLOCK = 16u;
 
 void main() {
     uint slice = gl_WorkGroupID.x + gl_WorkGroupID.y * gl_NumWorkGroups.x;
@@ -43,7 +34,7 @@ void main() {
     for (uint b = gl_LocalInvocationID.x; b < blocks; b += gl_WorkGroupSize.x) {
         vec2 bounds = vec2(uintBitsToFloat(0x7f800000u), uintBitsToFloat(0xff800000u));
         for (uint i = b * BLOCK; i < min((b + 1u) * BLOCK, pc.samples); ++i) {
-            vec2 s = sample_bounds(i, rectified[row + i]);
+            vec2 s = sample_bounds_from(bound_factors[i], rectified[row + i], pc.reciprocal != 0u);
             bounds = vec2(min(bounds.x, s.x), max(bounds.y, s.y));
         }
         runs[table + b] = bounds;

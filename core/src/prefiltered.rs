@@ -2238,12 +2238,24 @@ mod tests {
         assert!(visibility(0.5, 0.5 + 1.5 / frequencies as f64) < 0.1);
     }
 
+    /// `scene`'s camera, its rectified map, and the epipoles ahead of the camera, as a frame
+    /// hands them to [`Prefiltered::build`].
+    fn frame_inputs(scene: &crate::scene::Scene) -> (CameraModel, EpipolarMap, Vec<[f64; 2]>) {
+        use crate::epipolar::test_support::rectified;
+        use crate::epipolar::{epipoles_in_image, RectifyDesc};
+        let (camera, shadow, map) = rectified(
+            scene,
+            scene.render.rectification,
+            &RectifyDesc::prefiltered(scene.render.epipolar_slices),
+        );
+        let epipoles = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+        (camera, map, epipoles)
+    }
+
     /// The pieces of a ray in a box, looked up with shared boundaries, read what each
     /// piece reads on its own, on every 53rd pixel of torus in a box.
     #[test]
     fn shared_piece_boundaries_read_what_each_piece_reads_alone() {
-        use crate::epipolar::test_support::rectified;
-        use crate::epipolar::{epipoles_in_image, RectifyDesc};
         let mut scene = crate::builtin_scene("torus").expect("built-in scene");
         scene.camera.width = 96;
         scene.camera.height = 54;
@@ -2252,12 +2264,7 @@ mod tests {
             world_from_cube: Mat4::from_translation(glam::Vec3::new(0.5, -0.5, 3.0))
                 * Mat4::from_scale(glam::Vec3::new(5.0, 4.0, 3.0)),
         };
-        let (camera, shadow, map) = rectified(
-            &scene,
-            scene.render.rectification,
-            &RectifyDesc::prefiltered(scene.render.epipolar_slices),
-        );
-        let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+        let (camera, map, epipoles) = frame_inputs(&scene);
         let desc = PrefilteredDesc::from_settings(&scene.render);
         let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
         let (mut compared, mut worst) = (0, 0.0f64);
@@ -2301,19 +2308,12 @@ mod tests {
     /// crosses, prefiltering gives min-max's exact answer, not its series' estimate.
     #[test]
     fn rays_lit_or_shadowed_all_along_are_exact() {
-        use crate::epipolar::test_support::rectified;
-        use crate::epipolar::{epipoles_in_image, RectifyDesc};
         use crate::minmax::{MinMaxMethod, MinMaxMipmap};
         use rand::{RngExt, SeedableRng};
         let mut scene = crate::builtin_scene("torus").expect("built-in scene");
         scene.camera.width = 96;
         scene.camera.height = 54;
-        let (camera, shadow, map) = rectified(
-            &scene,
-            scene.render.rectification,
-            &RectifyDesc::prefiltered(scene.render.epipolar_slices),
-        );
-        let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+        let (camera, map, epipoles) = frame_inputs(&scene);
         let desc = PrefilteredDesc::from_settings(&scene.render);
         let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
         let mipmap = MinMaxMipmap::build(&map);

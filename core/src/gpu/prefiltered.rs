@@ -25,7 +25,6 @@ use crate::upsample::reduced_size;
 
 pub const STAGE: &str = "prefiltered evaluation";
 const UNIFORMITY_STAGE: &str = "uniformity table";
-const UNIFORMITY_PUSH_BYTES: u32 = 12;
 const LOCAL: [u32; 2] = [8, 8];
 
 /// The shader's `PrefilteredParams` block.
@@ -88,10 +87,11 @@ pub fn prefiltered_params(
 /// 1/s.
 fn uniformity_push(map: &EpipolarMap) -> Vec<u8> {
     let reciprocal = map.geometry().layout != MapLayout::Parallel;
-    [map.slices, map.samples, reciprocal as u32]
-        .iter()
-        .flat_map(|v| v.to_le_bytes())
-        .collect()
+    Std430::new()
+        .u32(map.slices)
+        .u32(map.samples)
+        .u32(reciprocal as u32)
+        .finish()
 }
 
 /// Evaluates every output pixel from the plan's tables and the filtered basis already on
@@ -149,9 +149,9 @@ pub fn shade(
         let runs_bytes = table_bytes(map.slices, map.samples).max(8);
         let runs = rec.storage(runs_bytes as u64, "uniformity table")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let table_desc =
-            ComputePipelineDesc::new(Shader::Uniformity, 3).push_constants(UNIFORMITY_PUSH_BYTES);
         let push = uniformity_push(map);
+        let table_desc =
+            ComputePipelineDesc::new(Shader::Uniformity, 3).push_constants(push.len() as u32);
         let table_groups = band_groups(map.slices, device.physical.max_workgroup_count)?;
         rec.timed(UNIFORMITY_STAGE, |rec| {
             rec.dispatch(
