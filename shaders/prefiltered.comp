@@ -253,21 +253,27 @@ bool uniformity(uint slice, float threshold, uint first, uint last, out bool lit
     if (!is_uniform(sample_bounds(last, rectified[row + last]), threshold, lit)) {
         return false;
     }
+    uint blocks = (q.samples + UNIFORMITY_BLOCK - 1u) / UNIFORMITY_BLOCK;
+    uint levels = uint(findMSB(blocks)) + 1u;
+    uint table = slice * levels * blocks;
     uint first_block = first / UNIFORMITY_BLOCK;
     uint last_block = last / UNIFORMITY_BLOCK;
+    // A partial block is uniform where its whole block is (one entry); only where that
+    // fails are its own samples read.
     if (first_block == last_block) {
-        return run_is_uniform(row, first + 1u, last, threshold, lit);
+        return is_uniform(runs[table + first_block], threshold, lit)
+            || run_is_uniform(row, first + 1u, last, threshold, lit);
     }
-    if (!run_is_uniform(row, first + 1u, (first_block + 1u) * UNIFORMITY_BLOCK, threshold, lit)
-        || !run_is_uniform(row, last_block * UNIFORMITY_BLOCK, last, threshold, lit)) {
+    if (!(is_uniform(runs[table + first_block], threshold, lit)
+          || run_is_uniform(row, first + 1u, (first_block + 1u) * UNIFORMITY_BLOCK, threshold, lit))
+        || !(is_uniform(runs[table + last_block], threshold, lit)
+             || run_is_uniform(row, last_block * UNIFORMITY_BLOCK, last, threshold, lit))) {
         return false;
     }
     uint whole = last_block - first_block - 1u;
     if (whole > 0u) {
-        uint blocks = (q.samples + UNIFORMITY_BLOCK - 1u) / UNIFORMITY_BLOCK;
-        uint levels = uint(findMSB(blocks)) + 1u;
         uint k = uint(findMSB(whole));
-        uint level = (slice * levels + k) * blocks;
+        uint level = table + k * blocks;
         if (!is_uniform(runs[level + first_block + 1u], threshold, lit)
             || !is_uniform(runs[level + last_block - (1u << k)], threshold, lit)) {
             return false;

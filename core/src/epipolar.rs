@@ -837,7 +837,6 @@ impl EpipolarMap {
     /// matched once.
     #[inline]
     pub fn run_bounds(&self, row: &[f32], range: std::ops::Range<usize>) -> [f32; 2] {
-        let start = range.start;
         let (values, factors) = (&row[range.clone()], &self.bound_factors[range]);
         let (mut low, mut high) = (f32::INFINITY, f32::NEG_INFINITY);
         if !self.layout.is_reciprocal() {
@@ -846,10 +845,13 @@ impl EpipolarMap {
                 high = high.max(centre + near);
             }
         } else {
-            for (i, &centre) in values.iter().enumerate() {
-                let (a, b) = self.sample_bounds(start + i, centre);
-                low = low.min(a);
-                high = high.max(b);
+            // sample_bounds without its branches, so that the loop vectorizes: the factors
+            // are positive, so the centre times each brackets K whatever its sign, and
+            // where a product is NaN (0·∞) min and max take the other, the centre itself.
+            for (&centre, &[near, far]) in values.iter().zip(factors) {
+                let (a, b) = (centre * near, centre * far);
+                low = low.min(a.min(b));
+                high = high.max(a.max(b));
             }
         }
         [low, high]

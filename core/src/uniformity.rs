@@ -137,18 +137,23 @@ impl UniformityTable {
             return None;
         }
         let (first_block, last_block) = (first / BLOCK, last / BLOCK);
+        let table = &self.runs[slice as usize * self.levels * self.blocks..];
+        // A partial block is uniform where its whole block is, which one entry says;
+        // only where that fails are its own samples read.
+        let partial = |block: usize, samples: std::ops::Range<usize>| {
+            uniform(table[block]) || uniform(map.run_bounds(row, samples))
+        };
         if first_block == last_block {
-            return uniform(map.run_bounds(row, first + 1..last)).then_some(lit);
+            return partial(first_block, first + 1..last).then_some(lit);
         }
-        if !uniform(map.run_bounds(row, first + 1..(first_block + 1) * BLOCK))
-            || !uniform(map.run_bounds(row, last_block * BLOCK..last))
+        if !partial(first_block, first + 1..(first_block + 1) * BLOCK)
+            || !partial(last_block, last_block * BLOCK..last)
         {
             return None;
         }
         let whole = last_block - first_block - 1;
         if whole > 0 {
             let k = whole.ilog2() as usize;
-            let table = &self.runs[slice as usize * self.levels * self.blocks..];
             let level = &table[k * self.blocks..][..self.blocks];
             if !uniform(level[first_block + 1]) || !uniform(level[last_block - (1 << k)]) {
                 return None;
