@@ -111,7 +111,7 @@ struct Interpolation<'s, S> {
 impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
     /// Pixel (x, y) as the blend of `neighbours` by `weights` ([`blend_if_agreeing`]),
     /// where it lies on their surface.
-    #[inline]
+    #[inline(always)]
     fn between<const N: usize>(
         &self,
         neighbours: [Pixel; N],
@@ -554,22 +554,6 @@ pub fn shade_adaptively(
                 control.advance(rows as u64);
             });
     }
-    // Pixel (x, y) as the mean of the finer grid's pixels beside it (left and right,
-    // above and below, or the four diagonal ones) where they agree. `None` on the last
-    // column or row where one is missing.
-    let between = |x: usize, y: usize, above: &[Pixel], below: Option<&[Pixel]>| {
-        let i = x / 2;
-        match (x % 2 == 1, below) {
-            (true, None) => interpolation.mean([above[i], *above.get(i + 1)?], x, y),
-            (false, Some(below)) => interpolation.mean([above[i], below[i]], x, y),
-            (true, Some(below)) => interpolation.mean(
-                [above[i], *above.get(i + 1)?, below[i], *below.get(i + 1)?],
-                x,
-                y,
-            ),
-            (false, None) => Some(above[i]),
-        }
-    };
     let between_shaded = AtomicUsize::new(0);
     let mut layers = Layers::for_overwrite(width as u32, height as u32);
     layers.par_bands_mut(TILE).for_each(|mut band| {
@@ -583,20 +567,52 @@ pub fn shade_adaptively(
         let mut to_shade = vec![false; rows * width];
         for row in 0..rows {
             let y = band.first_row + row;
-            let above = grid.row(y / 2);
-            // The last odd row of an even height has nothing below.
-            let below = (y % 2 == 1).then(|| grid.row(y / 2 + 1));
-            for x in 0..width {
-                let k = row * width + x;
-                let pixel = match (above, below) {
-                    (Some(above), None) => between(x, y, above, None),
-                    (Some(above), Some(Some(below))) => between(x, y, above, Some(below)),
-                    _ => None,
-                };
-                match pixel {
-                    Some(pixel) => band.set(k, &pixel),
-                    None => to_shade[k] = true,
+            let start = row * width;
+            let mut put = |x: usize, pixel: Option<Pixel>| match pixel {
+                Some(pixel) => band.set(start + x, &pixel),
+                None => to_shade[start + x] = true,
+            };
+            // Each pixel is the mean of the finer grid's points beside it (left and
+            // right, above and below, or the four diagonal ones) where they agree; it is
+            // shaded where one is missing (on the last column, or the last odd row of an
+            // even height).
+            let (Some(above), below) = (grid.row(y / 2), grid.row(y / 2 + 1)) else {
+                (0..width).for_each(|x| put(x, None));
+                continue;
+            };
+            if y % 2 == 0 {
+                for (i, pair) in above.windows(2).enumerate() {
+                    put(2 * i, Some(pair[0]));
+                    put(
+                        2 * i + 1,
+                        interpolation.mean([pair[0], pair[1]], 2 * i + 1, y),
+                    );
                 }
+                let last = above.len() - 1;
+                put(2 * last, Some(above[last]));
+                if 2 * last + 1 < width {
+                    put(2 * last + 1, None);
+                }
+                continue;
+            }
+            let Some(below) = below else {
+                (0..width).for_each(|x| put(x, None));
+                continue;
+            };
+            for (i, (top, bottom)) in above.windows(2).zip(below.windows(2)).enumerate() {
+                put(2 * i, interpolation.mean([top[0], bottom[0]], 2 * i, y));
+                put(
+                    2 * i + 1,
+                    interpolation.mean([top[0], top[1], bottom[0], bottom[1]], 2 * i + 1, y),
+                );
+            }
+            let last = above.len() - 1;
+            put(
+                2 * last,
+                interpolation.mean([above[last], below[last]], 2 * last, y),
+            );
+            if 2 * last + 1 < width {
+                put(2 * last + 1, None);
             }
         }
         let first_row = band.first_row;
@@ -658,6 +674,7 @@ impl Batch {
 /// their view rays end within [`EDGE_DEPTH_SPREAD`] of each other (background and
 /// surfaces beyond it at `max_distance`). The blend's depth is their nearest ray end.
 /// NaN anywhere means disagreement.
+#[inline(always)]
 fn blend_if_agreeing<const N: usize>(
     neighbours: [Pixel; N],
     weights: [f32; N],
@@ -676,7 +693,11 @@ fn blend_if_agreeing<const N: usize>(
             b,
             a,
             pixel.visibility,
-            pixel.depth.min(max_distance),
+            if pixel.depth < max_distance {
+                pixel.depth
+            } else {
+                max_distance
+            },
             0.0,
             0.0,
         ]
@@ -687,9 +708,19 @@ fn blend_if_agreeing<const N: usize>(
     let mut blend = first;
     for (neighbour, weight) in neighbours.iter().zip(weights) {
         let values = lanes(neighbour);
+        // Comparisons rather than f32::min and max, which vectorize without their NaN
+        // handling and give the same: NaN never replaces a bound, and blends to NaN.
         for k in 0..8 {
-            low[k] = low[k].min(values[k]);
-            high[k] = high[k].max(values[k]);
+            low[k] = if values[k] < low[k] {
+                values[k]
+            } else {
+                low[k]
+            };
+            high[k] = if values[k] > high[k] {
+                values[k]
+            } else {
+                high[k]
+            };
             blend[k] += weight * (values[k] - first[k]);
         }
     }
