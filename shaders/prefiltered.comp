@@ -235,6 +235,15 @@ bool run_is_uniform(uint row, uint from, uint to, float threshold, bool lit) {
     return true;
 }
 
+// Whether samples [from, to) of the slice starting at `row`, all in block `block` of the
+// slice's table at `table`, are all as `lit` says: where the whole block is (one entry),
+// or else read sample by sample.
+bool partial_is_uniform(uint table, uint block, uint row, uint from, uint to,
+                        float threshold, bool lit) {
+    return is_uniform(runs[table + block], threshold, lit)
+        || run_is_uniform(row, from, to, threshold, lit);
+}
+
 // Whether a ray with `threshold` is lit (`lit` true) or shadowed over all of samples
 // first..=last of `slice` (UniformityTable::uniformity).
 bool uniformity(uint slice, float threshold, uint first, uint last, out bool lit) {
@@ -258,16 +267,13 @@ bool uniformity(uint slice, float threshold, uint first, uint last, out bool lit
     uint table = slice * levels * blocks;
     uint first_block = first / UNIFORMITY_BLOCK;
     uint last_block = last / UNIFORMITY_BLOCK;
-    // A partial block is uniform where its whole block is (one entry); only where that
-    // fails are its own samples read.
     if (first_block == last_block) {
-        return is_uniform(runs[table + first_block], threshold, lit)
-            || run_is_uniform(row, first + 1u, last, threshold, lit);
+        return partial_is_uniform(table, first_block, row, first + 1u, last, threshold, lit);
     }
-    if (!(is_uniform(runs[table + first_block], threshold, lit)
-          || run_is_uniform(row, first + 1u, (first_block + 1u) * UNIFORMITY_BLOCK, threshold, lit))
-        || !(is_uniform(runs[table + last_block], threshold, lit)
-             || run_is_uniform(row, last_block * UNIFORMITY_BLOCK, last, threshold, lit))) {
+    if (!partial_is_uniform(table, first_block, row, first + 1u,
+                            (first_block + 1u) * UNIFORMITY_BLOCK, threshold, lit)
+        || !partial_is_uniform(table, last_block, row, last_block * UNIFORMITY_BLOCK, last,
+                               threshold, lit)) {
         return false;
     }
     uint whole = last_block - first_block - 1u;

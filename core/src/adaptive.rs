@@ -575,42 +575,46 @@ pub fn shade_adaptively(
             // Each pixel is the mean of the finer grid's points beside it (left and
             // right, above and below, or the four diagonal ones) where they agree; it is
             // shaded where one is missing (on the last column, or the last odd row of an
-            // even height).
-            let (Some(above), below) = (grid.row(y / 2), grid.row(y / 2 + 1)) else {
+            // even height, which has nothing below).
+            let rows_beside = match (grid.row(y / 2), y % 2 == 1) {
+                (Some(above), false) => Some((above, None)),
+                (Some(above), true) => grid.row(y / 2 + 1).map(|below| (above, Some(below))),
+                (None, _) => None,
+            };
+            let Some((above, below)) = rows_beside else {
                 (0..width).for_each(|x| put(x, None));
                 continue;
             };
-            if y % 2 == 0 {
-                for (i, pair) in above.windows(2).enumerate() {
-                    put(2 * i, Some(pair[0]));
+            let last = above.len() - 1;
+            match below {
+                None => {
+                    for (i, pair) in above.windows(2).enumerate() {
+                        put(2 * i, Some(pair[0]));
+                        put(
+                            2 * i + 1,
+                            interpolation.mean([pair[0], pair[1]], 2 * i + 1, y),
+                        );
+                    }
+                    put(2 * last, Some(above[last]));
+                }
+                Some(below) => {
+                    for (i, (top, bottom)) in above.windows(2).zip(below.windows(2)).enumerate() {
+                        put(2 * i, interpolation.mean([top[0], bottom[0]], 2 * i, y));
+                        put(
+                            2 * i + 1,
+                            interpolation.mean(
+                                [top[0], top[1], bottom[0], bottom[1]],
+                                2 * i + 1,
+                                y,
+                            ),
+                        );
+                    }
                     put(
-                        2 * i + 1,
-                        interpolation.mean([pair[0], pair[1]], 2 * i + 1, y),
+                        2 * last,
+                        interpolation.mean([above[last], below[last]], 2 * last, y),
                     );
                 }
-                let last = above.len() - 1;
-                put(2 * last, Some(above[last]));
-                if 2 * last + 1 < width {
-                    put(2 * last + 1, None);
-                }
-                continue;
             }
-            let Some(below) = below else {
-                (0..width).for_each(|x| put(x, None));
-                continue;
-            };
-            for (i, (top, bottom)) in above.windows(2).zip(below.windows(2)).enumerate() {
-                put(2 * i, interpolation.mean([top[0], bottom[0]], 2 * i, y));
-                put(
-                    2 * i + 1,
-                    interpolation.mean([top[0], top[1], bottom[0], bottom[1]], 2 * i + 1, y),
-                );
-            }
-            let last = above.len() - 1;
-            put(
-                2 * last,
-                interpolation.mean([above[last], below[last]], 2 * last, y),
-            );
             if 2 * last + 1 < width {
                 put(2 * last + 1, None);
             }

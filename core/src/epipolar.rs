@@ -259,6 +259,17 @@ pub struct EpipolarMap {
 /// parallel to the light: they belong to the epipole.
 const MIN_PROJECTED_LENGTH: f64 = 1e-9;
 
+/// The smallest and largest K over a reciprocal-layout sample's interval, where K(s) =
+/// K(s_c)·s_c/s: the centre value times each end's factor s_c/s. Both factors are
+/// positive, so the two products bracket K whatever its sign; where one is NaN (0·∞) min
+/// and max take the other, the centre itself. Without branches, so that loops over runs
+/// vectorize.
+#[inline]
+fn reciprocal_bounds(centre: f32, near: f32, far: f32) -> (f32, f32) {
+    let (a, b) = (centre * near, centre * far);
+    (a.min(b), a.max(b))
+}
+
 // The last frame's rectified values, kept for the next (see `crate::spare`).
 static SPARE_VALUES: Spare<f32> = Spare::new();
 
@@ -816,14 +827,7 @@ impl EpipolarMap {
             // K(s) = K(s_c) + slope·(s_c − s): the ends differ by ±|slope|·step/2.
             return (centre - near, centre + near);
         }
-        // K(s) = K(s_c)·s_c/s: scale the centre value by s_c/s at both ends.
-        if centre == 0.0 || centre.is_infinite() {
-            (centre, centre)
-        } else if centre > 0.0 {
-            (centre * far, centre * near)
-        } else {
-            (centre * near, centre * far)
-        }
+        reciprocal_bounds(centre, near, far)
     }
 
     /// Per sample index, what turns K at its centre into K at its ends
@@ -845,13 +849,10 @@ impl EpipolarMap {
                 high = high.max(centre + near);
             }
         } else {
-            // sample_bounds without its branches, so that the loop vectorizes: the factors
-            // are positive, so the centre times each brackets K whatever its sign, and
-            // where a product is NaN (0·∞) min and max take the other, the centre itself.
             for (&centre, &[near, far]) in values.iter().zip(factors) {
-                let (a, b) = (centre * near, centre * far);
-                low = low.min(a.min(b));
-                high = high.max(a.max(b));
+                let (a, b) = reciprocal_bounds(centre, near, far);
+                low = low.min(a);
+                high = high.max(b);
             }
         }
         [low, high]

@@ -2309,6 +2309,7 @@ mod tests {
     #[test]
     fn rays_lit_or_shadowed_all_along_are_exact() {
         use crate::minmax::{MinMaxMethod, MinMaxMipmap};
+        use crate::uniformity::uniformity_of_every_sample;
         use rand::{RngExt, SeedableRng};
         let mut scene = crate::builtin_scene("torus").expect("built-in scene");
         scene.camera.width = 96;
@@ -2342,18 +2343,7 @@ mod tests {
                 .neighbours(located.slice)
                 .into_iter()
                 .filter(|&(_, share)| share > 0.0)
-                .map(|(slice, _)| {
-                    let row = map.row(slice);
-                    let bounds = (first..=last).map(|i| map.sample_bounds(i, row[i]));
-                    let bounds: Vec<(f32, f32)> = bounds.collect();
-                    if bounds.iter().all(|&(low, _)| low >= threshold) {
-                        Some(true)
-                    } else if bounds.iter().all(|&(_, high)| high < threshold) {
-                        Some(false)
-                    } else {
-                        None
-                    }
-                });
+                .map(|(slice, _)| uniformity_of_every_sample(&map, slice, threshold, first, last));
             let Some(state) = states.next().flatten() else {
                 mixed += 1;
                 continue;

@@ -5,8 +5,9 @@
 //!
 //! Per slice, the samples are grouped in blocks of [`BLOCK`]; a sparse table holds the
 //! lowest and highest K over every run of 2^k blocks from each block. A stretch is its
-//! partial blocks at either end, read sample by sample (one cache line each), and the
-//! whole blocks between, covered by two runs of the table.
+//! partial blocks at either end, each uniform where its whole block is (one entry) or
+//! else read sample by sample (one cache line), and the whole blocks between, covered by
+//! two runs of the table.
 
 use rayon::prelude::*;
 
@@ -163,6 +164,29 @@ impl UniformityTable {
     }
 }
 
+/// [`UniformityTable::uniformity`] the slow way, testing every sample's bounds: what the
+/// tests hold the table and prefiltering's exact rays to.
+#[cfg(test)]
+pub(crate) fn uniformity_of_every_sample(
+    map: &EpipolarMap,
+    slice: u32,
+    threshold: f32,
+    first: usize,
+    last: usize,
+) -> Option<bool> {
+    let row = map.row(slice);
+    let bounds: Vec<(f32, f32)> = (first..=last)
+        .map(|i| map.sample_bounds(i, row[i]))
+        .collect();
+    if bounds.iter().all(|&(low, _)| low >= threshold) {
+        Some(true)
+    } else if bounds.iter().all(|&(_, high)| high < threshold) {
+        Some(false)
+    } else {
+        None
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -234,19 +258,12 @@ mod tests {
                 // Thresholds at the stretch's own values, where the answer is closest.
                 let at = rng.random_range(first..=last);
                 let threshold = row[at] + rng.random_range(-0.02..0.02f32) * row[at].abs();
-                let bounds: Vec<(f32, f32)> = (first..=last)
-                    .map(|i| map.sample_bounds(i, row[i]))
-                    .collect();
-                let expected = if bounds.iter().all(|&(low, _)| low >= threshold) {
-                    lit += 1;
-                    Some(true)
-                } else if bounds.iter().all(|&(_, high)| high < threshold) {
-                    shadowed += 1;
-                    Some(false)
-                } else {
-                    mixed += 1;
-                    None
-                };
+                let expected = uniformity_of_every_sample(&map, slice, threshold, first, last);
+                match expected {
+                    Some(true) => lit += 1,
+                    Some(false) => shadowed += 1,
+                    None => mixed += 1,
+                }
                 assert_eq!(
                     table.uniformity(&map, slice, threshold, first, last),
                     expected,
