@@ -87,6 +87,18 @@ impl EpipolarLines {
         [ex - x as f64 * ew, ey - y as f64 * ew]
     }
 
+    /// Whether a pair of pixels `span` apart (from one to the other), either side of pixel
+    /// (`x`, `y`), lies at most [`MAX_ACROSS`] across the epipolar line through it: never
+    /// at the epipole, where no line has a direction.
+    #[inline]
+    fn pairs_along(&self, x: usize, y: usize, span: [f64; 2]) -> bool {
+        let [dx, dy] = self.direction(x, y);
+        // The pair's distance across the line, times the direction's length.
+        let cross = dx * span[1] - dy * span[0];
+        let length_squared = dx * dx + dy * dy;
+        length_squared > 1e-24 && cross * cross <= MAX_ACROSS * MAX_ACROSS * length_squared
+    }
+
     /// For pixel (`x`, `y`) interpolated from the pixels at ±`offset` from it: how far
     /// apart they lie across the epipolar line through it, in pixels (∞ at the epipole).
     #[cfg(test)]
@@ -174,10 +186,11 @@ const _: () = assert!(MAX_STRIDE * MAX_STEP < TILE as i64);
 static SPARE_EVEN_BANDS: Spare<Pixel> = Spare::new();
 static SPARE_ODD_BANDS: Spare<Pixel> = Spare::new();
 
-/// Lets go of the finer grid's kept buffers ([`crate::release_kept_buffers`]).
+/// Lets go of the finer grid's and the band edges' kept buffers ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
     SPARE_EVEN_BANDS.clear();
     SPARE_ODD_BANDS.clear();
+    SPARE_BAND_EDGES.clear();
 }
 
 impl FinerGrid {
@@ -215,6 +228,35 @@ impl Drop for FinerGrid {
         let [even, odd] = &mut self.parities;
         SPARE_EVEN_BANDS.keep(std::mem::take(even));
         SPARE_ODD_BANDS.keep(std::mem::take(odd));
+    }
+}
+
+/// The centres on each band's last odd row ([`TILE`] rows a band), one row of them a
+/// band: the band below reads them too. Every one is set before it is read, so the
+/// storage is an earlier frame's where one is kept.
+struct BandEdges {
+    values: Vec<Pixel>,
+}
+
+static SPARE_BAND_EDGES: Spare<Pixel> = Spare::new();
+
+impl BandEdges {
+    fn new(len: usize) -> Self {
+        Self {
+            values: SPARE_BAND_EDGES.take(len),
+        }
+    }
+
+    /// Band `band`'s row of `width` centres.
+    #[inline]
+    fn row(&self, band: usize, width: usize) -> &[Pixel] {
+        &self.values[band * width..(band + 1) * width]
+    }
+}
+
+impl Drop for BandEdges {
+    fn drop(&mut self) {
+        SPARE_BAND_EDGES.keep(std::mem::take(&mut self.values));
     }
 }
 
@@ -513,17 +555,11 @@ pub fn shade_adaptively(
                         lattice_point(pixels, pi + ahead * a, pj + ahead * b, home)?,
                     ];
                     let (x, y) = (2 * i, 2 * j);
-                    let [dx, dy] = lines?.direction(x, y);
                     let (sx, sy) = (
                         (2 * lattice.stride * a) as f64,
                         (2 * lattice.stride * b) as f64,
                     );
-                    // The pair's distance across the line, times the direction's length.
-                    let cross = dx * sy - dy * sx;
-                    let length_squared = dx * dx + dy * dy;
-                    if !(length_squared > 1e-24
-                        && cross * cross <= MAX_ACROSS * MAX_ACROSS * length_squared)
-                    {
+                    if !lines?.pairs_along(x, y, [sx, sy]) {
                         return None;
                     }
                     let span = (sx * sx + sy * sy).sqrt();
@@ -554,6 +590,72 @@ pub fn shade_adaptively(
                 control.advance(rows as u64);
             });
     }
+    // The centres of the finer grid's squares, pixels (2i + 1, 2j + 1): the mean of the
+    // four corners where they agree, else of the diagonal pair along the epipolar line
+    // through the centre; shaded where neither agrees or a corner is missing (on the last
+    // column or row).
+    let (centre_width, centre_height) = (width / 2, height / 2);
+    let centre = |corners: [Pixel; 4], x: usize, y: usize| {
+        interpolation.mean(corners, x, y).or_else(|| {
+            let [top_left, top_right, bottom_left, bottom_right] = corners;
+            let lines = lines?;
+            let diagonal = if lines.pairs_along(x, y, [2.0, 2.0]) {
+                [top_left, bottom_right]
+            } else if lines.pairs_along(x, y, [2.0, -2.0]) {
+                [bottom_left, top_right]
+            } else {
+                return None;
+            };
+            interpolation.mean(diagonal, x, y)
+        })
+    };
+    // Row j of the centres into `out`, flagging those to shade.
+    let centre_row = |j: usize, out: &mut [Pixel], flags: &mut [bool]| {
+        let y = 2 * j + 1;
+        let (Some(above), Some(below)) = (grid.row(j), grid.row(j + 1)) else {
+            flags.fill(true);
+            return;
+        };
+        for (i, ((top, bottom), (out, flag))) in above
+            .windows(2)
+            .zip(below.windows(2))
+            .zip(out.iter_mut().zip(flags.iter_mut()))
+            .enumerate()
+        {
+            match centre([top[0], top[1], bottom[0], bottom[1]], 2 * i + 1, y) {
+                Some(value) => *out = value,
+                None => *flag = true,
+            }
+        }
+        // The last column's centre, where the width is even, has no corners to its right.
+        if centre_width == grid_width {
+            flags[centre_width - 1] = true;
+        }
+    };
+    // A band's pixels read the centres of its own odd rows and of the odd row above it;
+    // that row, the last of the band above, is completed first, so that every centre is
+    // completed once and bands can be completed in parallel.
+    let band_count = height.div_ceil(TILE);
+    let last_centre_row = |band: usize| (band + 1) * TILE / 2 - 1;
+    let mut edges = BandEdges::new(band_count * centre_width);
+    edges
+        .values
+        .par_chunks_mut(centre_width.max(1))
+        .enumerate()
+        .for_each(|(band, out)| {
+            let j = last_centre_row(band);
+            if control.is_cancelled() || j >= centre_height {
+                return;
+            }
+            let mut flags = vec![false; centre_width];
+            centre_row(j, out, &mut flags);
+            let mut batch = Batch::default();
+            for (i, _) in flags.iter().enumerate().filter(|(_, flag)| **flag) {
+                batch.push(i, (2 * i + 1, 2 * j + 1));
+            }
+            shaded_count.fetch_add(batch.shade(&shade, out), Ordering::Relaxed);
+        });
+    let edges = &edges;
     let between_shaded = AtomicUsize::new(0);
     let mut layers = Layers::for_overwrite(width as u32, height as u32);
     layers.par_bands_mut(TILE).for_each(|mut band| {
@@ -561,6 +663,38 @@ pub fn shade_adaptively(
             return;
         }
         let rows = band.rows;
+        let index = band.first_row / TILE;
+        // The band's centres; its last row is the one completed first.
+        let first_centre_row = band.first_row / 2;
+        let centre_rows = (rows / 2).min(centre_height.saturating_sub(first_centre_row));
+        let mut centres = vec![Pixel::default(); centre_rows * centre_width];
+        let mut flags = vec![false; centres.len()];
+        for (r, (out, flags)) in centres
+            .chunks_mut(centre_width.max(1))
+            .zip(flags.chunks_mut(centre_width.max(1)))
+            .enumerate()
+        {
+            let j = first_centre_row + r;
+            match j == last_centre_row(index) {
+                true => out.copy_from_slice(edges.row(index, centre_width)),
+                false => centre_row(j, out, flags),
+            }
+        }
+        let mut batch = Batch::default();
+        for_each_in_tiles(centre_width, centre_rows, |i, r| {
+            let k = r * centre_width + i;
+            if flags[k] {
+                batch.push(k, (2 * i + 1, band.first_row + 2 * r + 1));
+            }
+        });
+        between_shaded.fetch_add(batch.shade(&shade, &mut centres), Ordering::Relaxed);
+        let centres_of = |j: usize| -> Option<&[Pixel]> {
+            match j.checked_sub(first_centre_row) {
+                None if j + 1 == first_centre_row => Some(edges.row(index - 1, centre_width)),
+                None => None,
+                Some(r) => centres.get(r * centre_width..(r + 1) * centre_width),
+            }
+        };
         // Interpolated row by row, which streams through the finer grid and the
         // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
         // for the locality of their rectified data.
@@ -572,51 +706,55 @@ pub fn shade_adaptively(
                 Some(pixel) => band.set(start + x, &pixel),
                 None => to_shade[start + x] = true,
             };
-            // Each pixel is the mean of the finer grid's points beside it (left and
-            // right, above and below, or the four diagonal ones) where they agree; it is
-            // shaded where one is missing (on the last column, or the last odd row of an
-            // even height, which has nothing below).
-            let rows_beside = match (grid.row(y / 2), y % 2 == 1) {
-                (Some(above), false) => Some((above, None)),
-                (Some(above), true) => grid.row(y / 2 + 1).map(|below| (above, Some(below))),
-                (None, _) => None,
-            };
-            let Some((above, below)) = rows_beside else {
+            let j = y / 2;
+            let Some(above) = grid.row(j) else {
                 (0..width).for_each(|x| put(x, None));
                 continue;
             };
+            // The other pixels lie between two of the finer grid's points (left and
+            // right on its rows, above and below between them), or between two centres
+            // the other way: the mean of the first pair that agrees.
             let last = above.len() - 1;
-            match below {
-                None => {
-                    for (i, pair) in above.windows(2).enumerate() {
-                        put(2 * i, Some(pair[0]));
-                        put(
-                            2 * i + 1,
-                            interpolation.mean([pair[0], pair[1]], 2 * i + 1, y),
-                        );
+            if y % 2 == 0 {
+                let beside = j.checked_sub(1).and_then(centres_of).zip(centres_of(j));
+                let centres_beside = |i: usize| {
+                    let (above, below) = beside?;
+                    Some([*above.get(i)?, *below.get(i)?])
+                };
+                for (i, pair) in above.windows(2).enumerate() {
+                    let x = 2 * i + 1;
+                    put(x - 1, Some(pair[0]));
+                    let mut value = interpolation.mean([pair[0], pair[1]], x, y);
+                    if value.is_none() {
+                        value = centres_beside(i).and_then(|pair| interpolation.mean(pair, x, y));
                     }
-                    put(2 * last, Some(above[last]));
+                    put(x, value);
                 }
-                Some(below) => {
-                    for (i, (top, bottom)) in above.windows(2).zip(below.windows(2)).enumerate() {
-                        put(2 * i, interpolation.mean([top[0], bottom[0]], 2 * i, y));
-                        put(
-                            2 * i + 1,
-                            interpolation.mean(
-                                [top[0], top[1], bottom[0], bottom[1]],
-                                2 * i + 1,
-                                y,
-                            ),
-                        );
-                    }
+                put(2 * last, Some(above[last]));
+                if 2 * last + 1 < width {
+                    let x = 2 * last + 1;
                     put(
-                        2 * last,
-                        interpolation.mean([above[last], below[last]], 2 * last, y),
+                        x,
+                        centres_beside(last).and_then(|pair| interpolation.mean(pair, x, y)),
                     );
                 }
-            }
-            if 2 * last + 1 < width {
-                put(2 * last + 1, None);
+            } else {
+                let centres = centres_of(j).unwrap_or_default();
+                let centres_beside =
+                    |i: usize| Some([*centres.get(i.checked_sub(1)?)?, *centres.get(i)?]);
+                let below = grid.row(j + 1);
+                for i in 0..=last {
+                    let x = 2 * i;
+                    let mut value =
+                        below.and_then(|below| interpolation.mean([above[i], below[i]], x, y));
+                    if value.is_none() {
+                        value = centres_beside(i).and_then(|pair| interpolation.mean(pair, x, y));
+                    }
+                    put(x, value);
+                    if let Some(centre) = centres.get(i) {
+                        put(x + 1, Some(*centre));
+                    }
+                }
             }
         }
         let first_row = band.first_row;
@@ -875,13 +1013,17 @@ mod tests {
             let v = 1.0 + 0.0001 * x as f32 + 0.0002 * y as f32;
             pixel(v, 0.5 * v, 0.5 + 0.001 * v, 20.0)
         };
-        for (width, height) in [(33, 17), (32, 18), (1, 1), (2, 2)] {
+        for (width, height) in [(33, 17), (32, 18), (32, 17), (33, 18), (1, 1), (2, 2)] {
             let (layers, shaded) = shade_image(width, height, 0.01, None, |_, _| Some(20.0), value);
-            // The even pixels of even rows, and the last column and row where they are
-            // odd: nothing lies beyond them to interpolate from.
+            // The even pixels of even rows; and where the last column is odd, its centres
+            // (whose squares lack a corner) and the pixels at its ends (with a centre on
+            // one side only); the same for the last row.
             let anchors = width.div_ceil(2) * height.div_ceil(2);
-            let last_column = if width % 2 == 0 { height } else { 0 };
-            let last_row = if height % 2 == 0 { width } else { 0 };
+            let edge = |size: usize, along: usize| match size % 2 {
+                0 => along / 2 + 1 + usize::from(along % 2 == 1 && along > 1),
+                _ => 0,
+            };
+            let (last_column, last_row) = (edge(width, height), edge(height, width));
             let corner = usize::from(width % 2 == 0 && height % 2 == 0);
             assert_eq!(
                 shaded,
@@ -1181,5 +1323,78 @@ mod tests {
         }
         let (_, finer) = shade_image(width, height, 0.01, None, surface, value);
         assert!(shaded < finer, "{shaded} shaded, {finer} without the lines");
+    }
+
+    /// `value` shaded adaptively on a 40 × 30 image at one depth, exact everywhere;
+    /// returns the pixels shaded.
+    fn shaded_pixels(
+        lines: Option<EpipolarLines>,
+        value: impl Fn(usize, usize) -> Pixel + Sync,
+    ) -> std::collections::HashSet<(usize, usize)> {
+        let (width, height) = (40, 30);
+        let shaded = std::sync::Mutex::new(std::collections::HashSet::new());
+        let recorded = |x: usize, y: usize| {
+            shaded.lock().unwrap().insert((x, y));
+            value(x, y)
+        };
+        let (layers, count) = shade_image(width, height, 0.01, lines, |_, _| Some(20.0), recorded);
+        for y in 0..height {
+            for x in 0..width {
+                assert_eq!(layer_value(&layers, x, y), value(x, y), "({x}, {y})");
+            }
+        }
+        let shaded = shaded.into_inner().unwrap();
+        assert_eq!(shaded.len(), count);
+        shaded
+    }
+
+    #[test]
+    fn pixels_between_disagreeing_neighbours_take_the_centres_the_other_way() {
+        // A shaft two pixels wide: the pixels of its left column on even rows lie between
+        // a dark and a lit point of the finer grid, and between two centres, shaded,
+        // that agree.
+        let value = |x: usize, _: usize| {
+            let lit = (21..23).contains(&x);
+            pixel(
+                if lit { 1.0 } else { 0.2 },
+                0.3,
+                f32::from(u8::from(lit)),
+                20.0,
+            )
+        };
+        for lines in [None, Some(EpipolarLines::through([0.0, 1.0, 0.0]))] {
+            let shaded = shaded_pixels(lines, value);
+            for y in (1..29).step_by(2) {
+                assert!(shaded.contains(&(21, y)), "{lines:?}: centre (21, {y})");
+                assert!(!shaded.contains(&(21, y + 1)), "{lines:?}: (21, {})", y + 1);
+            }
+        }
+    }
+
+    #[test]
+    fn centres_on_edges_along_the_epipolar_lines_take_the_diagonal_along_them() {
+        // A shaft along the image's diagonal, four pixels wide across the rows.
+        let value = |x: usize, y: usize| {
+            let lit = (0..4).contains(&(x as i64 - y as i64));
+            pixel(
+                if lit { 1.0 } else { 0.2 },
+                0.3,
+                f32::from(u8::from(lit)),
+                20.0,
+            )
+        };
+        let along = shaded_pixels(Some(EpipolarLines::through([1.0, 1.0, 0.0])), value);
+        let without = shaded_pixels(None, value);
+        // On its edges, the centres (odd x and y) whose four corners disagree.
+        let edges = (1..29usize)
+            .step_by(2)
+            .flat_map(|y| [y.checked_sub(2), Some(y), Some(y + 2), Some(y + 4)].map(|x| (x, y)))
+            .filter_map(|(x, y)| Some((x?, y)))
+            .filter(|&(x, _)| x < 39)
+            .collect::<Vec<_>>();
+        for centre in edges {
+            assert!(!along.contains(&centre), "{centre:?} along the lines");
+            assert!(without.contains(&centre), "{centre:?} without the lines");
+        }
     }
 }
