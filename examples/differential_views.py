@@ -14,7 +14,8 @@ and a case is flagged when one leaves more than `BLACK_LEAK` there.
     .venv/bin/python examples/differential_views.py --seed 2 --cases 60 --out /tmp/cases
 
 `--exact-ray-ends on` (or `off`) renders the same cases with prefiltering's exact ray ends
-everywhere (or nowhere); by default they are on in box media only.
+everywhere (or nowhere); by default they are on in box media only. `--box-only` puts
+every case's medium in a box, to compare those two on box media alone.
 """
 
 from __future__ import annotations
@@ -74,7 +75,9 @@ BLACK = 1e-9
 BLACK_LEAK = 1e-3
 
 
-def random_case(rng: random.Random, width: int, height: int) -> tuple[str, dict]:
+def random_case(
+    rng: random.Random, width: int, height: int, box_only: bool = False
+) -> tuple[str, dict]:
     name = rng.choice(list(crepuscular.builtin_scene_names()))
     scene = crepuscular.builtin_scene(name)
     elevation = math.radians(rng.uniform(8, 89))
@@ -110,7 +113,8 @@ def random_case(rng: random.Random, width: int, height: int) -> tuple[str, dict]
     medium = scene["medium"]
     medium["extinction"] = rng.choice([0.01, 0.05, 0.2, 0.6])
     medium["anisotropy"] = rng.uniform(-0.5, 0.8)
-    if rng.random() < 0.25:
+    # The draw comes first, so that cases drawn with a box are the same with `box_only`.
+    if rng.random() < 0.25 or box_only:
         # Around what the camera looks at, so that the box is in view: centred on the
         # scene's middle, five of seed 40's nine boxes lay outside the image.
         cx, cy, cz = (
@@ -166,13 +170,18 @@ def main() -> int:
         help="prefiltering's exact ray ends (the same cases whichever): auto (in box media), "
         "on or off",
     )
+    parser.add_argument(
+        "--box-only",
+        action="store_true",
+        help="confine every case's medium to a box (the cases that draw one keep theirs)",
+    )
     args = parser.parse_args()
     rng = random.Random(args.seed)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
     flagged = 0
     for case in range(args.cases):
-        name, scene = random_case(rng, args.width, args.height)
+        name, scene = random_case(rng, args.width, args.height, args.box_only)
         scene["render"]["exact_ray_ends"] = args.exact_ray_ends
         volumes = {}
         try:
