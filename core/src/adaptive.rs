@@ -609,28 +609,21 @@ pub fn shade_adaptively(
             interpolation.mean(diagonal, x, y)
         })
     };
-    // Row j of the centres into `out`, flagging those to shade.
-    let centre_row = |j: usize, out: &mut [Pixel], flags: &mut [bool]| {
+    // Row j of the centres appended to `out`, and whether each must be shaded to `flags`.
+    let centre_row = |j: usize, out: &mut Vec<Pixel>, flags: &mut Vec<bool>| {
         let y = 2 * j + 1;
-        let (Some(above), Some(below)) = (grid.row(j), grid.row(j + 1)) else {
-            flags.fill(true);
-            return;
-        };
-        for (i, ((top, bottom), (out, flag))) in above
-            .windows(2)
-            .zip(below.windows(2))
-            .zip(out.iter_mut().zip(flags.iter_mut()))
-            .enumerate()
-        {
-            match centre([top[0], top[1], bottom[0], bottom[1]], 2 * i + 1, y) {
-                Some(value) => *out = value,
-                None => *flag = true,
+        let end = out.len() + centre_width;
+        if let (Some(above), Some(below)) = (grid.row(j), grid.row(j + 1)) {
+            for (i, (top, bottom)) in above.windows(2).zip(below.windows(2)).enumerate() {
+                let value = centre([top[0], top[1], bottom[0], bottom[1]], 2 * i + 1, y);
+                flags.push(value.is_none());
+                out.push(value.unwrap_or_default());
             }
         }
-        // The last column's centre, where the width is even, has no corners to its right.
-        if centre_width == grid_width {
-            flags[centre_width - 1] = true;
-        }
+        // Those with a corner missing: every one on the last row of an even height, and
+        // the last column's where the width is even.
+        out.resize(end, Pixel::default());
+        flags.resize(end, true);
     };
     // A band's pixels read the centres of its own odd rows and of the odd row above it;
     // that row, the last of the band above, is completed first, so that every centre is
@@ -647,13 +640,14 @@ pub fn shade_adaptively(
             if control.is_cancelled() || j >= centre_height {
                 return;
             }
-            let mut flags = vec![false; centre_width];
-            centre_row(j, out, &mut flags);
+            let (mut row, mut flags) = (Vec::new(), Vec::new());
+            centre_row(j, &mut row, &mut flags);
             let mut batch = Batch::default();
             for (i, _) in flags.iter().enumerate().filter(|(_, flag)| **flag) {
                 batch.push(i, (2 * i + 1, 2 * j + 1));
             }
-            shaded_count.fetch_add(batch.shade(&shade, out), Ordering::Relaxed);
+            shaded_count.fetch_add(batch.shade(&shade, &mut row), Ordering::Relaxed);
+            out.copy_from_slice(&row);
         });
     let edges = &edges;
     let between_shaded = AtomicUsize::new(0);
@@ -667,17 +661,14 @@ pub fn shade_adaptively(
         // The band's centres; its last row is the one completed first.
         let first_centre_row = band.first_row / 2;
         let centre_rows = (rows / 2).min(centre_height.saturating_sub(first_centre_row));
-        let mut centres = vec![Pixel::default(); centre_rows * centre_width];
-        let mut flags = vec![false; centres.len()];
-        for (r, (out, flags)) in centres
-            .chunks_mut(centre_width.max(1))
-            .zip(flags.chunks_mut(centre_width.max(1)))
-            .enumerate()
-        {
-            let j = first_centre_row + r;
-            match j == last_centre_row(index) {
-                true => out.copy_from_slice(edges.row(index, centre_width)),
-                false => centre_row(j, out, flags),
+        let mut centres = Vec::with_capacity(centre_rows * centre_width);
+        let mut flags = Vec::with_capacity(centre_rows * centre_width);
+        for j in first_centre_row..first_centre_row + centre_rows {
+            if j == last_centre_row(index) {
+                centres.extend_from_slice(edges.row(index, centre_width));
+                flags.resize(centres.len(), false);
+            } else {
+                centre_row(j, &mut centres, &mut flags);
             }
         }
         let mut batch = Batch::default();
