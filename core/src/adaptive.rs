@@ -148,6 +148,22 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
         self.between(neighbours, [1.0 / N as f32; N], x, y)
     }
 
+    /// Pixel (x, y) as the mean of the first of two pairs either side of it that agrees
+    /// ([`Interpolation::mean`]): `first`, else `second()`; `None` where a pair is missing
+    /// counts as disagreeing.
+    #[inline]
+    fn mean_of_either(
+        &self,
+        first: Option<[Pixel; 2]>,
+        second: impl FnOnce() -> Option<[Pixel; 2]>,
+        x: usize,
+        y: usize,
+    ) -> Option<Pixel> {
+        first
+            .and_then(|pair| self.mean(pair, x, y))
+            .or_else(|| self.mean(second()?, x, y))
+    }
+
     /// Pixel (x, y) between `pair`, `span` pixels apart along the epipolar line through
     /// it, `fraction` of the way from the first: the tolerance in proportion to the span
     /// ([`TOLERANCE_SPAN`]).
@@ -705,43 +721,34 @@ pub fn shade_adaptively(
             // The other pixels lie between two of the finer grid's points (left and
             // right on its rows, above and below between them), or between two centres
             // the other way: the mean of the first pair that agrees.
-            let last = above.len() - 1;
             if y % 2 == 0 {
                 let beside = j.checked_sub(1).and_then(centres_of).zip(centres_of(j));
                 let centres_beside = |i: usize| {
                     let (above, below) = beside?;
                     Some([*above.get(i)?, *below.get(i)?])
                 };
-                for (i, pair) in above.windows(2).enumerate() {
+                for (i, &point) in above.iter().enumerate() {
                     let x = 2 * i + 1;
-                    put(x - 1, Some(pair[0]));
-                    let mut value = interpolation.mean([pair[0], pair[1]], x, y);
-                    if value.is_none() {
-                        value = centres_beside(i).and_then(|pair| interpolation.mean(pair, x, y));
+                    put(x - 1, Some(point));
+                    if x < width {
+                        let grid_pair = above.get(i + 1).map(|&next| [point, next]);
+                        let value =
+                            interpolation.mean_of_either(grid_pair, || centres_beside(i), x, y);
+                        put(x, value);
                     }
-                    put(x, value);
-                }
-                put(2 * last, Some(above[last]));
-                if 2 * last + 1 < width {
-                    let x = 2 * last + 1;
-                    put(
-                        x,
-                        centres_beside(last).and_then(|pair| interpolation.mean(pair, x, y)),
-                    );
                 }
             } else {
                 let centres = centres_of(j).unwrap_or_default();
                 let centres_beside =
                     |i: usize| Some([*centres.get(i.checked_sub(1)?)?, *centres.get(i)?]);
                 let below = grid.row(j + 1);
-                for i in 0..=last {
+                for (i, &point) in above.iter().enumerate() {
                     let x = 2 * i;
-                    let mut value =
-                        below.and_then(|below| interpolation.mean([above[i], below[i]], x, y));
-                    if value.is_none() {
-                        value = centres_beside(i).and_then(|pair| interpolation.mean(pair, x, y));
-                    }
-                    put(x, value);
+                    let grid_pair = below.map(|below| [point, below[i]]);
+                    put(
+                        x,
+                        interpolation.mean_of_either(grid_pair, || centres_beside(i), x, y),
+                    );
                     if let Some(centre) = centres.get(i) {
                         put(x + 1, Some(*centre));
                     }
