@@ -775,8 +775,8 @@ pub fn shade_adaptively(
 }
 
 /// Pixels to shade, in shading order, with where each result goes; shaded together so
-/// that a method can look ahead along the batch (prefiltering prefetches the next rays'
-/// rows while it blends the current one's).
+/// that a method can look ahead along the batch (prefiltering locates the next rays while
+/// it evaluates the current one).
 #[derive(Default)]
 struct Batch {
     slots: Vec<usize>,
