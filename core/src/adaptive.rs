@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::layers::{Layers, Pixel};
-use crate::render::{for_each_in_tiles, layer_depth, EDGE_DEPTH_SPREAD, SHADING_TILE as TILE};
+use crate::render::{layer_depth, EDGE_DEPTH_SPREAD, SHADING_TILE as TILE};
 use crate::spare::Spare;
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
@@ -367,7 +367,21 @@ impl Lattice {
     /// it on its line: 0 for the lattice's own points.
     #[inline]
     fn offset(&self, i: usize, j: usize) -> i64 {
-        (self.position[0] * i as i64 + self.position[1] * j as i64).rem_euclid(self.stride)
+        self.wrap(self.position[0] * i as i64 + self.position[1] * j as i64)
+    }
+
+    /// `steps` modulo the stride, in [0, stride).
+    #[inline]
+    fn wrap(&self, steps: i64) -> i64 {
+        // Strides are at most MAX_STRIDE: constant divisors rather than a division by a
+        // variable, which took a tenth of completing the finer grid.
+        match self.stride {
+            1 => 0,
+            2 => steps.rem_euclid(2),
+            3 => steps.rem_euclid(3),
+            4 => steps.rem_euclid(4),
+            stride => steps.rem_euclid(stride),
+        }
     }
 }
 
@@ -401,6 +415,7 @@ impl Lattices {
         let across = width.div_ceil(LATTICE_TILE);
         let down = height.div_ceil(LATTICE_TILE);
         let squares = (0..down * across)
+            .into_par_iter()
             .map(|square| {
                 let Some(lines) = lines else {
                     return Lattice::EVERY_POINT;
@@ -450,7 +465,7 @@ impl Lattices {
         let mut i = columns.start;
         while i < columns.end {
             let lattice = self.at(i, j);
-            let advance = lattice.position[0].rem_euclid(lattice.stride);
+            let advance = lattice.wrap(lattice.position[0]);
             let mut offset = lattice.offset(i, j);
             let square_end = ((i / LATTICE_TILE + 1) * LATTICE_TILE).min(columns.end);
             for i in i..square_end {
@@ -582,7 +597,7 @@ pub fn shade_adaptively(
                     let fraction = behind as f32 / lattice.stride as f32;
                     interpolation.along(pair, fraction, span, x, y)
                 };
-                let mut flags = vec![false; pixels.len()];
+                let mut batch = Batch::default();
                 for row in 0..rows {
                     let j = first + row;
                     lattices.offsets_in_row(0..grid_width, j, |i, behind| {
@@ -590,18 +605,12 @@ pub fn shade_adaptively(
                             let k = row * grid_width + i;
                             match interpolated(pixels, i, j, behind) {
                                 Some(value) => pixels[k] = value,
-                                None => flags[k] = true,
+                                None => batch.push(k, (2 * i, 2 * j)),
                             }
                         }
                     });
                 }
-                let mut batch = Batch::default();
-                for_each_in_tiles(grid_width, rows, |i, row| {
-                    let k = row * grid_width + i;
-                    if flags[k] {
-                        batch.push(k, (2 * i, 2 * (first + row)));
-                    }
-                });
+                let batch = batch.in_tiles(grid_width, |(x, _)| x / 2);
                 shaded_count.fetch_add(batch.shade(&shade, pixels), Ordering::Relaxed);
                 control.advance(rows as u64);
             });
@@ -688,12 +697,11 @@ pub fn shade_adaptively(
             }
         }
         let mut batch = Batch::default();
-        for_each_in_tiles(centre_width, centre_rows, |i, r| {
-            let k = r * centre_width + i;
-            if flags[k] {
-                batch.push(k, (2 * i + 1, band.first_row + 2 * r + 1));
-            }
-        });
+        for (k, _) in flags.iter().enumerate().filter(|(_, flag)| **flag) {
+            let (r, i) = (k / centre_width, k % centre_width);
+            batch.push(k, (2 * i + 1, band.first_row + 2 * r + 1));
+        }
+        let batch = batch.in_tiles(centre_width, |(x, _)| x / 2);
         between_shaded.fetch_add(batch.shade(&shade, &mut centres), Ordering::Relaxed);
         let centres_of = |j: usize| -> Option<&[Pixel]> {
             match j.checked_sub(first_centre_row) {
@@ -705,13 +713,13 @@ pub fn shade_adaptively(
         // Interpolated row by row, which streams through the finer grid and the
         // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
         // for the locality of their rectified data.
-        let mut to_shade = vec![false; rows * width];
+        let mut batch = Batch::default();
         for row in 0..rows {
             let y = band.first_row + row;
             let start = row * width;
             let mut put = |x: usize, pixel: Option<Pixel>| match pixel {
                 Some(pixel) => band.set(start + x, &pixel),
-                None => to_shade[start + x] = true,
+                None => batch.push(start + x, (x, y)),
             };
             let j = y / 2;
             let Some(above) = grid.row(j) else {
@@ -755,14 +763,7 @@ pub fn shade_adaptively(
                 }
             }
         }
-        let first_row = band.first_row;
-        let mut batch = Batch::default();
-        for_each_in_tiles(width, rows, |x, row| {
-            let k = row * width + x;
-            if to_shade[k] {
-                batch.push(k, (x, first_row + row));
-            }
-        });
+        let batch = batch.in_tiles(width, |(x, _)| x);
         let shaded = batch.shade_each(&shade, |k, pixel| band.set(k, pixel));
         between_shaded.fetch_add(shaded, Ordering::Relaxed);
         // The finer grid's rows were counted as they were completed.
@@ -787,6 +788,38 @@ impl Batch {
     fn push(&mut self, slot: usize, pixel: (usize, usize)) {
         self.slots.push(slot);
         self.pixels.push(pixel);
+    }
+
+    /// The batch, pushed row by row, in the order
+    /// [`for_each_in_tiles`](crate::render::for_each_in_tiles) visits a grid `width` wide:
+    /// tile by tile of [`TILE`] columns, each tile's pixels in the order pushed. `column`
+    /// gives a pixel's column in that grid. A counting sort of what was pushed, rather than
+    /// a scan of every point in tile order for flags (a tenth of completing the pixels
+    /// between the finer grid's).
+    fn in_tiles(self, width: usize, column: impl Fn((usize, usize)) -> usize) -> Self {
+        let tiles = width.div_ceil(TILE);
+        if tiles <= 1 {
+            return self;
+        }
+        let tile_of = |pixel| (column(pixel) / TILE).min(tiles - 1);
+        let mut starts = vec![0usize; tiles + 1];
+        for &pixel in &self.pixels {
+            starts[tile_of(pixel) + 1] += 1;
+        }
+        for t in 0..tiles {
+            starts[t + 1] += starts[t];
+        }
+        let mut sorted = Self {
+            slots: vec![0; self.slots.len()],
+            pixels: vec![(0, 0); self.pixels.len()],
+        };
+        for (&slot, &pixel) in self.slots.iter().zip(&self.pixels) {
+            let at = &mut starts[tile_of(pixel)];
+            sorted.slots[*at] = slot;
+            sorted.pixels[*at] = pixel;
+            *at += 1;
+        }
+        sorted
     }
 
     /// Shades the batch into `out[slot]`; returns how many were shaded.
