@@ -1251,6 +1251,46 @@ mod tests {
     }
 
     #[test]
+    fn batches_pushed_row_by_row_are_shaded_in_tile_order() {
+        for width in [1, 15, 16, 17, 53] {
+            let rows = 7;
+            let wanted = |x: usize, row: usize| (x * 7 + row * 3) % 5 < 2;
+            let mut batch = Batch::default();
+            for row in 0..rows {
+                for x in (0..width).filter(|&x| wanted(x, row)) {
+                    batch.push(row * width + x, (x, row));
+                }
+            }
+            let sorted = batch.in_tiles(width, |(x, _)| x);
+            let mut expected = Vec::new();
+            crate::render::for_each_in_tiles(width, rows, |x, row| {
+                if wanted(x, row) {
+                    expected.push((row * width + x, (x, row)));
+                }
+            });
+            let got: Vec<_> = sorted.slots.into_iter().zip(sorted.pixels).collect();
+            assert_eq!(got, expected, "width {width}");
+        }
+    }
+
+    #[test]
+    fn lattice_offsets_wrap_like_the_euclidean_remainder() {
+        for stride in 1..=MAX_STRIDE {
+            let lattice = Lattice {
+                stride,
+                ..Lattice::EVERY_POINT
+            };
+            for steps in -50..50 {
+                assert_eq!(
+                    lattice.wrap(steps),
+                    steps.rem_euclid(stride),
+                    "{steps} % {stride}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn lattices_pair_every_other_point_along_the_epipolar_line_through_it() {
         let mut strides = Vec::new();
         for degrees in 0..360 {
