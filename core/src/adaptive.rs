@@ -634,21 +634,26 @@ pub fn shade_adaptively(
             interpolation.mean(diagonal, x, y)
         })
     };
-    // Row j of the centres appended to `out`, and whether each must be shaded to `flags`.
-    let centre_row = |j: usize, out: &mut Vec<Pixel>, flags: &mut Vec<bool>| {
+    // Row j of the centres appended to `out`, and those that must be shaded pushed to
+    // `batch` with their index in `out`.
+    let centre_row = |j: usize, out: &mut Vec<Pixel>, batch: &mut Batch| {
         let y = 2 * j + 1;
-        let end = out.len() + centre_width;
+        let start = out.len();
         if let (Some(above), Some(below)) = (grid.row(j), grid.row(j + 1)) {
             for (i, (top, bottom)) in above.windows(2).zip(below.windows(2)).enumerate() {
                 let value = centre([top[0], top[1], bottom[0], bottom[1]], 2 * i + 1, y);
-                flags.push(value.is_none());
+                if value.is_none() {
+                    batch.push(out.len(), (2 * i + 1, y));
+                }
                 out.push(value.unwrap_or_default());
             }
         }
         // Those with a corner missing: every one on the last row of an even height, and
         // the last column's where the width is even.
-        out.resize(end, Pixel::default());
-        flags.resize(end, true);
+        for i in out.len() - start..centre_width {
+            batch.push(out.len(), (2 * i + 1, y));
+            out.push(Pixel::default());
+        }
     };
     // A band's pixels read the centres of its own odd rows and of the odd row above it;
     // that row, the last of the band above, is completed first, so that every centre is
@@ -665,12 +670,8 @@ pub fn shade_adaptively(
             if control.is_cancelled() || j >= centre_height {
                 return;
             }
-            let (mut row, mut flags) = (Vec::new(), Vec::new());
-            centre_row(j, &mut row, &mut flags);
-            let mut batch = Batch::default();
-            for (i, _) in flags.iter().enumerate().filter(|(_, flag)| **flag) {
-                batch.push(i, (2 * i + 1, 2 * j + 1));
-            }
+            let (mut row, mut batch) = (Vec::new(), Batch::default());
+            centre_row(j, &mut row, &mut batch);
             shaded_count.fetch_add(batch.shade(&shade, &mut row), Ordering::Relaxed);
             out.copy_from_slice(&row);
         });
@@ -687,19 +688,13 @@ pub fn shade_adaptively(
         let first_centre_row = band.first_row / 2;
         let centre_rows = (rows / 2).min(centre_height.saturating_sub(first_centre_row));
         let mut centres = Vec::with_capacity(centre_rows * centre_width);
-        let mut flags = Vec::with_capacity(centre_rows * centre_width);
+        let mut batch = Batch::default();
         for j in first_centre_row..first_centre_row + centre_rows {
             if j == last_centre_row(index) {
                 centres.extend_from_slice(edges.row(index, centre_width));
-                flags.resize(centres.len(), false);
             } else {
-                centre_row(j, &mut centres, &mut flags);
+                centre_row(j, &mut centres, &mut batch);
             }
-        }
-        let mut batch = Batch::default();
-        for (k, _) in flags.iter().enumerate().filter(|(_, flag)| **flag) {
-            let (r, i) = (k / centre_width, k % centre_width);
-            batch.push(k, (2 * i + 1, band.first_row + 2 * r + 1));
         }
         let batch = batch.in_tiles(centre_width, |(x, _)| x / 2);
         between_shaded.fetch_add(batch.shade(&shade, &mut centres), Ordering::Relaxed);
