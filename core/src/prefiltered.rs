@@ -356,6 +356,7 @@ static SPARE_ENTRIES: Spare<u32> = Spare::new();
 static SPARE_SAMPLE_WEIGHTS: Spare<f32> = Spare::new();
 static SPARE_SCALES: Spare<f32> = Spare::new();
 static SPARE_ROW_WEIGHTS: Spare<f32> = Spare::new();
+static SPARE_KEYED_RAYS: Spare<(u64, f64)> = Spare::new();
 
 /// Lets go of the kept filtered bases and plans ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -365,6 +366,7 @@ pub(crate) fn release_kept_buffers() {
     SPARE_SAMPLE_WEIGHTS.clear();
     SPARE_SCALES.clear();
     SPARE_ROW_WEIGHTS.clear();
+    SPARE_KEYED_RAYS.clear();
 }
 
 /// The filtered-basis storage.
@@ -1567,7 +1569,9 @@ fn band_warps(frame: &SliceFrame, rays: &SortedRays, texels: &[f64]) -> Vec<Warp
         return warps;
     }
     // Rays come sorted by key, so each band's keys do too.
-    let mut reading: Vec<Vec<f64>> = vec![Vec::new(); count];
+    let mut reading: Vec<Vec<f64>> = (0..count)
+        .map(|_| Vec::with_capacity(rays.keys.len()))
+        .collect();
     for (&key, &rate) in rays.keys.iter().zip(&rays.rates) {
         let position = frame.band_position(rate.log2(), count);
         let lower = position as usize;
@@ -1589,14 +1593,15 @@ fn band_warps(frame: &SliceFrame, rays: &SortedRays, texels: &[f64]) -> Vec<Warp
 /// ([`Warp::of`]). On the built-in scenes that is from a half (torus, plane) to an eighth
 /// (colonnade) of them, and sorting only those took 1–2 ms off a frame's preparation.
 fn texel_keys(map: &EpipolarMap, slice: usize, lowest: f64, highest: f64) -> Vec<f64> {
-    let mut keys: Vec<u64> = map
-        .row(slice as u32)
-        .iter()
-        .step_by(SAMPLES_PER_ROW)
-        .map(|&value| map.order_key(value as f64))
-        .filter(|&key| key > lowest && key < highest)
-        .map(total_order_bits)
-        .collect();
+    let row = map.row(slice as u32);
+    let mut keys: Vec<u64> = Vec::with_capacity(row.len().div_ceil(SAMPLES_PER_ROW));
+    keys.extend(
+        row.iter()
+            .step_by(SAMPLES_PER_ROW)
+            .map(|&value| map.order_key(value as f64))
+            .filter(|&key| key > lowest && key < highest)
+            .map(total_order_bits),
+    );
     keys.sort_unstable();
     keys.into_iter().map(from_total_order_bits).collect()
 }
@@ -1724,20 +1729,45 @@ fn band_weights(
     let step_factor = map
         .uniform_step()
         .map(|step| (-extinction * step / rate).exp());
+    let unclamped = |s: f64| extinction * (s - origin) / rate;
+    // The samples whose transmittance is the previous one's times `step_factor`: those
+    // from the origin to the depth cap. With s rising along the samples both bounds are
+    // monotone, so bisection finds the run once, rather than two divisions per sample.
+    let stepped = match (map.uniform_step(), step_factor) {
+        (Some(step), Some(_)) if extinction > 0.0 && step >= 0.0 => {
+            let s = |i: usize| map.sample_interval(i).0;
+            let start = first_failing(samples, |i| {
+                let depth = unclamped(s(i));
+                depth < 0.0 || depth.is_nan()
+            });
+            let end = first_failing(samples, |i| unclamped(s(i + 1)) <= MAX_REFERENCE_DEPTH);
+            start..end.max(start)
+        }
+        _ => 0..0,
+    };
+    // Before the origin and past the cap the depth is clamped: no exp there.
+    let capped = (-MAX_REFERENCE_DEPTH).exp();
+    let transmittance = |s: f64| {
+        let depth = depth_of(s);
+        if depth == 0.0 {
+            1.0
+        } else if depth == MAX_REFERENCE_DEPTH {
+            capped
+        } else {
+            (-depth).exp()
+        }
+    };
     let mut total = 0.0f64;
     let (mut s0, _) = map.sample_interval(0);
-    let mut before = (-depth_of(s0)).exp();
+    let mut before = transmittance(s0);
     for (i, w32) in weights.iter_mut().enumerate() {
         let w = if i >= samples {
             0.0
         } else if extinction > 0.0 {
             let (_, s1) = map.sample_interval(i);
-            let unclamped = |s: f64| extinction * (s - origin) / rate;
             let after = match step_factor {
-                Some(factor) if unclamped(s0) >= 0.0 && unclamped(s1) <= MAX_REFERENCE_DEPTH => {
-                    before * factor
-                }
-                _ => (-depth_of(s1)).exp(),
+                Some(factor) if stepped.contains(&i) => before * factor,
+                _ => transmittance(s1),
             };
             let w = if after < before {
                 before - after
@@ -1759,6 +1789,24 @@ fn band_weights(
         }
     }
 }
+
+/// The first of `0..len` where `holds` fails, given that it holds up to some index and
+/// fails from there on.
+fn first_failing(len: usize, holds: impl Fn(usize) -> bool) -> usize {
+    let (mut low, mut high) = (0, len);
+    while low < high {
+        let middle = low + (high - low) / 2;
+        if holds(middle) {
+            low = middle + 1;
+        } else {
+            high = middle;
+        }
+    }
+    low
+}
+
+/// Rays sampled for the slices' frames, each with the two slices it belongs to.
+type SampledRays = Vec<([u32; 2], SampledRay)>;
 
 /// One ray sampled for a slice's frame.
 #[derive(Clone, Copy)]
@@ -1813,46 +1861,34 @@ fn slice_frames(
         .flat_map(|x| [(x as f64, 0.0), (x as f64, h as f64)])
         .chain((0..=h).flat_map(|y| [(0.0, y as f64), (w as f64, y as f64)]))
         .collect();
-    let mut sampled: Vec<([u32; 2], SampledRay)> = border
+    let border: SampledRays = border
         .par_iter()
         .filter_map(|&(x, y)| sample(x, y))
         .collect();
-    let interior = (0..h).into_par_iter().flat_map_iter(|y| {
-        let py = y as f64 + 0.5;
-        let columns = sampled_columns(y, w, interior_stride, epipoles, dense_radius, block);
-        columns
-            .into_iter()
-            .filter_map(move |x| sample(x as f64 + 0.5, py))
-    });
-    sampled.par_extend(interior);
-    // Each slice's rays by index: a counting sort by slice (a ray belongs to two). Slices
-    // gather their own rays in parallel.
+    // One vector per pixel row, each allocated once: extending one vector from all rows
+    // grew and copied it, a fifth of colonnade's slice frames.
+    let interior: Vec<SampledRays> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let py = y as f64 + 0.5;
+            let columns = sampled_columns(y, w, interior_stride, epipoles, dense_radius, block);
+            let mut row = Vec::with_capacity(columns.len());
+            row.extend(
+                columns
+                    .into_iter()
+                    .filter_map(|x| sample(x as f64 + 0.5, py)),
+            );
+            row
+        })
+        .collect();
+    let rows: Vec<SampledRays> = std::iter::once(border).chain(interior).collect();
     let slices = map.slices as usize;
-    let mut offsets = vec![0usize; slices + 1];
-    for (pair, _) in &sampled {
-        for &slice in pair {
-            offsets[slice as usize + 1] += 1;
-        }
-    }
-    for i in 0..slices {
-        offsets[i + 1] += offsets[i];
-    }
-    let mut members = vec![0u32; offsets[slices]];
-    let mut cursor = offsets[..slices].to_vec();
-    for (index, (pair, _)) in sampled.iter().enumerate() {
-        for &slice in pair {
-            members[cursor[slice as usize]] = index as u32;
-            cursor[slice as usize] += 1;
-        }
-    }
-    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = offsets
-        .par_windows(2)
-        .enumerate()
-        .map(|(slice, range)| {
-            let rays = members[range[0]..range[1]]
-                .iter()
-                .map(|&index| &sampled[index as usize].1);
-            let (frame, sorted, texels) = frame_of(rays, |lowest, highest| {
+    let sorted_by_slice = RaysBySlice::of(&rows, slices);
+    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = (0..slices)
+        .into_par_iter()
+        .map(|slice| {
+            let (mut keyed, extremes) = sorted_by_slice.slice(slice);
+            let (frame, sorted, texels) = frame_of(&mut keyed, extremes, |lowest, highest| {
                 texel_keys(map, slice, lowest, highest)
             })?;
             Some((frame, band_warps(&frame, &sorted, &texels)))
@@ -1965,38 +2001,167 @@ struct SortedRays {
     rates: Vec<f64>,
 }
 
-/// A slice's frame from its sampled rays, and those rays sorted by key. `texels` gives the
-/// slice's texel keys between the rays' lowest and highest, which it is called with; they
-/// are returned too, for the bands' warps. The rays are read in one pass where they lie:
-/// gathering them first copied 70 MB for colonnade's slices.
-fn frame_of<'r>(
-    rays: impl ExactSizeIterator<Item = &'r SampledRay>,
+/// Sampled rays grouped by slice (a ray belongs to two): a counting sort over groups of
+/// pixel rows in parallel, each group's rays after the earlier groups' in every slice.
+/// Each slice keeps its rays' keys and speeds, all that its frame sorts, and their
+/// extremes.
+struct RaysBySlice {
+    /// Per slice, where its rays start in `keyed`; one more, for the end.
+    offsets: Vec<usize>,
+    /// [`total_order_bits`] of each ray's key, and its speed.
+    keyed: Vec<(u64, f64)>,
+    /// Per group of rows, per slice.
+    extremes: Vec<Vec<RayExtremes>>,
+}
+
+impl RaysBySlice {
+    /// Groups of rows counted and scattered in parallel: enough to share the work out,
+    /// few enough that their per-slice tallies stay small.
+    const GROUPS: usize = 32;
+
+    fn of(rows: &[SampledRays], slices: usize) -> Self {
+        let groups: Vec<&[SampledRays]> = rows
+            .chunks(rows.len().div_ceil(Self::GROUPS).max(1))
+            .collect();
+        let tallies: Vec<(Vec<usize>, Vec<RayExtremes>)> = groups
+            .par_iter()
+            .map(|group| {
+                let mut counts = vec![0usize; slices];
+                let mut extremes = vec![RayExtremes::NONE; slices];
+                for (pair, ray) in group.iter().flatten() {
+                    for &slice in pair {
+                        counts[slice as usize] += 1;
+                        extremes[slice as usize].include(ray);
+                    }
+                }
+                (counts, extremes)
+            })
+            .collect();
+        let total: usize = tallies.iter().flat_map(|(counts, _)| counts).sum();
+        // Every place is written below, so a kept buffer's old values do not matter.
+        let mut keyed = SPARE_KEYED_RAYS.take(total);
+        // Each group's place in each slice, slice by slice.
+        let mut offsets = Vec::with_capacity(slices + 1);
+        let mut places: Vec<Vec<&mut [(u64, f64)]>> =
+            groups.iter().map(|_| Vec::with_capacity(slices)).collect();
+        let mut rest = keyed.as_mut_slice();
+        let mut at = 0;
+        for slice in 0..slices {
+            offsets.push(at);
+            for (place, (counts, _)) in places.iter_mut().zip(&tallies) {
+                let (own, tail) = rest.split_at_mut(counts[slice]);
+                rest = tail;
+                at += counts[slice];
+                place.push(own);
+            }
+        }
+        offsets.push(at);
+        groups
+            .into_par_iter()
+            .zip(places)
+            .for_each(|(group, mut places)| {
+                let mut filled = vec![0usize; slices];
+                for (pair, ray) in group.iter().flatten() {
+                    let entry = (total_order_bits(ray.key), ray.rate);
+                    for &slice in pair {
+                        let slice = slice as usize;
+                        places[slice][filled[slice]] = entry;
+                        filled[slice] += 1;
+                    }
+                }
+            });
+        Self {
+            offsets,
+            keyed,
+            extremes: tallies.into_iter().map(|(_, extremes)| extremes).collect(),
+        }
+    }
+
+    /// A slice's rays, as [`frame_of`] takes them.
+    fn slice(&self, slice: usize) -> (Vec<(u64, f64)>, RayExtremes) {
+        let keyed = self.keyed[self.offsets[slice]..self.offsets[slice + 1]].to_vec();
+        let extremes = self
+            .extremes
+            .iter()
+            .fold(RayExtremes::NONE, |all, group| all.merge(&group[slice]));
+        (keyed, extremes)
+    }
+}
+
+impl Drop for RaysBySlice {
+    fn drop(&mut self) {
+        SPARE_KEYED_RAYS.keep(std::mem::take(&mut self.keyed));
+    }
+}
+
+/// The extremes of a slice's sampled rays that its frame keeps.
+#[derive(Clone, Copy)]
+struct RayExtremes {
+    fastest: f64,
+    slowest: f64,
+    origin: f64,
+    /// Where the first of them enters the medium, if any does.
+    medium_start: Option<f64>,
+}
+
+impl RayExtremes {
+    const NONE: Self = Self {
+        fastest: 0.0,
+        slowest: f64::INFINITY,
+        origin: f64::INFINITY,
+        medium_start: None,
+    };
+
+    #[inline]
+    fn include(&mut self, ray: &SampledRay) {
+        self.fastest = f64::max(self.fastest, ray.rate);
+        self.slowest = f64::min(self.slowest, ray.rate);
+        self.origin = f64::min(self.origin, ray.origin);
+        if let Some(entry) = ray.medium_entry {
+            self.medium_start = Some(self.medium_start.map_or(entry, |start| start.min(entry)));
+        }
+    }
+
+    fn merge(self, other: &Self) -> Self {
+        Self {
+            fastest: f64::max(self.fastest, other.fastest),
+            slowest: f64::min(self.slowest, other.slowest),
+            origin: f64::min(self.origin, other.origin),
+            medium_start: match (self.medium_start, other.medium_start) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            },
+        }
+    }
+}
+
+/// A slice's frame from its sampled rays, given as their keys' [`total_order_bits`] and
+/// speeds (sorted here by key: moving whole rays cost twice as much) and their extremes,
+/// and those rays sorted by key. `texels` gives the slice's texel keys between the rays'
+/// lowest and highest, which it is called with; they are returned too, for the bands'
+/// warps.
+fn frame_of(
+    keyed: &mut [(u64, f64)],
+    extremes: RayExtremes,
     texels: impl FnOnce(f64, f64) -> Vec<f64>,
 ) -> Option<(SliceFrame, SortedRays, Vec<f64>)> {
-    if rays.len() == 0 {
+    if keyed.is_empty() {
         return None;
     }
-    let (mut fastest, mut slowest, mut origin) = (0.0, f64::INFINITY, f64::INFINITY);
-    let mut medium_start: Option<f64> = None;
-    // Only keys and speeds are sorted: moving whole rays cost twice as much.
-    let mut order: Vec<(u64, f64)> = Vec::with_capacity(rays.len());
-    for ray in rays {
-        fastest = f64::max(fastest, ray.rate);
-        slowest = f64::min(slowest, ray.rate);
-        origin = f64::min(origin, ray.origin);
-        if let Some(entry) = ray.medium_entry {
-            medium_start = Some(medium_start.map_or(entry, |start| start.min(entry)));
-        }
-        order.push((total_order_bits(ray.key), ray.rate));
-    }
+    let RayExtremes {
+        fastest,
+        slowest,
+        origin,
+        medium_start,
+    } = extremes;
     let slowest = slowest.max(fastest / MAX_SPEED_RATIO);
-    order.sort_unstable_by_key(|&(key, _)| key);
+    keyed.sort_unstable_by_key(|&(key, _)| key);
     let sorted = SortedRays {
-        keys: order
+        keys: keyed
             .iter()
             .map(|&(key, _)| from_total_order_bits(key))
             .collect(),
-        rates: order.iter().map(|&(_, rate)| rate).collect(),
+        rates: keyed.iter().map(|&(_, rate)| rate).collect(),
     };
     let texels = texels(sorted.keys[0], sorted.keys[sorted.keys.len() - 1]);
     let frame = SliceFrame {
@@ -2393,6 +2558,169 @@ mod tests {
     }
 
     #[test]
+    fn first_failing_finds_where_a_prefix_ends() {
+        for len in 0..12 {
+            for end in 0..=len {
+                assert_eq!(first_failing(len, |i| i < end), end, "{len} {end}");
+            }
+        }
+    }
+
+    /// Rays grouped by slice, over rows of every length (none too), hold exactly the
+    /// rays of each slice, in row order, with their extremes; more rows than groups and
+    /// fewer both.
+    #[test]
+    fn rays_by_slice_hold_each_slice_s_rays_and_their_extremes() {
+        use rand::RngExt;
+        use rand_pcg::Pcg64;
+        let mut rng = Pcg64::new(0x5eed, 0x51ce);
+        for (row_count, slices) in [(3usize, 5usize), (70, 13), (200, 64)] {
+            let rows: Vec<SampledRays> = (0..row_count)
+                .map(|_| {
+                    let len = rng.random_range(0..40);
+                    (0..len)
+                        .map(|_| {
+                            let lower = rng.random_range(0..slices as u32);
+                            let upper = (lower + rng.random_range(0..2)).min(slices as u32 - 1);
+                            let ray = SampledRay {
+                                key: rng.random_range(-1.0..1.0),
+                                rate: rng.random_range(0.1..10.0),
+                                origin: rng.random_range(-5.0..5.0),
+                                medium_entry: rng
+                                    .random_bool(0.5)
+                                    .then(|| rng.random_range(0.0..9.0)),
+                            };
+                            ([lower, upper], ray)
+                        })
+                        .collect()
+                })
+                .collect();
+            let grouped = RaysBySlice::of(&rows, slices);
+            for slice in 0..slices {
+                let mut expected = RayExtremes::NONE;
+                let mut keyed = Vec::new();
+                for (pair, ray) in rows.iter().flatten() {
+                    for &s in pair {
+                        if s as usize == slice {
+                            expected.include(ray);
+                            keyed.push((total_order_bits(ray.key), ray.rate));
+                        }
+                    }
+                }
+                let (got, extremes) = grouped.slice(slice);
+                assert_eq!(got, keyed, "slice {slice}");
+                assert_eq!(
+                    (extremes.fastest, extremes.slowest, extremes.origin),
+                    (expected.fastest, expected.slowest, expected.origin)
+                );
+                assert_eq!(extremes.medium_start, expected.medium_start);
+            }
+        }
+    }
+
+    /// Band weights with the stepped run found by bisection equal those of the loop
+    /// that tested every sample for it, bit for bit: slices' origins before, inside and
+    /// past the map, references slow and fast, media thin and dense.
+    #[test]
+    fn band_weights_match_testing_every_sample() {
+        fn weights_testing_each(
+            map: &EpipolarMap,
+            origin: f64,
+            rate: f64,
+            extinction: f64,
+            count: usize,
+        ) -> Vec<f32> {
+            let samples = map.samples as usize;
+            let depth_of =
+                |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
+            let flat_per_s = (-MAX_REFERENCE_DEPTH).exp() * extinction / rate;
+            let step_factor = map
+                .uniform_step()
+                .map(|step| (-extinction * step / rate).exp());
+            let (mut s0, _) = map.sample_interval(0);
+            let mut before = (-depth_of(s0)).exp();
+            (0..count)
+                .map(|i| {
+                    if i >= samples {
+                        return 0.0;
+                    }
+                    let (_, s1) = map.sample_interval(i);
+                    let unclamped = |s: f64| extinction * (s - origin) / rate;
+                    let after = match step_factor {
+                        Some(factor)
+                            if unclamped(s0) >= 0.0 && unclamped(s1) <= MAX_REFERENCE_DEPTH =>
+                        {
+                            before * factor
+                        }
+                        _ => (-depth_of(s1)).exp(),
+                    };
+                    let w = if after < before {
+                        before - after
+                    } else {
+                        flat_per_s * (s1 - s0)
+                    };
+                    s0 = s1;
+                    before = after;
+                    w as f32
+                })
+                .collect()
+        }
+        let scene = crate::builtin_scene("colonnade").expect("built-in scene");
+        let (_, map, _) = frame_inputs(&scene);
+        let samples = map.samples as usize;
+        let rows = samples.div_ceil(SAMPLES_PER_ROW) + 1;
+        let (first, _) = map.sample_interval(0);
+        let (_, last) = map.sample_interval(samples - 1);
+        for origin in [first - 3.0, first, 0.5 * (first + last), last + 1.0] {
+            for rate in [0.05, 1.0, 40.0] {
+                for extinction in [0.0, 1e-4, 0.04, 3.0] {
+                    let count = (rows - 1) * SAMPLES_PER_ROW;
+                    let mut weights = vec![0.0; count];
+                    let mut scales = vec![0.0; rows - 1];
+                    let mut cumulative = vec![0.0; rows];
+                    band_weights(
+                        &map,
+                        origin,
+                        rate,
+                        extinction,
+                        &mut weights,
+                        &mut scales,
+                        &mut cumulative,
+                    );
+                    let expected = if extinction > 0.0 {
+                        weights_testing_each(&map, origin, rate, extinction, count)
+                    } else {
+                        (0..count)
+                            .map(|i| if i < samples { 1.0 } else { 0.0 })
+                            .collect()
+                    };
+                    let same = weights
+                        .iter()
+                        .zip(&expected)
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "origin {origin} rate {rate} σ {extinction}");
+                }
+            }
+        }
+    }
+
+    /// [`frame_of`] over rays as [`slice_frames`] gives them.
+    fn frame_of_rays(
+        rays: &[SampledRay],
+        texels: impl FnOnce(f64, f64) -> Vec<f64>,
+    ) -> Option<(SliceFrame, SortedRays, Vec<f64>)> {
+        let mut extremes = RayExtremes::NONE;
+        let mut keyed: Vec<(u64, f64)> = rays
+            .iter()
+            .map(|ray| {
+                extremes.include(ray);
+                (total_order_bits(ray.key), ray.rate)
+            })
+            .collect();
+        frame_of(&mut keyed, extremes, texels)
+    }
+
+    #[test]
     fn warp_is_monotone_and_puts_ray_keys_inside_the_margins() {
         let rays: Vec<SampledRay> = (0..100)
             .map(|i| SampledRay {
@@ -2402,7 +2730,7 @@ mod tests {
                 medium_entry: Some(0.0),
             })
             .collect();
-        let (frame, sorted, _) = frame_of(rays.iter(), |_, _| Vec::new()).expect("a frame");
+        let (frame, sorted, _) = frame_of_rays(&rays, |_, _| Vec::new()).expect("a frame");
         let mut keys: Vec<f64> = rays.iter().map(|ray| ray.key).collect();
         keys.sort_by(f64::total_cmp);
         assert_eq!(sorted.keys, keys);
@@ -2497,13 +2825,13 @@ mod tests {
                 medium_entry: Some(0.0),
             })
             .collect();
-        let (alone, ..) = frame_of(rays.iter(), |_, _| Vec::new()).expect("a frame");
+        let (alone, ..) = frame_of_rays(&rays, |_, _| Vec::new()).expect("a frame");
         let mut texels: Vec<f64> = (0..1000).map(|i| 0.5 + i as f64 * 1e-4).collect();
         texels.extend([-5.0, 0.0, 1.0, 7.0]);
         texels.sort_unstable_by(|a, b| a.total_cmp(b));
         // The warps read only the texels strictly between the rays' keys, all that
         // `texel_keys` gives them.
-        let (mixed, ..) = frame_of(rays.iter(), |lowest, highest| {
+        let (mixed, ..) = frame_of_rays(&rays, |lowest, highest| {
             assert_eq!((lowest, highest), (0.0, 1.0));
             texels
                 .iter()
@@ -2512,7 +2840,7 @@ mod tests {
                 .collect()
         })
         .expect("a frame");
-        let (unfiltered, ..) = frame_of(rays.iter(), |_, _| texels.clone()).expect("a frame");
+        let (unfiltered, ..) = frame_of_rays(&rays, |_, _| texels.clone()).expect("a frame");
         assert_eq!(mixed.warp.knots, unfiltered.warp.knots);
         assert_eq!(
             (mixed.warp.knots[0], mixed.warp.knots[KNOTS - 1]),
