@@ -1572,8 +1572,8 @@ fn band_warps(frame: &SliceFrame, rays: &SortedRays, texels: &[f64]) -> Vec<Warp
     let mut reading: Vec<Vec<f64>> = (0..count)
         .map(|_| Vec::with_capacity(rays.keys.len()))
         .collect();
-    for (&key, &rate) in rays.keys.iter().zip(&rays.rates) {
-        let position = frame.band_position(rate.log2(), count);
+    for (&key, &log2_rate) in rays.keys.iter().zip(&rays.log2_rates) {
+        let position = frame.band_position(log2_rate, count);
         let lower = position as usize;
         reading[lower].push(key);
         if lower + 1 < count && position > lower as f64 {
@@ -1995,10 +1995,10 @@ fn sampled_columns(
         .collect()
 }
 
-/// A slice's sampled rays in key order: their keys, and their speeds.
+/// A slice's sampled rays in key order: their keys, and their speeds' log₂.
 struct SortedRays {
     keys: Vec<f64>,
-    rates: Vec<f64>,
+    log2_rates: Vec<f64>,
 }
 
 /// Sampled rays grouped by slice (a ray belongs to two): a counting sort over groups of
@@ -2008,7 +2008,8 @@ struct SortedRays {
 struct RaysBySlice {
     /// Per slice, where its rays start in `keyed`; one more, for the end.
     offsets: Vec<usize>,
-    /// [`total_order_bits`] of each ray's key, and its speed.
+    /// [`total_order_bits`] of each ray's key, and its speed's log₂ (taken once per
+    /// ray, not in each of its slices).
     keyed: Vec<(u64, f64)>,
     /// Per group of rows, per slice.
     extremes: Vec<Vec<RayExtremes>>,
@@ -2062,7 +2063,7 @@ impl RaysBySlice {
             .for_each(|(group, mut places)| {
                 let mut filled = vec![0usize; slices];
                 for (pair, ray) in group.iter().flatten() {
-                    let entry = (total_order_bits(ray.key), ray.rate);
+                    let entry = (total_order_bits(ray.key), ray.rate.log2());
                     for &slice in pair {
                         let slice = slice as usize;
                         places[slice][filled[slice]] = entry;
@@ -2136,7 +2137,7 @@ impl RayExtremes {
 }
 
 /// A slice's frame from its sampled rays, given as their keys' [`total_order_bits`] and
-/// speeds (sorted here by key: moving whole rays cost twice as much) and their extremes,
+/// speeds' log₂ (sorted here by key: moving whole rays cost twice as much) and their extremes,
 /// and those rays sorted by key. `texels` gives the slice's texel keys between the rays'
 /// lowest and highest, which it is called with; they are returned too, for the bands'
 /// warps.
@@ -2161,7 +2162,7 @@ fn frame_of(
             .iter()
             .map(|&(key, _)| from_total_order_bits(key))
             .collect(),
-        rates: keyed.iter().map(|&(_, rate)| rate).collect(),
+        log2_rates: keyed.iter().map(|&(_, log2_rate)| log2_rate).collect(),
     };
     let texels = texels(sorted.keys[0], sorted.keys[sorted.keys.len() - 1]);
     let frame = SliceFrame {
@@ -2603,7 +2604,7 @@ mod tests {
                     for &s in pair {
                         if s as usize == slice {
                             expected.include(ray);
-                            keyed.push((total_order_bits(ray.key), ray.rate));
+                            keyed.push((total_order_bits(ray.key), ray.rate.log2()));
                         }
                     }
                 }
@@ -2714,7 +2715,7 @@ mod tests {
             .iter()
             .map(|ray| {
                 extremes.include(ray);
-                (total_order_bits(ray.key), ray.rate)
+                (total_order_bits(ray.key), ray.rate.log2())
             })
             .collect();
         frame_of(&mut keyed, extremes, texels)
