@@ -1733,8 +1733,8 @@ fn band_weights(
     // The samples whose transmittance is the previous one's times `step_factor`: those
     // from the origin to the depth cap. With s rising along the samples both bounds are
     // monotone, so bisection finds the run once, rather than two divisions per sample.
-    let stepped = match (map.uniform_step(), step_factor) {
-        (Some(step), Some(_)) if extinction > 0.0 && step >= 0.0 => {
+    let stepped = match map.uniform_step() {
+        Some(step) if extinction > 0.0 && step >= 0.0 => {
             let s = |i: usize| map.sample_interval(i).0;
             let start = first_failing(samples, |i| {
                 let depth = unclamped(s(i));
