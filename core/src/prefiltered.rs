@@ -1883,12 +1883,13 @@ fn slice_frames(
         .collect();
     let rows: Vec<SampledRays> = std::iter::once(border).chain(interior).collect();
     let slices = map.slices as usize;
-    let sorted_by_slice = RaysBySlice::of(&rows, slices);
-    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = (0..slices)
+    let mut by_slice = RaysBySlice::of(&rows, slices);
+    let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = by_slice
+        .slices_mut()
         .into_par_iter()
-        .map(|slice| {
-            let (mut keyed, extremes) = sorted_by_slice.slice(slice);
-            let (frame, sorted, texels) = frame_of(&mut keyed, extremes, |lowest, highest| {
+        .enumerate()
+        .map(|(slice, (keyed, extremes))| {
+            let (frame, sorted, texels) = frame_of(keyed, extremes, |lowest, highest| {
                 texel_keys(map, slice, lowest, highest)
             })?;
             Some((frame, band_warps(&frame, &sorted, &texels)))
@@ -2078,14 +2079,20 @@ impl RaysBySlice {
         }
     }
 
-    /// A slice's rays, as [`frame_of`] takes them.
-    fn slice(&self, slice: usize) -> (Vec<(u64, f64)>, RayExtremes) {
-        let keyed = self.keyed[self.offsets[slice]..self.offsets[slice + 1]].to_vec();
-        let extremes = self
-            .extremes
-            .iter()
-            .fold(RayExtremes::NONE, |all, group| all.merge(&group[slice]));
-        (keyed, extremes)
+    /// Each slice's rays, as [`frame_of`] takes them, in place.
+    fn slices_mut(&mut self) -> Vec<(&mut [(u64, f64)], RayExtremes)> {
+        let mut rest = self.keyed.as_mut_slice();
+        let mut slices = Vec::with_capacity(self.offsets.len().saturating_sub(1));
+        for (slice, range) in self.offsets.windows(2).enumerate() {
+            let (own, tail) = rest.split_at_mut(range[1] - range[0]);
+            rest = tail;
+            let extremes = self
+                .extremes
+                .iter()
+                .fold(RayExtremes::NONE, |all, group| all.merge(&group[slice]));
+            slices.push((own, extremes));
+        }
+        slices
     }
 }
 
@@ -2115,14 +2122,15 @@ impl RayExtremes {
 
     #[inline]
     fn include(&mut self, ray: &SampledRay) {
-        self.fastest = f64::max(self.fastest, ray.rate);
-        self.slowest = f64::min(self.slowest, ray.rate);
-        self.origin = f64::min(self.origin, ray.origin);
-        if let Some(entry) = ray.medium_entry {
-            self.medium_start = Some(self.medium_start.map_or(entry, |start| start.min(entry)));
-        }
+        *self = self.merge(&Self {
+            fastest: ray.rate,
+            slowest: ray.rate,
+            origin: ray.origin,
+            medium_start: ray.medium_entry,
+        });
     }
 
+    #[inline]
     fn merge(self, other: &Self) -> Self {
         Self {
             fastest: f64::max(self.fastest, other.fastest),
@@ -2596,7 +2604,8 @@ mod tests {
                         .collect()
                 })
                 .collect();
-            let grouped = RaysBySlice::of(&rows, slices);
+            let mut grouped = RaysBySlice::of(&rows, slices);
+            let grouped = grouped.slices_mut();
             for slice in 0..slices {
                 let mut expected = RayExtremes::NONE;
                 let mut keyed = Vec::new();
@@ -2608,8 +2617,8 @@ mod tests {
                         }
                     }
                 }
-                let (got, extremes) = grouped.slice(slice);
-                assert_eq!(got, keyed, "slice {slice}");
+                let (got, extremes) = grouped.get(slice).expect("a slice");
+                assert_eq!(*got, keyed.as_slice(), "slice {slice}");
                 assert_eq!(
                     (extremes.fastest, extremes.slowest, extremes.origin),
                     (expected.fastest, expected.slowest, expected.origin)
