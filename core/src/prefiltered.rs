@@ -74,6 +74,9 @@ const MAX_SPEED_RATIO: f64 = 4096.0;
 /// per-pixel cost of one row per texel.
 pub const SAMPLES_PER_ROW: usize = 2;
 
+/// Reads per ray in [`Prefiltered::look_up`]: two bands in each of two slices.
+const LANES_PER_RAY: usize = 4;
+
 /// Rows of prefix sums along a slice of `map`.
 fn row_count(map: &EpipolarMap) -> usize {
     (map.samples as usize).div_ceil(SAMPLES_PER_ROW)
@@ -888,8 +891,41 @@ impl<'a> Prefiltered<'a> {
     #[inline]
     fn look_up(&self, located: &RaySlice, key: f64, x0: f64, x1: f64) -> Average {
         let log2_rate = located.s_per_t.log2();
+        let slices = self.map.neighbours(located.slice);
+        // Four lanes, both bands of both slices, each step done for all four in turn:
+        // the lanes are independent, so their loads and divisions overlap rather than
+        // queue one band after another.
+        let [lower, upper] = slices.map(|(slice, share)| (self.bands_for(slice, log2_rate), share));
+        let lanes = [lower.0[0], lower.0[1], upper.0[0], upper.0[1]];
+        let slice_shares = [lower.1, lower.1, upper.1, upper.1];
+        let bands = lanes.map(|(band, _)| band);
+        let parts: [f64; LANES_PER_RAY] =
+            std::array::from_fn(|lane| slice_shares[lane] * lanes[lane].1);
+        // As slices and bands of no share are skipped.
+        let active: [bool; LANES_PER_RAY] =
+            std::array::from_fn(|lane| slice_shares[lane] != 0.0 && lanes[lane].1 != 0.0);
+        let end = bands.map(|band| self.boundary_rows(band, x1));
+        // Boundary 0 is the empty prefix, of no weight.
+        let start = (x0 > 0.0).then(|| bands.map(|band| self.boundary_rows(band, x0)));
+        let before: [f64; LANES_PER_RAY] = std::array::from_fn(|lane| {
+            start.map_or(0.0, |start| start[lane].1[0] + start[lane].1[1])
+        });
+        let dw: [f64; LANES_PER_RAY] =
+            std::array::from_fn(|lane| end[lane].1[0] + end[lane].1[1] - before[lane]);
+        for lane in 0..LANES_PER_RAY {
+            if !active[lane] {
+                continue;
+            }
+            if dw[lane] <= 0.0 {
+                return Average::OffTheMap;
+            }
+            if before[lane] > CONDITION_LIMIT * dw[lane] {
+                return Average::Imprecise;
+            }
+        }
+        let scale: [f64; LANES_PER_RAY] = std::array::from_fn(|lane| parts[lane] / dw[lane]);
         let mut visibility = 0.0;
-        for (slice, share) in self.map.neighbours(located.slice) {
+        for (s, (_, share)) in slices.into_iter().enumerate() {
             if share == 0.0 {
                 continue;
             }
@@ -900,35 +936,25 @@ impl<'a> Prefiltered<'a> {
             }; 2];
             let mut read_count = 0;
             let mut shares = 0.0;
-            for (band, band_share) in self.bands_for(slice, log2_rate) {
-                if band_share == 0.0 {
+            for lane in 2 * s..2 * s + 2 {
+                if !active[lane] {
                     continue;
-                }
-                let end = self.boundary_rows(band, x1);
-                // Boundary 0 is the empty prefix, of no weight.
-                let start = (x0 > 0.0).then(|| self.boundary_rows(band, x0));
-                let before = start.map_or(0.0, |(_, [a, b])| a + b);
-                let dw = end.1[0] + end.1[1] - before;
-                if dw <= 0.0 {
-                    return Average::OffTheMap;
-                }
-                if before > CONDITION_LIMIT * dw {
-                    return Average::Imprecise;
                 }
                 let read = &mut reads[read_count];
                 read_count += 1;
-                let scale = share * band_share / dw;
-                let (row, [lower, upper]) = end;
+                let scale = scale[lane];
+                let (row, [lower, upper]) = end[lane];
                 read.rows[0] = (row, (scale * lower) as f32);
                 read.rows[1] = (row + 1, (scale * upper) as f32);
                 read.count = 2;
-                if let Some((row, [lower, upper])) = start {
+                if let Some(start) = &start {
+                    let (row, [lower, upper]) = start[lane];
                     read.rows[2] = (row, (-scale * lower) as f32);
                     read.rows[3] = (row + 1, (-scale * upper) as f32);
                     read.count = 4;
                 }
-                shares += share * band_share;
-                read.coefficients = self.coefficients(band, key);
+                shares += parts[lane];
+                read.coefficients = self.coefficients(bands[lane], key);
             }
             let dot = self.blend_dots(&reads[..read_count]);
             visibility += (0.5 * shares + dot).clamp(0.0, shares);
