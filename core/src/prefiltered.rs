@@ -153,9 +153,38 @@ impl Warp {
     #[inline]
     fn warp(&self, key: f64) -> f64 {
         let k = &self.knots;
-        let index = k[1..KNOTS - 1].iter().filter(|&&knot| knot <= key).count();
+        let index = self.inner_knots_at_or_below(key);
         let z = RAY_MARGIN + Self::SEGMENT * index as f64 + (key - k[index]) * self.slopes[index];
         z.clamp(0.0, 1.0)
+    }
+
+    /// How many inner knots lie at or below `key` (none for NaN): the segment it lies in.
+    #[inline]
+    fn inner_knots_at_or_below(&self, key: f64) -> usize {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::*;
+            const { assert!(KNOTS == 9) };
+            let k = &self.knots;
+            // SAFETY: SSE2 is part of x86_64; every load reads two knots of the array.
+            unsafe {
+                let key = _mm_set1_pd(key);
+                let pair = |i: usize| {
+                    // m − m/2 is the number of set bits of a two-bit mask.
+                    let mask = _mm_movemask_pd(_mm_cmple_pd(_mm_loadu_pd(k.as_ptr().add(i)), key));
+                    (mask - (mask >> 1)) as usize
+                };
+                let last = _mm_movemask_pd(_mm_cmple_sd(_mm_load_sd(&k[7]), key)) & 1;
+                pair(1) + pair(3) + pair(5) + last as usize
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self.knots[1..KNOTS - 1]
+                .iter()
+                .filter(|&&knot| knot <= key)
+                .count()
+        }
     }
 
     /// The key that warps to `z` ([`Warp::warp`]'s inverse inside [0, 1]).
@@ -2785,6 +2814,20 @@ mod tests {
 
     /// `unwarp` inverts the warp over [0, 1], on the knots and between them (where the
     /// exact ends' width is measured: ray keys are the knots, where the warp's slope jumps).
+    #[test]
+    fn inner_knots_at_or_below_count_like_comparing_each() {
+        let knots: [f64; KNOTS] = std::array::from_fn(|i| (i as f64 - 3.0) * 0.37);
+        let warp = Warp::from_knots(knots);
+        let mut keys = vec![f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, 0.0];
+        keys.extend(knots);
+        keys.extend(knots.map(|k| k - 1e-12));
+        keys.extend((0..200).map(|i| -1.5 + i as f64 * 0.0175));
+        for key in keys {
+            let each = knots[1..KNOTS - 1].iter().filter(|&&k| k <= key).count();
+            assert_eq!(warp.inner_knots_at_or_below(key), each, "key {key}");
+        }
+    }
+
     #[test]
     fn unwarp_inverts_the_warp() {
         let knots = [
