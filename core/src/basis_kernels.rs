@@ -134,6 +134,32 @@ impl Kernels {
         }
     }
 
+    /// For each of `boundaries` (a row and the factors of it and the next), those two
+    /// rows blended and dotted with `coefficients`, into `out` (as many as both hold):
+    /// bit for bit [`Kernels::blend_dots`] of each as a read of its own, in one call for
+    /// the many boundaries a ray in a box reads per band.
+    #[inline]
+    pub fn boundary_dots<T: BasisValue>(
+        self,
+        stored: &[T],
+        coefficients: &[f32],
+        boundaries: &[(u32, [f32; 2])],
+        out: &mut [f32],
+    ) {
+        match self {
+            Kernels::Portable => {
+                for (&boundary, out) in boundaries.iter().zip(out) {
+                    *out = blend_dots(stored, &[BandRead::of_boundary(boundary, coefficients)]);
+                }
+            }
+            // SAFETY: as in `blend_dots`.
+            #[cfg(target_arch = "x86_64")]
+            Kernels::Avx2Fma => unsafe {
+                boundary_dots_avx2(stored, coefficients, boundaries, out)
+            },
+        }
+    }
+
     /// Running prefix sums of weighted basis rows: for each sample i, in order,
     /// `sums += weights[i] · table row entries[i]`; after every k-th sample (k =
     /// `entries.len() / scales.len()`, the samples per output row) output row r becomes
@@ -163,6 +189,18 @@ pub struct BandRead<'c> {
     pub rows: [(u32, f32); 4],
     pub count: usize,
     pub coefficients: &'c [f32],
+}
+
+impl<'c> BandRead<'c> {
+    /// The read of one boundary: `row` and the next, weighted by `factors`.
+    #[inline]
+    pub fn of_boundary((row, factors): (u32, [f32; 2]), coefficients: &'c [f32]) -> Self {
+        Self {
+            rows: [(row, factors[0]), (row + 1, factors[1]), (0, 0.0), (0, 0.0)],
+            count: 2,
+            coefficients,
+        }
+    }
 }
 
 /// Dispatches to [`blend_dots_fixed`] for every padded stride of M = 4…64 (a constant
@@ -260,6 +298,95 @@ unsafe fn blend_dots_avx2<T: BasisValue>(stored: &[T], reads: &[BandRead<'_>]) -
         56 => blend_dots_fixed_avx2::<T, 56, 7>(stored, reads),
         64 => blend_dots_fixed_avx2::<T, 64, 8>(stored, reads),
         _ => blend_dots_any(stored, reads),
+    }
+}
+
+/// [`Kernels::boundary_dots`] in AVX2 + FMA, dispatched on the stride as
+/// [`blend_dots_avx2`] is.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn boundary_dots_avx2<T: BasisValue>(
+    stored: &[T],
+    coefficients: &[f32],
+    boundaries: &[(u32, [f32; 2])],
+    out: &mut [f32],
+) {
+    match coefficients.len() {
+        8 => boundary_dots_fixed_avx2::<T, 8, 1>(stored, coefficients, boundaries, out),
+        16 => boundary_dots_fixed_avx2::<T, 16, 2>(stored, coefficients, boundaries, out),
+        24 => boundary_dots_fixed_avx2::<T, 24, 3>(stored, coefficients, boundaries, out),
+        32 => boundary_dots_fixed_avx2::<T, 32, 4>(stored, coefficients, boundaries, out),
+        40 => boundary_dots_fixed_avx2::<T, 40, 5>(stored, coefficients, boundaries, out),
+        48 => boundary_dots_fixed_avx2::<T, 48, 6>(stored, coefficients, boundaries, out),
+        56 => boundary_dots_fixed_avx2::<T, 56, 7>(stored, coefficients, boundaries, out),
+        64 => boundary_dots_fixed_avx2::<T, 64, 8>(stored, coefficients, boundaries, out),
+        _ => boundary_dots_any(stored, coefficients, boundaries, out),
+    }
+}
+
+/// [`Kernels::boundary_dots`] through [`blend_dots_any`], for strides without a kernel
+/// of their own.
+fn boundary_dots_any<T: BasisValue>(
+    stored: &[T],
+    coefficients: &[f32],
+    boundaries: &[(u32, [f32; 2])],
+    out: &mut [f32],
+) {
+    for (&boundary, out) in boundaries.iter().zip(out) {
+        *out = blend_dots_any(stored, &[BandRead::of_boundary(boundary, coefficients)]);
+    }
+}
+
+/// [`boundary_dots_avx2`] with `STRIDE` = 8·`VECTORS` values per row: the coefficients
+/// loaded once, and each boundary's rows blended and dotted as
+/// [`blend_dots_fixed_avx2`] does for a single read, operation for operation.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn boundary_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTORS: usize>(
+    stored: &[T],
+    coefficients: &[f32],
+    boundaries: &[(u32, [f32; 2])],
+    out: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    const { assert!(STRIDE == VECTORS * LANES) };
+    let Ok(row_of_coefficients) = <&[f32; STRIDE]>::try_from(coefficients) else {
+        return boundary_dots_any(stored, coefficients, boundaries, out);
+    };
+    let loaded: [__m256; VECTORS] = std::array::from_fn(|v| {
+        // The chunk holds exactly LANES values, all that the unaligned load reads.
+        _mm256_loadu_ps(row_of_coefficients[v * LANES..].as_ptr())
+    });
+    for (&(row, factors), out) in boundaries.iter().zip(out) {
+        let rows = (
+            stored[row as usize * STRIDE..].first_chunk::<STRIDE>(),
+            stored[(row as usize + 1) * STRIDE..].first_chunk::<STRIDE>(),
+        );
+        let (Some(lower), Some(upper)) = rows else {
+            *out = blend_dots_any(
+                stored,
+                &[BandRead::of_boundary((row, factors), coefficients)],
+            );
+            continue;
+        };
+        let mut blended = [_mm256_setzero_ps(); VECTORS];
+        for (values, factor) in [lower, upper].into_iter().zip(factors) {
+            let factor = _mm256_set1_ps(factor * T::SCALE);
+            for (blended, lanes) in blended.iter_mut().zip(values.chunks_exact(LANES)) {
+                let lanes = T::load_lanes(lanes.try_into().unwrap_or(&[T::default(); LANES]));
+                *blended = _mm256_fmadd_ps(factor, lanes, *blended);
+            }
+        }
+        let mut sum = _mm256_setzero_ps();
+        for (blended, coefficients) in blended.into_iter().zip(loaded) {
+            sum = _mm256_add_ps(
+                sum,
+                _mm256_fmadd_ps(blended, coefficients, _mm256_setzero_ps()),
+            );
+        }
+        let half = _mm_add_ps(_mm256_castps256_ps128(sum), _mm256_extractf128_ps::<1>(sum));
+        let pair = _mm_add_ps(half, _mm_movehl_ps(half, half));
+        *out = _mm_cvtss_f32(_mm_add_ss(pair, _mm_movehdup_ps(pair)));
     }
 }
 
@@ -638,6 +765,48 @@ mod tests {
                 blend_dots_any(&stored, &reads).to_bits(),
                 "stride {stride}"
             );
+        }
+    }
+
+    #[test]
+    fn boundary_dots_are_each_boundary_dotted_alone_bit_for_bit() {
+        // Every padded stride of M = 4…64, and one (20) that no fixed kernel takes.
+        let strides = (4..=64).step_by(6).map(padded).chain([20]);
+        for stride in strides {
+            let rows = 9;
+            let stored: Vec<f32> = (0..rows * stride)
+                .map(|i| ((i * 29 % 31) as f32 - 15.0) / 15.0)
+                .collect();
+            let snorm: Vec<i16> = stored.iter().map(|&v| i16::store(v)).collect();
+            let coefficients: Vec<f32> = (0..stride).map(|k| (k as f32 * 0.9).cos()).collect();
+            // The last boundary reads the last two rows; factors of either sign and zero.
+            let boundaries = [
+                (0, [0.0, 0.375]),
+                (3, [1.25, -0.5]),
+                (7, [0.75, 2.0]),
+                (2, [-1.0, 0.0]),
+            ];
+            for kernels in all_kernels() {
+                let mut got = [f32::NAN; 4];
+                kernels.boundary_dots(&stored, &coefficients, &boundaries, &mut got);
+                let mut got_snorm = [f32::NAN; 4];
+                kernels.boundary_dots(&snorm, &coefficients, &boundaries, &mut got_snorm);
+                for (k, &boundary) in boundaries.iter().enumerate() {
+                    let read = [BandRead::of_boundary(boundary, &coefficients)];
+                    let alone = kernels.blend_dots(&stored, &read);
+                    assert_eq!(
+                        got[k].to_bits(),
+                        alone.to_bits(),
+                        "{kernels:?}, stride {stride}"
+                    );
+                    let alone = kernels.blend_dots(&snorm, &read);
+                    assert_eq!(
+                        got_snorm[k].to_bits(),
+                        alone.to_bits(),
+                        "{kernels:?}, snorm16, stride {stride}"
+                    );
+                }
+            }
         }
     }
 

@@ -893,6 +893,20 @@ impl<'a> Prefiltered<'a> {
         &self.tables.coefficients[Tables::index(z) * self.stride..][..self.stride]
     }
 
+    /// Each boundary's blended prefix rows dotted with `coefficients`, into `out`
+    /// ([`Kernels::boundary_dots`]).
+    #[inline]
+    fn boundary_dots(&self, coefficients: &[f32], rows: &[(u32, [f32; 2])], out: &mut [f32]) {
+        match &self.basis {
+            FilteredBasis::F32(stored) => {
+                self.kernels.boundary_dots(stored, coefficients, rows, out)
+            }
+            FilteredBasis::Snorm16(stored) => {
+                self.kernels.boundary_dots(stored, coefficients, rows, out)
+            }
+        }
+    }
+
     /// The reads' blended prefix rows dotted with their coefficients, in the stored
     /// precision.
     #[inline]
@@ -1064,27 +1078,27 @@ impl<'a> Prefiltered<'a> {
                 }
                 let coefficients = self.coefficients(band, key);
                 // Per boundary: its cumulative weight, and its prefix row dotted with the
-                // coefficients and scaled by that weight.
+                // coefficients and scaled by that weight, all dotted in one kernel call.
+                // Boundaries at or before the slice's start, the first few (boundaries
+                // rise along the ray), are the empty prefix: (0, 0).
                 let mut cumulative = [(0.0f64, 0.0f64); MOST];
-                for (x, at) in boundaries.iter().zip(cumulative.iter_mut()) {
-                    if *x <= 0.0 {
-                        continue;
-                    }
+                let mut rows = [(0, [0.0; 2]); MOST];
+                let first = boundaries.iter().take_while(|x| **x <= 0.0).count();
+                for ((x, at), rows) in boundaries
+                    .iter()
+                    .zip(&mut cumulative)
+                    .zip(&mut rows)
+                    .skip(first)
+                {
                     let (row, parts) = self.boundary_rows(band, *x);
-                    let read = BandRead {
-                        rows: [
-                            (row, parts[0] as f32),
-                            (row + 1, parts[1] as f32),
-                            (0, 0.0),
-                            (0, 0.0),
-                        ],
-                        count: 2,
-                        coefficients,
-                    };
-                    *at = (
-                        parts[0] + parts[1],
-                        self.blend_dots(std::slice::from_ref(&read)),
-                    );
+                    *rows = (row, parts.map(|part| part as f32));
+                    at.0 = parts[0] + parts[1];
+                }
+                let mut row_dots = [0.0f32; MOST];
+                let count = boundaries.len();
+                self.boundary_dots(coefficients, &rows[first..count], &mut row_dots[first..]);
+                for (at, dot) in cumulative.iter_mut().zip(row_dots).skip(first) {
+                    at.1 = dot as f64;
                 }
                 let part = share * band_share;
                 for k in 0..pieces {
