@@ -1084,14 +1084,14 @@ impl<'a> Prefiltered<'a> {
                 let mut cumulative = [(0.0f64, 0.0f64); MOST];
                 let mut rows = [(0, [0.0; 2]); MOST];
                 let first = boundaries.iter().take_while(|x| **x <= 0.0).count();
-                for ((x, at), rows) in boundaries
+                for ((x, at), read) in boundaries
                     .iter()
                     .zip(&mut cumulative)
                     .zip(&mut rows)
                     .skip(first)
                 {
                     let (row, parts) = self.boundary_rows(band, *x);
-                    *rows = (row, parts.map(|part| part as f32));
+                    *read = (row, parts.map(|part| part as f32));
                     at.0 = parts[0] + parts[1];
                 }
                 let mut row_dots = [0.0f32; MOST];
