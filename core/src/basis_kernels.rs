@@ -384,9 +384,7 @@ unsafe fn boundary_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VEC
                 _mm256_fmadd_ps(blended, coefficients, _mm256_setzero_ps()),
             );
         }
-        let half = _mm_add_ps(_mm256_castps256_ps128(sum), _mm256_extractf128_ps::<1>(sum));
-        let pair = _mm_add_ps(half, _mm_movehl_ps(half, half));
-        *out = _mm_cvtss_f32(_mm_add_ss(pair, _mm_movehdup_ps(pair)));
+        *out = horizontal_sum(sum);
     }
 }
 
@@ -432,6 +430,16 @@ unsafe fn blend_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTOR
     for total in totals {
         sum = _mm256_add_ps(sum, total);
     }
+    horizontal_sum(sum)
+}
+
+/// The sum of `sum`'s eight lanes, halves first: the one order both dot kernels use, so
+/// that a boundary dotted by [`boundary_dots_fixed_avx2`] is a read's sum to the bit.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn horizontal_sum(sum: std::arch::x86_64::__m256) -> f32 {
+    use std::arch::x86_64::*;
     let half = _mm_add_ps(_mm256_castps256_ps128(sum), _mm256_extractf128_ps::<1>(sum));
     let pair = _mm_add_ps(half, _mm_movehl_ps(half, half));
     _mm_cvtss_f32(_mm_add_ss(pair, _mm_movehdup_ps(pair)))
