@@ -33,7 +33,8 @@ use crate::spare::Spare;
 /// How densely to rectify.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RectifyDesc {
-    /// Number of slices; 0 chooses `slices_per_texel` at the far end of the map, up to
+    /// Number of slices; 0 chooses `slices_per_texel` at the far end of a radial map (and
+    /// as dense as that halfway out for evenly spaced parallel slices), up to
     /// `max_auto_slices`.
     pub slices: u32,
     pub slices_per_texel: f64,
@@ -362,7 +363,12 @@ impl EpipolarMap {
                 offset_step: 0.0,
                 slope: view.z / length,
             };
-            (layout, s_min, s_max, o_max - o_min, o_max - o_min)
+            // Evenly spaced slices, as dense as radial ones halfway to their far end: at the
+            // far end's spacing throughout, texel-scale shafts (a styled occluder's holes
+            // under an orthographic camera) blurred across slices, 4.7% off the reference
+            // against 2.0% at twice the slices.
+            let across = o_max - o_min;
+            (layout, s_min, s_max, across, 2.0 * across)
         };
         let slices = if desc.slices == 0 {
             ((texels_across * desc.slices_per_texel).ceil() as u32).clamp(16, desc.max_auto_slices)
@@ -1104,6 +1110,47 @@ mod tests {
         );
         map.lit_part(i, map.row(slice)[i], located.threshold)
             .is_some_and(|(a, b)| a <= s && s <= b)
+    }
+
+    /// Automatic slice counts: a radial map's slices lie 1/`slices_per_texel` texels apart
+    /// at its far end, closer nearer the epipole; evenly spaced parallel slices (an
+    /// orthographic camera's) lie as close as radial ones halfway out, everywhere.
+    #[test]
+    fn automatic_slices_are_as_dense_as_radial_ones_halfway_out() {
+        let mut scene = crate::builtin::builtin_scene("torus").expect("built-in scene");
+        scene.camera.width = 64;
+        scene.camera.height = 36;
+        scene.render.shadow_map_size = 256;
+        let desc = RectifyDesc::prefiltered(0);
+        let far_spacing = 1.0 / desc.slices_per_texel;
+        // n slices have n − 1 gaps over the span that asked for n.
+        let gaps = |map: &EpipolarMap| map.slices as f64 / (map.slices - 1) as f64;
+        let (_, _, radial) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        let Layout::Radial { angle_step, .. } = radial.layout else {
+            panic!("a pinhole camera's map is radial");
+        };
+        let far = radial.sample_interval(radial.samples as usize - 1).1;
+        let spacing = angle_step * far;
+        assert!(
+            spacing <= far_spacing * gaps(&radial) + 1e-9 && spacing > 0.5 * far_spacing,
+            "radial slices {spacing} texels apart at the far end"
+        );
+        scene.camera.projection = crate::scene::Projection::Orthographic {
+            ortho_scale: 20.0,
+            sensor_fit: crate::scene::SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: 0.0,
+        };
+        let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        let Layout::Parallel { offset_step, .. } = parallel.layout else {
+            panic!("an orthographic camera's map is parallel");
+        };
+        assert!(parallel.slices < desc.max_auto_slices, "not capped");
+        assert!(
+            offset_step <= 0.5 * far_spacing * gaps(&parallel) + 1e-9
+                && offset_step > 0.25 * far_spacing,
+            "parallel slices {offset_step} texels apart"
+        );
     }
 
     /// `value_of_key` inverts `order_key` for the radial (reciprocal) and parallel layouts,
