@@ -1112,20 +1112,37 @@ mod tests {
             .is_some_and(|(a, b)| a <= s && s <= b)
     }
 
+    /// Torus at 64×36 rectified as `desc` says, seen by its pinhole camera (a radial map)
+    /// and by an orthographic one (a parallel map), with its own shadow map size unless
+    /// `shadow_map_size` is given.
+    fn torus_seen_both_ways(desc: &RectifyDesc, shadow_map_size: Option<u32>) -> [EpipolarMap; 2] {
+        let mut scene = crate::builtin::builtin_scene("torus").expect("built-in scene");
+        scene.camera.width = 64;
+        scene.camera.height = 36;
+        if let Some(size) = shadow_map_size {
+            scene.render.shadow_map_size = size;
+        }
+        let (_, _, radial) = test_support::rectified(&scene, Rectification::Epipolar, desc);
+        scene.camera.projection = crate::scene::Projection::Orthographic {
+            ortho_scale: 20.0,
+            sensor_fit: crate::scene::SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: 0.0,
+        };
+        let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, desc);
+        [radial, parallel]
+    }
+
     /// Automatic slice counts: a radial map's slices lie 1/`slices_per_texel` texels apart
     /// at its far end, closer nearer the epipole; evenly spaced parallel slices (an
     /// orthographic camera's) lie as close as radial ones halfway out, everywhere.
     #[test]
     fn automatic_slices_are_as_dense_as_radial_ones_halfway_out() {
-        let mut scene = crate::builtin::builtin_scene("torus").expect("built-in scene");
-        scene.camera.width = 64;
-        scene.camera.height = 36;
-        scene.render.shadow_map_size = 256;
         let desc = RectifyDesc::prefiltered(0);
         let far_spacing = 1.0 / desc.slices_per_texel;
         // n slices have n − 1 gaps over the span that asked for n.
         let gaps = |map: &EpipolarMap| map.slices as f64 / (map.slices - 1) as f64;
-        let (_, _, radial) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        let [radial, parallel] = torus_seen_both_ways(&desc, Some(256));
         let Layout::Radial { angle_step, .. } = radial.layout else {
             panic!("a pinhole camera's map is radial");
         };
@@ -1135,13 +1152,6 @@ mod tests {
             spacing <= far_spacing * gaps(&radial) + 1e-9 && spacing > 0.5 * far_spacing,
             "radial slices {spacing} texels apart at the far end"
         );
-        scene.camera.projection = crate::scene::Projection::Orthographic {
-            ortho_scale: 20.0,
-            sensor_fit: crate::scene::SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
-        let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
         let Layout::Parallel { offset_step, .. } = parallel.layout else {
             panic!("an orthographic camera's map is parallel");
         };
@@ -1157,18 +1167,7 @@ mod tests {
     /// and takes keys at or past ±1 to the infinite values they stand for.
     #[test]
     fn value_of_key_inverts_order_key() {
-        let mut scene = crate::builtin::builtin_scene("torus").expect("built-in scene");
-        scene.camera.width = 64;
-        scene.camera.height = 36;
-        let desc = RectifyDesc::prefiltered(64);
-        let (_, _, radial) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
-        scene.camera.projection = crate::scene::Projection::Orthographic {
-            ortho_scale: 20.0,
-            sensor_fit: crate::scene::SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
-        let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        let [radial, parallel] = torus_seen_both_ways(&RectifyDesc::prefiltered(64), None);
         assert!(radial.layout.is_reciprocal() && !parallel.layout.is_reciprocal());
         for map in [&radial, &parallel] {
             for value in [-1e6, -3.5, -1.0, -0.01, 0.0, 0.2, 1.0, 7.0, 1e6] {
