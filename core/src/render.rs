@@ -19,7 +19,7 @@ use crate::scene::{
 };
 use crate::shadow_map::ShadowMap;
 use crate::style::Style;
-use crate::upsample::{joint_bilateral, reduced_size, sample_pixel};
+use crate::upsample::{joint_bilateral_into, reduced_size, sample_pixel};
 
 /// World-space triangles, borrowed so that hosts can pass their buffers without copies.
 #[derive(Clone, Copy, Debug)]
@@ -672,12 +672,13 @@ pub(crate) fn shade_pixels(
     if stride == 1 {
         return Ok((layers, counts));
     }
-    let depth: Vec<f32> = surfaces
-        .distances
-        .iter()
-        .map(|&d| layer_depth(d as f64, max_distance) as f32)
-        .collect();
-    let layers = joint_bilateral(&layers, &depth, camera.width, camera.height, stride);
+    let mut upsampled = Layers::for_overwrite(camera.width, camera.height);
+    upsampled
+        .depth
+        .par_iter_mut()
+        .zip(&surfaces.distances)
+        .for_each(|(out, &d)| *out = layer_depth(d as f64, max_distance) as f32);
+    let layers = joint_bilateral_into(&layers, upsampled, stride);
     Ok((layers, counts))
 }
 
