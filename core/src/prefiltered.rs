@@ -861,7 +861,7 @@ impl<'a> Prefiltered<'a> {
 
     /// The one or two bands whose references bracket a ray crossing 2^`log2_rate` texels
     /// per unit of t, with their shares (linear in the logarithm of the speed).
-    #[inline]
+    #[inline(always)]
     fn bands_for(&self, slice: u32, log2_rate: f64) -> [(&Band, f64); 2] {
         let range = self.slice_bands[slice as usize];
         let first = range.first as usize;
@@ -938,7 +938,11 @@ impl<'a> Prefiltered<'a> {
         // Four lanes, both bands of both slices, each step done for all four in turn:
         // the lanes are independent, so their loads and divisions overlap rather than
         // queue one band after another.
-        let [lower, upper] = slices.map(|(slice, share)| (self.bands_for(slice, log2_rate), share));
+        // Not `slices.map(..)`: its closure was called, not inlined, and its bands came back
+        // through the stack in halves that wider loads then waited on.
+        let [(lower_slice, lower_share), (upper_slice, upper_share)] = slices;
+        let lower = (self.bands_for(lower_slice, log2_rate), lower_share);
+        let upper = (self.bands_for(upper_slice, log2_rate), upper_share);
         let lanes = [lower.0[0], lower.0[1], upper.0[0], upper.0[1]];
         let slice_shares = [lower.1, lower.1, upper.1, upper.1];
         let bands = lanes.map(|(band, _)| band);
