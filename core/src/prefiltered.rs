@@ -1266,7 +1266,7 @@ impl<'a> Prefiltered<'a> {
 
     /// Integrates one ray over [t_start, t_end]; `None` when the ray runs along the light.
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<RaySample> {
-        self.march_located(ray, t_start, t_end, self.map.locate(ray))
+        self.march_located(ray, t_start, t_end, self.map.locate(ray).as_ref())
     }
 
     /// [`Prefiltered::march`] for `count` rays, `ray(i)` giving ray i and its span, into
@@ -1293,13 +1293,16 @@ impl<'a> Prefiltered<'a> {
         };
         let mut located: [Option<RaySlice>; AHEAD] =
             std::array::from_fn(|i| if i < count { locate(i) } else { None });
+        // Each ray is marched from its place in the ring, which was written long before:
+        // a copy taken just before the call was still in the store buffer when the march
+        // read it, in halves too narrow for its loads.
         for (i, out) in out.iter_mut().enumerate().take(count) {
-            let here = located[i % AHEAD];
-            if i + AHEAD < count {
-                located[i % AHEAD] = locate(i + AHEAD);
-            }
+            let slot = i % AHEAD;
             let (ray, t_start, t_end) = ray(i);
-            *out = self.march_located(ray, t_start, t_end, here);
+            *out = self.march_located(ray, t_start, t_end, located[slot].as_ref());
+            if i + AHEAD < count {
+                located[slot] = locate(i + AHEAD);
+            }
         }
     }
 
@@ -1329,13 +1332,13 @@ impl<'a> Prefiltered<'a> {
         ray: &Ray,
         t_start: f64,
         t_end: f64,
-        located: Option<RaySlice>,
+        located: Option<&RaySlice>,
     ) -> Option<RaySample> {
         let located = located?;
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
         }
-        if self.map.is_short(&located, t_start, t_end) {
+        if self.map.is_short(located, t_start, t_end) {
             return None;
         }
         if is_along_the_light(ray.direction, self.light_travel) {
@@ -1346,13 +1349,13 @@ impl<'a> Prefiltered<'a> {
         let sigma = self.extinction;
         let Some((a, b)) = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end) else {
             // Off the map (shorter than a sample) counts as lit, like the other methods.
-            let visibility = self.average(&located, key, x(t_start), x(t_end)).value()?;
+            let visibility = self.average(located, key, x(t_start), x(t_end)).value()?;
             return Some(RaySample {
                 visibility,
                 ..RaySample::EMPTY
             });
         };
-        if self.map.is_short_in_medium(&located, a, b, sigma) {
+        if self.map.is_short_in_medium(located, a, b, sigma) {
             return None;
         }
         // Rays start at the slice's origin; what lies before the medium is subtracted when
@@ -1369,8 +1372,8 @@ impl<'a> Prefiltered<'a> {
             } else {
                 integral_exp(sigma, b - a)
             };
-            let Some(end) = self.exact_end_of(&located, t_start, t_end) else {
-                let visibility = self.average(&located, key, x(from), x(b)).value()?;
+            let Some(end) = self.exact_end_of(located, t_start, t_end) else {
+                let visibility = self.average(located, key, x(from), x(b)).value()?;
                 return Some(RaySample {
                     scattering: visibility * unshadowed,
                     alpha,
@@ -1379,10 +1382,10 @@ impl<'a> Prefiltered<'a> {
             };
             // The end is integrated exactly, the rest looked up: unless that rest
             // is too short for a lookup of its own.
-            if end.t_cut <= a || self.map.is_short_stretch(&located, from, end.t_cut) {
+            if end.t_cut <= a || self.map.is_short_stretch(located, from, end.t_cut) {
                 return None;
             }
-            let visibility = self.average(&located, key, x(from), x(end.t_cut)).value()?;
+            let visibility = self.average(located, key, x(from), x(end.t_cut)).value()?;
             let before = integral_exp(sigma, end.t_cut - a);
             let after = end.scattering.unwrap_or(unshadowed - before);
             let scattering = visibility * before + after;
@@ -1403,7 +1406,7 @@ impl<'a> Prefiltered<'a> {
         let pieces = box_pieces(sigma * along.sunward_change(a, b));
         if self
             .map
-            .is_short_stretch(&located, a, a + (b - a) / pieces as f64)
+            .is_short_stretch(located, a, a + (b - a) / pieces as f64)
         {
             return None;
         }
@@ -1414,7 +1417,7 @@ impl<'a> Prefiltered<'a> {
         // not at all.
         let last = pieces - 1;
         let end = if self.exact_ray_ends && b >= t_end {
-            self.exact_end(&located, start_of(last), b, |t0, t1| {
+            self.exact_end(located, start_of(last), b, |t0, t1| {
                 along.integrate(t0, t1, a, sigma)
             })
         } else {
@@ -1431,7 +1434,7 @@ impl<'a> Prefiltered<'a> {
             Some(end) => {
                 if self
                     .map
-                    .is_short_stretch(&located, start_of(last), end.t_cut)
+                    .is_short_stretch(located, start_of(last), end.t_cut)
                 {
                     return None;
                 }
@@ -1446,7 +1449,7 @@ impl<'a> Prefiltered<'a> {
         let mut visibilities = [0.0; MAX_BOX_PIECES as usize];
         let visibilities = &mut visibilities[..looked_up as usize];
         self.average_pieces(
-            &located,
+            located,
             key,
             &boundaries[..=looked_up as usize],
             visibilities,
