@@ -141,7 +141,10 @@ impl CameraModel {
         }
     }
 
-    /// The world-space ray through continuous pixel coordinates.
+    /// The world-space ray through continuous pixel coordinates. Inlined: called apart,
+    /// it handed its ray back through the stack, in pieces the caller's wider loads then
+    /// waited on.
+    #[inline]
     pub fn ray(&self, px: f64, py: f64) -> Ray {
         let [x, y] = self.plane_point(px, py);
         let (origin_cam, dir_cam) = if self.perspective {
