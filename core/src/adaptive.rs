@@ -310,20 +310,13 @@ impl Lattice {
         position: [1, 0],
     };
 
-    /// The sparsest lattice for a square whose epipolar lines run along `directions`
-    /// (in pixels, at its corners: around an epipole off the square the extremes lie
-    /// there), with the shortest pairs among equally sparse ones.
-    fn along(directions: &[[f64; 2]; 4]) -> Self {
-        let mut units = [[0.0; 2]; 4];
-        for (unit, &[dx, dy]) in units.iter_mut().zip(directions) {
-            let norm = dx.hypot(dy);
-            if !(norm > 1e-12 && norm.is_finite()) {
-                return Self::EVERY_POINT;
-            }
-            *unit = [dx / norm, dy / norm];
-        }
-        let mut best = Self::EVERY_POINT;
-        let mut best_span = f64::INFINITY;
+    /// The steps a lattice may take, in the order [`Lattice::along`] prefers them among
+    /// equals, with their Bézout coefficients and length in pixels: the primitive vectors
+    /// of the finer grid up to [`MAX_STEP`], one of each ± pair, short enough that a pair
+    /// two steps apart fits within [`MAX_ALONG`] (longer ones only ever have stride 1,
+    /// which never wins). Found once per frame, not once per square.
+    fn candidates() -> Vec<([i64; 2], [i64; 2], f64)> {
+        let mut candidates = Vec::new();
         for a in -MAX_STEP..=MAX_STEP {
             for b in 0..=MAX_STEP {
                 // (−1, 0) is (1, 0) the other way round.
@@ -335,29 +328,51 @@ impl Lattice {
                 };
                 // Pixels per step: the finer grid's points lie two pixels apart.
                 let length = 2.0 * ((a * a + b * b) as f64).sqrt();
-                let cross_max = units
-                    .iter()
-                    .map(|[dx, dy]| (dx * b as f64 - dy * a as f64).abs())
-                    .fold(0.0, f64::max);
-                let sin_max = 2.0 * cross_max / length;
-                let mut stride = MAX_STRIDE;
-                while stride > 1 {
-                    let span = stride as f64 * length;
-                    if span <= MAX_ALONG && span * sin_max <= MAX_ACROSS {
-                        break;
-                    }
-                    stride -= 1;
+                if 2.0 * length <= MAX_ALONG {
+                    candidates.push(([a, b], position, length));
                 }
+            }
+        }
+        candidates
+    }
+
+    /// The sparsest lattice for a square whose epipolar lines run along `directions`
+    /// (in pixels, at its corners: around an epipole off the square the extremes lie
+    /// there), with the shortest pairs among equally sparse ones, of `candidates`
+    /// ([`Lattice::candidates`]).
+    fn along(directions: &[[f64; 2]; 4], candidates: &[([i64; 2], [i64; 2], f64)]) -> Self {
+        let mut units = [[0.0; 2]; 4];
+        for (unit, &[dx, dy]) in units.iter_mut().zip(directions) {
+            let norm = dx.hypot(dy);
+            if !(norm > 1e-12 && norm.is_finite()) {
+                return Self::EVERY_POINT;
+            }
+            *unit = [dx / norm, dy / norm];
+        }
+        let mut best = Self::EVERY_POINT;
+        let mut best_span = f64::INFINITY;
+        for &([a, b], position, length) in candidates {
+            let cross_max = units
+                .iter()
+                .map(|[dx, dy]| (dx * b as f64 - dy * a as f64).abs())
+                .fold(0.0, f64::max);
+            let sin_max = 2.0 * cross_max / length;
+            let mut stride = MAX_STRIDE;
+            while stride > 1 {
                 let span = stride as f64 * length;
-                if stride > best.stride || (stride == best.stride && stride > 1 && span < best_span)
-                {
-                    best = Lattice {
-                        step: [a, b],
-                        stride,
-                        position,
-                    };
-                    best_span = span;
+                if span <= MAX_ALONG && span * sin_max <= MAX_ACROSS {
+                    break;
                 }
+                stride -= 1;
+            }
+            let span = stride as f64 * length;
+            if stride > best.stride || (stride == best.stride && stride > 1 && span < best_span) {
+                best = Lattice {
+                    step: [a, b],
+                    stride,
+                    position,
+                };
+                best_span = span;
             }
         }
         best
@@ -414,6 +429,7 @@ impl Lattices {
     fn of_grid(width: usize, height: usize, lines: Option<&EpipolarLines>) -> Self {
         let across = width.div_ceil(LATTICE_TILE);
         let down = height.div_ceil(LATTICE_TILE);
+        let candidates = Lattice::candidates();
         let squares = (0..down * across)
             .into_par_iter()
             .map(|square| {
@@ -430,7 +446,7 @@ impl Lattices {
                 );
                 let corners = [(i0, j0), (i1, j0), (i0, j1), (i1, j1)]
                     .map(|(i, j)| lines.direction(2 * i, 2 * j));
-                Lattice::along(&corners)
+                Lattice::along(&corners, &candidates)
             })
             .collect();
         Self { across, squares }
@@ -1287,11 +1303,12 @@ mod tests {
 
     #[test]
     fn lattices_pair_every_other_point_along_the_epipolar_line_through_it() {
+        let candidates = Lattice::candidates();
         let mut strides = Vec::new();
         for degrees in 0..360 {
             let angle = (degrees as f64 + 0.3).to_radians();
             let direction = [angle.cos(), angle.sin()];
-            let lattice = Lattice::along(&[direction; 4]);
+            let lattice = Lattice::along(&[direction; 4], &candidates);
             let [a, b] = lattice.step;
             assert_eq!(lattice.position[0] * a + lattice.position[1] * b, 1);
             strides.push(lattice.stride);
@@ -1327,9 +1344,48 @@ mod tests {
         }
         // Around an epipole inside the square, and without a direction, every point.
         let around = [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
-        assert_eq!(Lattice::along(&around), Lattice::EVERY_POINT);
-        assert_eq!(Lattice::along(&[[0.0, 0.0]; 4]), Lattice::EVERY_POINT);
-        assert_eq!(Lattice::along(&[[f64::NAN, 1.0]; 4]), Lattice::EVERY_POINT);
+        assert_eq!(Lattice::along(&around, &candidates), Lattice::EVERY_POINT);
+        assert_eq!(
+            Lattice::along(&[[0.0, 0.0]; 4], &candidates),
+            Lattice::EVERY_POINT
+        );
+        assert_eq!(
+            Lattice::along(&[[f64::NAN, 1.0]; 4], &candidates),
+            Lattice::EVERY_POINT
+        );
+    }
+
+    #[test]
+    fn lattices_choose_among_the_short_steps_what_they_would_among_all() {
+        // Every primitive step up to MAX_STEP, in the same order, none left out.
+        let mut every_step = Vec::new();
+        for a in -MAX_STEP..=MAX_STEP {
+            for b in 0..=MAX_STEP {
+                if b == 0 && a != 1 {
+                    continue;
+                }
+                if let Some(position) = bezout([a, b]) {
+                    every_step.push(([a, b], position, 2.0 * ((a * a + b * b) as f64).sqrt()));
+                }
+            }
+        }
+        let candidates = Lattice::candidates();
+        assert!(candidates.len() < every_step.len());
+        // Squares whose lines fan out by up to 20° from a direction, every 0.7°.
+        for step in 0..520 {
+            let angle = (step as f64 * 0.7).to_radians();
+            for fan in [0.0f64, 2.0, 8.0, 20.0] {
+                let corners: [[f64; 2]; 4] = std::array::from_fn(|k| {
+                    let turned = angle + (k as f64 / 3.0 - 0.5) * fan.to_radians();
+                    [3.0 * turned.cos(), 3.0 * turned.sin()]
+                });
+                assert_eq!(
+                    Lattice::along(&corners, &candidates),
+                    Lattice::along(&corners, &every_step),
+                    "{angle} rad, fan {fan}°"
+                );
+            }
+        }
     }
 
     /// Along the lines the tolerance bounds the gradient: a pair twice as far apart may
