@@ -134,37 +134,28 @@ pub fn rasterize(geometry: &Geometry, pixel_from_world: &DMat4, desc: &RasterDes
     let tiles_y = desc.height.div_ceil(TILE);
     let bins = bin_triangles(&triangles, tiles_x, tiles_y);
 
-    let tiles: Vec<(Vec<f32>, Vec<u32>)> = bins
-        .par_iter()
-        .enumerate()
-        .map(|(index, bin)| {
-            let rect = tile_rect(index as u32, tiles_x, desc);
-            fill_tile(&triangles, bin, rect, desc)
-        })
-        .collect();
-
     let width = desc.width as usize;
     let mut depth = vec![f32::INFINITY; width * desc.height as usize];
     let mut ids = vec![NO_OBJECT; depth.len()];
-    let rows = TILE as usize * width;
+    // Each band of half a tile's rows filled in place, its tiles in turn: tiles of their
+    // own took fresh memory each frame and were then copied (page faults, zeroing and the
+    // copy were a tenth of a camera raster), and bands a whole tile high left a core idle
+    // behind the densest band.
+    const BAND: u32 = TILE / 2;
+    let rows = BAND as usize * width.max(1);
     depth
         .par_chunks_mut(rows)
         .zip(ids.par_chunks_mut(rows))
         .enumerate()
-        .for_each(|(tile_y, (depth_rows, id_rows))| {
+        .for_each(|(band, (depth_band, id_band))| {
+            let y0 = band as u32 * BAND;
+            let tile_y = y0 / TILE;
             for tile_x in 0..tiles_x {
-                let index = tile_y as u32 * tiles_x + tile_x;
-                let rect = tile_rect(index, tiles_x, desc);
-                let (tile_depth, tile_ids) = &tiles[index as usize];
-                let tile_width = (rect[2] - rect[0]) as usize;
-                for (row, y) in (rect[1]..rect[3]).enumerate() {
-                    let local = (y - rect[1]) as usize * width + rect[0] as usize;
-                    let src = row * tile_width;
-                    depth_rows[local..local + tile_width]
-                        .copy_from_slice(&tile_depth[src..src + tile_width]);
-                    id_rows[local..local + tile_width]
-                        .copy_from_slice(&tile_ids[src..src + tile_width]);
-                }
+                let index = tile_y * tiles_x + tile_x;
+                let [x0, _, x1, _] = tile_rect(index, tiles_x, desc);
+                let rect = [x0, y0, x1, (y0 + BAND).min(desc.height)];
+                let bin = &bins[index as usize];
+                fill_tile(&triangles, bin, rect, desc, width, depth_band, id_band);
             }
         });
     DepthTarget {
@@ -200,16 +191,16 @@ fn bin_triangles(triangles: &[ScreenTriangle], tiles_x: u32, tiles_y: u32) -> Ve
     bins
 }
 
+/// Fills `rect` of `depth` and `ids`, the rows from its first on, `width` wide.
 fn fill_tile(
     triangles: &[ScreenTriangle],
     bin: &[u32],
     rect: [u32; 4],
     desc: &RasterDesc,
-) -> (Vec<f32>, Vec<u32>) {
-    let tile_width = (rect[2] - rect[0]) as usize;
-    let pixels = tile_width * (rect[3] - rect[1]) as usize;
-    let mut depth = vec![f32::INFINITY; pixels];
-    let mut ids = vec![NO_OBJECT; pixels];
+    width: usize,
+    depth: &mut [f32],
+    ids: &mut [u32],
+) {
     let (near, far) = desc.depth_range;
     for &index in bin {
         let triangle = &triangles[index as usize];
@@ -217,7 +208,7 @@ fn fill_tile(
             if z < near || z > far {
                 return;
             }
-            let i = (y - rect[1]) as usize * tile_width + (x - rect[0]) as usize;
+            let i = (y - rect[1]) as usize * width + x as usize;
             let z = z as f32;
             if z < depth[i] {
                 depth[i] = z;
@@ -225,7 +216,6 @@ fn fill_tile(
             }
         });
     }
-    (depth, ids)
 }
 
 /// Calls `visit(x, y, depth)` for every pixel centre of `rect` the triangle covers.
