@@ -129,6 +129,26 @@ struct ScreenTriangle {
 /// Rasterizes world-space triangles through `pixel_from_world`, which maps a point to
 /// (pixel x · w, pixel y · w, depth, w).
 pub fn rasterize(geometry: &Geometry, pixel_from_world: &DMat4, desc: &RasterDesc) -> DepthTarget {
+    rasterize_targets(geometry, pixel_from_world, desc, true)
+}
+
+/// [`rasterize`] without object ids (`ids` left empty), as the GPU's camera-depth pass: a
+/// camera's depth needs none, and filling them took a second full-size target each frame.
+pub fn rasterize_depth(
+    geometry: &Geometry,
+    pixel_from_world: &DMat4,
+    desc: &RasterDesc,
+) -> DepthTarget {
+    rasterize_targets(geometry, pixel_from_world, desc, false)
+}
+
+/// [`rasterize`], with object ids or without.
+fn rasterize_targets(
+    geometry: &Geometry,
+    pixel_from_world: &DMat4,
+    desc: &RasterDesc,
+    with_ids: bool,
+) -> DepthTarget {
     let triangles = setup_triangles(geometry, pixel_from_world, desc);
     let tiles_x = desc.width.div_ceil(TILE);
     let tiles_y = desc.height.div_ceil(TILE);
@@ -136,18 +156,27 @@ pub fn rasterize(geometry: &Geometry, pixel_from_world: &DMat4, desc: &RasterDes
 
     let width = desc.width as usize;
     let mut depth = vec![f32::INFINITY; width * desc.height as usize];
-    let mut ids = vec![NO_OBJECT; depth.len()];
+    let mut ids = if with_ids {
+        vec![NO_OBJECT; depth.len()]
+    } else {
+        Vec::new()
+    };
     // Each band of half a tile's rows filled in place, its tiles in turn: tiles of their
     // own took fresh memory each frame and were then copied (page faults, zeroing and the
     // copy were a tenth of a camera raster), and bands a whole tile high left a core idle
     // behind the densest band.
     const BAND: u32 = TILE / 2;
     let rows = BAND as usize * width.max(1);
+    let id_bands: Vec<Option<&mut [u32]>> = if with_ids {
+        ids.chunks_mut(rows).map(Some).collect()
+    } else {
+        depth.chunks(rows).map(|_| None).collect()
+    };
     depth
         .par_chunks_mut(rows)
-        .zip(ids.par_chunks_mut(rows))
+        .zip(id_bands)
         .enumerate()
-        .for_each(|(band, (depth_band, id_band))| {
+        .for_each(|(band, (depth_band, mut id_band))| {
             let y0 = band as u32 * BAND;
             let tile_y = y0 / TILE;
             for tile_x in 0..tiles_x {
@@ -155,7 +184,8 @@ pub fn rasterize(geometry: &Geometry, pixel_from_world: &DMat4, desc: &RasterDes
                 let [x0, _, x1, _] = tile_rect(index, tiles_x, desc);
                 let rect = [x0, y0, x1, (y0 + BAND).min(desc.height)];
                 let bin = &bins[index as usize];
-                fill_tile(&triangles, bin, rect, desc, width, depth_band, id_band);
+                let ids = id_band.as_deref_mut();
+                fill_tile(&triangles, bin, rect, desc, width, depth_band, ids);
             }
         });
     DepthTarget {
@@ -191,7 +221,7 @@ fn bin_triangles(triangles: &[ScreenTriangle], tiles_x: u32, tiles_y: u32) -> Ve
     bins
 }
 
-/// Fills `rect` of `depth` and `ids`, the rows from its first on, `width` wide.
+/// Fills `rect` of `depth` and `ids` (if any), the rows from its first on, `width` wide.
 fn fill_tile(
     triangles: &[ScreenTriangle],
     bin: &[u32],
@@ -199,7 +229,7 @@ fn fill_tile(
     desc: &RasterDesc,
     width: usize,
     depth: &mut [f32],
-    ids: &mut [u32],
+    mut ids: Option<&mut [u32]>,
 ) {
     let (near, far) = desc.depth_range;
     for &index in bin {
@@ -212,7 +242,9 @@ fn fill_tile(
             let z = z as f32;
             if z < depth[i] {
                 depth[i] = z;
-                ids[i] = triangle.object_id;
+                if let Some(ids) = ids.as_deref_mut() {
+                    ids[i] = triangle.object_id;
+                }
             }
         });
     }
@@ -547,6 +579,25 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn depth_alone_is_the_depth_of_the_full_targets() {
+        // Larger than a tile either way, so that bands and tiles split the grid.
+        let (positions, triangles) = jittered_grid(33, 0.0, 150.0, 11);
+        let ids: Vec<u32> = (0..triangles.len() as u32).map(|i| i % 5 + 1).collect();
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let desc = RasterDesc::orthographic(157, 101);
+        let full = rasterize(&geometry, &identity_projection(), &desc);
+        let depth_alone = rasterize_depth(&geometry, &identity_projection(), &desc);
+        assert!(depth_alone.ids.is_empty());
+        assert_eq!(full.ids.len(), full.depth.len());
+        assert!(full.depth.iter().any(|d| d.is_finite()));
+        assert_eq!(depth_alone.depth, full.depth);
     }
 
     #[test]

@@ -12,7 +12,7 @@ use crate::layers::{Layers, Pixel};
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
 use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
-use crate::raster::{rasterize, RasterDesc, Rasterizer};
+use crate::raster::{rasterize_depth, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{
     check_triangles, Camera, Medium, Method, Rectification, RenderSettings, Scene, Sun,
@@ -408,7 +408,7 @@ impl SurfaceDistances {
     fn rasterized(camera: &CameraModel, frame: &Frame) -> Self {
         let ss = frame.settings.supersampling;
         let (pixel_from_world, desc) = camera_raster(camera, ss);
-        let planar = rasterize(&frame.geometry, &pixel_from_world, &desc).depth;
+        let planar = rasterize_depth(&frame.geometry, &pixel_from_world, &desc).depth;
         Self::from_planar(camera, ss, &planar)
     }
 
