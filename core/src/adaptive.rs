@@ -315,7 +315,7 @@ impl Lattice {
     /// of the finer grid up to [`MAX_STEP`], one of each ± pair, short enough that a pair
     /// two steps apart fits within [`MAX_ALONG`] (longer ones only ever have stride 1,
     /// which never wins). Found once per frame, not once per square.
-    fn candidates() -> Vec<([i64; 2], [i64; 2], f64)> {
+    fn candidates() -> Vec<LatticeStep> {
         let mut candidates = Vec::new();
         for a in -MAX_STEP..=MAX_STEP {
             for b in 0..=MAX_STEP {
@@ -329,7 +329,11 @@ impl Lattice {
                 // Pixels per step: the finer grid's points lie two pixels apart.
                 let length = 2.0 * ((a * a + b * b) as f64).sqrt();
                 if 2.0 * length <= MAX_ALONG {
-                    candidates.push(([a, b], position, length));
+                    candidates.push(LatticeStep {
+                        step: [a, b],
+                        position,
+                        length,
+                    });
                 }
             }
         }
@@ -340,7 +344,7 @@ impl Lattice {
     /// (in pixels, at its corners: around an epipole off the square the extremes lie
     /// there), with the shortest pairs among equally sparse ones, of `candidates`
     /// ([`Lattice::candidates`]).
-    fn along(directions: &[[f64; 2]; 4], candidates: &[([i64; 2], [i64; 2], f64)]) -> Self {
+    fn along(directions: &[[f64; 2]; 4], candidates: &[LatticeStep]) -> Self {
         let mut units = [[0.0; 2]; 4];
         for (unit, &[dx, dy]) in units.iter_mut().zip(directions) {
             let norm = dx.hypot(dy);
@@ -351,7 +355,12 @@ impl Lattice {
         }
         let mut best = Self::EVERY_POINT;
         let mut best_span = f64::INFINITY;
-        for &([a, b], position, length) in candidates {
+        for &LatticeStep {
+            step: [a, b],
+            position,
+            length,
+        } in candidates
+        {
             let cross_max = units
                 .iter()
                 .map(|[dx, dy]| (dx * b as f64 - dy * a as f64).abs())
@@ -398,6 +407,16 @@ impl Lattice {
             stride => steps.rem_euclid(stride),
         }
     }
+}
+
+/// A step a [`Lattice`] may take ([`Lattice::candidates`]).
+#[derive(Clone, Copy, Debug)]
+struct LatticeStep {
+    step: [i64; 2],
+    /// Its Bézout coefficients ([`Lattice::position`]).
+    position: [i64; 2],
+    /// Pixels per step.
+    length: f64,
 }
 
 /// Integers (c, d) with c·a + d·b = 1 for `step` (a, b), `None` where it is not primitive
@@ -1365,7 +1384,11 @@ mod tests {
                     continue;
                 }
                 if let Some(position) = bezout([a, b]) {
-                    every_step.push(([a, b], position, 2.0 * ((a * a + b * b) as f64).sqrt()));
+                    every_step.push(LatticeStep {
+                        step: [a, b],
+                        position,
+                        length: 2.0 * ((a * a + b * b) as f64).sqrt(),
+                    });
                 }
             }
         }
