@@ -8,7 +8,7 @@ use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::layers::{Layers, Pixel};
 use crepuscular::prefiltered::{Prefiltered, PrefilteredDesc};
-use crepuscular::raster::{rasterize, RasterDesc};
+use crepuscular::raster::{rasterize, rasterize_depth, RasterDesc};
 use crepuscular::reference::Marcher;
 use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
@@ -31,7 +31,7 @@ fn rasterization(c: &mut Criterion) {
         let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
         let pixel_from_world = camera.pixel_from_world();
         group.bench_with_input(BenchmarkId::new("camera_1080p", name), &geometry, |b, g| {
-            b.iter(|| rasterize(&g.view(), &pixel_from_world, &desc))
+            b.iter(|| rasterize_depth(&g.view(), &pixel_from_world, &desc))
         });
     }
     group.finish();

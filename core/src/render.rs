@@ -400,7 +400,7 @@ impl SurfaceDistances {
                 let ss = frame.settings.supersampling;
                 let (pixel_from_world, desc) = camera_raster(camera, ss);
                 let target = rasterizer.rasterize(&frame.geometry, &pixel_from_world, &desc)?;
-                Self::from_planar(camera, ss, &target.depth)
+                Self::from_planar(camera, ss, target.depth)
             }
         })
     }
@@ -409,25 +409,27 @@ impl SurfaceDistances {
         let ss = frame.settings.supersampling;
         let (pixel_from_world, desc) = camera_raster(camera, ss);
         let planar = rasterize_depth(&frame.geometry, &pixel_from_world, &desc).depth;
-        Self::from_planar(camera, ss, &planar)
+        Self::from_planar(camera, ss, planar)
     }
 
-    /// Ray distances from a planar depth of `ss`² samples per pixel.
-    fn from_planar(camera: &CameraModel, ss: u32, planar: &[f32]) -> Self {
-        let width = camera.width * ss;
-        let distances = planar
-            .par_iter()
+    /// Ray distances from a planar depth of `ss`² samples per pixel, converted in place.
+    fn from_planar(camera: &CameraModel, ss: u32, mut planar: Vec<f32>) -> Self {
+        let width = (camera.width * ss) as usize;
+        // Row by row, so that a sample's column is a count rather than a division, and
+        // the row's stretches vectorize.
+        planar
+            .par_chunks_mut(width.max(1))
             .enumerate()
-            .map(|(i, &depth)| {
-                let (x, y) = ((i as u32 % width) as f64, (i as u32 / width) as f64);
-                let stretch =
-                    camera.distance_per_depth((x + 0.5) / ss as f64, (y + 0.5) / ss as f64);
-                (depth as f64 * stretch) as f32
-            })
-            .collect();
+            .for_each(|(y, row)| {
+                let py = (y as f64 + 0.5) / ss as f64;
+                for (x, depth) in row.iter_mut().enumerate() {
+                    let stretch = camera.distance_per_depth((x as f64 + 0.5) / ss as f64, py);
+                    *depth = (*depth as f64 * stretch) as f32;
+                }
+            });
         Self {
             supersampling: ss,
-            distances,
+            distances: planar,
         }
     }
 
