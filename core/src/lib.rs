@@ -51,8 +51,9 @@ pub use scene::Scene;
 pub use style::Style;
 
 /// Lets go of the buffers kept from earlier frames for the next (the filtered basis and its
-/// plan, the rectified map, min-max's pyramids, adaptive shading's grid and the layers): for
-/// a host that stops rendering for a while. The next frame allocates them afresh.
+/// plan, the rectified map, min-max's pyramids, adaptive shading's grid, the camera depth
+/// and the layers): for a host that stops rendering for a while. The next frame allocates
+/// them afresh.
 pub fn release_kept_buffers() {
     layers::release_kept_buffers();
     adaptive::release_kept_buffers();
@@ -60,4 +61,5 @@ pub fn release_kept_buffers() {
     uniformity::release_kept_buffers();
     minmax::release_kept_buffers();
     prefiltered::release_kept_buffers();
+    raster::release_kept_buffers();
 }

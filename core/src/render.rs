@@ -12,7 +12,7 @@ use crate::layers::{Layers, Pixel};
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
 use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
-use crate::raster::{rasterize_depth, RasterDesc, Rasterizer};
+use crate::raster::{keep_camera_depth, rasterize_depth, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{
     check_triangles, Camera, Medium, Method, Rectification, RenderSettings, Scene, Sun,
@@ -378,6 +378,12 @@ pub(crate) struct SurfaceDistances {
     /// Samples per pixel along each axis.
     pub supersampling: u32,
     pub distances: Vec<f32>,
+}
+
+impl Drop for SurfaceDistances {
+    fn drop(&mut self) {
+        keep_camera_depth(std::mem::take(&mut self.distances));
+    }
 }
 
 impl SurfaceDistances {

@@ -73,7 +73,8 @@ fn output_is_bit_identical_across_thread_counts_and_runs() {
 
 /// Layers reuse an earlier frame's dropped buffers without clearing them: every method,
 /// shading adaptively or every pixel, at full and half resolution, must set every pixel,
-/// so a frame rendered after another scene's is bit for bit the frame rendered before it.
+/// so a frame rendered after another scene's (another view) is bit for bit the frame
+/// rendered before it.
 #[test]
 fn frames_do_not_keep_values_from_earlier_frames() {
     use crepuscular::scene::Method;
@@ -88,6 +89,14 @@ fn frames_do_not_keep_values_from_earlier_frames() {
             let mut other = scene.clone();
             other.sun.direction = Vec3::new(-0.5, 0.4, -1.0).normalize();
             other.medium.extinction *= 3.0;
+            // Another view, so that the kept camera depth holds other depths.
+            other.camera = pinhole(
+                Vec3::new(-12.0, 4.0, 3.0),
+                Vec3::new(1.0, -0.3, 0.1),
+                35.0,
+                96,
+                54,
+            );
             let first = render_scene(&scene, &RenderControl::new()).expect("render succeeds");
             let kept = (
                 bits(&first.volume),
