@@ -324,14 +324,15 @@ fn for_each_covered_sample(
         }
         for k in first..end {
             let values: [i64; 3] = std::array::from_fn(|i| row_values[i] + k * step_x[i]);
-            let interpolated = (values[0] as f64 * attributes[0]
+            let weighted = values[0] as f64 * attributes[0]
                 + values[1] as f64 * attributes[1]
-                + values[2] as f64 * attributes[2])
-                / area;
+                + values[2] as f64 * attributes[2];
+            // With perspective, w is 1 over the interpolated 1/w: one division, and one
+            // rounding, rather than the interpolation's then the reciprocal's.
             let depth = if perspective {
-                1.0 / interpolated
+                area / weighted
             } else {
-                interpolated
+                weighted / area
             };
             visit(x0 + k as u32, y, depth);
         }
