@@ -17,7 +17,7 @@ use crate::spare::Spare;
 
 // Camera depth targets kept from one frame for the next (see `crate::spare`); their
 // holders hand them back with `keep_camera_depth`. Faulting in a fresh 8 MB target each
-// 1080p frame took a tenth of the camera's depth pass.
+// 1080p frame took about 0.5 ms of plane's 9.5 ms camera depth.
 static SPARE_CAMERA_DEPTH: Spare<f32> = Spare::new();
 
 /// Keeps a buffer that [`rasterize_depth`] returned, for a later frame's.
