@@ -174,14 +174,14 @@ fn rasterize_targets(
 
     let width = desc.width as usize;
     let samples = width * desc.height as usize;
-    // Filled band by band below, in parallel.
+    // Both filled band by band below, in parallel.
     let mut depth = if with_ids {
         vec![0.0; samples]
     } else {
         SPARE_CAMERA_DEPTH.take(samples)
     };
     let mut ids = if with_ids {
-        vec![NO_OBJECT; depth.len()]
+        vec![0; depth.len()]
     } else {
         Vec::new()
     };
@@ -202,6 +202,9 @@ fn rasterize_targets(
         .enumerate()
         .for_each(|(band, (depth_band, mut id_band))| {
             depth_band.fill(f32::INFINITY);
+            if let Some(ids) = id_band.as_deref_mut() {
+                ids.fill(NO_OBJECT);
+            }
             let y0 = band as u32 * BAND;
             let tile_y = y0 / TILE;
             for tile_x in 0..tiles_x {
