@@ -260,9 +260,22 @@ fn fill_tile(
     mut ids: Option<&mut [u32]>,
 ) {
     let (near, far) = desc.depth_range;
-    for &index in bin {
+    let perspective = desc.interpolates_reciprocal();
+    // Without ids, a triangle wholly behind the farthest depth in the rect changes nothing
+    // and is skipped (up to a quarter of tree's covered samples at 1080p). The farthest
+    // depth is refreshed every few triangles; depths only fall, so a stale one is safe.
+    let mut farthest = f32::INFINITY;
+    for (n, &index) in bin.iter().enumerate() {
         let triangle = &triangles[index as usize];
-        for_each_covered_sample(triangle, rect, desc.interpolates_reciprocal(), |x, y, z| {
+        if ids.is_none() {
+            if n % FARTHEST_REFRESH == FARTHEST_REFRESH - 1 {
+                farthest = farthest_depth(depth, rect, width);
+            }
+            if nearest_depth(triangle, perspective) >= farthest {
+                continue;
+            }
+        }
+        for_each_covered_sample(triangle, rect, perspective, |x, y, z| {
             if z < near || z > far {
                 return;
             }
@@ -276,6 +289,37 @@ fn fill_tile(
             }
         });
     }
+}
+
+/// How many triangles a depth-only tile draws between refreshes of its farthest depth:
+/// every 8 cost more than the skipping saved on tree.
+const FARTHEST_REFRESH: usize = 32;
+
+/// The farthest depth in `rect` of `depth` (rows from the rect's first, `width` wide).
+fn farthest_depth(depth: &[f32], rect: [u32; 4], width: usize) -> f32 {
+    let columns = rect[0] as usize..rect[2] as usize;
+    (0..(rect[3] - rect[1]) as usize)
+        .map(|row| {
+            depth[row * width + columns.start..row * width + columns.end]
+                .iter()
+                .fold(f32::NEG_INFINITY, |farthest, &z| farthest.max(z))
+        })
+        .fold(f32::NEG_INFINITY, f32::max)
+}
+
+/// A lower bound on the stored depth of any sample of `triangle`: its samples interpolate
+/// its vertices' attributes with weights that are at least 0 and sum to 1, so their
+/// depths lie within the vertices' (within a few roundings, which the margin covers).
+fn nearest_depth(triangle: &ScreenTriangle, perspective: bool) -> f32 {
+    const MARGIN: f64 = 1e-9;
+    let [a, b, c] = triangle.attributes;
+    let nearest = if perspective {
+        // Attributes are 1/w, all positive past the near plane.
+        1.0 / a.max(b).max(c)
+    } else {
+        a.min(b).min(c)
+    };
+    (nearest - nearest.abs() * MARGIN - f64::MIN_POSITIVE) as f32
 }
 
 /// Calls `visit(x, y, depth)` for every pixel centre of `rect` the triangle covers.
@@ -663,6 +707,37 @@ mod tests {
         let depth_alone = rasterize_depth(&geometry, &identity_projection(), &desc);
         assert!(depth_alone.ids.is_empty());
         assert_eq!(full.ids.len(), full.depth.len());
+        assert!(full.depth.iter().any(|d| d.is_finite()));
+        assert_eq!(depth_alone.depth, full.depth);
+    }
+
+    #[test]
+    fn depth_alone_skips_only_what_lies_behind() {
+        // A plane drawn first, then layers behind it, crossing it and in front of it, each
+        // of many triangles per tile, so that tiles skip whole triangles behind their
+        // farthest depth: the depth must be that of the full targets, which skip nothing.
+        let mut positions = Vec::new();
+        let mut triangles = Vec::new();
+        for (seed, depth_of) in [
+            (11, (|z| z) as fn(f32) -> f32),
+            (12, |z| z + 40.0),
+            (13, |z| 2.0 * z - 30.0),
+            (14, |z| z - 1.0),
+        ] {
+            let (layer, layer_triangles) = jittered_grid(33, 0.0, 150.0, seed);
+            let first = positions.len() as u32;
+            positions.extend(layer.iter().map(|&[x, y, z]| [x, y, depth_of(z)]));
+            triangles.extend(layer_triangles.iter().map(|t| t.map(|v| v + first)));
+        }
+        let ids = vec![1; triangles.len()];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let desc = RasterDesc::orthographic(157, 101);
+        let full = rasterize(&geometry, &identity_projection(), &desc);
+        let depth_alone = rasterize_depth(&geometry, &identity_projection(), &desc);
         assert!(full.depth.iter().any(|d| d.is_finite()));
         assert_eq!(depth_alone.depth, full.depth);
     }
