@@ -302,7 +302,8 @@ fn farthest_depth(depth: &[f32], rect: [u32; 4], width: usize) -> f32 {
         .map(|row| {
             depth[row * width + columns.start..row * width + columns.end]
                 .iter()
-                .fold(f32::NEG_INFINITY, |farthest, &z| farthest.max(z))
+                .copied()
+                .fold(f32::NEG_INFINITY, f32::max)
         })
         .fold(f32::NEG_INFINITY, f32::max)
 }
@@ -319,7 +320,7 @@ fn nearest_depth(triangle: &ScreenTriangle, perspective: bool) -> f32 {
     } else {
         a.min(b).min(c)
     };
-    (nearest - nearest.abs() * MARGIN - f64::MIN_POSITIVE) as f32
+    (nearest - nearest.abs() * MARGIN) as f32
 }
 
 /// Calls `visit(x, y, depth)` for every pixel centre of `rect` the triangle covers.
@@ -692,19 +693,30 @@ mod tests {
         }
     }
 
-    #[test]
-    fn depth_alone_is_the_depth_of_the_full_targets() {
-        // Larger than a tile either way, so that bands and tiles split the grid.
-        let (positions, triangles) = jittered_grid(33, 0.0, 150.0, 11);
-        let ids: Vec<u32> = (0..triangles.len() as u32).map(|i| i % 5 + 1).collect();
+    /// The full targets and the depth alone of the triangles, orthographically onto a
+    /// target larger than a tile either way, so that bands and tiles split it.
+    fn full_and_depth_alone(
+        positions: &[[f32; 3]],
+        triangles: &[[u32; 3]],
+        ids: &[u32],
+    ) -> (DepthTarget, DepthTarget) {
         let geometry = Geometry {
-            positions: &positions,
-            triangles: &triangles,
-            object_ids: &ids,
+            positions,
+            triangles,
+            object_ids: ids,
         };
         let desc = RasterDesc::orthographic(157, 101);
-        let full = rasterize(&geometry, &identity_projection(), &desc);
-        let depth_alone = rasterize_depth(&geometry, &identity_projection(), &desc);
+        (
+            rasterize(&geometry, &identity_projection(), &desc),
+            rasterize_depth(&geometry, &identity_projection(), &desc),
+        )
+    }
+
+    #[test]
+    fn depth_alone_is_the_depth_of_the_full_targets() {
+        let (positions, triangles) = jittered_grid(33, 0.0, 150.0, 11);
+        let ids: Vec<u32> = (0..triangles.len() as u32).map(|i| i % 5 + 1).collect();
+        let (full, depth_alone) = full_and_depth_alone(&positions, &triangles, &ids);
         assert!(depth_alone.ids.is_empty());
         assert_eq!(full.ids.len(), full.depth.len());
         assert!(full.depth.iter().any(|d| d.is_finite()));
@@ -730,14 +742,7 @@ mod tests {
             triangles.extend(layer_triangles.iter().map(|t| t.map(|v| v + first)));
         }
         let ids = vec![1; triangles.len()];
-        let geometry = Geometry {
-            positions: &positions,
-            triangles: &triangles,
-            object_ids: &ids,
-        };
-        let desc = RasterDesc::orthographic(157, 101);
-        let full = rasterize(&geometry, &identity_projection(), &desc);
-        let depth_alone = rasterize_depth(&geometry, &identity_projection(), &desc);
+        let (full, depth_alone) = full_and_depth_alone(&positions, &triangles, &ids);
         assert!(full.depth.iter().any(|d| d.is_finite()));
         assert_eq!(depth_alone.depth, full.depth);
     }
