@@ -12,7 +12,7 @@ use crate::layers::{Layers, Pixel};
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
 use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
-use crate::raster::{keep_camera_depth, rasterize_depth, RasterDesc, Rasterizer};
+use crate::raster::{keep_camera_depth, keep_map_targets, rasterize_depth, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{
     check_triangles, Camera, Medium, Method, Rectification, RenderSettings, Scene, Sun,
@@ -209,19 +209,19 @@ pub(crate) fn scatter_timed(
     control.begin(reduced_size(frame.camera.height, frame.settings.downsample) as u64);
     control.check()?;
     let camera = CameraModel::new(frame.camera);
-    let shadow = ShadowMap::build(
+    let shadow = FrameShadowMap(ShadowMap::build(
         &camera,
         frame.sun,
         frame.medium,
         frame.settings,
         &frame.geometry,
-    );
+    ));
     control.check()?;
     times.shadow_map = stopwatch.lap();
     let shadow = if frame.style.manipulates_occluders() {
         let manipulated = frame.style.scattering_map(&shadow, &camera)?;
         times.occluders = stopwatch.lap();
-        manipulated
+        FrameShadowMap(manipulated)
     } else {
         shadow
     };
@@ -371,6 +371,28 @@ pub(crate) struct PixelSample {
     pub radiance: DVec3,
     pub alpha: f64,
     pub visibility: f64,
+}
+
+/// A frame's shadow map, whose targets are kept for the next frame's when the frame is
+/// done with it. `ShadowMap` hands its fields out to callers, so it cannot keep them
+/// itself when dropped.
+struct FrameShadowMap(ShadowMap);
+
+impl std::ops::Deref for FrameShadowMap {
+    type Target = ShadowMap;
+
+    fn deref(&self) -> &ShadowMap {
+        &self.0
+    }
+}
+
+impl Drop for FrameShadowMap {
+    fn drop(&mut self) {
+        keep_map_targets(
+            std::mem::take(&mut self.0.depth),
+            std::mem::take(&mut self.0.ids),
+        );
+    }
 }
 
 /// Ray distance to the first surface for every depth sample, +∞ for background.

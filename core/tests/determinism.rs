@@ -89,7 +89,8 @@ fn frames_do_not_keep_values_from_earlier_frames() {
             let mut other = scene.clone();
             other.sun.direction = Vec3::new(-0.5, 0.4, -1.0).normalize();
             other.medium.extinction *= 3.0;
-            // Another view, so that the kept camera depth holds other depths.
+            // Another view and sun, so that the kept camera depth and shadow-map targets
+            // hold other values.
             other.camera = pinhole(
                 Vec3::new(-12.0, 4.0, 3.0),
                 Vec3::new(1.0, -0.3, 0.1),
