@@ -478,9 +478,7 @@ fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
     scales: &[f32],
     out: &mut [T],
 ) {
-    let Some(per_row) = samples_per_row::<STRIDE>(table, entries, scales) else {
-        return prefix_sums_any(table, entries, weights, scales, out);
-    };
+    let per_row = samples_per_row(entries, scales);
     let mut sums = [0.0f32; STRIDE];
     let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
     for (((row_entries, row_weights), &scale), row_out) in entries
@@ -490,7 +488,9 @@ fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
         .zip(out.chunks_exact_mut(STRIDE))
     {
         for (&entry, &weight) in row_entries.iter().zip(row_weights) {
-            let values = row_of(entry).unwrap_or(&[0.0; STRIDE]);
+            let Some(values) = row_of(entry) else {
+                return prefix_sums_any(table, entries, weights, scales, out);
+            };
             for (sum, &value) in sums.iter_mut().zip(values) {
                 *sum += weight * value;
             }
@@ -501,22 +501,14 @@ fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
     }
 }
 
-/// For the fixed-stride prefix sums: the samples summed into each output row, where
-/// every entry names a whole row of `STRIDE` values in `table`; `None` where one lies
-/// past it, which the general loop reports.
+/// For the fixed-stride prefix sums: the samples summed into each output row. An entry
+/// past the table sends them to the general loop, which reports it; checking every
+/// entry before summing took 2.5% of colonnade's preparation.
 #[inline(always)]
-fn samples_per_row<const STRIDE: usize>(
-    table: &[f32],
-    entries: &[u32],
-    scales: &[f32],
-) -> Option<usize> {
+fn samples_per_row(entries: &[u32], scales: &[f32]) -> usize {
     let per_row = entries.len() / scales.len().max(1);
     debug_assert_eq!(entries.len(), per_row * scales.len());
-    let rows = table.len() / STRIDE;
-    entries
-        .iter()
-        .all(|&entry| (entry as usize) < rows)
-        .then_some(per_row)
+    per_row
 }
 
 #[inline(always)]
@@ -594,9 +586,7 @@ unsafe fn prefix_sums_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTO
 ) {
     use std::arch::x86_64::*;
     const { assert!(STRIDE == VECTORS * LANES) };
-    let Some(per_row) = samples_per_row::<STRIDE>(table, entries, scales) else {
-        return prefix_sums_any(table, entries, weights, scales, out);
-    };
+    let per_row = samples_per_row(entries, scales);
     let row_of = |entry: u32| table[entry as usize * STRIDE..].first_chunk::<STRIDE>();
     let mut sums = [_mm256_setzero_ps(); VECTORS];
     for (((row_entries, row_weights), &scale), row_out) in entries
@@ -606,7 +596,9 @@ unsafe fn prefix_sums_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTO
         .zip(out.chunks_exact_mut(STRIDE))
     {
         for (&entry, &weight) in row_entries.iter().zip(row_weights) {
-            let values = row_of(entry).unwrap_or(&[0.0; STRIDE]);
+            let Some(values) = row_of(entry) else {
+                return prefix_sums_any(table, entries, weights, scales, out);
+            };
             let weight = _mm256_set1_ps(weight);
             for (sum, lanes) in sums.iter_mut().zip(values.chunks_exact(LANES)) {
                 // The chunk holds exactly LANES values, all that the unaligned load reads.
@@ -873,6 +865,21 @@ mod tests {
                     assert_eq!(snorm16, snorm16_any, "{kernels:?}, stride {stride}");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn an_entry_past_the_table_is_reported_by_every_kernel() {
+        let stride = padded(32);
+        let table = vec![0.5f32; 2 * stride];
+        // The bad entry comes after good ones, so a kernel has stored rows before it.
+        let (entries, weights, scales) = ([0u32, 1, 2], [1.0f32; 3], [1.0f32; 3]);
+        for kernels in all_kernels() {
+            let summed = std::panic::catch_unwind(|| {
+                let mut out = vec![0i16; scales.len() * stride];
+                kernels.prefix_sums(&table, &entries, &weights, &scales, &mut out);
+            });
+            assert!(summed.is_err(), "{kernels:?} summed past the table");
         }
     }
 }
