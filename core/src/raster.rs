@@ -182,7 +182,10 @@ fn rasterize_targets(
     let triangles = setup_triangles(geometry, pixel_from_world, desc);
     let tiles_x = desc.width.div_ceil(TILE);
     let tiles_y = desc.height.div_ceil(TILE);
-    let bins = bin_triangles(&triangles, tiles_x, tiles_y);
+    let mut bins = bin_triangles(&triangles, tiles_x, tiles_y);
+    if !with_ids {
+        front_to_back(&triangles, &mut bins, desc.interpolates_reciprocal());
+    }
 
     let width = desc.width as usize;
     let samples = width * desc.height as usize;
@@ -256,7 +259,33 @@ fn bin_triangles(triangles: &[ScreenTriangle], tiles_x: u32, tiles_y: u32) -> Ve
     bins
 }
 
+/// Orders each bin by its triangles' [`nearest_depth`], for depth alone, which is the
+/// nearest over all of them whatever their order: front to back, a tile's farthest depth
+/// falls early, and the first triangle wholly behind it ends the tile ([`fill_tile`]).
+/// A NaN bound sorts first, so that it is drawn.
+fn front_to_back(triangles: &[ScreenTriangle], bins: &mut [Vec<u32>], perspective: bool) {
+    let nearest: Vec<f32> = triangles
+        .par_iter()
+        .map(|triangle| {
+            let nearest = nearest_depth(triangle, perspective);
+            if nearest.is_nan() {
+                f32::NEG_INFINITY
+            } else {
+                nearest
+            }
+        })
+        .collect();
+    bins.par_iter_mut().for_each(|bin| {
+        bin.sort_unstable_by(|&a, &b| {
+            nearest[a as usize]
+                .total_cmp(&nearest[b as usize])
+                .then(a.cmp(&b))
+        })
+    });
+}
+
 /// Fills `rect` of `depth` and `ids` (if any), the rows from its first on, `width` wide.
+/// Without ids, `bin` must be in [`front_to_back`] order.
 fn fill_tile(
     triangles: &[ScreenTriangle],
     bin: &[u32],
@@ -268,9 +297,9 @@ fn fill_tile(
 ) {
     let (near, far) = desc.depth_range;
     let perspective = desc.interpolates_reciprocal();
-    // Without ids, a triangle wholly behind the farthest depth in the rect changes nothing
-    // and is skipped (up to a quarter of tree's covered samples at 1080p). The farthest
-    // depth is refreshed every few triangles; depths only fall, so a stale one is safe.
+    // Without ids, a triangle wholly behind the farthest depth in the rect changes nothing,
+    // and neither do those after it, front to back. The farthest depth is refreshed every
+    // few triangles; depths only fall, so a stale one is safe.
     let mut farthest = f32::INFINITY;
     for (n, &index) in bin.iter().enumerate() {
         let triangle = &triangles[index as usize];
@@ -279,7 +308,7 @@ fn fill_tile(
                 farthest = farthest_depth(depth, rect, width);
             }
             if nearest_depth(triangle, perspective) >= farthest {
-                continue;
+                break;
             }
         }
         for_each_covered_sample(triangle, rect, perspective, |x, y, z| {
@@ -752,6 +781,38 @@ mod tests {
         let (full, depth_alone) = full_and_depth_alone(&positions, &triangles, &ids);
         assert!(full.depth.iter().any(|d| d.is_finite()));
         assert_eq!(depth_alone.depth, full.depth);
+    }
+
+    #[test]
+    fn depth_alone_draws_each_tile_front_to_back() {
+        // Three triangles over the first tile, at depths 5, 2 and 8 (the second tilted
+        // from 2 to 9), and one over the second tile only.
+        let positions = [
+            [0.0, 0.0, 5.0],
+            [60.0, 0.0, 5.0],
+            [0.0, 60.0, 5.0],
+            [0.0, 0.0, 2.0],
+            [60.0, 0.0, 9.0],
+            [0.0, 60.0, 9.0],
+            [0.0, 0.0, 8.0],
+            [60.0, 0.0, 8.0],
+            [0.0, 60.0, 8.0],
+            [70.0, 0.0, 1.0],
+            [120.0, 0.0, 1.0],
+            [70.0, 60.0, 1.0],
+        ];
+        let triangles = [[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10, 11]];
+        let ids = [1; 4];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+        };
+        let desc = RasterDesc::orthographic(128, 64);
+        let screen = setup_triangles(&geometry, &identity_projection(), &desc);
+        let mut bins = bin_triangles(&screen, 2, 1);
+        front_to_back(&screen, &mut bins, desc.interpolates_reciprocal());
+        assert_eq!(bins, [vec![1, 0, 2], vec![3]]);
     }
 
     #[test]
