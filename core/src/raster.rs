@@ -301,7 +301,10 @@ fn fill_tile(
     // Without ids, a triangle wholly behind the farthest depth in the rect changes nothing,
     // and neither do those after it, front to back; one behind some of the rect's blocks
     // is drawn over the others alone. The farthest depths are refreshed every few
-    // triangles; depths only fall, so stale ones are safe.
+    // triangles; depths only fall, so stale ones are safe. Skipping would be exact with
+    // ids too (the depth test is strict), but shadow maps, in the meshes' order, skip too
+    // little to pay for the blocks' upkeep: tree's 1024² map took 12.8–14.2 ms with it,
+    // 11.2–11.4 without.
     let mut farthest = FarthestBlocks::UNKNOWN;
     for (n, &index) in bin.iter().enumerate() {
         let triangle = &triangles[index as usize];
@@ -830,28 +833,80 @@ mod tests {
         assert_eq!(depth_alone.depth, full.depth);
     }
 
-    #[test]
-    fn depth_alone_skips_only_what_lies_behind() {
-        // A plane drawn first, then layers behind it, crossing it and in front of it, each
-        // of many triangles per tile, so that tiles skip whole triangles behind their
-        // farthest depth: the depth must be that of the full targets, which skip nothing.
+    /// A plane drawn first, then layers behind it, crossing it and in front of it, then
+    /// the last again, each of `n`² cells of two triangles, and each layer's id.
+    fn layers_over_a_plane(n: usize) -> (Vec<[f32; 3]>, Vec<[u32; 3]>, Vec<u32>) {
         let mut positions = Vec::new();
         let mut triangles = Vec::new();
-        for (seed, depth_of) in [
+        let mut ids = Vec::new();
+        for (id, (seed, depth_of)) in [
             (11, (|z| z) as fn(f32) -> f32),
             (12, |z| z + 40.0),
             (13, |z| 2.0 * z - 30.0),
             (14, |z| z - 1.0),
-        ] {
-            let (layer, layer_triangles) = jittered_grid(33, 0.0, 150.0, seed);
+            (14, |z| z - 1.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let (layer, layer_triangles) = jittered_grid(n, 0.0, 150.0, seed);
             let first = positions.len() as u32;
             positions.extend(layer.iter().map(|&[x, y, z]| [x, y, depth_of(z)]));
             triangles.extend(layer_triangles.iter().map(|t| t.map(|v| v + first)));
+            ids.extend(std::iter::repeat_n(id as u32 + 1, layer_triangles.len()));
         }
-        let ids = vec![1; triangles.len()];
+        (positions, triangles, ids)
+    }
+
+    #[test]
+    fn depth_alone_skips_only_what_lies_behind() {
+        // Many triangles per tile, so that tiles skip whole triangles behind their
+        // farthest depths: the depth must be that of the full targets.
+        let (positions, triangles, ids) = layers_over_a_plane(33);
         let (full, depth_alone) = full_and_depth_alone(&positions, &triangles, &ids);
         assert!(full.depth.iter().any(|d| d.is_finite()));
         assert_eq!(depth_alone.depth, full.depth);
+    }
+
+    #[test]
+    fn full_targets_skip_only_what_changes_nothing() {
+        // The full targets against each triangle rasterized alone (where nothing can be
+        // skipped), composed in order with the same strict depth test: ties, such as the
+        // last layer's with the one before, keep the first drawn triangle's id.
+        let (positions, triangles, ids) = layers_over_a_plane(12);
+        let desc = RasterDesc::orthographic(157, 101);
+        let full = rasterize(
+            &Geometry {
+                positions: &positions,
+                triangles: &triangles,
+                object_ids: &ids,
+            },
+            &identity_projection(),
+            &desc,
+        );
+        let mut depth = vec![f32::INFINITY; full.depth.len()];
+        let mut composed_ids = vec![NO_OBJECT; full.depth.len()];
+        for (triangle, id) in triangles.iter().zip(&ids) {
+            let alone = rasterize(
+                &Geometry {
+                    positions: &positions,
+                    triangles: std::slice::from_ref(triangle),
+                    object_ids: std::slice::from_ref(id),
+                },
+                &identity_projection(),
+                &desc,
+            );
+            for (i, &z) in alone.depth.iter().enumerate() {
+                if z < depth[i] {
+                    depth[i] = z;
+                    composed_ids[i] = alone.ids[i];
+                }
+            }
+        }
+        assert!(composed_ids.contains(&3) && composed_ids.contains(&4));
+        assert!(!composed_ids.contains(&5), "ties keep the first drawn id");
+        assert_eq!(full.depth, depth);
+        assert_eq!(full.ids, composed_ids);
     }
 
     #[test]
