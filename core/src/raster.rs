@@ -383,7 +383,8 @@ impl FarthestBlocks {
     }
 
     /// The smallest rectangle of `rect`'s blocks that holds every block under `bounds`
-    /// (inclusive) whose farthest depth lies beyond `nearest`; `None` if there is none.
+    /// (inclusive) whose farthest depth lies beyond `nearest` (every one where `nearest`
+    /// is NaN); `None` if there is none.
     fn changeable(&self, rect: [u32; 4], bounds: [u32; 4], nearest: f32) -> Option<[u32; 4]> {
         let [left, top, right, bottom] = bounds;
         if right < rect[0] || bottom < rect[1] || left >= rect[2] || top >= rect[3] {
@@ -402,7 +403,7 @@ impl FarthestBlocks {
         let mut found: Option<[usize; 4]> = None;
         for row in first_row..=last_row {
             for column in first_column..=last_column {
-                if nearest < self.blocks[row][column] {
+                if nearest < self.blocks[row][column] || nearest.is_nan() {
                     let [c0, r0, c1, r1] = found.unwrap_or([column, row, column, row]);
                     found = Some([c0.min(column), r0.min(row), c1.max(column), r1.max(row)]);
                 }
@@ -949,6 +950,11 @@ mod tests {
         assert_eq!(
             farthest.changeable(rect, [0, 0, 300, 300], 6.0),
             Some([64, 36, 112, 52])
+        );
+        // No bound: every block under its bounds.
+        assert_eq!(
+            farthest.changeable(rect, [70, 30, 100, 41], f32::NAN),
+            Some([64, 32, 112, 44])
         );
         // Outside the rect.
         assert_eq!(farthest.changeable(rect, [0, 0, 63, 300], 1.0), None);
