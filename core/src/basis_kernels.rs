@@ -501,9 +501,9 @@ fn prefix_sums_fixed<T: BasisValue, const STRIDE: usize>(
     }
 }
 
-/// For the fixed-stride prefix sums: the samples summed into each output row. An entry
-/// past the table sends them to the general loop, which reports it; checking every
-/// entry before summing took 2.5% of colonnade's preparation.
+/// For the prefix sums: the samples summed into each output row. The fixed-stride
+/// kernels hand an entry past the table to the general loop, which reports it; checking
+/// every entry before summing took 2.5% of colonnade's preparation.
 #[inline(always)]
 fn samples_per_row(entries: &[u32], scales: &[f32]) -> usize {
     let per_row = entries.len() / scales.len().max(1);
@@ -520,8 +520,7 @@ fn prefix_sums_any<T: BasisValue>(
     out: &mut [T],
 ) {
     let stride = out.len() / scales.len().max(1);
-    let per_row = entries.len() / scales.len().max(1);
-    debug_assert_eq!(entries.len(), per_row * scales.len());
+    let per_row = samples_per_row(entries, scales);
     let mut sums = [0.0f32; crate::prefiltered::MAX_BASES as usize];
     let sums = &mut sums[..stride];
     for (((entries, weights), &scale), out) in entries

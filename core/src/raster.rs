@@ -156,6 +156,9 @@ struct ScreenTriangle {
     object_id: u32,
     /// Inclusive pixel bounds, already clamped to the target.
     bounds: [u32; 4],
+    /// [`nearest_depth`] of its attributes, for depth-only rasters: found once here rather
+    /// than in each band-tile that draws it.
+    nearest: f32,
 }
 
 /// Rasterizes world-space triangles through `pixel_from_world`, which maps a point to
@@ -186,7 +189,7 @@ fn rasterize_targets(
     let tiles_y = desc.height.div_ceil(TILE);
     let mut bins = bin_triangles(&triangles, tiles_x, tiles_y);
     if !with_ids {
-        front_to_back(&triangles, &mut bins, desc.interpolates_reciprocal());
+        front_to_back(&triangles, &mut bins);
     }
 
     let width = desc.width as usize;
@@ -264,11 +267,11 @@ fn bin_triangles(triangles: &[ScreenTriangle], tiles_x: u32, tiles_y: u32) -> Ve
 /// nearest over all of them whatever their order: front to back, a tile's farthest depth
 /// falls early, and the first triangle wholly behind it ends the tile ([`fill_tile`]).
 /// A NaN bound sorts first, so that it is drawn.
-fn front_to_back(triangles: &[ScreenTriangle], bins: &mut [Vec<u32>], perspective: bool) {
+fn front_to_back(triangles: &[ScreenTriangle], bins: &mut [Vec<u32>]) {
     let nearest: Vec<f32> = triangles
         .par_iter()
         .map(|triangle| {
-            let nearest = nearest_depth(triangle, perspective);
+            let nearest = triangle.nearest;
             if nearest.is_nan() {
                 f32::NEG_INFINITY
             } else {
@@ -313,11 +316,10 @@ fn fill_tile(
             if n % FARTHEST_REFRESH == FARTHEST_REFRESH - 1 {
                 farthest = FarthestBlocks::of(depth, rect, width);
             }
-            let nearest = nearest_depth(triangle, perspective);
-            if nearest >= farthest.overall {
+            if triangle.nearest >= farthest.overall {
                 break;
             }
-            let Some(part) = farthest.changeable(rect, triangle.bounds, nearest) else {
+            let Some(part) = farthest.changeable(rect, triangle.bounds, triangle.nearest) else {
                 continue;
             };
             drawn = part;
@@ -419,12 +421,11 @@ impl FarthestBlocks {
     }
 }
 
-/// A lower bound on the stored depth of any sample of `triangle`: its samples interpolate
-/// its vertices' attributes with weights that are at least 0 and sum to 1, so their
+/// A lower bound on the stored depth of any sample of a triangle with vertex `attributes`:
+/// its samples interpolate them with weights that are at least 0 and sum to 1, so their
 /// depths lie within the vertices' (within a few roundings, which the margin covers).
-fn nearest_depth(triangle: &ScreenTriangle, perspective: bool) -> f32 {
+fn nearest_depth([a, b, c]: [f64; 3], perspective: bool) -> f32 {
     const MARGIN: f64 = 1e-9;
-    let [a, b, c] = triangle.attributes;
     let nearest = if perspective {
         // Attributes are 1/w, all positive past the near plane.
         1.0 / a.max(b).max(c)
@@ -671,6 +672,7 @@ fn snap_triangle(corners: [DVec4; 3], object_id: u32, desc: &RasterDesc) -> Opti
         attributes,
         object_id,
         bounds: [x0 as u32, y0 as u32, x1 as u32, y1 as u32],
+        nearest: nearest_depth(attributes, desc.interpolates_reciprocal()),
     })
 }
 
@@ -989,7 +991,7 @@ mod tests {
         let desc = RasterDesc::orthographic(128, 64);
         let screen = setup_triangles(&geometry, &identity_projection(), &desc);
         let mut bins = bin_triangles(&screen, 2, 1);
-        front_to_back(&screen, &mut bins, desc.interpolates_reciprocal());
+        front_to_back(&screen, &mut bins);
         assert_eq!(bins, [vec![1, 0, 2], vec![3]]);
     }
 
