@@ -283,13 +283,26 @@ fn front_to_back(triangles: &[ScreenTriangle], bins: &mut [Vec<u32>]) {
             }
         })
         .collect();
-    bins.par_iter_mut().for_each(|bin| {
-        bin.sort_unstable_by(|&a, &b| {
-            nearest[a as usize]
-                .total_cmp(&nearest[b as usize])
-                .then(a.cmp(&b))
-        })
-    });
+    // Each entry as its bound's bits in total order, then its index: sorting these
+    // integers orders ties by index, and looks each bound up once rather than at every
+    // comparison.
+    bins.par_iter_mut()
+        .for_each_init(Vec::new, |keyed: &mut Vec<u64>, bin| {
+            keyed.clear();
+            keyed.extend(bin.iter().map(|&index| {
+                let bits = nearest[index as usize].to_bits();
+                let ordered = if bits >> 31 == 1 {
+                    !bits
+                } else {
+                    bits | 1 << 31
+                };
+                (ordered as u64) << 32 | index as u64
+            }));
+            keyed.sort_unstable();
+            for (index, entry) in bin.iter_mut().zip(keyed.iter()) {
+                *index = *entry as u32;
+            }
+        });
 }
 
 /// Fills `rect` of `depth` and `ids` (if any), the rows from its first on, `width` wide.
