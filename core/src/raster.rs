@@ -343,15 +343,15 @@ fn fill_tile(
             drawn = part;
         }
         let run_depth = RunDepth::of(triangle, perspective);
+        let test = DepthTest {
+            depth: &run_depth,
+            range: (near, far),
+            object_id: triangle.object_id,
+        };
         for_each_covered_run(triangle, drawn, |run| {
             let start = (run.y - rect[1]) as usize * width + run.x as usize;
             let samples = start..start + run.len;
             let ids = ids.as_deref_mut().map(|ids| &mut ids[samples.clone()]);
-            let test = DepthTest {
-                depth: &run_depth,
-                range: (near, far),
-                object_id: triangle.object_id,
-            };
             kernels.test(&test, &run, &mut depth[samples], ids);
         });
     }

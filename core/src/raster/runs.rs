@@ -96,21 +96,21 @@ impl RunKernels {
     #[inline]
     pub fn test(self, test: &DepthTest, run: &Run, depth: &mut [f32], ids: Option<&mut [u32]>) {
         match self {
-            RunKernels::Portable => test_run(test, run, 0, depth, ids),
-            // SAFETY: `detect` only chose this variant where the CPU has AVX2.
+            RunKernels::Portable => test_run(test, run, depth, ids),
+            // SAFETY: `for_target` only chose this variant where the CPU has AVX2.
             #[cfg(target_arch = "x86_64")]
             RunKernels::Avx2 => unsafe { test_run_avx2(test, run, depth, ids) },
         }
     }
 }
 
-/// Samples `from..` of the run, one at a time.
+/// The run's samples one at a time.
 #[inline(always)]
-fn test_run(test: &DepthTest, run: &Run, from: usize, depth: &mut [f32], ids: Option<&mut [u32]>) {
+fn test_run(test: &DepthTest, run: &Run, depth: &mut [f32], ids: Option<&mut [u32]>) {
     let (near, far) = test.range;
     let depth = &mut depth[..run.len];
     let mut ids = ids.map(|ids| &mut ids[..run.len]);
-    for k in from..run.len {
+    for k in 0..run.len {
         let z = test.depth.at(run.values_at(k));
         if z < near || z > far {
             continue;
