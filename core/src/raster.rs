@@ -328,6 +328,24 @@ fn fill_tile(
     // 11.2–11.4 without.
     let mut farthest = FarthestBlocks::UNKNOWN;
     for (n, &index) in bin.iter().enumerate() {
+        // A bin's triangles lie anywhere in the mesh's order (and in depth order for depth
+        // alone), and a 96-byte triangle spans two or three cache lines: the first thing
+        // read of each, its bound, waited on memory (14% of tree's camera raster).
+        #[cfg(target_arch = "x86_64")]
+        if let Some(&ahead) = bin.get(n + PREFETCH_AHEAD) {
+            let start = (&triangles[ahead as usize] as *const ScreenTriangle).cast::<i8>();
+            let size = std::mem::size_of::<ScreenTriangle>();
+            for line in [
+                start,
+                start.wrapping_add(size / 2),
+                start.wrapping_add(size - 1),
+            ] {
+                // SAFETY: SSE is part of x86-64; a prefetch reads nothing.
+                unsafe {
+                    std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(line)
+                };
+            }
+        }
         let triangle = &triangles[index as usize];
         let mut drawn = rect;
         if ids.is_none() {
@@ -356,6 +374,10 @@ fn fill_tile(
         });
     }
 }
+
+/// How many triangles ahead in a bin [`fill_tile`] asks for a triangle's set-up (8 did
+/// no better).
+const PREFETCH_AHEAD: usize = 4;
 
 /// How many triangles a depth-only tile draws between refreshes of its farthest depths
 /// ([`FarthestBlocks`]): every 8 cost more than the skipping saved on tree; every 16 took
