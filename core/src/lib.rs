@@ -34,6 +34,7 @@ pub mod silhouette;
 mod spans;
 mod spare;
 pub mod style;
+mod total_order;
 pub mod transfer_function;
 pub mod uniformity;
 pub mod upsample;

@@ -14,6 +14,7 @@ use rayon::prelude::*;
 use crate::error::Result;
 use crate::render::Geometry;
 use crate::spare::Spare;
+use crate::total_order::total_order_bits_f32;
 
 mod runs;
 
@@ -272,32 +273,27 @@ fn bin_triangles(triangles: &[ScreenTriangle], tiles_x: u32, tiles_y: u32) -> Ve
 /// falls early, and the first triangle wholly behind it ends the tile ([`fill_tile`]).
 /// A NaN bound sorts first, so that it is drawn.
 fn front_to_back(triangles: &[ScreenTriangle], bins: &mut [Vec<u32>]) {
-    let nearest: Vec<f32> = triangles
+    // Each bound as its bits in total order, so that a bin sorts integers, each entry its
+    // triangle's key above its index: ties by index, and each key looked up once per entry
+    // rather than at every comparison.
+    let keys: Vec<u32> = triangles
         .par_iter()
         .map(|triangle| {
             let nearest = triangle.nearest;
-            if nearest.is_nan() {
+            total_order_bits_f32(if nearest.is_nan() {
                 f32::NEG_INFINITY
             } else {
                 nearest
-            }
+            })
         })
         .collect();
-    // Each entry as its bound's bits in total order, then its index: sorting these
-    // integers orders ties by index, and looks each bound up once rather than at every
-    // comparison.
     bins.par_iter_mut()
         .for_each_init(Vec::new, |keyed: &mut Vec<u64>, bin| {
             keyed.clear();
-            keyed.extend(bin.iter().map(|&index| {
-                let bits = nearest[index as usize].to_bits();
-                let ordered = if bits >> 31 == 1 {
-                    !bits
-                } else {
-                    bits | 1 << 31
-                };
-                (ordered as u64) << 32 | index as u64
-            }));
+            keyed.extend(
+                bin.iter()
+                    .map(|&index| (keys[index as usize] as u64) << 32 | index as u64),
+            );
             keyed.sort_unstable();
             for (index, entry) in bin.iter_mut().zip(keyed.iter()) {
                 *index = *entry as u32;
@@ -667,6 +663,13 @@ fn intersect(a: DVec4, b: DVec4, plane: &Plane) -> DVec4 {
     first + (second - first) * (d0 / (d0 - d1))
 }
 
+/// Twice the signed area of the triangle `vertices` (positive counter-clockwise in the
+/// sense [`ScreenTriangle`] keeps): the constant sum of its three edge functions.
+fn twice_area(vertices: &[[i64; 2]; 3]) -> i64 {
+    (vertices[1][0] - vertices[0][0]) * (vertices[2][1] - vertices[0][1])
+        - (vertices[1][1] - vertices[0][1]) * (vertices[2][0] - vertices[0][0])
+}
+
 fn snap_triangle(corners: [DVec4; 3], object_id: u32, desc: &RasterDesc) -> Option<ScreenTriangle> {
     let mut vertices = [[0i64; 2]; 3];
     let mut attributes = [0f64; 3];
@@ -681,8 +684,7 @@ fn snap_triangle(corners: [DVec4; 3], object_id: u32, desc: &RasterDesc) -> Opti
             c.z
         };
     }
-    let area = (vertices[1][0] - vertices[0][0]) * (vertices[2][1] - vertices[0][1])
-        - (vertices[1][1] - vertices[0][1]) * (vertices[2][0] - vertices[0][0]);
+    let area = twice_area(&vertices);
     if area == 0 || !attributes.iter().all(|a| a.is_finite()) {
         return None;
     }

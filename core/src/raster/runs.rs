@@ -3,7 +3,7 @@
 //! the same operations in the same order, so both give the same bits; [`RunKernels`]
 //! picks one per raster.
 
-use super::ScreenTriangle;
+use super::{twice_area, ScreenTriangle};
 
 /// One row's run of pixel centres inside a triangle: `len` pixels from (`x`, `y`), with
 /// the triangle's edge functions at the first and their change per pixel.
@@ -34,13 +34,9 @@ pub(super) struct RunDepth {
 
 impl RunDepth {
     pub fn of(triangle: &ScreenTriangle, perspective: bool) -> Self {
-        // The edge functions sum to the same integer everywhere; at vertex 0 the other
-        // two edges vanish.
-        let [v0, v1, v2] = triangle.vertices;
-        let area = -(v2[1] - v1[1]) * (v0[0] - v1[0]) + (v2[0] - v1[0]) * (v0[1] - v1[1]);
         Self {
             attributes: triangle.attributes,
-            area: area as f64,
+            area: twice_area(&triangle.vertices) as f64,
             perspective,
         }
     }
