@@ -2681,9 +2681,10 @@ mod tests {
         }
     }
 
-    /// Band weights with the stepped run found by bisection equal those of the loop
-    /// that tested every sample for it, bit for bit: slices' origins before, inside and
-    /// past the map, references slow and fast, media thin and dense.
+    /// Band weights with the stepped run found by bisection equal those of the loop that
+    /// tested every sample for it, bit for bit, and so do the per-row scales and
+    /// cumulative weights summed from them: slices' origins before, inside and past the
+    /// map, references slow and fast, media thin and dense.
     #[test]
     fn band_weights_match_testing_every_sample() {
         fn weights_testing_each(
@@ -2692,7 +2693,7 @@ mod tests {
             rate: f64,
             extinction: f64,
             count: usize,
-        ) -> Vec<f32> {
+        ) -> Vec<f64> {
             let samples = map.samples as usize;
             let depth_of =
                 |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
@@ -2724,7 +2725,7 @@ mod tests {
                     };
                     s0 = s1;
                     before = after;
-                    w as f32
+                    w
                 })
                 .collect()
         }
@@ -2760,8 +2761,25 @@ mod tests {
                     let same = weights
                         .iter()
                         .zip(&expected)
-                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                        .all(|(a, b)| a.to_bits() == (*b as f32).to_bits());
                     assert!(same, "origin {origin} rate {rate} σ {extinction}");
+                    let mut total = 0.0f64;
+                    let (mut expected_scales, mut expected_cumulative) = (vec![], vec![0.0f32]);
+                    for pair in expected.chunks_exact(SAMPLES_PER_ROW) {
+                        for w in pair {
+                            total += w;
+                        }
+                        expected_scales.push((1.0 / total) as f32);
+                        expected_cumulative.push(total as f32);
+                    }
+                    let bits =
+                        |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(&scales), bits(&expected_scales), "σ {extinction}");
+                    assert_eq!(
+                        bits(&cumulative),
+                        bits(&expected_cumulative),
+                        "σ {extinction}"
+                    );
                 }
             }
         }
