@@ -152,6 +152,9 @@ def describe(name: str, scene: dict) -> str:
         f"extinction {medium['extinction']:<4} {medium['extent']['kind']:<9} "
         f"reach {settings['max_distance']:<4} 1/{settings.get('downsample', 1)} "
         f"ss {settings.get('supersampling', 1)} style {'+'.join(operators) or '-'}"
+        # Prefiltering then also counts the fog before the near clip plane, which the
+        # reference skips: in dense open media that alone is several percent.
+        + ("" if settings.get("near_plane_correction", True) else " near plane uncorrected")
     )
 
 
