@@ -1810,36 +1810,64 @@ fn band_weights(
             (-depth).exp()
         }
     };
-    let mut total = 0.0f64;
-    let (mut s0, _) = map.sample_interval(0);
-    let mut before = transmittance(s0);
-    for (i, w32) in weights.iter_mut().enumerate() {
-        let w = if i >= samples {
-            0.0
-        } else if extinction > 0.0 {
-            let (_, s1) = map.sample_interval(i);
-            let after = match step_factor {
-                Some(factor) if stepped.contains(&i) => before * factor,
-                _ => transmittance(s1),
-            };
-            let w = if after < before {
-                before - after
-            } else {
-                flat_per_s * (s1 - s0)
-            };
-            s0 = s1;
-            before = after;
-            w
-        } else {
-            1.0
-        };
-        *w32 = w as f32;
-        total += w;
-        if (i + 1) % SAMPLES_PER_ROW == 0 {
-            let row = i / SAMPLES_PER_ROW;
-            scales[row] = (1.0 / total) as f32;
-            weight[row + 1] = total as f32;
+    debug_assert_eq!(weights.len(), scales.len() * SAMPLES_PER_ROW);
+    // Sample i's weight from the transmittance `before` it, which it updates. A sample's
+    // interval is found anew rather than carried from the one before: both are
+    // `sample_interval`'s same arithmetic.
+    let weigh = |i: usize, before: &mut f64| {
+        if i >= samples {
+            return 0.0;
         }
+        if extinction.is_nan() || extinction <= 0.0 {
+            return 1.0;
+        }
+        let (s0, s1) = map.sample_interval(i);
+        let after = match step_factor {
+            Some(factor) if stepped.contains(&i) => *before * factor,
+            _ => transmittance(s1),
+        };
+        let w = if after < *before {
+            *before - after
+        } else {
+            flat_per_s * (s1 - s0)
+        };
+        *before = after;
+        w
+    };
+    let factor = step_factor.unwrap_or(1.0);
+    let mut total = 0.0f64;
+    let mut before = transmittance(map.sample_interval(0).0);
+    for (row, ((weights, scale), cumulative)) in weights
+        .chunks_exact_mut(SAMPLES_PER_ROW)
+        .zip(scales.iter_mut())
+        .zip(&mut weight[1..])
+        .enumerate()
+    {
+        let first = row * SAMPLES_PER_ROW;
+        if stepped.start <= first && first + SAMPLES_PER_ROW <= stepped.end {
+            // The whole row in the stepped run: `weigh`'s arithmetic there without its
+            // tests, whose instructions bounded the loop more than its chains did.
+            for (k, w32) in weights.iter_mut().enumerate() {
+                let after = before * factor;
+                let w = if after < before {
+                    before - after
+                } else {
+                    let (s0, s1) = map.sample_interval(first + k);
+                    flat_per_s * (s1 - s0)
+                };
+                before = after;
+                *w32 = w as f32;
+                total += w;
+            }
+        } else {
+            for (k, w32) in weights.iter_mut().enumerate() {
+                let w = weigh(first + k, &mut before);
+                *w32 = w as f32;
+                total += w;
+            }
+        }
+        *scale = (1.0 / total) as f32;
+        *cumulative = total as f32;
     }
 }
 
@@ -2684,7 +2712,8 @@ mod tests {
     /// Band weights with the stepped run found by bisection equal those of the loop that
     /// tested every sample for it, bit for bit, and so do the per-row scales and
     /// cumulative weights summed from them: slices' origins before, inside and past the
-    /// map, references slow and fast, media thin and dense.
+    /// map, references slow and fast, media thin and dense, and one so thin that each
+    /// step's factor rounds to 1 (every stepped sample then takes the flat weight).
     #[test]
     fn band_weights_match_testing_every_sample() {
         fn weights_testing_each(
@@ -2737,7 +2766,7 @@ mod tests {
         let (_, last) = map.sample_interval(samples - 1);
         for origin in [first - 3.0, first, 0.5 * (first + last), last + 1.0] {
             for rate in [0.05, 1.0, 40.0] {
-                for extinction in [0.0, 1e-4, 0.04, 3.0] {
+                for extinction in [0.0, 1e-15, 1e-4, 0.04, 3.0] {
                     let count = (rows - 1) * SAMPLES_PER_ROW;
                     let mut weights = vec![0.0; count];
                     let mut scales = vec![0.0; rows - 1];
