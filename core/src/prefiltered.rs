@@ -1671,14 +1671,16 @@ fn band_warps(frame: &SliceFrame, rays: &SortedRays, texels: &[f64]) -> Vec<Warp
 /// (colonnade) of them, and sorting only those took 1–2 ms off a frame's preparation.
 fn texel_keys(map: &EpipolarMap, slice: usize, lowest: f64, highest: f64) -> Vec<f64> {
     let row = map.row(slice as u32);
-    let mut keys: Vec<u64> = Vec::with_capacity(row.len().div_ceil(SAMPLES_PER_ROW));
-    keys.extend(
-        row.iter()
-            .step_by(SAMPLES_PER_ROW)
-            .map(|&value| map.order_key(value as f64))
-            .filter(|&key| key > lowest && key < highest)
-            .map(total_order_bits),
-    );
+    let mut keys = vec![0u64; row.len().div_ceil(SAMPLES_PER_ROW)];
+    // Every key is written and only those in range are kept, without a branch on which:
+    // keys in and out of range alternate unpredictably along a slice.
+    let mut kept = 0;
+    for &value in row.iter().step_by(SAMPLES_PER_ROW) {
+        let key = map.order_key(value as f64);
+        keys[kept] = total_order_bits(key);
+        kept += usize::from(key > lowest && key < highest);
+    }
+    keys.truncate(kept);
     keys.sort_unstable();
     keys.into_iter().map(from_total_order_bits).collect()
 }
@@ -2812,6 +2814,49 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// [`texel_keys`] keeps, sorted, exactly the keys of every other sample strictly
+    /// between its bounds, on every slice of a map with shadowed, lit and empty samples
+    /// (infinite keys), under bounds inside, around and outside the keys.
+    #[test]
+    fn texel_keys_are_the_sorted_keys_strictly_between_the_bounds() {
+        use rand::{RngExt, SeedableRng};
+        let scene = crate::builtin_scene("tree").expect("built-in scene");
+        let (_, map, _) = frame_inputs(&scene);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(2);
+        let mut kept_some = 0;
+        for slice in 0..map.slices as usize {
+            let keys: Vec<f64> = map
+                .row(slice as u32)
+                .iter()
+                .step_by(SAMPLES_PER_ROW)
+                .map(|&value| map.order_key(value as f64))
+                .collect();
+            let finite: Vec<f64> = keys.iter().copied().filter(|k| k.is_finite()).collect();
+            let pick = |rng: &mut rand_pcg::Pcg64| match rng.random_range(0..4) {
+                0 => f64::NEG_INFINITY,
+                1 => f64::INFINITY,
+                _ if finite.is_empty() => 0.0,
+                _ => finite[rng.random_range(0..finite.len())],
+            };
+            let (a, b) = (pick(&mut rng), pick(&mut rng));
+            let (lowest, highest) = (a.min(b), a.max(b));
+            let mut expected: Vec<f64> = keys
+                .iter()
+                .copied()
+                .filter(|&key| key > lowest && key < highest)
+                .collect();
+            expected.sort_by(f64::total_cmp);
+            let kept = texel_keys(&map, slice, lowest, highest);
+            let bits = |keys: &[f64]| keys.iter().map(|k| k.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&kept), bits(&expected), "slice {slice}");
+            kept_some += usize::from(!kept.is_empty() && kept.len() < keys.len());
+        }
+        assert!(
+            kept_some > map.slices as usize / 8,
+            "{kept_some} slices kept a part"
+        );
     }
 
     /// [`frame_of`] over rays as [`slice_frames`] gives them.
