@@ -1813,28 +1813,32 @@ fn band_weights(
         }
     };
     debug_assert_eq!(weights.len(), scales.len() * SAMPLES_PER_ROW);
+    // Sample i's weight where the transmittance no longer falls across it.
+    let flat = |i: usize| {
+        let (s0, s1) = map.sample_interval(i);
+        flat_per_s * (s1 - s0)
+    };
     // Sample i's weight from the transmittance `before` it, which it updates. A sample's
     // interval is found anew rather than carried from the one before: both are
     // `sample_interval`'s same arithmetic.
     let weigh = |i: usize, before: &mut f64| {
         if i >= samples {
-            return 0.0;
-        }
-        if extinction.is_nan() || extinction <= 0.0 {
-            return 1.0;
-        }
-        let (s0, s1) = map.sample_interval(i);
-        let after = match step_factor {
-            Some(factor) if stepped.contains(&i) => *before * factor,
-            _ => transmittance(s1),
-        };
-        let w = if after < *before {
-            *before - after
+            0.0
+        } else if extinction > 0.0 {
+            let after = match step_factor {
+                Some(factor) if stepped.contains(&i) => *before * factor,
+                _ => transmittance(map.sample_interval(i).1),
+            };
+            let w = if after < *before {
+                *before - after
+            } else {
+                flat(i)
+            };
+            *before = after;
+            w
         } else {
-            flat_per_s * (s1 - s0)
-        };
-        *before = after;
-        w
+            1.0
+        }
     };
     let factor = step_factor.unwrap_or(1.0);
     let mut total = 0.0f64;
@@ -1854,8 +1858,7 @@ fn band_weights(
                 let w = if after < before {
                     before - after
                 } else {
-                    let (s0, s1) = map.sample_interval(first + k);
-                    flat_per_s * (s1 - s0)
+                    flat(first + k)
                 };
                 before = after;
                 *w32 = w as f32;
