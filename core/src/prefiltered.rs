@@ -1813,14 +1813,21 @@ fn band_weights(
         }
     };
     debug_assert_eq!(weights.len(), scales.len() * SAMPLES_PER_ROW);
-    // Sample i's weight where the transmittance no longer falls across it.
-    let flat = |i: usize| {
-        let (s0, s1) = map.sample_interval(i);
-        flat_per_s * (s1 - s0)
-    };
-    // Sample i's weight from the transmittance `before` it, which it updates. A sample's
-    // interval is found anew rather than carried from the one before: both are
+    // Sample i's weight between the transmittance `before` it and `after` it, which then
+    // becomes `before`; by its length where the transmittance no longer falls across it.
+    // A sample's interval is found anew rather than carried from the one before: both are
     // `sample_interval`'s same arithmetic.
+    let fall = |i: usize, before: &mut f64, after: f64| {
+        let w = if after < *before {
+            *before - after
+        } else {
+            let (s0, s1) = map.sample_interval(i);
+            flat_per_s * (s1 - s0)
+        };
+        *before = after;
+        w
+    };
+    // Sample i's weight, anywhere in the map or past its end.
     let weigh = |i: usize, before: &mut f64| {
         if i >= samples {
             0.0
@@ -1829,13 +1836,7 @@ fn band_weights(
                 Some(factor) if stepped.contains(&i) => *before * factor,
                 _ => transmittance(map.sample_interval(i).1),
             };
-            let w = if after < *before {
-                *before - after
-            } else {
-                flat(i)
-            };
-            *before = after;
-            w
+            fall(i, before, after)
         } else {
             1.0
         }
@@ -1855,12 +1856,7 @@ fn band_weights(
             // tests, whose instructions bounded the loop more than its chains did.
             for (k, w32) in weights.iter_mut().enumerate() {
                 let after = before * factor;
-                let w = if after < before {
-                    before - after
-                } else {
-                    flat(first + k)
-                };
-                before = after;
+                let w = fall(first + k, &mut before, after);
                 *w32 = w as f32;
                 total += w;
             }
