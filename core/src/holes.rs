@@ -453,8 +453,19 @@ impl HoleNoise {
                         &lanes[..count],
                         &mut noise[..count],
                     );
+                    let threshold = self.threshold;
+                    if count == depth.len() {
+                        // Every texel chosen, the lanes in place: opened without a branch
+                        // on the noise, which would mispredict on every other texel.
+                        for (depth, &noise) in depth.iter_mut().zip(&noise) {
+                            let open = noise < threshold;
+                            *depth = if open { f32::INFINITY } else { *depth };
+                            opened += open as usize;
+                        }
+                        continue;
+                    }
                     for (&lane, &noise) in lanes[..count].iter().zip(&noise[..count]) {
-                        if noise < self.threshold {
+                        if noise < threshold {
                             depth[lane as usize] = f32::INFINITY;
                             opened += 1;
                         }
@@ -666,6 +677,8 @@ struct Period {
     inverse: f32,
     /// cells − 1 where cells is a power of two, else 0.
     mask: u32,
+    /// log₂ cells where cells is a power of two.
+    row_shift: u32,
 }
 
 impl Period {
@@ -679,6 +692,7 @@ impl Period {
             } else {
                 0
             },
+            row_shift: cells.trailing_zeros(),
         }
     }
 }
@@ -690,23 +704,52 @@ enum Kernels {
     Portable,
     #[cfg(target_arch = "x86_64")]
     Avx2,
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
 }
 
 impl Kernels {
     fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            return Kernels::Avx2;
+        {
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                return Kernels::Avx512;
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return Kernels::Avx2;
+            }
         }
         Kernels::Portable
+    }
+
+    /// Every variant this CPU can run.
+    #[cfg(test)]
+    fn available() -> Vec<Self> {
+        #[allow(unused_mut)]
+        let mut kernels = vec![Kernels::Portable];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                kernels.push(Kernels::Avx2);
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                kernels.push(Kernels::Avx512);
+            }
+        }
+        kernels
     }
 
     #[inline]
     fn two_step(self, blocks: &Blocks, lanes: &[f32], out: &mut [f32]) {
         let masked = blocks.period.mask != 0;
         match (self, masked) {
-            (Kernels::Portable, true) => two_step::<true>(blocks, lanes, out),
-            (Kernels::Portable, false) => two_step::<false>(blocks, lanes, out),
+            (Kernels::Portable, true) => two_step::<true, GROUP>(blocks, lanes, out),
+            (Kernels::Portable, false) => two_step::<false, GROUP>(blocks, lanes, out),
+            // SAFETY: `detect` only chose this variant where the CPU has AVX-512.
+            #[cfg(target_arch = "x86_64")]
+            (Kernels::Avx512, true) => unsafe { two_step_avx512::<true>(blocks, lanes, out) },
+            #[cfg(target_arch = "x86_64")]
+            (Kernels::Avx512, false) => unsafe { two_step_avx512::<false>(blocks, lanes, out) },
             // SAFETY: `detect` only chose this variant where the CPU has AVX2.
             #[cfg(target_arch = "x86_64")]
             (Kernels::Avx2, true) => unsafe { two_step_avx2::<true>(blocks, lanes, out) },
@@ -729,17 +772,33 @@ struct Blocks<'a> {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn two_step_avx2<const MASKED: bool>(blocks: &Blocks, lanes: &[f32], out: &mut [f32]) {
-    two_step::<MASKED>(blocks, lanes, out)
+    two_step::<MASKED, GROUP>(blocks, lanes, out)
+}
+
+/// Sixteen lanes at once: the kernel is arithmetic alone, so twice the width is about a
+/// fifth off its time.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn two_step_avx512<const MASKED: bool>(blocks: &Blocks, lanes: &[f32], out: &mut [f32]) {
+    two_step::<MASKED, WIDE_GROUP>(blocks, lanes, out)
 }
 
 /// Lanes evaluated together; blocks are evaluated in whole groups.
 const GROUP: usize = 8;
+/// [`GROUP`] for 512-bit vectors.
+#[cfg(target_arch = "x86_64")]
+const WIDE_GROUP: usize = 16;
 
 /// The two-step lookup for the lanes of one block: the first octave at the rotated
 /// points gives P ∈ [0, 1]; N is then looked up at the straight points moved by
-/// warp·(P − ½) along (1, 1). `MASKED`: the period is a power of two.
+/// warp·(P − ½) along (1, 1). `MASKED`: the period is a power of two. Lanes are
+/// evaluated `GROUP` at a time, each on its own, so every group size gives the same bits.
 #[inline(always)]
-fn two_step<const MASKED: bool>(blocks: &Blocks, lanes: &[f32], out: &mut [f32]) {
+fn two_step<const MASKED: bool, const GROUP: usize>(
+    blocks: &Blocks,
+    lanes: &[f32],
+    out: &mut [f32],
+) {
     let count = lanes.len().min(out.len()).min(BLOCK);
     // Whole groups of fixed size vectorize; lanes past `count` are computed and dropped.
     let groups = count.div_ceil(GROUP);
@@ -872,9 +931,16 @@ const PERLIN_SCALE: f32 = 1.0 / 0.76;
 fn perlin<const MASKED: bool>(x: f32, y: f32, seed: u32, period: Period) -> f32 {
     let (dx, x0, x1) = cell::<MASKED>(x, period);
     let (dy, y0, y1) = cell::<MASKED>(y, period);
-    // Lattice points are numbered row by row, so distinct points hash distinct numbers.
-    let row0 = y0.wrapping_mul(period.whole);
-    let row1 = y1.wrapping_mul(period.whole);
+    // Lattice points are numbered row by row, so distinct points hash distinct numbers;
+    // a power-of-two row length is a shift, where a multiply takes twice the port time.
+    let row = |y: u32| {
+        if MASKED {
+            y << period.row_shift
+        } else {
+            y.wrapping_mul(period.whole)
+        }
+    };
+    let (row0, row1) = (row(y0), row(y1));
     let n00 = gradient(lattice_hash((row0 + x0) ^ seed), dx, dy);
     let n10 = gradient(lattice_hash((row0 + x1) ^ seed), dx - 1.0, dy);
     let n01 = gradient(lattice_hash((row1 + x0) ^ seed), dx, dy - 1.0);
@@ -1001,12 +1067,17 @@ mod tests {
             let mut noise = HoleNoise::new(&desc, &map, 128).unwrap();
             noise.kernels = Kernels::Portable;
             let portable = noise.noise_map();
-            noise.kernels = Kernels::detect();
-            let detected = noise.noise_map();
-            assert!(portable
-                .iter()
-                .zip(&detected)
-                .all(|(a, b)| a.to_bits() == b.to_bits()));
+            for kernels in Kernels::available() {
+                noise.kernels = kernels;
+                let noise = noise.noise_map();
+                assert!(
+                    portable
+                        .iter()
+                        .zip(&noise)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "{kernels:?}"
+                );
+            }
         }
     }
 

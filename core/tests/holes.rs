@@ -81,12 +81,15 @@ fn raising_the_hole_probability_opens_more_holes() {
 
 #[test]
 fn only_chosen_objects_open_and_others_keep_their_depth_bits() {
-    // Stripes of objects 1, 2, 3 and empty texels; depths vary per texel.
-    let mut map = map(256, 16.0, |x, _| match (x / 16) % 4 {
-        0 => 1,
-        1 => 2,
-        2 => 3,
-        _ => NO_OBJECT,
+    // Stripes of objects 1, 2, 3 and empty texels, narrower than a block of evaluation in
+    // the upper half and as wide as one in the lower; depths vary per texel.
+    let mut map = map(256, 16.0, |x, y| {
+        match (x / if y < 128 { 16 } else { 64 }) % 4 {
+            0 => 1,
+            1 => 2,
+            2 => 3,
+            _ => NO_OBJECT,
+        }
     });
     for (index, depth) in map.depth.iter_mut().enumerate() {
         if depth.is_finite() {
