@@ -704,16 +704,32 @@ impl EpipolarMap {
         }
     }
 
-    /// The two slices to blend for a fractional slice coordinate, with their weights.
-    pub fn neighbours(&self, slice: f64) -> [(u32, f64); 2] {
-        let last = self.slices - 1;
-        let full_circle = matches!(
+    /// Whether slice coordinates go round a full turn, the last slice beside the first.
+    pub fn wraps_around(&self) -> bool {
+        matches!(
             self.layout,
             Layout::Radial {
                 full_circle: true,
                 ..
             }
-        );
+        )
+    }
+
+    /// The slice of whole index `k`, which may lie past either end: wrapped where the
+    /// slices go round a full turn, else clamped, as [`EpipolarMap::neighbours`] does.
+    pub fn slice_of(&self, k: i64) -> usize {
+        let count = self.slices as i64;
+        if self.wraps_around() {
+            k.rem_euclid(count) as usize
+        } else {
+            k.clamp(0, count - 1) as usize
+        }
+    }
+
+    /// The two slices to blend for a fractional slice coordinate, with their weights.
+    pub fn neighbours(&self, slice: f64) -> [(u32, f64); 2] {
+        let last = self.slices - 1;
+        let full_circle = self.wraps_around();
         let clamped = if full_circle {
             let count = self.slices as f64;
             // Slice coordinates come from angles in one turn: one wrap at most.

@@ -31,6 +31,7 @@ mod running;
 pub mod scene;
 pub mod shadow_map;
 pub mod silhouette;
+pub mod slice_reach;
 mod spans;
 mod spare;
 pub mod style;

@@ -481,7 +481,7 @@ impl<'a> Prefiltered<'a> {
         sun: &Sun,
         medium: &Medium,
     ) -> Self {
-        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium);
+        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, None);
         let basis = plan.prefix.sums_on_cpu(plan.kernels);
         plan.finish(basis)
     }
@@ -495,10 +495,12 @@ impl<'a> Prefiltered<'a> {
         sun: &Sun,
         medium: &Medium,
     ) -> PrefixPlan {
-        PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium).prefix
+        PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, None).prefix
     }
 
-    /// [`Prefiltered::build`] with the prefix sums computed by `prefix` (another backend).
+    /// [`Prefiltered::build`] with the prefix sums computed by `prefix` (another backend),
+    /// each slice's only as far as `slice_reaches` (see [`PrefilteredPlan::new`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn build_with(
         map: &'a EpipolarMap,
         camera: &CameraModel,
@@ -506,9 +508,10 @@ impl<'a> Prefiltered<'a> {
         desc: &PrefilteredDesc,
         sun: &Sun,
         medium: &Medium,
+        slice_reaches: Option<&[f64]>,
         prefix: &dyn PrefixSums,
     ) -> Result<Self> {
-        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium);
+        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, slice_reaches);
         let basis = prefix.prefix_sums(&plan.prefix)?;
         let expected = plan.prefix.total_rows * plan.prefix.stride;
         let got = match &basis {
@@ -640,6 +643,8 @@ pub struct PrefilteredPlan<'a> {
 impl<'a> PrefilteredPlan<'a> {
     /// Everything [`Prefiltered::build`] computes before the prefix sums; backends that
     /// keep the filtered basis to themselves evaluate pixels from this and their own copy.
+    /// `slice_reaches`, where given, bound how far along each slice rays read
+    /// ([`crate::slice_reach`]): rows past that are not planned.
     pub fn new(
         map: &'a EpipolarMap,
         camera: &CameraModel,
@@ -647,6 +652,7 @@ impl<'a> PrefilteredPlan<'a> {
         desc: &PrefilteredDesc,
         sun: &Sun,
         medium: &Medium,
+        slice_reaches: Option<&[f64]>,
     ) -> Self {
         let frequencies = (desc.bases / 2) as usize;
         let row = padded(2 * frequencies);
@@ -675,7 +681,7 @@ impl<'a> PrefilteredPlan<'a> {
             desc.epipole_block,
             box_medium.as_ref(),
         );
-        let (slice_bands, bands) = plan_bands(map, &frames, &warps, reach);
+        let (slice_bands, bands) = plan_bands(map, &frames, &warps, reach, slice_reaches);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         // `plan_slices` writes every value, so kept buffers' old values do not matter.
         let mut weight = SPARE_ROW_WEIGHTS.take(total_rows);
@@ -1575,12 +1581,19 @@ fn plan_bands(
     frames: &[SliceFrame],
     warps: &[Vec<Warp>],
     reach_t: f64,
+    slice_reaches: Option<&[f64]>,
 ) -> (Vec<SliceBands>, Vec<Band>) {
-    let rows = row_count(map);
+    let map_rows = row_count(map);
+    // Rows up to position s: the row it lies in and the next, which boundaries blend;
+    // every row for s = ∞ (or NaN).
+    let rows_to =
+        |s: f64| (row_coordinate(map, s).ceil().max(0.0) + 1.0).min(map_rows as f64) as usize;
     let mut slice_bands = Vec::with_capacity(frames.len());
     let mut bands = Vec::new();
     let mut next_row = 0;
-    for (frame, warps) in frames.iter().zip(warps) {
+    for (slice, (frame, warps)) in frames.iter().zip(warps).enumerate() {
+        // Every band keeps a row of samples besides the empty prefix.
+        let rows = slice_reaches.map_or(map_rows, |reaches| rows_to(reaches[slice]).max(1));
         let count = frame.band_count();
         slice_bands.push(SliceBands {
             first: bands.len() as u32,
@@ -1595,8 +1608,7 @@ fn plan_bands(
             let used = if j == 0 {
                 rows
             } else {
-                let s_reach = frame.origin + fastest * reach_t;
-                (row_coordinate(map, s_reach).ceil().max(0.0) as usize + 1).min(rows)
+                rows_to(frame.origin + fastest * reach_t).min(rows)
             };
             bands.push(Band {
                 rate,

@@ -18,6 +18,7 @@ use crate::scene::{
     check_triangles, Camera, Medium, Method, Rectification, RenderSettings, Scene, Sun,
 };
 use crate::shadow_map::ShadowMap;
+use crate::slice_reach::{slice_reaches, FarthestPerBlock};
 use crate::style::Style;
 use crate::upsample::{joint_bilateral_into, reduced_size, sample_pixel};
 
@@ -310,6 +311,12 @@ pub(crate) fn scatter_timed(
         Method::Prefiltered => {
             // Every epipole ahead of the camera, however far off the image.
             let ahead: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
+            let reaches = slice_reaches(
+                &map,
+                &camera,
+                &surfaces.farthest,
+                frame.settings.max_distance as f64,
+            );
             prefiltered = Prefiltered::build_with(
                 &map,
                 &camera,
@@ -317,6 +324,7 @@ pub(crate) fn scatter_timed(
                 &PrefilteredDesc::from_settings(frame.settings),
                 frame.sun,
                 frame.medium,
+                Some(&reaches),
                 prefix,
             )?;
             times.structure_bytes = prefiltered.memory_bytes();
@@ -400,6 +408,8 @@ pub(crate) struct SurfaceDistances {
     /// Samples per pixel along each axis.
     pub supersampling: u32,
     pub distances: Vec<f32>,
+    /// The farthest per block of pixels, which bounds how far rays read the rectified map.
+    pub farthest: FarthestPerBlock,
 }
 
 impl Drop for SurfaceDistances {
@@ -443,27 +453,36 @@ impl SurfaceDistances {
     /// Ray distances from a planar depth of `ss`² samples per pixel, converted in place.
     fn from_planar(camera: &CameraModel, ss: u32, mut planar: Vec<f32>) -> Self {
         let width = (camera.width * ss) as usize;
+        let mut farthest = FarthestPerBlock::for_image(camera.width, camera.height);
+        let band_rows = FarthestPerBlock::band_rows(ss);
         // Row by row, so that a sample's column is a count rather than a division, and
-        // the row's stretches vectorize.
+        // the row's stretches vectorize; a band of blocks' rows at a time, whose farthest
+        // distances are then found while the band is in cache.
         planar
-            .par_chunks_mut(width.max(1))
+            .par_chunks_mut((width * band_rows).max(1))
+            .zip(farthest.values.par_chunks_mut(farthest.across.max(1)))
             .enumerate()
-            .for_each(|(y, row)| {
-                let py = (y as f64 + 0.5) / ss as f64;
-                for (x, depth) in row.iter_mut().enumerate() {
-                    let stretch = camera.distance_per_depth((x as f64 + 0.5) / ss as f64, py);
-                    *depth = (*depth as f64 * stretch) as f32;
+            .for_each(|(band, (rows, far))| {
+                for (r, row) in rows.chunks_mut(width.max(1)).enumerate() {
+                    let y = band * band_rows + r;
+                    let py = (y as f64 + 0.5) / ss as f64;
+                    for (x, depth) in row.iter_mut().enumerate() {
+                        let stretch = camera.distance_per_depth((x as f64 + 0.5) / ss as f64, py);
+                        *depth = (*depth as f64 * stretch) as f32;
+                    }
                 }
+                FarthestPerBlock::fold_band(rows, width, ss, far);
             });
         Self {
             supersampling: ss,
             distances: planar,
+            farthest,
         }
     }
 
     fn from_given(camera: &CameraModel, given: CameraDepth) -> Self {
         let width = camera.width;
-        let distances = given
+        let distances: Vec<f32> = given
             .values
             .par_iter()
             .enumerate()
@@ -481,9 +500,11 @@ impl SurfaceDistances {
                 }
             })
             .collect();
+        let farthest = FarthestPerBlock::of(&distances, camera.width, camera.height, 1);
         Self {
             supersampling: 1,
             distances,
+            farthest,
         }
     }
 }

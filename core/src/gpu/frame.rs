@@ -34,6 +34,7 @@ use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
 use crate::render::{camera_raster, scatter_timed, Frame, StageTimes, SurfaceDistances};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
+use crate::slice_reach::slice_reaches;
 use crate::style::{OccluderOperator, Style};
 use crate::upsample::reduced_size;
 
@@ -234,6 +235,12 @@ fn gpu_frame(
             let block = frame.settings.epipole_block as f64;
             let epipoles: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, block).collect();
             let ahead: Vec<[f64; 2]> = epipoles_in_image(camera, &shadow, f64::INFINITY).collect();
+            let reaches = slice_reaches(
+                map,
+                camera,
+                &surfaces.farthest,
+                frame.settings.max_distance as f64,
+            );
             let plan = PrefilteredPlan::new(
                 map,
                 camera,
@@ -241,6 +248,7 @@ fn gpu_frame(
                 &PrefilteredDesc::from_settings(frame.settings),
                 frame.sun,
                 frame.medium,
+                Some(&reaches),
             );
             // The filtered basis stays on the device: evaluation reads it there.
             let (basis, ms) = super::prefix::resident(device, plan.prefix())?;
