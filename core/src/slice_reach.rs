@@ -13,8 +13,8 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::camera::{CameraModel, Ray};
-use crate::epipolar::EpipolarMap;
+use crate::camera::CameraModel;
+use crate::epipolar::{EpipolarMap, RaySlice};
 
 /// Side of the blocks, in pixels: a frame of 1920×1080 has 8,160.
 pub const BLOCK: u32 = 16;
@@ -93,16 +93,21 @@ pub fn slice_reaches(
 ) -> Vec<f64> {
     let slices = map.slices as usize;
     let (width, height) = (camera.width, camera.height);
-    // The rays through the blocks' corners, shared by the blocks around them.
-    let corner_rays: Vec<Ray> = (0..=farthest.down)
-        .flat_map(|j| (0..=farthest.across).map(move |i| (i, j)))
-        .map(|(i, j)| {
+    // The rays through the blocks' corners, located once for the blocks around them.
+    let corners: Vec<Corner> = (0..(farthest.down + 1) * (farthest.across + 1))
+        .into_par_iter()
+        .map(|index| {
+            let (i, j) = (index % (farthest.across + 1), index / (farthest.across + 1));
             let x = (i as u32 * BLOCK).min(width) as f64;
             let y = (j as u32 * BLOCK).min(height) as f64;
-            camera.ray(x, y)
+            let ray = camera.ray(x, y);
+            Corner {
+                direction: ray.direction,
+                located: map.locate(&ray),
+            }
         })
         .collect();
-    let corner = |i: usize, j: usize| &corner_rays[j * (farthest.across + 1) + i];
+    let corner = |i: usize, j: usize| &corners[j * (farthest.across + 1) + i];
     let per_band: Vec<Vec<f64>> = (0..farthest.down)
         .into_par_iter()
         .map(|j| {
@@ -113,13 +118,13 @@ pub fn slice_reaches(
                 if end.is_nan() || end <= 0.0 {
                     continue;
                 }
-                let rays = [
+                let block = [
                     corner(i, j),
                     corner(i + 1, j),
                     corner(i, j + 1),
                     corner(i + 1, j + 1),
                 ];
-                let (s, first, last) = block_reach(map, &rays, end);
+                let (s, first, last) = block_reach(map, &block, end);
                 for k in first..=last {
                     let slice = map.slice_of(k);
                     reach[slice] = reach[slice].max(s);
@@ -137,36 +142,43 @@ pub fn slice_reaches(
     reach
 }
 
-/// For the rays between four corner `rays` of a block, ending within `end` of their
+/// A block corner's ray: its direction, and where it lies in the map.
+struct Corner {
+    direction: DVec3,
+    located: Option<RaySlice>,
+}
+
+/// For the rays between the four `corners` of a block, ending within `end` of their
 /// origin: the farthest s they reach, and the first and last slice index they may read
 /// (before [`EpipolarMap::slice_of`] wraps or clamps them). Where no corner ray can be
 /// located, every slice to its end.
-fn block_reach(map: &EpipolarMap, rays: &[&Ray; 4], end: f64) -> (f64, i64, i64) {
+fn block_reach(map: &EpipolarMap, corners: &[&Corner; 4], end: f64) -> (f64, i64, i64) {
     let everywhere = (f64::INFINITY, 0, map.slices as i64 - 1);
     // The far face: the plane across the block's axis at distance `end`, which every
     // point at most `end` from the camera in the pyramid lies before. For parallel rays
     // every factor is 1.
-    let axis = rays
+    let axis = corners
         .iter()
-        .fold(DVec3::ZERO, |sum, ray| sum + ray.direction)
+        .fold(DVec3::ZERO, |sum, corner| sum + corner.direction)
         .normalize();
     let mut s_max = 0.0f64;
     let mut coordinates = [0.0f64; 4];
     let mut located = 0;
     let mut around_the_epipole = false;
-    for ray in rays {
-        let along = ray.direction.dot(axis);
+    for corner in corners {
+        let along = corner.direction.dot(axis);
         if along.is_nan() || along <= 0.0 {
             return everywhere;
         }
         let t_far = end / along;
-        match map.locate(ray) {
+        match &corner.located {
             Some(slice) => {
                 s_max = s_max.max(slice.s_origin + slice.s_per_t * t_far);
                 coordinates[located] = slice.slice;
                 located += 1;
             }
-            // A ray along the light: it reaches no farther than the shortest located one.
+            // A ray along the light, which moves along no slice: the block's rays lie
+            // around the epipole, and the other corners bound how far they reach.
             None => around_the_epipole = true,
         }
     }
@@ -207,6 +219,7 @@ mod tests {
     use crate::epipolar::RectifyDesc;
     use crate::render::{FlatGeometry, Frame, SurfaceDistances};
     use crate::scene::{Projection, Rectification, Scene, SensorFit};
+    use crate::shadow_map::ShadowMap;
     use glam::Vec3;
 
     /// Built-in scenes seen as a frame sees them, and as it rarely does: from behind and
@@ -254,20 +267,36 @@ mod tests {
         views
     }
 
+    /// `scene`'s camera, depth samples, shadow map, rectified map and slice reaches, as a
+    /// frame builds them.
+    fn reached(
+        scene: &Scene,
+    ) -> (
+        CameraModel,
+        SurfaceDistances,
+        ShadowMap,
+        EpipolarMap,
+        Vec<f64>,
+    ) {
+        let geometry = FlatGeometry::from_scene(scene);
+        let camera = CameraModel::new(&scene.camera);
+        let surfaces = SurfaceDistances::new(&camera, &Frame::of_scene(scene, &geometry));
+        let (_, shadow, map) = rectified(
+            scene,
+            scene.render.rectification,
+            &RectifyDesc::prefiltered(scene.render.epipolar_slices),
+        );
+        let max_distance = scene.render.max_distance as f64;
+        let reaches = slice_reaches(&map, &camera, &surfaces.farthest, max_distance);
+        (camera, surfaces, shadow, map, reaches)
+    }
+
     #[test]
     fn every_ray_ends_within_the_reach_of_the_slices_it_reads() {
         let mut cut = 0.0;
         for (label, scene) in views() {
-            let geometry = FlatGeometry::from_scene(&scene);
-            let camera = CameraModel::new(&scene.camera);
-            let surfaces = SurfaceDistances::new(&camera, &Frame::of_scene(&scene, &geometry));
-            let (_, _, map) = rectified(
-                &scene,
-                scene.render.rectification,
-                &RectifyDesc::prefiltered(scene.render.epipolar_slices),
-            );
+            let (camera, surfaces, _, map, reaches) = reached(&scene);
             let max_distance = scene.render.max_distance as f64;
-            let reaches = slice_reaches(&map, &camera, &surfaces.farthest, max_distance);
             assert_eq!(reaches.len(), map.slices as usize, "{label}");
             let ss = surfaces.supersampling;
             let sample_width = (camera.width * ss) as usize;
@@ -327,19 +356,11 @@ mod tests {
                     world_from_cube: glam::Mat4::from_scale(Vec3::new(8.0, 8.0, 3.0)),
                 };
             }
-            let geometry = FlatGeometry::from_scene(&scene);
-            let camera = CameraModel::new(&scene.camera);
-            let surfaces = SurfaceDistances::new(&camera, &Frame::of_scene(&scene, &geometry));
-            let (_, shadow, map) = rectified(
-                &scene,
-                scene.render.rectification,
-                &RectifyDesc::prefiltered(scene.render.epipolar_slices),
-            );
+            let (camera, surfaces, shadow, map, reaches) = reached(&scene);
             let epipoles: Vec<[f64; 2]> =
                 epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
             let desc = PrefilteredDesc::from_settings(&scene.render);
             let max_distance = scene.render.max_distance as f64;
-            let reaches = slice_reaches(&map, &camera, &surfaces.farthest, max_distance);
             let (sun, medium) = (&scene.sun, &scene.medium);
             let whole = Prefiltered::build(&map, &camera, &epipoles, &desc, sun, medium);
             let cut = Prefiltered::build_with(
