@@ -362,7 +362,9 @@ mod tests {
             let desc = PrefilteredDesc::from_settings(&scene.render);
             let max_distance = scene.render.max_distance as f64;
             let (sun, medium) = (&scene.sun, &scene.medium);
-            let whole = Prefiltered::build(&map, &camera, &epipoles, &desc, sun, medium);
+            let whole = Prefiltered::build_with_every_row(
+                &map, &camera, &epipoles, &desc, sun, medium, &reaches,
+            );
             let cut = Prefiltered::build_with(
                 &map,
                 &camera,
