@@ -664,6 +664,8 @@ pub struct PrefilteredPlan<'a> {
     light_travel: DVec3,
     frequencies: usize,
     exact_ray_ends: bool,
+    /// Per slice, the samples its rays read at most (see `slice_reaches`).
+    sample_reaches: Option<Vec<usize>>,
 }
 
 impl<'a> PrefilteredPlan<'a> {
@@ -726,13 +728,23 @@ impl<'a> PrefilteredPlan<'a> {
             Extent::Unbounded => desc.max_distance,
         };
         let tables = Tables::get(frequencies);
+        // Per slice, the samples up to its reach and the one the reach lies in.
+        let sample_reaches: Option<Vec<usize>> = slice_reaches.map(|reaches| {
+            reaches
+                .iter()
+                .map(|&s| {
+                    let end = map.sample_coordinate(s).ceil().max(0.0) + 1.0;
+                    end.min(map.samples as f64) as usize
+                })
+                .collect()
+        });
         let (frames, warps) = slice_frames(
             map,
             camera,
             epipoles,
             desc.epipole_block,
             box_medium.as_ref(),
-            slice_reaches,
+            sample_reaches.as_deref(),
         );
         let (slice_bands, bands) = plan_bands(map, &frames, &warps, reach, row_reaches);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
@@ -787,6 +799,7 @@ impl<'a> PrefilteredPlan<'a> {
             light_travel,
             frequencies,
             exact_ray_ends: desc.exact_ray_ends.applies(box_medium.is_some()),
+            sample_reaches,
         }
     }
 
@@ -806,6 +819,7 @@ impl<'a> PrefilteredPlan<'a> {
             light_travel,
             frequencies,
             exact_ray_ends,
+            sample_reaches,
         } = self;
         let row = prefix.stride;
         Prefiltered {
@@ -823,7 +837,7 @@ impl<'a> PrefilteredPlan<'a> {
             light_travel,
             frequencies,
             exact_ray_ends,
-            uniformity: UniformityTable::build(map),
+            uniformity: UniformityTable::build(map, sample_reaches.as_deref()),
         }
     }
 }
@@ -1987,7 +2001,7 @@ fn slice_frames(
     epipoles: &[[f64; 2]],
     block: f64,
     box_medium: Option<&BoxMedium>,
-    slice_reaches: Option<&[f64]>,
+    sample_reaches: Option<&[usize]>,
 ) -> (Vec<SliceFrame>, Vec<Vec<Warp>>) {
     const RAYS_PER_SLICE: f64 = 128.0;
     let pixels = camera.width as f64 * camera.height as f64;
@@ -2048,11 +2062,7 @@ fn slice_frames(
         .enumerate()
         .map(|(slice, (keyed, extremes))| {
             let (frame, sorted, texels) = frame_of(keyed, extremes, |lowest, highest| {
-                // The samples up to the reach, and the one it lies in.
-                let reach = slice_reaches.map_or(usize::MAX, |reaches| {
-                    let end = map.sample_coordinate(reaches[slice]).ceil().max(0.0) + 1.0;
-                    end.min(map.samples as f64) as usize
-                });
+                let reach = sample_reaches.map_or(usize::MAX, |reaches| reaches[slice]);
                 texel_keys(map, slice, lowest, highest, reach)
             })?;
             Some((frame, band_warps(&frame, &sorted, &texels)))

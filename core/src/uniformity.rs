@@ -60,7 +60,9 @@ pub fn table_bytes(slices: u32, samples: u32) -> usize {
 }
 
 impl UniformityTable {
-    pub fn build(map: &EpipolarMap) -> Self {
+    /// The table of `map`, each slice's only over the samples before its `reaches`
+    /// (queries there may read no farther), or over all of them.
+    pub fn build(map: &EpipolarMap, reaches: Option<&[usize]>) -> Self {
         let samples = map.samples as usize;
         let (blocks, levels) = table_shape(samples);
         let stride = levels * blocks;
@@ -72,8 +74,11 @@ impl UniformityTable {
                 .enumerate()
                 .for_each(|(slice, table)| {
                     let row = map.row(slice as u32);
+                    let used = reaches.map_or(blocks, |reaches| {
+                        reaches[slice].min(samples).div_ceil(BLOCK)
+                    });
                     let (first, rest) = table.split_at_mut(blocks);
-                    for (b, run) in first.iter_mut().enumerate() {
+                    for (b, run) in first[..used].iter_mut().enumerate() {
                         *run = map.run_bounds(row, b * BLOCK..((b + 1) * BLOCK).min(samples));
                     }
                     let mut below: &[[f32; 2]] = first;
@@ -81,7 +86,7 @@ impl UniformityTable {
                     for k in 1..levels {
                         let (level, after) = rest.split_at_mut(blocks);
                         let half = 1 << (k - 1);
-                        for b in 0..=blocks - (1 << k) {
+                        for b in 0..(used + 1).saturating_sub(1 << k) {
                             let (x, y) = (below[b], below[b + half]);
                             level[b] = [x[0].min(y[0]), x[1].max(y[1])];
                         }
@@ -244,17 +249,30 @@ mod tests {
     #[test]
     fn uniformity_equals_testing_every_sample() {
         for (name, map) in maps() {
-            let table = UniformityTable::build(&map);
             let samples = map.samples as usize;
             let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
+            // Each slice built to a random reach, half of them, and queried before it, in
+            // a kept buffer (`Spare`) of NaN, which no stretch reads as uniform.
+            let (blocks, levels) = table_shape(samples);
+            let mut poisoned = SPARE_RUNS.take(map.slices as usize * blocks * levels);
+            poisoned.fill([f32::NAN; 2]);
+            SPARE_RUNS.keep(poisoned);
+            let reaches: Vec<usize> = (0..map.slices)
+                .map(|_| match rng.random_bool(0.5) {
+                    true => rng.random_range(1..=samples),
+                    false => samples,
+                })
+                .collect();
+            let table = UniformityTable::build(&map, Some(&reaches));
             let (mut lit, mut shadowed, mut mixed) = (0, 0, 0);
             for _ in 0..4000 {
                 let slice = rng.random_range(0..map.slices);
                 let row = map.row(slice);
-                let first = rng.random_range(0..samples);
+                let reach = reaches[slice as usize];
+                let first = rng.random_range(0..reach);
                 // Short and long stretches alike, within a block and across many.
                 let length = 1usize << rng.random_range(0..12);
-                let last = (first + rng.random_range(0..length)).min(samples - 1);
+                let last = (first + rng.random_range(0..length)).min(reach - 1);
                 // Thresholds at the stretch's own values, where the answer is closest.
                 let at = rng.random_range(first..=last);
                 let threshold = row[at] + rng.random_range(-0.02..0.02f32) * row[at].abs();
