@@ -6,7 +6,7 @@ use crate::error::{Error, Result};
 /// `out.rgb = v.rgb + (1 − v.a)·b.rgb`, `out.a = v.a + (1 − v.a)·b.a`.
 pub fn composite_over(volume_rgba: &[f32], beauty_rgba: &[f32]) -> Result<Vec<f32>> {
     // The beauty is what the caller brings to the volume render, so it is what's named.
-    if beauty_rgba.len() != volume_rgba.len() || volume_rgba.len() % 4 != 0 {
+    if beauty_rgba.len() != volume_rgba.len() || !volume_rgba.len().is_multiple_of(4) {
         return Err(Error::invalid(
             "beauty",
             format!(

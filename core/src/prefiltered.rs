@@ -2131,7 +2131,7 @@ fn sampled_columns(
             .iter()
             .any(|e| (x - e[0]).abs() <= radius && (py - e[1]).abs() <= radius)
     };
-    let on_grid_row = y % stride == 0;
+    let on_grid_row = y.is_multiple_of(stride);
     let mut dense: Vec<(u32, u32)> = epipoles
         .iter()
         .filter(|e| (py - e[1]).abs() <= dense_radius + 1.0)
@@ -2163,7 +2163,7 @@ fn sampled_columns(
             let px = x as f64 + 0.5;
             let on_grid = on_grid_row && x % stride == 0;
             let every = within(px, EVERY_PIXEL_RADIUS.min(dense_radius));
-            let even = within(px, dense_radius) && x % 2 == 0 && y % 2 == 0;
+            let even = within(px, dense_radius) && x % 2 == 0 && y.is_multiple_of(2);
             (on_grid || every || even) && !within(px, block)
         })
         .collect()

@@ -172,7 +172,7 @@ impl<T: Scalar> BlockExtrema<T> {
         let block = self.block;
         if a / block != b / block {
             pick_into::<T, P>(self.suffix(a), self.prefix(b), out);
-        } else if a % block == 0 {
+        } else if a.is_multiple_of(block) {
             out.copy_from_slice(self.prefix(b));
         } else {
             // Same block, not starting at its start: by the precondition the window ends

@@ -725,7 +725,7 @@ impl RenderSettings {
             MAX_IMAGE_SIZE,
         )?;
         use crate::prefiltered::{MAX_BASES, MIN_BASES};
-        if self.bases % 2 != 0 || !(MIN_BASES..=MAX_BASES).contains(&self.bases) {
+        if !self.bases.is_multiple_of(2) || !(MIN_BASES..=MAX_BASES).contains(&self.bases) {
             return Err(Error::invalid(
                 "render.bases",
                 format!(

@@ -1323,7 +1323,7 @@ pub fn apply(
     if pixels == 0 {
         return Ok(());
     }
-    if width == 0 || pixels % width != 0 {
+    if width == 0 || !pixels.is_multiple_of(width) {
         return Err(Error::invalid(
             "width",
             format!("{width} does not divide the {pixels} pixels into rows"),

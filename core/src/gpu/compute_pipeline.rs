@@ -39,7 +39,7 @@ pub struct ComputePipeline {
 
 impl ComputePipeline {
     pub fn new(device: &ash::Device, desc: &ComputePipelineDesc) -> GpuResult<Self> {
-        if desc.push_constant_bytes > 128 || desc.push_constant_bytes % 4 != 0 {
+        if desc.push_constant_bytes > 128 || !desc.push_constant_bytes.is_multiple_of(4) {
             return Err(GpuError::Shader {
                 name: desc.shader.name(),
                 reason: format!(

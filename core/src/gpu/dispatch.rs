@@ -54,7 +54,7 @@ impl Std430 {
     }
 
     fn align(&mut self, alignment: usize) {
-        while self.bytes.len() % alignment != 0 {
+        while !self.bytes.len().is_multiple_of(alignment) {
             self.bytes.push(0);
         }
     }

@@ -153,7 +153,7 @@ impl Partial {
 
 impl GraphicsPipeline {
     pub fn new(device: &ash::Device, desc: &GraphicsPipelineDesc) -> GpuResult<Self> {
-        if desc.push_constant_bytes > 128 || desc.push_constant_bytes % 4 != 0 {
+        if desc.push_constant_bytes > 128 || !desc.push_constant_bytes.is_multiple_of(4) {
             return Err(GpuError::Shader {
                 name: desc.vertex.name(),
                 reason: format!(

@@ -108,7 +108,7 @@ pub fn shade(
     epipoles: &[[f64; 2]],
     block: f64,
 ) -> GpuResult<(Layers, Option<f64>)> {
-    if tables.stride % LANES != 0 {
+    if !tables.stride.is_multiple_of(LANES) {
         return Err(GpuError::Unsupported(format!(
             "basis rows of {} values (whole lanes of {LANES} expected)",
             tables.stride

@@ -104,7 +104,7 @@ pub fn resident(device: &Arc<Device>, plan: &PrefixPlan) -> GpuResult<(Buffer, O
                 device.physical.max_storage_buffer_range
             )));
         }
-        if plan.stride % 2 != 0 || plan.stride > 2 * LOCAL as usize {
+        if !plan.stride.is_multiple_of(2) || plan.stride > 2 * LOCAL as usize {
             return Err(GpuError::Unsupported(format!(
                 "basis rows of {} values",
                 plan.stride
