@@ -431,28 +431,32 @@ impl HoleNoise {
             .enumerate()
             .map(|(y, (depth, ids))| {
                 let mut lanes = [0.0; BLOCK];
+                let mut marks = [false; BLOCK];
                 let mut noise = [0.0; BLOCK];
                 let mut opened = 0;
                 for (index, (depth, ids)) in
                     depth.chunks_mut(BLOCK).zip(ids.chunks(BLOCK)).enumerate()
                 {
-                    // Only texels of chosen objects are evaluated, packed into lanes.
-                    let mut count = 0;
-                    for (lane, &id) in ids.iter().enumerate() {
-                        if chosen.contains(id) {
-                            lanes[count] = LANE[lane];
-                            count += 1;
-                        }
-                    }
+                    // Only texels of chosen objects are evaluated, packed into lanes (in
+                    // place where every texel of the block is chosen).
+                    let marks = &mut marks[..ids.len()];
+                    let count = chosen.mark(ids, marks);
                     if count == 0 {
                         continue;
                     }
-                    self.block(
-                        index * BLOCK,
-                        y as u32,
-                        &lanes[..count],
-                        &mut noise[..count],
-                    );
+                    let lanes: &[f32] = if count == ids.len() {
+                        &LANE[..count]
+                    } else {
+                        let mut packed = 0;
+                        for (lane, &marked) in marks.iter().enumerate() {
+                            if marked {
+                                lanes[packed] = LANE[lane];
+                                packed += 1;
+                            }
+                        }
+                        &lanes[..count]
+                    };
+                    self.block(index * BLOCK, y as u32, lanes, &mut noise[..count]);
                     let threshold = self.threshold;
                     if count == depth.len() {
                         // Every texel chosen, the lanes in place: opened without a branch
@@ -464,7 +468,7 @@ impl HoleNoise {
                         }
                         continue;
                     }
-                    for (&lane, &noise) in lanes[..count].iter().zip(&noise[..count]) {
+                    for (&lane, &noise) in lanes.iter().zip(&noise[..count]) {
                         if noise < threshold {
                             depth[lane as usize] = f32::INFINITY;
                             opened += 1;
@@ -591,13 +595,24 @@ impl Chosen {
         self.0.is_empty()
     }
 
+    /// Marks which of `ids` are chosen in `marks` (as long as `ids`); returns how many.
+    /// A few objects are compared with every id in turn, which vectorizes; more are
+    /// searched for.
     #[inline]
-    fn contains(&self, id: u32) -> bool {
+    fn mark(&self, ids: &[u32], marks: &mut [bool]) -> usize {
         if self.0.len() <= 8 {
-            self.0.contains(&id)
+            marks.fill(false);
+            for &object in &self.0 {
+                for (mark, &id) in marks.iter_mut().zip(ids) {
+                    *mark |= id == object;
+                }
+            }
         } else {
-            self.0.binary_search(&id).is_ok()
+            for (mark, &id) in marks.iter_mut().zip(ids) {
+                *mark = self.0.binary_search(&id).is_ok();
+            }
         }
+        marks.iter().map(|&mark| mark as usize).sum()
     }
 }
 
