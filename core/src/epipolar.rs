@@ -201,7 +201,22 @@ pub struct CpuResampler;
 
 impl Resampler for CpuResampler {
     fn resample(&self, map: &mut EpipolarMap, shadow: &ShadowMap) -> Result<()> {
-        map.resample(shadow);
+        map.resample(shadow, None);
+        Ok(())
+    }
+}
+
+/// The CPU's resampling of each slice's first samples only, as many as `lengths` gives
+/// per slice for the map's layout, the rest +∞ (lit): for a frame whose rays read no
+/// farther.
+pub struct CpuPartialResampler<F> {
+    pub lengths: F,
+}
+
+impl<F: Fn(&EpipolarMap) -> Vec<usize>> Resampler for CpuPartialResampler<F> {
+    fn resample(&self, map: &mut EpipolarMap, shadow: &ShadowMap) -> Result<()> {
+        let lengths = (self.lengths)(map);
+        map.resample(shadow, Some(&lengths));
         Ok(())
     }
 }
@@ -291,7 +306,7 @@ impl EpipolarMap {
     /// project to points), where rectification is undefined.
     pub fn build(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
         let mut map = Self::layout_for(camera, shadow, desc)?;
-        map.resample(shadow);
+        map.resample(shadow, None);
         Some(map)
     }
 
@@ -606,7 +621,9 @@ impl EpipolarMap {
         }
     }
 
-    fn resample(&mut self, shadow: &ShadowMap) {
+    /// Sets every value from `shadow`: per slice its first `lengths` (all where `None`),
+    /// the rest +∞.
+    fn resample(&mut self, shadow: &ShadowMap, lengths: Option<&[usize]>) {
         let samples = self.samples as usize;
         let (spacing, layout) = (self.spacing, self.layout);
         let lines: Vec<_> = (0..self.slices).map(|j| self.slice_line(j)).collect();
@@ -614,7 +631,11 @@ impl EpipolarMap {
         self.values
             .par_chunks_mut(samples)
             .zip(lines.par_iter())
-            .for_each(|(row, &(base, direction))| {
+            .enumerate()
+            .for_each(|(slice, (row, &(base, direction)))| {
+                let length = lengths.map_or(samples, |lengths| lengths[slice].min(samples));
+                let (row, unread) = row.split_at_mut(length);
+                unread.fill(f32::INFINITY);
                 for (i, value) in row.iter_mut().enumerate() {
                     let s = spacing.s_at(i as f64 + 0.5);
                     let p = base + direction * s;

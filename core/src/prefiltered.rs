@@ -648,6 +648,20 @@ impl PrefixPlan {
     }
 }
 
+/// How many of a slice's first samples prefiltering reads where the rays that read the
+/// slice reach no farther than `reach` along it ([`crate::slice_reach`]), of `map`'s
+/// layout: the texels of its warps and the samples of its rows, two a row up to the row
+/// after the reach's. (The uniformity table's block past them may take other values:
+/// its entries only spare reading samples, which then decide.)
+pub fn samples_read(map: &EpipolarMap, reach: f64) -> usize {
+    let samples = map.samples as usize;
+    let end = map.sample_coordinate(reach).ceil();
+    if end.is_nan() || end >= samples as f64 {
+        return samples;
+    }
+    (end.max(0.0) as usize + 2 * SAMPLES_PER_ROW).min(samples)
+}
+
 /// A [`Prefiltered`] but for its filtered basis: the planning on the rectified map.
 pub struct PrefilteredPlan<'a> {
     map: &'a EpipolarMap,

@@ -6,12 +6,14 @@ use rayon::prelude::*;
 use crate::adaptive::{shade_adaptively, EpipolarLines};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
-use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
+use crate::epipolar::{
+    epipoles_in_image, CpuPartialResampler, CpuResampler, EpipolarMap, RectifyDesc, Resampler,
+};
 use crate::error::{Error, Result};
 use crate::layers::{Layers, Pixel};
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
-use crate::prefiltered::{CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
+use crate::prefiltered::{samples_read, CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
 use crate::raster::{keep_camera_depth, keep_map_targets, rasterize_depth, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{
@@ -250,15 +252,31 @@ pub(crate) fn scatter_timed(
         Method::MinMax => Some(RectifyDesc::min_max(frame.settings.epipolar_slices)),
         Method::Prefiltered => Some(RectifyDesc::prefiltered(frame.settings.epipolar_slices)),
     };
+    let max_distance = frame.settings.max_distance as f64;
+    // Prefiltering reads each slice only as far as the frame's rays reach along it.
+    let reaches = std::cell::OnceCell::new();
+    let partial = CpuPartialResampler {
+        lengths: |map: &EpipolarMap| {
+            let along = slice_reaches(map, &camera, &surfaces.farthest, max_distance);
+            let read = along.iter().map(|&s| samples_read(map, s)).collect();
+            let _ = reaches.set(along);
+            read
+        },
+    };
+    let resampler: &dyn Resampler = match frame.settings.method {
+        Method::Prefiltered => &partial,
+        _ => &CpuResampler,
+    };
     let map = match rectify {
-        Some(desc) => EpipolarMap::rectify(
+        Some(desc) => EpipolarMap::rectify_with(
             &camera,
             &shadow,
             &frame.geometry,
             light_travel,
-            frame.settings.max_distance as f64,
+            max_distance,
             frame.rectification(),
             &desc,
+            resampler,
         )?,
         None => None,
     };
@@ -311,12 +329,10 @@ pub(crate) fn scatter_timed(
         Method::Prefiltered => {
             // Every epipole ahead of the camera, however far off the image.
             let ahead: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
-            let reaches = slice_reaches(
-                &map,
-                &camera,
-                &surfaces.farthest,
-                frame.settings.max_distance as f64,
-            );
+            // A projective map was rasterized whole.
+            let reaches = reaches
+                .into_inner()
+                .unwrap_or_else(|| slice_reaches(&map, &camera, &surfaces.farthest, max_distance));
             prefiltered = Prefiltered::build_with(
                 &map,
                 &camera,
