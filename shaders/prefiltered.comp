@@ -50,6 +50,7 @@ layout(std430, binding = 6) readonly buffer PrefilteredParams {
     uint near_plane_correction;
     uint exact_ray_ends;
     uint frequencies;   // M/2
+    float bands_per_octave;
 } q;
 
 // Per band: its warp's KNOTS knots.
@@ -209,7 +210,8 @@ void neighbours(float x, out uint lower, out uint upper, out float fraction) {
 // texels per unit t, and the share of the second (Prefiltered::bands_for).
 void bands_at(uint slice, float log2_rate, out uint j, out uint next, out float fraction) {
     uint count = slice_bands[slice].y;
-    float position = clamp(log2_fastest[slice] - log2_rate, 0.0, float(count - 1u));
+    float position = clamp((log2_fastest[slice] - log2_rate) * q.bands_per_octave, 0.0,
+                           float(count - 1u));
     j = min(uint(position), count - 1u);
     fraction = position - float(j);
     next = min(j + 1u, count - 1u);

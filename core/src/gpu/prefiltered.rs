@@ -80,6 +80,7 @@ pub fn prefiltered_params(
         .u32(tables.near_plane_correction as u32)
         .u32(tables.exact_ray_ends as u32)
         .u32(tables.frequencies as u32)
+        .f32(tables.bands_per_octave as f32)
         .finish())
 }
 
@@ -242,6 +243,7 @@ mod tests {
             "exact ray ends off by default in an open medium"
         );
         assert_eq!(word(160), scene.render.bases / 2, "frequencies");
+        assert_eq!(float(164), 1.0, "bands an octave in a thin medium");
         assert!(prefiltered_params(&map, &tables, BasisStorage::F32, &[[0.0; 2]; 3], 1.0).is_err());
     }
 }
