@@ -254,12 +254,12 @@ pub(crate) fn scatter_timed(
     };
     let max_distance = frame.settings.max_distance as f64;
     // Prefiltering reads each slice only as far as the frame's rays reach along it.
-    let reaches = std::cell::OnceCell::new();
+    let reaches = std::cell::Cell::new(None);
     let partial = CpuPartialResampler {
         lengths: |map: &EpipolarMap| {
             let along = slice_reaches(map, &camera, &surfaces.farthest, max_distance);
             let read = along.iter().map(|&s| samples_read(map, s)).collect();
-            let _ = reaches.set(along);
+            reaches.set(Some(along));
             read
         },
     };
