@@ -80,6 +80,7 @@ pub fn bands_per_octave(extinction: f64, reach: f64) -> u32 {
     // NaN converts to 0, which the clamp makes one.
     ((extinction * reach / OCTAVE_BAND_DEPTH).ceil() as u32).clamp(1, MAX_BANDS_PER_OCTAVE)
 }
+
 /// Optical depth from which a ray's remaining in-scattering (below e^−16) is negligible:
 /// a band's table ends where its fastest ray gets there.
 const NEGLIGIBLE_DEPTH: f64 = 16.0;
