@@ -2067,7 +2067,11 @@ fn slice_frames(
 ) -> (Vec<SliceFrame>, Vec<Vec<Warp>>) {
     const RAYS_PER_SLICE: f64 = 128.0;
     let pixels = camera.width as f64 * camera.height as f64;
-    let interior_stride = ((pixels / (map.slices as f64 * RAYS_PER_SLICE)).sqrt() as u32).max(1);
+    // The nearest stride, not the next smaller: truncated, 1080p frames sampled up to 1.8×
+    // the rays (colonnade's stride 3.98 became 3), which cost 2–5 ms of preparation and
+    // moved no error by more than 0.005 points.
+    let ideal = (pixels / (map.slices as f64 * RAYS_PER_SLICE)).sqrt();
+    let interior_stride = (ideal.round() as u32).max(1);
     let (w, h) = (camera.width, camera.height);
     // Slices 2 px apart: at distance r from the epipole they are 2π·r/slices apart.
     let dense_radius = 2.0 * map.slices as f64 / std::f64::consts::TAU;
