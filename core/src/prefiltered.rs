@@ -785,7 +785,13 @@ impl<'a> PrefilteredPlan<'a> {
                 })
                 .collect()
         });
-        let bands_per_octave = bands_per_octave(extinction, reach);
+        // Inside a box a ray's stretch is at most its longest chord, however far off the
+        // box lies.
+        let within = match &medium.extent {
+            Extent::Box { world_from_cube } => reach.min(longest_chord(world_from_cube)),
+            Extent::Unbounded => reach,
+        };
+        let bands_per_octave = bands_per_octave(extinction, within);
         let (frames, warps) = slice_frames(
             map,
             camera,
@@ -1770,6 +1776,21 @@ fn farthest_in_box(camera: &CameraModel, world_from_cube: &Mat4) -> f64 {
             }
         })
         .fold(0.0, f64::max)
+}
+
+/// The longest straight stretch inside the box `world_from_cube` maps the cube [−1, 1]³
+/// to: its longest diagonal.
+fn longest_chord(world_from_cube: &Mat4) -> f64 {
+    let world_from_cube = world_from_cube.as_dmat4();
+    [
+        DVec3::new(2.0, 2.0, 2.0),
+        DVec3::new(-2.0, 2.0, 2.0),
+        DVec3::new(2.0, -2.0, 2.0),
+        DVec3::new(2.0, 2.0, -2.0),
+    ]
+    .into_iter()
+    .map(|diagonal| world_from_cube.transform_vector3(diagonal).length())
+    .fold(0.0, f64::max)
 }
 
 /// Fewest sampled rays that give a band its own warp; a band with fewer keeps its
@@ -3256,6 +3277,27 @@ mod tests {
             assert_eq!(single.band_count(), 1);
             assert_eq!(single.band_position(10.0f64.log2(), 1), 0.0);
         }
+    }
+
+    /// A box's longest chord is its longest diagonal: a slab's, a sheared box's.
+    #[test]
+    fn a_box_is_crossed_along_its_longest_diagonal_at_most() {
+        let slab = Mat4::from_scale(glam::Vec3::new(8.0, 8.0, 3.0));
+        let expected = (16.0f64 * 16.0 + 16.0 * 16.0 + 6.0 * 6.0).sqrt();
+        assert!((longest_chord(&slab) - expected).abs() < 1e-9);
+        let moved = Mat4::from_translation(glam::Vec3::new(100.0, -50.0, 7.0)) * slab;
+        assert!(
+            (longest_chord(&moved) - expected).abs() < 1e-9,
+            "not its place"
+        );
+        let sheared = Mat4::from_cols(
+            glam::Vec4::new(1.0, 0.0, 0.0, 0.0),
+            glam::Vec4::new(1.0, 1.0, 0.0, 0.0),
+            glam::Vec4::new(0.0, 0.0, 1.0, 0.0),
+            glam::Vec4::W,
+        );
+        // Corners (±1 ± 1, ±1, ±1): the diagonal from (−2, −1, −1) to (2, 1, 1).
+        assert!((longest_chord(&sheared) - (16.0f64 + 4.0 + 4.0).sqrt()).abs() < 1e-9);
     }
 
     /// Octaves in thin media, more bands an octave as the optical depth of the tables'
