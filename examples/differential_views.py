@@ -15,7 +15,9 @@ and a case is flagged when one leaves more than `BLACK_LEAK` there.
 
 `--exact-ray-ends on` (or `off`) renders the same cases with prefiltering's exact ray ends
 everywhere (or nowhere); by default they are on in box media only. `--box-only` puts
-every case's medium in a box, to compare those two on box media alone.
+every case's medium in a box, to compare those two on box media alone. `--below-horizon`
+turns every case's sun below the horizon (its light travelling upward, as a sun lamp
+pointed up in Blender sends it), the cases otherwise as drawn.
 """
 
 from __future__ import annotations
@@ -76,11 +78,16 @@ BLACK_LEAK = 1e-3
 
 
 def random_case(
-    rng: random.Random, width: int, height: int, box_only: bool = False
+    rng: random.Random,
+    width: int,
+    height: int,
+    box_only: bool = False,
+    below_horizon: bool = False,
 ) -> tuple[str, dict]:
     name = rng.choice(list(crepuscular.builtin_scene_names()))
     scene = crepuscular.builtin_scene(name)
-    elevation = math.radians(rng.uniform(8, 89))
+    # Turned by sign, not drawn apart, so that the cases are the same either way.
+    elevation = math.radians(rng.uniform(8, 89)) * (-1 if below_horizon else 1)
     azimuth = rng.uniform(0, 2 * math.pi)
     scene["sun"]["direction"] = [
         -math.cos(elevation) * math.cos(azimuth),
@@ -178,13 +185,18 @@ def main() -> int:
         action="store_true",
         help="confine every case's medium to a box (the cases that draw one keep theirs)",
     )
+    parser.add_argument(
+        "--below-horizon",
+        action="store_true",
+        help="turn every case's sun below the horizon, its light travelling upward",
+    )
     args = parser.parse_args()
     rng = random.Random(args.seed)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
     flagged = 0
     for case in range(args.cases):
-        name, scene = random_case(rng, args.width, args.height, args.box_only)
+        name, scene = random_case(rng, args.width, args.height, args.box_only, args.below_horizon)
         scene["render"]["exact_ray_ends"] = args.exact_ray_ends
         volumes = {}
         try:
