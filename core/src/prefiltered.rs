@@ -854,7 +854,10 @@ impl<'a> PrefilteredPlan<'a> {
             light_travel,
             frequencies,
             bands_per_octave: bands_per_octave as f64,
-            exact_ray_ends: desc.exact_ray_ends.applies(box_medium.is_some()),
+            // Scenes are z-up.
+            exact_ray_ends: desc
+                .exact_ray_ends
+                .applies(box_medium.is_some(), light_travel.z > 0.0),
             sample_reaches,
         }
     }

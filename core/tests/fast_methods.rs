@@ -581,6 +581,40 @@ fn dense_fog_from_under_a_closed_roof_keeps_its_light() {
     assert!(bias.abs() <= 0.1, "bias {:+.2}%", bias * 100.0);
 }
 
+/// A sun below the horizon: its light travels upward, and the ground is the occluder of
+/// nearly every ray that ends on it, which a lookup reads about half lit there (fuzzed
+/// views read 14–947% off the reference). `auto` integrates those ends exactly, as `on`.
+#[test]
+fn light_from_below_integrates_ray_ends_exactly() {
+    for name in ["tree", "plane"] {
+        let mut scene = builtin_scene(name).expect("built-in scene");
+        scene.camera.width = 2 * WIDTH;
+        scene.camera.height = 2 * HEIGHT;
+        let mut direction = scene.sun.direction;
+        direction.z = direction.z.abs().max(0.3);
+        scene.sun.direction = direction;
+        let reference = render_with(&scene, Method::Reference, 4096);
+        let auto = render_with(&scene, Method::Prefiltered, 4096);
+        scene.render.exact_ray_ends = ExactRayEnds::On;
+        let on = render_with(&scene, Method::Prefiltered, 4096);
+        assert_eq!(
+            auto.volume, on.volume,
+            "{name}: auto is on under light from below"
+        );
+        scene.render.exact_ray_ends = ExactRayEnds::Off;
+        let off = render_with(&scene, Method::Prefiltered, 4096);
+        assert_finite(&auto);
+        let ((relative, mean), (without, _)) = (error(&auto, &reference), error(&off, &reference));
+        println!(
+            "{name:>10} lit from below: prefiltered error {:.2}% ({:.2}% with ray ends looked up; mean radiance {mean:.5})",
+            relative * 100.0,
+            without * 100.0
+        );
+        assert!(mean > 0.0);
+        assert!(relative < without, "{name}");
+    }
+}
+
 /// Plain bilinear upsampling of samples taken at the same pixels, ignoring depth.
 fn bilinear(low: &Layers, width: u32, height: u32, factor: u32) -> Vec<f32> {
     let mut out = vec![0.0f32; (width * height * 4) as usize];
