@@ -180,7 +180,13 @@ class CrepuscularLight(PropertyGroup):
         "shadow themselves)",
         # Numbered so that files saved while this was a checkbox read off and on as before.
         items=[
-            ("auto", "Auto", "In a fog box, where it costs little (open fog: off)", 2),
+            (
+                "auto",
+                "Auto",
+                "In a fog box, where it costs little, and under a sun below the horizon "
+                "(otherwise off in open fog)",
+                2,
+            ),
             ("on", "On", "Always; in open fog frames take up to 60% longer", 1),
             ("off", "Off", "Never; a fog box may glow where surfaces shadow themselves", 0),
         ],
