@@ -764,15 +764,21 @@ impl<'a> PrefilteredPlan<'a> {
         // (`SliceFrame::medium_start`): counted from the slice's start, they had decayed to
         // rounding where the rays reach a box 15 m off at σ = 0.3, and every ray through it
         // was too imprecise. Tables end where the rays' light stops mattering: past the
-        // negligible optical depth, or past the box.
-        let reach = match &medium.extent {
-            Extent::Box { world_from_cube } => desc
-                .max_distance
-                .min(farthest_in_box(camera, world_from_cube)),
-            Extent::Unbounded if extinction > 0.0 => {
-                desc.max_distance.min(NEGLIGIBLE_DEPTH / extinction)
+        // negligible optical depth, or past the box. Inside a box a ray's stretch is also at
+        // most the box's longest chord, however far off the box lies: that, not the reach,
+        // is what the bands per octave follow.
+        let (reach, stretch) = match &medium.extent {
+            Extent::Box { world_from_cube } => {
+                let reach = desc
+                    .max_distance
+                    .min(farthest_in_box(camera, world_from_cube));
+                (reach, reach.min(longest_chord(world_from_cube)))
             }
-            Extent::Unbounded => desc.max_distance,
+            Extent::Unbounded if extinction > 0.0 => {
+                let reach = desc.max_distance.min(NEGLIGIBLE_DEPTH / extinction);
+                (reach, reach)
+            }
+            Extent::Unbounded => (desc.max_distance, desc.max_distance),
         };
         let tables = Tables::get(frequencies);
         // Per slice, the samples up to its reach and the one the reach lies in.
@@ -785,13 +791,7 @@ impl<'a> PrefilteredPlan<'a> {
                 })
                 .collect()
         });
-        // Inside a box a ray's stretch is at most its longest chord, however far off the
-        // box lies.
-        let within = match &medium.extent {
-            Extent::Box { world_from_cube } => reach.min(longest_chord(world_from_cube)),
-            Extent::Unbounded => reach,
-        };
-        let bands_per_octave = bands_per_octave(extinction, within);
+        let bands_per_octave = bands_per_octave(extinction, stretch);
         let (frames, warps) = slice_frames(
             map,
             camera,
