@@ -516,7 +516,8 @@ impl Lattices {
 }
 
 /// Shades a `width` × `height` image adaptively. `shade(pixels, out)` gives the layers of
-/// a batch of pixels (x, y), in shading order (tile by tile);
+/// a run of pixels (x, y), in shading order (tile by tile), and is called on several runs
+/// at once, so a pixel's layers may depend on nothing but the pixel;
 /// `surface(x, y)` the distance to the surface its whole footprint sees (+∞ for
 /// background), or `None` where a depth edge runs through it, which is then shaded.
 /// `lines`, the image's epipolar lines where the light is directional, let the grid be
@@ -805,6 +806,10 @@ pub fn shade_adaptively(
     )
 }
 
+/// How many pixels of a [`Batch`] one thread shades at a time: long enough for a method's
+/// look-ahead along them, short enough to share out a band's batch.
+const SHADING_RUN: usize = 128;
+
 /// Pixels to shade, in shading order, with where each result goes; shaded together so
 /// that a method can look ahead along the batch (prefiltering locates the next rays while
 /// it evaluates the current one).
@@ -853,18 +858,28 @@ impl Batch {
     }
 
     /// Shades the batch into `out[slot]`; returns how many were shaded.
-    fn shade(&self, shade: &impl Fn(&[(usize, usize)], &mut [Pixel]), out: &mut [Pixel]) -> usize {
+    fn shade(
+        &self,
+        shade: &(impl Fn(&[(usize, usize)], &mut [Pixel]) + Sync),
+        out: &mut [Pixel],
+    ) -> usize {
         self.shade_each(shade, |slot, pixel| out[slot] = *pixel)
     }
 
-    /// Shades the batch, handing each result to `store` with its slot.
+    /// Shades the batch, handing each result to `store` with its slot. In runs of
+    /// [`SHADING_RUN`] pixels that idle threads may take: the pixels to shade gather where
+    /// shadow and depth edges are, in a few bands of the image, and one band's batch
+    /// would otherwise keep one thread busy while the other waits at the end of the pass.
     fn shade_each(
         &self,
-        shade: &impl Fn(&[(usize, usize)], &mut [Pixel]),
+        shade: &(impl Fn(&[(usize, usize)], &mut [Pixel]) + Sync),
         mut store: impl FnMut(usize, &Pixel),
     ) -> usize {
         let mut results = vec![Pixel::default(); self.pixels.len()];
-        shade(&self.pixels, &mut results);
+        results
+            .par_chunks_mut(SHADING_RUN)
+            .zip(self.pixels.par_chunks(SHADING_RUN))
+            .for_each(|(out, pixels)| shade(pixels, out));
         for (&slot, pixel) in self.slots.iter().zip(&results) {
             store(slot, pixel);
         }
