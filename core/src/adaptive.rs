@@ -33,10 +33,18 @@ use crate::render::{layer_depth, EDGE_DEPTH_SPREAD, SHADING_TILE as TILE};
 use crate::spare::Spare;
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
-/// are interpolated. On the built-in scenes' default views at 1920×1080 this shades
-/// 10–51% of the pixels and moves the layers from shading every pixel by at most 0.029%
-/// of the mean radiance (prefiltering; 0.054% for min-max).
+/// (or, in regions darker than a quarter of the image's mean, of that quarter) are
+/// interpolated. On the built-in scenes' default views at 1920×1080 this shades 10–21%
+/// of the pixels (min-max 10–23%) and moves the layers from shading every pixel by at
+/// most 0.027% of the mean radiance (prefiltering; 0.063% for min-max).
 pub const DEFAULT_TOLERANCE: f32 = 0.01;
+
+/// The share of the image's mean radiance (per channel) under which neighbours may
+/// spread by the tolerance of that share rather than of their own blend: in regions that
+/// dark, the fast methods' own error (prefiltering's ringing is about 1% of the unshadowed
+/// light) is larger than such a spread, and refining them found that error rather than
+/// any feature: a fifth of plane's and a quarter of colonnade's shaded pixels.
+const DARK_SHARE: f64 = 0.25;
 
 /// How far apart across the epipolar line through a pixel, in pixels, the two pixels it
 /// is interpolated from on the finer grid may lie: as far as the finer grid's own
@@ -116,6 +124,9 @@ impl EpipolarLines {
 /// surface.
 struct Interpolation<'s, S> {
     tolerance: f32,
+    /// Per channel of RGBA, the value below which spreads are held to the tolerance of
+    /// this value rather than of the blend's ([`DARK_SHARE`]).
+    floor: [f32; 4],
     max_distance: f32,
     surface: &'s S,
 }
@@ -131,7 +142,13 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
         x: usize,
         y: usize,
     ) -> Option<Pixel> {
-        let blend = blend_if_agreeing(neighbours, weights, self.tolerance, self.max_distance)?;
+        let blend = blend_if_agreeing(
+            neighbours,
+            weights,
+            self.tolerance,
+            self.floor,
+            self.max_distance,
+        )?;
         let surface = (self.surface)(x, y)?;
         let reach = surface.min(self.max_distance as f64) as f32;
         if !on_one_surface(blend.depth, reach) {
@@ -536,11 +553,6 @@ pub fn shade_adaptively(
     shade: impl Fn(&[(usize, usize)], &mut [Pixel]) + Sync,
 ) -> (Layers, usize) {
     let lines = lines.as_ref();
-    let interpolation = Interpolation {
-        tolerance,
-        max_distance,
-        surface: &surface,
-    };
     let grid_width = width.div_ceil(2);
     let grid_height = height.div_ceil(2);
     let lattices = Lattices::of_grid(grid_width, grid_height, lines);
@@ -550,13 +562,14 @@ pub fn shade_adaptively(
     let band_len = grid.band_len;
     let [even, odd] = &mut grid.parities;
     let numbered = |parity: usize| move |(k, pixels)| (2 * k + parity, pixels);
-    even.par_chunks_mut(band_len)
+    let (sums, points) = even
+        .par_chunks_mut(band_len)
         .enumerate()
         .map(numbered(0))
         .chain(odd.par_chunks_mut(band_len).enumerate().map(numbered(1)))
-        .for_each(|(band, pixels): (usize, &mut [Pixel])| {
+        .map(|(band, pixels): (usize, &mut [Pixel])| {
             if control.is_cancelled() {
-                return;
+                return ([0.0f64; 4], 0usize);
             }
             let first = band * TILE;
             let mut batch = Batch::default();
@@ -571,7 +584,29 @@ pub fn shade_adaptively(
                 }
             }
             shaded_count.fetch_add(batch.shade(&shade, pixels), Ordering::Relaxed);
-        });
+            // Each lattice point stands for `stride` points of the finer grid.
+            let (mut sums, mut points) = ([0.0; 4], 0);
+            for &slot in &batch.slots {
+                let (i, j) = (slot % grid_width, first + slot / grid_width);
+                let stride = lattices.at(i, j).stride;
+                for (sum, value) in sums.iter_mut().zip(pixels[slot].volume) {
+                    *sum += stride as f64 * value as f64;
+                }
+                points += stride as usize;
+            }
+            (sums, points)
+        })
+        .reduce(
+            || ([0.0; 4], 0),
+            |(a, n), (b, m)| (std::array::from_fn(|k| a[k] + b[k]), n + m),
+        );
+    let floor = sums.map(|sum| (DARK_SHARE * sum / points.max(1) as f64) as f32);
+    let interpolation = Interpolation {
+        tolerance,
+        floor,
+        max_distance,
+        surface: &surface,
+    };
     // The other points, the bands of each parity in parallel: a band's pairs reach only
     // into itself and the bands either side, of the other parity, whose lattice points
     // stay as they are.
@@ -888,7 +923,8 @@ impl Batch {
 }
 
 /// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of RGBA
-/// spreads by at most `tolerance` times its blend, visibility by at most `tolerance`, and
+/// spreads by at most `tolerance` times its blend, or times its `floor` where the blend
+/// is below that (NaN stays a disagreement), visibility by at most `tolerance`, and
 /// their view rays end within [`EDGE_DEPTH_SPREAD`] of each other (background and
 /// surfaces beyond it at `max_distance`). The blend's depth is their nearest ray end.
 /// NaN anywhere means disagreement.
@@ -897,6 +933,7 @@ fn blend_if_agreeing<const N: usize>(
     neighbours: [Pixel; N],
     weights: [f32; N],
     tolerance: f32,
+    floor: [f32; 4],
     max_distance: f32,
 ) -> Option<Pixel> {
     // Eight lanes, RGBA, visibility, reach and two of padding, so that every step is one
@@ -946,7 +983,15 @@ fn blend_if_agreeing<const N: usize>(
     // relative to the nearest end for the reach.
     let edge = EDGE_DEPTH_SPREAD as f32 * low[5];
     let allowed: [f32; 8] = std::array::from_fn(|k| match k {
-        0..4 => tolerance * blend[k].abs(),
+        0..4 => {
+            let magnitude = blend[k].abs();
+            tolerance
+                * if magnitude < floor[k] {
+                    floor[k]
+                } else {
+                    magnitude
+                }
+        }
         4 => tolerance,
         5 => edge,
         _ => 0.0,
@@ -977,7 +1022,13 @@ mod tests {
         tolerance: f32,
         max_distance: f32,
     ) -> Option<Pixel> {
-        blend_if_agreeing(neighbours, [1.0 / N as f32; N], tolerance, max_distance)
+        blend_if_agreeing(
+            neighbours,
+            [1.0 / N as f32; N],
+            tolerance,
+            [0.0; 4],
+            max_distance,
+        )
     }
 
     fn pixel(rgb: f32, alpha: f32, visibility: f32, depth: f32) -> Pixel {
@@ -1487,6 +1538,73 @@ mod tests {
 
     /// `value` shaded adaptively on a 40 × 30 image at one depth, exact everywhere;
     /// returns the pixels shaded.
+    /// Neighbours far darker than the image's mean may spread by the tolerance of a share
+    /// of the mean: a ripple there is interpolated, the same ripple relative to a bright
+    /// region is shaded, and features in the dark (a shaft, a depth edge) still are.
+    #[test]
+    fn dark_ripples_are_interpolated_but_dark_features_are_shaded() {
+        let (width, height) = (64, 48);
+        let depth = |x: usize, y: usize| if x == 45 && y > 30 { 8.0 } else { 20.0 };
+        // Bright left, dark right (1/100), each with a ripple of ±3% of its own level; a
+        // shaft of 0.3 two pixels wide at x = 50..52 in the dark half.
+        let level = |x: usize, y: usize| match x {
+            0..32 => 1.0,
+            50..52 => 0.3,
+            _ => 0.01 * (20.0 / depth(x, y) as f32),
+        };
+        let value = |x: usize, y: usize| {
+            let ripple = 1.0 + 0.03 * ((x * 7 + y * 3) % 5) as f32 / 4.0;
+            pixel(level(x, y) * ripple, 0.3, 0.5, depth(x, y) as f32)
+        };
+        let shaded = std::sync::Mutex::new(std::collections::HashSet::new());
+        let recorded = |x: usize, y: usize| {
+            shaded.lock().unwrap().insert((x, y));
+            value(x, y)
+        };
+        let (layers, _) = shade_image(
+            width,
+            height,
+            0.01,
+            None,
+            |x, y| Some(depth(x, y)),
+            recorded,
+        );
+        let shaded = shaded.into_inner().unwrap();
+        let share = |columns: std::ops::Range<usize>| {
+            let count = columns.len() * height;
+            let hit = shaded.iter().filter(|(x, _)| columns.contains(x)).count();
+            hit as f64 / count as f64
+        };
+        // The finer grid, every other pixel of every other row, is a quarter; the
+        // ripple leaves some neighbours agreeing.
+        assert!(share(0..31) > 0.5, "bright ripple: {}", share(0..31));
+        assert!(share(34..44) < 0.3, "dark ripple: {}", share(34..44));
+        for y in 0..height {
+            // Nothing is blended across the shaft's edges.
+            for x in 48..54 {
+                let (got, want) = (layer_value(&layers, x, y).volume[0], value(x, y).volume[0]);
+                assert!(
+                    (got - want).abs() <= 0.03 * want,
+                    "shaft ({x}, {y}): {got} against {want}"
+                );
+            }
+            // The pole one pixel wide keeps its own depth and light.
+            let (got, want) = (layer_value(&layers, 45, y), value(45, y));
+            assert_eq!(got.depth, want.depth, "pole (45, {y})");
+        }
+        // Interpolated dark pixels stay within the ripple and the floor's tolerance: the
+        // mean is about half of the bright level.
+        for y in 0..height {
+            for x in (33..width).filter(|x| !(48..54).contains(x)) {
+                let (got, want) = (layer_value(&layers, x, y).volume[0], value(x, y).volume[0]);
+                assert!(
+                    (got - want).abs() <= 0.03 * 0.01 + 0.01 * DARK_SHARE as f32 * 0.6,
+                    "({x}, {y}): {got} against {want}"
+                );
+            }
+        }
+    }
+
     fn shaded_pixels(
         lines: Option<EpipolarLines>,
         value: impl Fn(usize, usize) -> Pixel + Sync,
