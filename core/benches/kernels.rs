@@ -3,7 +3,9 @@
 //! and per-ray evaluation) on the built-in scenes. Whole-frame timings come from
 //! `crepuscular bench`.
 
-use crepuscular::adaptive::{shade_adaptively, EpipolarLines, DEFAULT_TOLERANCE};
+use crepuscular::adaptive::{
+    shade_adaptively, EpipolarLines, SurfaceCoordinate, DEFAULT_TOLERANCE,
+};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::layers::{Layers, Pixel};
@@ -211,6 +213,7 @@ fn adaptive_shading(c: &mut Criterion) {
                     DEFAULT_TOLERANCE,
                     max_distance,
                     lines,
+                    SurfaceCoordinate::of_camera(&camera),
                     &control,
                     surface,
                     shade,

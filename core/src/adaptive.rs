@@ -34,9 +34,9 @@ use crate::spare::Spare;
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
 /// (or, in regions darker than a quarter of the image's mean, of that quarter) are
-/// interpolated. On the built-in scenes' default views at 1920×1080 this shades 10–21%
-/// of the pixels (min-max 10–23%) and moves the layers from shading every pixel by at
-/// most 0.027% of the mean radiance (prefiltering; 0.063% for min-max).
+/// interpolated. On the built-in scenes' default views at 1920×1080 this shades 9–20%
+/// of the pixels (min-max 9–22%) and moves the layers from shading every pixel by at
+/// most 0.028% of the mean radiance (prefiltering; 0.065% for min-max).
 pub const DEFAULT_TOLERANCE: f32 = 0.01;
 
 /// The share of the image's mean radiance (per channel) under which neighbours may
@@ -56,6 +56,46 @@ const MAX_ACROSS: f64 = 2.0;
 /// along the lines, so what the test bounds there is its gradient, as the same tolerance
 /// over pairs four pixels apart did before the lattices grew sparser.
 const TOLERANCE_SPAN: f64 = 4.0;
+
+/// What of a ray's reach is affine across the image on a plane, so that a pixel whose
+/// reach matches its neighbours' interpolated in it sees the surface they see, however
+/// steeply that surface recedes (a ground plane towards the horizon).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SurfaceCoordinate {
+    /// The reciprocal of the distance: a pinhole camera (exactly for the planar depth;
+    /// the distance along a ray differs from it by a factor that varies slowly across
+    /// the image).
+    InverseDistance,
+    /// The distance itself: a parallel projection.
+    Distance,
+}
+
+impl SurfaceCoordinate {
+    pub fn of_camera(camera: &CameraModel) -> Self {
+        if camera.is_perspective() {
+            Self::InverseDistance
+        } else {
+            Self::Distance
+        }
+    }
+
+    #[inline(always)]
+    fn of(self, reach: f32) -> f32 {
+        match self {
+            Self::InverseDistance => 1.0 / reach,
+            Self::Distance => reach,
+        }
+    }
+
+    /// The reach whose coordinate is `coordinate`.
+    #[inline(always)]
+    fn reach(self, coordinate: f32) -> f32 {
+        match self {
+            Self::InverseDistance => 1.0 / coordinate,
+            Self::Distance => coordinate,
+        }
+    }
+}
 
 /// The image's epipolar lines: they all pass through the epipole, the image of the
 /// light's direction, or run parallel to its image when that lies at infinity.
@@ -128,6 +168,7 @@ struct Interpolation<'s, S> {
     /// this value rather than of the blend's ([`DARK_SHARE`]).
     floor: [f32; 4],
     max_distance: f32,
+    coordinate: SurfaceCoordinate,
     surface: &'s S,
 }
 
@@ -148,6 +189,7 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
             self.tolerance,
             self.floor,
             self.max_distance,
+            self.coordinate,
         )?;
         let surface = (self.surface)(x, y)?;
         let reach = surface.min(self.max_distance as f64) as f32;
@@ -548,6 +590,7 @@ pub fn shade_adaptively(
     tolerance: f32,
     max_distance: f32,
     lines: Option<EpipolarLines>,
+    coordinate: SurfaceCoordinate,
     control: &RenderControl,
     surface: impl Fn(usize, usize) -> Option<f64> + Sync,
     shade: impl Fn(&[(usize, usize)], &mut [Pixel]) + Sync,
@@ -605,6 +648,7 @@ pub fn shade_adaptively(
         tolerance,
         floor,
         max_distance,
+        coordinate,
         surface: &surface,
     };
     // The other points, the bands of each parity in parallel: a band's pairs reach only
@@ -924,10 +968,11 @@ impl Batch {
 
 /// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of RGBA
 /// spreads by at most `tolerance` times its blend, or times its `floor` where the blend
-/// is below that (NaN stays a disagreement), visibility by at most `tolerance`, and
-/// their view rays end within [`EDGE_DEPTH_SPREAD`] of each other (background and
-/// surfaces beyond it at `max_distance`). The blend's depth is their nearest ray end.
-/// NaN anywhere means disagreement.
+/// is below that (NaN stays a disagreement), and visibility by at most `tolerance`. The
+/// blend's depth is the reach at which their rays' ends (background and surfaces beyond
+/// it at `max_distance`) interpolate by the weights in `coordinate`: where the pixel's own
+/// ray ends, if it sees the surface through theirs ([`on_one_surface`]). NaN anywhere
+/// means disagreement.
 #[inline(always)]
 fn blend_if_agreeing<const N: usize>(
     neighbours: [Pixel; N],
@@ -935,9 +980,10 @@ fn blend_if_agreeing<const N: usize>(
     tolerance: f32,
     floor: [f32; 4],
     max_distance: f32,
+    coordinate: SurfaceCoordinate,
 ) -> Option<Pixel> {
-    // Eight lanes, RGBA, visibility, reach and two of padding, so that every step is one
-    // lane-wise operation.
+    // Eight lanes, RGBA, visibility, the reach's coordinate and two of padding, so that
+    // every step is one lane-wise operation.
     let mut low = [f32::INFINITY; 8];
     let mut high = [f32::NEG_INFINITY; 8];
     let lanes = |pixel: &Pixel| {
@@ -948,11 +994,12 @@ fn blend_if_agreeing<const N: usize>(
             b,
             a,
             pixel.visibility,
-            if pixel.depth < max_distance {
-                pixel.depth
-            } else {
+            // NaN stays NaN.
+            coordinate.of(if pixel.depth > max_distance {
                 max_distance
-            },
+            } else {
+                pixel.depth
+            }),
             0.0,
             0.0,
         ]
@@ -979,9 +1026,9 @@ fn blend_if_agreeing<const N: usize>(
             blend[k] += weight * (values[k] - first[k]);
         }
     }
-    // Per lane, the spread allowed: relative for RGBA, absolute for visibility, and
-    // relative to the nearest end for the reach.
-    let edge = EDGE_DEPTH_SPREAD as f32 * low[5];
+    // Per lane, the spread allowed: relative for RGBA, absolute for visibility; the
+    // reaches may spread as a receding surface's do (the pixel's own is tested against
+    // their blend), and only NaN there disagrees.
     let allowed: [f32; 8] = std::array::from_fn(|k| match k {
         0..4 => {
             let magnitude = blend[k].abs();
@@ -993,24 +1040,26 @@ fn blend_if_agreeing<const N: usize>(
                 }
         }
         4 => tolerance,
-        5 => edge,
+        5 => f32::INFINITY,
         _ => 0.0,
     });
-    let mut agree = true;
+    // Comparisons drop NaN from the bounds, so the reach's blend is checked itself.
+    let mut agree = !blend[5].is_nan();
     for k in 0..8 {
         agree &= high[k] - low[k] <= allowed[k];
     }
     agree.then_some(Pixel {
         volume: [blend[0], blend[1], blend[2], blend[3]],
         visibility: blend[4],
-        depth: low[5],
+        depth: coordinate.reach(blend[5]),
     })
 }
 
-/// Whether a ray ending at `reach` ends on the same surface as rays whose nearest end
-/// is `nearest`: within [`EDGE_DEPTH_SPREAD`].
-fn on_one_surface(nearest: f32, reach: f32) -> bool {
-    (nearest - reach).abs() <= EDGE_DEPTH_SPREAD as f32 * reach
+/// Whether a ray ending at `reach` ends on the surface through its neighbours' ends,
+/// which at its pixel lies at `expected` ([`blend_if_agreeing`]): within
+/// [`EDGE_DEPTH_SPREAD`] of it.
+fn on_one_surface(expected: f32, reach: f32) -> bool {
+    (expected - reach).abs() <= EDGE_DEPTH_SPREAD as f32 * reach
 }
 
 #[cfg(test)]
@@ -1028,6 +1077,7 @@ mod tests {
             tolerance,
             [0.0; 4],
             max_distance,
+            SurfaceCoordinate::InverseDistance,
         )
     }
 
@@ -1040,7 +1090,7 @@ mod tests {
     }
 
     #[test]
-    fn agreeing_neighbours_give_their_mean_and_nearest_depth() {
+    fn agreeing_neighbours_give_their_mean_and_the_depth_between_them() {
         let neighbours = [pixel(1.0, 0.5, 0.8, 10.1), pixel(1.005, 0.502, 0.805, 10.0)];
         let mean = mean_if_agreeing(neighbours, 0.01, 100.0).unwrap();
         let expected = [1.0025, 2.005, 0.50125, 0.501, 0.8025];
@@ -1051,7 +1101,73 @@ mod tests {
                 "{value} against {expected}"
             );
         }
-        assert_eq!(mean.depth, 10.0);
+        // Midway between them in inverse distance, as on a plane seen by a pinhole.
+        let between = 2.0 / (1.0 / 10.1 + 1.0 / 10.0);
+        assert!((mean.depth - between).abs() < 1e-5, "{}", mean.depth);
+    }
+
+    /// A surface receding from the camera (the ground towards the horizon) spreads its
+    /// neighbours' depths far apart but keeps each pixel where the plane through theirs
+    /// is; a step between surfaces does not.
+    #[test]
+    fn a_receding_surface_is_one_surface_and_a_step_is_not() {
+        let (near, far) = (pixel(1.0, 0.5, 0.8, 10.0), pixel(1.0, 0.5, 0.8, 30.0));
+        let pinhole = mean_if_agreeing([near, far], 0.01, 100.0).unwrap();
+        assert!((pinhole.depth - 15.0).abs() < 1e-4, "{}", pinhole.depth);
+        assert!(on_one_surface(pinhole.depth, 15.0));
+        for step in [10.0, 30.0, 20.0] {
+            assert!(!on_one_surface(pinhole.depth, step), "{step}");
+        }
+        let parallel = blend_if_agreeing(
+            [near, far],
+            [0.5; 2],
+            0.01,
+            [0.0; 4],
+            100.0,
+            SurfaceCoordinate::Distance,
+        )
+        .unwrap();
+        assert_eq!(parallel.depth, 20.0);
+        // A ground plane seen by a pinhole: each row's distance is inverse in its height
+        // below the horizon, so rows two apart lie 5–50% apart in depth; the light varies
+        // gently across it. Only the finer grid is shaded (a quarter, rounded up at the
+        // edges) and every pixel keeps its value; with a post 4 m off on rows 20..30,
+        // its edges are shaded.
+        let (width, height) = (40, 40);
+        let ground = |y: usize| 200.0 / (y as f64 + 4.0);
+        for post in [false, true] {
+            let depth = move |x: usize, y: usize| match (post, x, y) {
+                (true, 19..=21, 20..30) => 4.0,
+                _ => ground(y),
+            };
+            let value = |x: usize, y: usize| {
+                let d = depth(x, y);
+                let light = if d < 5.0 {
+                    0.2
+                } else {
+                    0.5 + 0.0005 * (x + y) as f32
+                };
+                pixel(light, 0.3, 0.9, d as f32)
+            };
+            let (layers, shaded) =
+                shade_image(width, height, 0.01, None, |x, y| Some(depth(x, y)), value);
+            for y in 0..height {
+                for x in 0..width {
+                    let (got, want) = (layer_value(&layers, x, y), value(x, y));
+                    assert!(
+                        (got.volume[0] - want.volume[0]).abs() <= 0.01 * want.volume[0],
+                        "({x}, {y}): {got:?} against {want:?}"
+                    );
+                    assert_eq!(got.depth, want.depth);
+                }
+            }
+            let grid = width.div_ceil(2) * height.div_ceil(2);
+            if post {
+                assert!(shaded > grid + 20, "{shaded}");
+            } else {
+                assert!(shaded <= grid + width + height, "{shaded} of {grid}");
+            }
+        }
     }
 
     #[test]
@@ -1061,7 +1177,6 @@ mod tests {
             ("radiance 2% apart", pixel(1.02, 0.5, 0.8, 10.0)),
             ("alpha 2% apart", pixel(1.0, 0.51, 0.8, 10.0)),
             ("visibility 0.02 apart", pixel(1.0, 0.5, 0.82, 10.0)),
-            ("another surface", pixel(1.0, 0.5, 0.8, 10.3)),
             ("NaN radiance", pixel(f32::NAN, 0.5, 0.8, 10.0)),
             ("NaN depth", pixel(1.0, 0.5, 0.8, f32::NAN)),
         ];
@@ -1110,6 +1225,7 @@ mod tests {
             tolerance,
             100.0,
             lines,
+            SurfaceCoordinate::InverseDistance,
             &control,
             surface,
             |pixels, out| {

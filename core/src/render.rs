@@ -3,7 +3,7 @@
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 
-use crate::adaptive::{shade_adaptively, EpipolarLines};
+use crate::adaptive::{shade_adaptively, EpipolarLines, SurfaceCoordinate};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
 use crate::epipolar::{
@@ -709,6 +709,7 @@ pub(crate) fn shade_pixels(
             tolerance,
             settings.max_distance,
             Some(EpipolarLines::of_view(camera, light_travel, stride)),
+            SurfaceCoordinate::of_camera(camera),
             control,
             |x, y| {
                 let (full_x, full_y) = full_pixel(x, y);
