@@ -88,11 +88,27 @@ impl SurfaceCoordinate {
     }
 
     /// The reach whose coordinate is `coordinate`.
-    #[inline(always)]
+    #[cfg(test)]
     fn reach(self, coordinate: f32) -> f32 {
         match self {
             Self::InverseDistance => 1.0 / coordinate,
             Self::Distance => coordinate,
+        }
+    }
+
+    /// Whether a ray ending at `reach` ends on the surface whose coordinate at its pixel
+    /// is `expected` ([`blend_if_agreeing`]): within [`EDGE_DEPTH_SPREAD`] of it. Without
+    /// a division for the inverse distance e, |1/e − reach| ≤ spread·reach being
+    /// |1 − e·reach| ≤ spread·e·reach for the e > 0 of reaches up to the max distance.
+    #[inline(always)]
+    fn holds(self, expected: f32, reach: f32) -> bool {
+        let spread = EDGE_DEPTH_SPREAD as f32;
+        match self {
+            Self::InverseDistance => {
+                let product = expected * reach;
+                (1.0 - product).abs() <= spread * product
+            }
+            Self::Distance => (expected - reach).abs() <= spread * reach,
         }
     }
 }
@@ -193,11 +209,14 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
         )?;
         let surface = (self.surface)(x, y)?;
         let reach = surface.min(self.max_distance as f64) as f32;
-        if !on_one_surface(blend.depth, reach) {
+        if !self.coordinate.holds(blend.coordinate, reach) {
             return None;
         }
-        let depth = layer_depth(surface, self.max_distance as f64) as f32;
-        Some(Pixel { depth, ..blend })
+        Some(Pixel {
+            volume: blend.volume,
+            visibility: blend.visibility,
+            depth: layer_depth(surface, self.max_distance as f64) as f32,
+        })
     }
 
     /// Pixel (x, y) as the mean of `neighbours`, where they agree and it lies on their
@@ -223,20 +242,20 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
             .or_else(|| self.mean(second()?, x, y))
     }
 
-    /// Pixel (x, y) between `pair`, `span` pixels apart along the epipolar line through
-    /// it, `fraction` of the way from the first: the tolerance in proportion to the span
-    /// ([`TOLERANCE_SPAN`]).
+    /// Pixel (x, y) between `pair`, apart along the epipolar line through it by the span
+    /// of `pairing`, `fraction` of the way from the first: the tolerance widened in
+    /// proportion to the span ([`TOLERANCE_SPAN`]).
     #[inline]
     fn along(
         &self,
         pair: [Pixel; 2],
         fraction: f32,
-        span: f64,
+        pairing: &Pairing,
         x: usize,
         y: usize,
     ) -> Option<Pixel> {
         let wider = Interpolation {
-            tolerance: self.tolerance * (span / TOLERANCE_SPAN).max(1.0) as f32,
+            tolerance: self.tolerance * pairing.widening,
             ..*self
         };
         wider.between(pair, [1.0 - fraction, fraction], x, y)
@@ -495,10 +514,42 @@ fn bezout([a, b]: [i64; 2]) -> Option<[i64; 2]> {
     (r0.abs() == 1).then(|| [c0 * r0, d0 * r0])
 }
 
+/// What the pairs of a [`Lattice`] have in common, found once per square rather than
+/// once per point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Pairing {
+    /// From the first point of a pair to the second, in pixels.
+    span: [f64; 2],
+    /// The tolerance's factor for pairs that far apart ([`TOLERANCE_SPAN`]).
+    widening: f32,
+    /// The share of a pair's span a step takes: 1 / stride, by which `behind` steps are
+    /// exactly the fraction `behind` / stride for strides up to 4.
+    per_step: f32,
+}
+
+impl Pairing {
+    fn of(lattice: &Lattice) -> Self {
+        let [a, b] = lattice.step;
+        // The finer grid's points lie two pixels apart.
+        let span = [
+            (2 * lattice.stride * a) as f64,
+            (2 * lattice.stride * b) as f64,
+        ];
+        let length = (span[0] * span[0] + span[1] * span[1]).sqrt();
+        Self {
+            span,
+            widening: (length / TOLERANCE_SPAN).max(1.0) as f32,
+            per_step: 1.0 / lattice.stride as f32,
+        }
+    }
+}
+
 /// The [`Lattice`] of each square of a finer grid.
 struct Lattices {
     across: usize,
     squares: Vec<Lattice>,
+    /// Each square's [`Pairing`].
+    pairings: Vec<Pairing>,
 }
 
 impl Lattices {
@@ -526,8 +577,13 @@ impl Lattices {
                     .map(|(i, j)| lines.direction(2 * i, 2 * j));
                 Lattice::along(&corners, &candidates)
             })
-            .collect();
-        Self { across, squares }
+            .collect::<Vec<_>>();
+        let pairings = squares.iter().map(Pairing::of).collect();
+        Self {
+            across,
+            squares,
+            pairings,
+        }
     }
 
     /// The index of the square of point (i, j).
@@ -701,16 +757,12 @@ pub fn shade_adaptively(
                         lattice_point(pixels, pi + ahead * a, pj + ahead * b, home)?,
                     ];
                     let (x, y) = (2 * i, 2 * j);
-                    let (sx, sy) = (
-                        (2 * lattice.stride * a) as f64,
-                        (2 * lattice.stride * b) as f64,
-                    );
-                    if !lines?.pairs_along(x, y, [sx, sy]) {
+                    let pairing = &lattices.pairings[home];
+                    if !lines?.pairs_along(x, y, pairing.span) {
                         return None;
                     }
-                    let span = (sx * sx + sy * sy).sqrt();
-                    let fraction = behind as f32 / lattice.stride as f32;
-                    interpolation.along(pair, fraction, span, x, y)
+                    let fraction = behind as f32 * pairing.per_step;
+                    interpolation.along(pair, fraction, pairing, x, y)
                 };
                 let mut batch = Batch::default();
                 for row in 0..rows {
@@ -966,13 +1018,21 @@ impl Batch {
     }
 }
 
+/// Neighbours' blend where they agree ([`blend_if_agreeing`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Blend {
+    volume: [f32; 4],
+    visibility: f32,
+    /// Their reaches interpolated in the [`SurfaceCoordinate`]: where the pixel's own ray
+    /// ends, if it sees the surface through theirs ([`SurfaceCoordinate::holds`]).
+    coordinate: f32,
+}
+
 /// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of RGBA
 /// spreads by at most `tolerance` times its blend, or times its `floor` where the blend
-/// is below that (NaN stays a disagreement), and visibility by at most `tolerance`. The
-/// blend's depth is the reach at which their rays' ends (background and surfaces beyond
-/// it at `max_distance`) interpolate by the weights in `coordinate`: where the pixel's own
-/// ray ends, if it sees the surface through theirs ([`on_one_surface`]). NaN anywhere
-/// means disagreement.
+/// is below that (NaN stays a disagreement), and visibility by at most `tolerance`. Their
+/// rays' ends (background and surfaces beyond it at `max_distance`) blend in `coordinate`.
+/// NaN anywhere means disagreement.
 #[inline(always)]
 fn blend_if_agreeing<const N: usize>(
     neighbours: [Pixel; N],
@@ -981,35 +1041,32 @@ fn blend_if_agreeing<const N: usize>(
     floor: [f32; 4],
     max_distance: f32,
     coordinate: SurfaceCoordinate,
-) -> Option<Pixel> {
+) -> Option<Blend> {
+    // The reaches' coordinates first, side by side, so that their divisions overlap.
+    let coordinates: [f32; N] = std::array::from_fn(|n| {
+        let depth = neighbours[n].depth;
+        // NaN stays NaN.
+        coordinate.of(if depth > max_distance {
+            max_distance
+        } else {
+            depth
+        })
+    });
     // Eight lanes, RGBA, visibility, the reach's coordinate and two of padding, so that
     // every step is one lane-wise operation.
     let mut low = [f32::INFINITY; 8];
     let mut high = [f32::NEG_INFINITY; 8];
-    let lanes = |pixel: &Pixel| {
+    let lanes = |n: usize| {
+        let pixel = &neighbours[n];
         let [r, g, b, a] = pixel.volume;
-        [
-            r,
-            g,
-            b,
-            a,
-            pixel.visibility,
-            // NaN stays NaN.
-            coordinate.of(if pixel.depth > max_distance {
-                max_distance
-            } else {
-                pixel.depth
-            }),
-            0.0,
-            0.0,
-        ]
+        [r, g, b, a, pixel.visibility, coordinates[n], 0.0, 0.0]
     };
     // The first neighbour plus the others' weighted differences from it, so that equal
     // neighbours blend to exactly their value.
-    let first = lanes(&neighbours[0]);
+    let first = lanes(0);
     let mut blend = first;
-    for (neighbour, weight) in neighbours.iter().zip(weights) {
-        let values = lanes(neighbour);
+    for (n, weight) in weights.into_iter().enumerate() {
+        let values = lanes(n);
         // Comparisons rather than f32::min and max, which vectorize without their NaN
         // handling and give the same: NaN never replaces a bound, and blends to NaN.
         for k in 0..8 {
@@ -1048,18 +1105,11 @@ fn blend_if_agreeing<const N: usize>(
     for k in 0..8 {
         agree &= high[k] - low[k] <= allowed[k];
     }
-    agree.then_some(Pixel {
+    agree.then_some(Blend {
         volume: [blend[0], blend[1], blend[2], blend[3]],
         visibility: blend[4],
-        depth: coordinate.reach(blend[5]),
+        coordinate: blend[5],
     })
-}
-
-/// Whether a ray ending at `reach` ends on the surface through its neighbours' ends,
-/// which at its pixel lies at `expected` ([`blend_if_agreeing`]): within
-/// [`EDGE_DEPTH_SPREAD`] of it.
-fn on_one_surface(expected: f32, reach: f32) -> bool {
-    (expected - reach).abs() <= EDGE_DEPTH_SPREAD as f32 * reach
 }
 
 #[cfg(test)]
@@ -1070,7 +1120,7 @@ mod tests {
         neighbours: [Pixel; N],
         tolerance: f32,
         max_distance: f32,
-    ) -> Option<Pixel> {
+    ) -> Option<Blend> {
         blend_if_agreeing(
             neighbours,
             [1.0 / N as f32; N],
@@ -1103,7 +1153,8 @@ mod tests {
         }
         // Midway between them in inverse distance, as on a plane seen by a pinhole.
         let between = 2.0 / (1.0 / 10.1 + 1.0 / 10.0);
-        assert!((mean.depth - between).abs() < 1e-5, "{}", mean.depth);
+        let depth = SurfaceCoordinate::InverseDistance.reach(mean.coordinate);
+        assert!((depth - between).abs() < 1e-5, "{depth}");
     }
 
     /// A surface receding from the camera (the ground towards the horizon) spreads its
@@ -1113,10 +1164,14 @@ mod tests {
     fn a_receding_surface_is_one_surface_and_a_step_is_not() {
         let (near, far) = (pixel(1.0, 0.5, 0.8, 10.0), pixel(1.0, 0.5, 0.8, 30.0));
         let pinhole = mean_if_agreeing([near, far], 0.01, 100.0).unwrap();
-        assert!((pinhole.depth - 15.0).abs() < 1e-4, "{}", pinhole.depth);
-        assert!(on_one_surface(pinhole.depth, 15.0));
+        let depth = SurfaceCoordinate::InverseDistance.reach(pinhole.coordinate);
+        assert!((depth - 15.0).abs() < 1e-4, "{depth}");
+        assert!(SurfaceCoordinate::InverseDistance.holds(pinhole.coordinate, 15.0));
         for step in [10.0, 30.0, 20.0] {
-            assert!(!on_one_surface(pinhole.depth, step), "{step}");
+            assert!(
+                !SurfaceCoordinate::InverseDistance.holds(pinhole.coordinate, step),
+                "{step}"
+            );
         }
         let parallel = blend_if_agreeing(
             [near, far],
@@ -1127,7 +1182,9 @@ mod tests {
             SurfaceCoordinate::Distance,
         )
         .unwrap();
-        assert_eq!(parallel.depth, 20.0);
+        assert_eq!(SurfaceCoordinate::Distance.reach(parallel.coordinate), 20.0);
+        assert!(SurfaceCoordinate::Distance.holds(parallel.coordinate, 20.0));
+        assert!(!SurfaceCoordinate::Distance.holds(parallel.coordinate, 15.0));
         // A ground plane seen by a pinhole: each row's distance is inverse in its height
         // below the horizon, so rows two apart lie 5–50% apart in depth; the light varies
         // gently across it. Only the finer grid is shaded (a quarter, rounded up at the
@@ -1201,9 +1258,12 @@ mod tests {
         let background = pixel(1.0, 0.5, 0.8, 100.0);
         let far_surface = pixel(1.0, 0.5, 0.8, 250.0);
         let mean = mean_if_agreeing([background, far_surface], 0.01, 100.0).unwrap();
-        assert_eq!(mean.depth, 100.0);
-        assert!(on_one_surface(mean.depth, 100.0));
-        assert!(!on_one_surface(mean.depth, 50.0));
+        assert_eq!(
+            SurfaceCoordinate::InverseDistance.reach(mean.coordinate),
+            100.0
+        );
+        assert!(SurfaceCoordinate::InverseDistance.holds(mean.coordinate, 100.0));
+        assert!(!SurfaceCoordinate::InverseDistance.holds(mean.coordinate, 50.0));
     }
 
     /// Shades a `width` × `height` image whose layers are `value(x, y)` and whose surface
@@ -1482,6 +1542,27 @@ mod tests {
             });
             let got: Vec<_> = sorted.slots.into_iter().zip(sorted.pixels).collect();
             assert_eq!(got, expected, "width {width}");
+        }
+    }
+
+    #[test]
+    fn a_pairings_steps_are_exact_fractions_and_its_span_widens_the_tolerance() {
+        for stride in 1..=MAX_STRIDE {
+            let pairing = Pairing::of(&Lattice {
+                step: [1, 2],
+                stride,
+                position: [1, 0],
+            });
+            for behind in 0..stride {
+                assert_eq!(
+                    behind as f32 * pairing.per_step,
+                    behind as f32 / stride as f32,
+                    "{behind} of {stride}"
+                );
+            }
+            assert_eq!(pairing.span, [2.0 * stride as f64, 4.0 * stride as f64]);
+            let length = 2.0 * stride as f64 * 5f64.sqrt();
+            assert_eq!(pairing.widening, (length / TOLERANCE_SPAN).max(1.0) as f32);
         }
     }
 
