@@ -74,6 +74,7 @@ impl<T: Copy + Default> Spare<T> {
 }
 
 /// The size of a transparent huge page on x86-64 and most arm64 kernels.
+#[cfg(target_os = "linux")]
 const HUGE_PAGE: usize = 2 << 20;
 
 /// Asks the kernel to back the whole huge pages within `buffer`'s allocation with
