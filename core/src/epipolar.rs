@@ -287,7 +287,7 @@ fn reciprocal_bounds(centre: f32, near: f32, far: f32) -> (f32, f32) {
 }
 
 // The last frame's rectified values, kept for the next (see `crate::spare`).
-static SPARE_VALUES: Spare<f32> = Spare::new();
+static SPARE_VALUES: Spare<f32> = Spare::on_huge_pages();
 
 /// Lets go of the kept rectified values ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {

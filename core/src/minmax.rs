@@ -29,7 +29,7 @@ pub struct MinMaxMipmap {
 }
 
 // The last frame's pyramids, kept for the next (see `crate::spare`).
-static SPARE_NODES: Spare<[f32; 2]> = Spare::new();
+static SPARE_NODES: Spare<[f32; 2]> = Spare::on_huge_pages();
 
 /// Lets go of the kept pyramids ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {

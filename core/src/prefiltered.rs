@@ -413,12 +413,12 @@ impl Tables {
 
 // The last frame's filtered basis and its plan's arrays, kept for the next (see
 // `crate::spare`): the plan's page faults took 15% of tree's preparation.
-static SPARE_F32_BASIS: Spare<f32> = Spare::new();
-static SPARE_SNORM16_BASIS: Spare<i16> = Spare::new();
+static SPARE_F32_BASIS: Spare<f32> = Spare::on_huge_pages();
+static SPARE_SNORM16_BASIS: Spare<i16> = Spare::on_huge_pages();
 static SPARE_ENTRIES: Spare<u32> = Spare::new();
 static SPARE_SAMPLE_WEIGHTS: Spare<f32> = Spare::new();
 static SPARE_SCALES: Spare<f32> = Spare::new();
-static SPARE_ROW_WEIGHTS: Spare<f32> = Spare::new();
+static SPARE_ROW_WEIGHTS: Spare<f32> = Spare::on_huge_pages();
 static SPARE_KEYED_RAYS: Spare<(u64, f64)> = Spare::new();
 
 /// Lets go of the kept filtered bases and plans ([`crate::release_kept_buffers`]).

@@ -1,7 +1,7 @@
 //! Large per-frame buffers kept from one frame for the next. Writing to freshly mapped
 //! memory faults on every page, and prefiltering's filtered basis (70–250 MiB at 1080p)
-//! spent a quarter of its preparation in those faults, frame after frame. Fresh buffers
-//! ask for transparent huge pages.
+//! spent a quarter of its preparation in those faults, frame after frame. Those read all
+//! over are kept on transparent huge pages.
 
 use std::sync::Mutex;
 
@@ -10,6 +10,8 @@ pub(crate) struct Spare<T> {
     kept: Mutex<Vec<Vec<T>>>,
     /// How many are kept at most.
     slots: usize,
+    /// Whether fresh buffers ask for transparent huge pages.
+    huge_pages: bool,
 }
 
 impl<T: Copy + Default> Spare<T> {
@@ -24,6 +26,22 @@ impl<T: Copy + Default> Spare<T> {
         Self {
             kept: Mutex::new(Vec::new()),
             slots,
+            huge_pages: false,
+        }
+    }
+
+    /// One buffer kept, on transparent huge pages where the kernel grants them: for what
+    /// rays read all over, a row or a block at a time (the filtered basis and its weights,
+    /// the rectified map and the tables over it), where with 4 KiB pages nearly every read
+    /// missed the TLB as well as the cache. Buffers read in order gain nothing, and
+    /// faulting huge pages in stalls a fresh process's first frame more often: with every
+    /// buffer on them, 6 of 16 first frames of `tree` took 400–650 ms against 2 of 16
+    /// without (most take 250–350 ms).
+    pub(crate) const fn on_huge_pages() -> Self {
+        Self {
+            kept: Mutex::new(Vec::new()),
+            slots: 1,
+            huge_pages: true,
         }
     }
 
@@ -44,7 +62,9 @@ impl<T: Copy + Default> Spare<T> {
         });
         let mut buffer = found.unwrap_or_else(|| {
             let mut fresh = Vec::with_capacity(len);
-            advise_huge_pages(&mut fresh);
+            if self.huge_pages {
+                advise_huge_pages(&mut fresh);
+            }
             fresh
         });
         buffer.truncate(len);
@@ -78,10 +98,7 @@ impl<T: Copy + Default> Spare<T> {
 const HUGE_PAGE: usize = 2 << 20;
 
 /// Asks the kernel to back the whole huge pages within `buffer`'s allocation with
-/// transparent huge pages, before anything touches them. Shading reads the filtered
-/// basis (40–110 MiB) a row at a time all over, and with 4 KiB pages nearly every row
-/// missed the TLB as well as the cache: with huge pages prefiltering's scattering at
-/// 1080p took 4–5 ms less on `tree` and `plane`, 2–3 ms on `torus` and `colonnade`.
+/// transparent huge pages, before anything touches them ([`Spare::on_huge_pages`]).
 fn advise_huge_pages<T>(buffer: &mut Vec<T>) {
     #[cfg(target_os = "linux")]
     {
@@ -192,7 +209,7 @@ mod tests {
             eprintln!("skipped: this kernel has no transparent huge pages");
             return;
         }
-        let spare = Spare::<u32>::new();
+        let spare = Spare::<u32>::on_huge_pages();
         let buffer = spare.take(3 * HUGE_PAGE / 4);
         let start = buffer.as_ptr() as usize;
         let inner = start.next_multiple_of(HUGE_PAGE);

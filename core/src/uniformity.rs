@@ -28,7 +28,7 @@ pub struct UniformityTable {
 }
 
 // The last frame's table, kept for the next (see `crate::spare`).
-static SPARE_RUNS: Spare<[f32; 2]> = Spare::new();
+static SPARE_RUNS: Spare<[f32; 2]> = Spare::on_huge_pages();
 
 /// Lets go of the kept tables ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
