@@ -10,6 +10,7 @@ use std::sync::Arc;
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
+use crepuscular::gpu::GpuError;
 use crepuscular::gpu::{self, Device, DeviceKind, DevicePolicy};
 use crepuscular::holes::{HoleNoise, HolesDesc};
 use crepuscular::morphology::{self, KernelShape, MorphologyDesc, MorphologyOp};
@@ -25,7 +26,7 @@ use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{self, Epipole, SilhouetteDesc};
 use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
 use crepuscular::upsample::{self, reduced_size, sample_pixel};
-use crepuscular::{Layers, RenderControl, Style};
+use crepuscular::{Backend, Error, Layers, RenderControl, Style};
 
 const MEAN_RELATIVE: f64 = 1e-3;
 
@@ -509,6 +510,45 @@ fn a_missing_driver_falls_back_to_the_cpu_with_one_message() {
     assert!(output.status.success(), "{stderr}");
     let messages = stderr.matches("rendering on the CPU instead").count();
     assert_eq!(messages, 1, "{stderr}");
+}
+
+/// A frame whose filtered basis is larger than the device's storage-buffer range (a
+/// 1080p frame at M = 64 in f32: about 200 MiB, against lavapipe's 128 MiB) is refused
+/// with an error that says so, and rendering it with `vulkan` asked for gives the CPU
+/// backend's layers. Devices whose range holds it skip.
+#[test]
+fn a_basis_past_the_storage_range_falls_back_to_the_cpu() {
+    let Some(device) = device("the storage-range fallback test") else {
+        return;
+    };
+    let mut scene = builtin_scene("tree").unwrap();
+    scene.render.method = Method::Prefiltered;
+    scene.render.bases = 64;
+    scene.render.basis_storage = BasisStorage::F32;
+    scene.render.backend = Backend::Vulkan;
+    let geometry = FlatGeometry::from_scene(&scene);
+    let frame = Frame::of_scene(&scene, &geometry);
+    let control = RenderControl::new();
+    match gpu::frame::render_timed(&device, &frame, &control) {
+        Ok(_) => {
+            eprintln!(
+                "skipping the storage-range fallback test: {} bytes of range hold the basis",
+                device.physical.max_storage_buffer_range
+            );
+            return;
+        }
+        Err(Error::Gpu(GpuError::Unsupported(reason))) => {
+            assert!(reason.contains("storage-buffer range"), "{reason}");
+        }
+        Err(other) => panic!("{other}"),
+    }
+    let fallen_back = crepuscular::render(&frame, &control).unwrap();
+    let (cpu, _) = render_timed_cpu(&frame, &control).unwrap();
+    assert!(
+        fallen_back.volume == cpu.volume
+            && fallen_back.visibility == cpu.visibility
+            && fallen_back.depth == cpu.depth
+    );
 }
 
 /// The frame's rectified map of a scene and the prefix-sum plan prefiltering builds on it.

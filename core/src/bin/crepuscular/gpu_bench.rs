@@ -6,10 +6,10 @@ use std::sync::Arc;
 
 use crepuscular::builtin::{builtin_scene, torus_tessellated};
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
-use crepuscular::gpu::{Device, DeviceKind};
+use crepuscular::gpu::{Device, DeviceKind, GpuError};
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{Method, Rectification, Scene};
-use crepuscular::{Backend, RenderControl, Result, StageTimes, Style};
+use crepuscular::{Backend, Error, RenderControl, Result, StageTimes, Style};
 
 use crate::bench::{median, peak_memory, scene_column};
 use crate::Overrides;
@@ -84,6 +84,7 @@ pub fn run(
         None => Some(Style::from_json(BENCH_STYLE)?),
     };
     let mut rows = Vec::new();
+    let mut skipped = Vec::new();
     for name in names {
         let mut base = builtin_scene(name)?;
         overrides.apply(&mut base)?;
@@ -114,7 +115,17 @@ pub fn run(
         for (look, scene) in looks {
             let geometry = FlatGeometry::from_scene(&scene);
             let frame = Frame::of_scene(&scene, &geometry);
-            render_timed(device, &frame, &RenderControl::new())?;
+            // A frame past this device's limits is reported and the others still run: the
+            // render itself would fall back to the CPU, which is not what is timed here.
+            match render_timed(device, &frame, &RenderControl::new()) {
+                Err(Error::Gpu(GpuError::Unsupported(reason))) => {
+                    let method = scene.render.method.name();
+                    eprintln!("{name} {method} {look}: not run on this device: {reason}");
+                    skipped.push(format!("{name} {method} {look}: {reason}"));
+                    continue;
+                }
+                other => other?,
+            };
             let mut gpu = Vec::new();
             let mut cpu_side = Vec::new();
             let mut wall = Vec::new();
@@ -177,6 +188,9 @@ pub fn run(
         }
     }
     print_table(device, &rows, overrides, runs);
+    for frame in &skipped {
+        println!("not run on this device: {frame}");
+    }
     raster_row(device, overrides, runs, compare_cpu)
 }
 
