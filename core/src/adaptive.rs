@@ -1742,8 +1742,6 @@ mod tests {
         assert!(shaded < finer, "{shaded} shaded, {finer} without the lines");
     }
 
-    /// `value` shaded adaptively on a 40 × 30 image at one depth, exact everywhere;
-    /// returns the pixels shaded.
     /// Neighbours far darker than the image's mean may spread by the tolerance of a share
     /// of the mean: a ripple there is interpolated, the same ripple relative to a bright
     /// region is shaded, and features in the dark (a shaft, a depth edge) still are.
@@ -1811,6 +1809,8 @@ mod tests {
         }
     }
 
+    /// `value` shaded adaptively on a 40 × 30 image at one depth, exact everywhere;
+    /// returns the pixels shaded.
     fn shaded_pixels(
         lines: Option<EpipolarLines>,
         value: impl Fn(usize, usize) -> Pixel + Sync,

@@ -23,11 +23,7 @@ impl<T: Copy + Default> Spare<T> {
     /// `slots` buffers kept: a downsampled frame needs its layers in two sizes at once
     /// (the reduced ones, then the upsampled ones).
     pub(crate) const fn with_slots(slots: usize) -> Self {
-        Self {
-            kept: Mutex::new(Vec::new()),
-            slots,
-            huge_pages: false,
-        }
+        Self::kept_in(slots, false)
     }
 
     /// One buffer kept, on transparent huge pages where the kernel grants them: for what
@@ -38,10 +34,14 @@ impl<T: Copy + Default> Spare<T> {
     /// buffer on them, 6 of 16 first frames of `tree` took 400–650 ms against 2 of 16
     /// without (most take 250–350 ms).
     pub(crate) const fn on_huge_pages() -> Self {
+        Self::kept_in(1, true)
+    }
+
+    const fn kept_in(slots: usize, huge_pages: bool) -> Self {
         Self {
             kept: Mutex::new(Vec::new()),
-            slots: 1,
-            huge_pages: true,
+            slots,
+            huge_pages,
         }
     }
 

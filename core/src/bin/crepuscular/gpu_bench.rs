@@ -119,9 +119,9 @@ pub fn run(
             // render itself would fall back to the CPU, which is not what is timed here.
             match render_timed(device, &frame, &RenderControl::new()) {
                 Err(Error::Gpu(GpuError::Unsupported(reason))) => {
-                    let method = scene.render.method.name();
-                    eprintln!("{name} {method} {look}: not run on this device: {reason}");
-                    skipped.push(format!("{name} {method} {look}: {reason}"));
+                    let frame = format!("{name} {} {look}: {reason}", scene.render.method.name());
+                    eprintln!("not run on this device: {frame}");
+                    skipped.push(frame);
                     continue;
                 }
                 other => other?,
