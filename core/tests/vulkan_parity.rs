@@ -579,10 +579,15 @@ fn prefix_plan(scene: &Scene) -> PrefixPlan {
     )
 }
 
-/// Prefiltering's basis computation and prefix sums: the GPU sums in the CPU's order
-/// without contraction, so snorm16 values may differ by at most one step (1/32767) where
-/// a sum lands on a rounding boundary, and f32 values by 1e-6 (relative to 1, the
-/// basis' range).
+/// Prefiltering's basis computation and prefix sums. The GPU sums each band in runs side
+/// by side, each run in the CPU's order without contraction, and adds the runs before it:
+/// the same sums in another order, so values may differ by rounding: a value is a weighted
+/// mean of basis values of at most 1 over up to a few thousand samples, and the two orders'
+/// rounding differs by about 1e-7 per value (mean relative error 2e-7 to 2e-6 on the
+/// built-in scenes, at most 1.1e-5 on colonnade, whose transmittance weights decay most
+/// along a band). So f32 values stay within 3e-5, and snorm16 values, rounded to steps of
+/// 1/32767, within one step, for the few percent that lie that close to a rounding
+/// boundary (1.3% on colonnade, 0.1–0.25% on the others).
 #[test]
 fn prefix_sums_match_the_cpu() {
     let Some(device) = device("the prefix-sum parity test") else {
@@ -596,45 +601,38 @@ fn prefix_sums_match_the_cpu() {
             scene.render.basis_storage = storage;
             scene.render.bases = bases;
             let plan = prefix_plan(&scene);
-            let cpu = CpuPrefixSums.prefix_sums(&plan).unwrap();
-            let gpu = gpu_sums.prefix_sums(&plan).unwrap();
-            let (differing, max) = match (&gpu, &cpu) {
-                (FilteredBasis::Snorm16(g), FilteredBasis::Snorm16(c)) => {
-                    assert_eq!(g.len(), c.len());
-                    let diffs = g.iter().zip(c).map(|(a, b)| (*a as i32 - *b as i32).abs());
-                    let (mut count, mut max) = (0, 0);
-                    for d in diffs {
-                        count += (d != 0) as usize;
-                        max = max.max(d);
-                    }
-                    (count, max as f64 / 32767.0)
+            let values = |basis: FilteredBasis| -> Vec<f32> {
+                match basis {
+                    FilteredBasis::Snorm16(v) => v.iter().map(|&x| x as f32 / 32767.0).collect(),
+                    FilteredBasis::F32(v) => v,
                 }
-                (FilteredBasis::F32(g), FilteredBasis::F32(c)) => {
-                    assert_eq!(g.len(), c.len());
-                    let count = g.iter().zip(c).filter(|(a, b)| a != b).count();
-                    let max = g
-                        .iter()
-                        .zip(c)
-                        .map(|(a, b)| (a - b).abs() as f64)
-                        .fold(0.0, f64::max);
-                    (count, max)
-                }
-                _ => panic!("storage differs"),
             };
-            let values = plan.total_rows * plan.stride;
+            let cpu = values(CpuPrefixSums.prefix_sums(&plan).unwrap());
+            let gpu = values(gpu_sums.prefix_sums(&plan).unwrap());
+            assert_eq!(gpu.len(), plan.total_rows * plan.stride);
+            let differing = gpu.iter().zip(&cpu).filter(|(g, c)| g != c).count();
+            let (mean_relative, max) = compare(&gpu, &cpu);
             eprintln!(
-                "prefix sums {name} {storage:?} M={bases}: {differing} of {values} values differ, \
-                 max abs error {max:.2e}"
+                "prefix sums {name} {storage:?} M={bases}: {differing} of {} values differ, \
+                 mean relative error {mean_relative:.2e}, max abs error {max:.2e}",
+                gpu.len()
             );
             let bound = match storage {
-                BasisStorage::Snorm16 => 1.0 / 32767.0 + 1e-12,
-                BasisStorage::F32 => 1e-6,
+                BasisStorage::Snorm16 => 1.0 / 32767.0 + 1e-7,
+                BasisStorage::F32 => 3e-5,
             };
-            assert!(max <= bound, "{name} {storage:?}: {max:.3e}");
             assert!(
-                differing * 1000 <= values,
-                "{name}: {differing} of {values} differ"
+                mean_relative <= 1e-3,
+                "{name} {storage:?}: {mean_relative:.3e}"
             );
+            assert!(max <= bound, "{name} {storage:?}: {max:.3e}");
+            if storage == BasisStorage::Snorm16 {
+                assert!(
+                    differing * 20 <= gpu.len(),
+                    "{name}: {differing} of {} differ",
+                    gpu.len()
+                );
+            }
         }
     }
 }

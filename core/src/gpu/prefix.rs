@@ -1,6 +1,7 @@
 //! Prefiltering's basis computation and per-band prefix sums on the GPU, from the plan the
-//! CPU builds over the rectified map ([`crate::prefiltered::PrefixPlan`]). The per-pixel
-//! evaluation then reads the filtered basis on the CPU.
+//! CPU builds over the rectified map ([`crate::prefiltered::PrefixPlan`]). Each band's rows
+//! are summed in runs side by side ([`runs_per_band`]), since a frame has few bands (about
+//! 900 of about 900 rows at 1080p) and one serial chain per band left most of a GPU idle.
 
 use std::sync::{Arc, Mutex};
 
@@ -17,9 +18,17 @@ use crate::prefiltered::{FilteredBasis, PrefixPlan, PrefixSums};
 use crate::scene::BasisStorage;
 
 pub const STAGE: &str = "prefiltered prefix sums";
-/// Invocations per band: one per pair of lanes, M ≤ 64.
-const LOCAL: u32 = 32;
-const PUSH_BYTES: u32 = 16;
+/// Invocations per band (the shader's workgroup): one per pair of lanes and run of rows.
+const LOCAL: u32 = 256;
+
+/// Runs of rows each band's sums are cut into for rows of `stride` values: as many as the
+/// workgroup holds one invocation per pair of lanes of each (8 at M = 64, 16 at M = 32);
+/// `None` for rows that do not come in pairs or exceed the workgroup.
+pub fn runs_per_band(stride: usize) -> Option<u32> {
+    let pairs = stride / 2;
+    (stride.is_multiple_of(2) && (1..=LOCAL as usize).contains(&pairs))
+        .then(|| LOCAL / pairs as u32)
+}
 
 /// Workgroups for `bands` bands, one each, folded into y past the device's x limit.
 pub fn band_groups(bands: u32, max_groups: [u32; 3]) -> GpuResult<[u32; 3]> {
@@ -42,12 +51,13 @@ pub fn basis_bytes(plan: &PrefixPlan) -> u64 {
     (plan.total_rows * plan.stride) as u64 * per_value
 }
 
-fn push_constants(plan: &PrefixPlan) -> Vec<u8> {
+fn push_constants(plan: &PrefixPlan, runs: u32) -> Vec<u8> {
     Std430::new()
         .u32(plan.stride as u32)
         .u32((plan.storage == BasisStorage::Snorm16) as u32)
         .u32(plan.bands.len() as u32)
         .u32(plan.samples_per_row as u32)
+        .u32(runs)
         .finish()
 }
 
@@ -104,12 +114,12 @@ pub fn resident(device: &Arc<Device>, plan: &PrefixPlan) -> GpuResult<(Buffer, O
                 device.physical.max_storage_buffer_range
             )));
         }
-        if !plan.stride.is_multiple_of(2) || plan.stride > 2 * LOCAL as usize {
+        let Some(runs) = runs_per_band(plan.stride) else {
             return Err(GpuError::Unsupported(format!(
                 "basis rows of {} values",
                 plan.stride
             )));
-        }
+        };
         let groups = band_groups(plan.bands.len() as u32, device.physical.max_workgroup_count)?;
         let bands: Vec<u32> = plan
             .bands
@@ -124,8 +134,8 @@ pub fn resident(device: &Arc<Device>, plan: &PrefixPlan) -> GpuResult<(Buffer, O
         let table = rec.upload(plan.table, "basis table")?;
         let basis = rec.storage(bytes, "filtered basis")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let desc = ComputePipelineDesc::new(Shader::Prefix, 6).push_constants(PUSH_BYTES);
-        let push = push_constants(plan);
+        let push = push_constants(plan, runs);
+        let desc = ComputePipelineDesc::new(Shader::Prefix, 6).push_constants(push.len() as u32);
         rec.timed(STAGE, |rec| {
             rec.dispatch(
                 &desc,
@@ -156,6 +166,22 @@ mod tests {
         assert_eq!(band_groups(70_000, [65_535; 3]).unwrap(), [65_535, 2, 1]);
         assert_eq!(band_groups(0, [65_535; 3]).unwrap(), [1, 1, 1]);
         assert!(band_groups(u32::MAX, [1024, 1024, 1]).is_err());
+    }
+
+    #[test]
+    fn runs_fill_the_workgroup_one_invocation_per_pair_of_lanes() {
+        assert_eq!(runs_per_band(64), Some(8));
+        assert_eq!(runs_per_band(32), Some(16));
+        assert_eq!(runs_per_band(24), Some(21));
+        assert_eq!(runs_per_band(8), Some(64));
+        for stride in (8..=64).step_by(8) {
+            let runs = runs_per_band(stride).unwrap();
+            assert!(runs as usize * stride / 2 <= LOCAL as usize);
+            assert!((runs as usize + 1) * stride / 2 > LOCAL as usize);
+        }
+        assert_eq!(runs_per_band(0), None);
+        assert_eq!(runs_per_band(33), None);
+        assert_eq!(runs_per_band(2 * LOCAL as usize + 2), None);
     }
 
     #[test]

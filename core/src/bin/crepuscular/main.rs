@@ -85,6 +85,9 @@ pub struct Overrides {
     /// (0 shades every pixel).
     #[arg(long)]
     adaptive_tolerance: Option<f32>,
+    /// Prefiltered method: Fourier bases M (even, 4 to 64).
+    #[arg(long)]
+    bases: Option<u32>,
     /// Prefiltered method: integrate exactly the stretch before each ray's end where the
     /// shadow map closes in on the ray (grazed ground, views near the light): auto (in box
     /// media), on (the flag alone) or off.
@@ -130,6 +133,9 @@ impl Overrides {
         }
         if let Some(tolerance) = self.adaptive_tolerance {
             scene.render.adaptive_tolerance = tolerance;
+        }
+        if let Some(bases) = self.bases {
+            scene.render.bases = bases;
         }
         if let Some(backend) = self.backend {
             scene.render.backend = backend;
