@@ -101,6 +101,8 @@ pub struct PhysicalDevice {
     /// The range viewport corners must lie in.
     pub viewport_bounds_range: [f32; 2],
     pub max_workgroup_count: [u32; 3],
+    /// The most invocations a one-dimensional workgroup may have (Vulkan guarantees 128).
+    pub max_workgroup_width: u32,
     pub max_storage_buffer_range: u32,
     /// Whether shaders may use double precision (silhouettes and hole creation place
     /// their samples in f64, as the CPU does).
@@ -156,6 +158,10 @@ impl PhysicalDevice {
                 max_viewport_dimensions: properties.limits.max_viewport_dimensions,
                 viewport_bounds_range: properties.limits.viewport_bounds_range,
                 max_workgroup_count: properties.limits.max_compute_work_group_count,
+                max_workgroup_width: properties
+                    .limits
+                    .max_compute_work_group_invocations
+                    .min(properties.limits.max_compute_work_group_size[0]),
                 max_storage_buffer_range: properties.limits.max_storage_buffer_range,
                 float64: features.shader_float64 == vk::TRUE,
             });

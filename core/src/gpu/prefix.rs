@@ -114,6 +114,12 @@ pub fn resident(device: &Arc<Device>, plan: &PrefixPlan) -> GpuResult<(Buffer, O
                 device.physical.max_storage_buffer_range
             )));
         }
+        if device.physical.max_workgroup_width < LOCAL {
+            return Err(GpuError::Unsupported(format!(
+                "workgroups of {} invocations (the prefix sums take {LOCAL})",
+                device.physical.max_workgroup_width
+            )));
+        }
         let Some(runs) = runs_per_band(plan.stride) else {
             return Err(GpuError::Unsupported(format!(
                 "basis rows of {} values",
