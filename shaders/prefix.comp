@@ -2,7 +2,7 @@
 // Prefiltering's basis computation and per-band prefix sums (core/src/prefiltered.rs,
 // basis_kernels.rs): per band, a running sum of weighted basis-table rows, a fixed number
 // of samples per output row, each output row scaled to a weighted mean and stored as f32
-// or 16-bit snorm. One workgroup per band. Its rows are cut into `chunks` runs, one
+// or 16-bit snorm. One workgroup per band. Its rows are cut into `runs_per_band` runs, one
 // invocation per run and pair of lanes: each sums its run, the runs before it give its
 // starting sum, and it sums its run again storing every row. A band is one serial chain
 // on the CPU; here the chain is a run long, so a few hundred bands of a thousand rows keep
@@ -15,7 +15,7 @@ layout(push_constant) uniform Push {
     uint snorm;      // 1: 16-bit snorm pairs packed per uint, 0: f32 bits
     uint band_count;
     uint samples_per_row;
-    uint chunks;     // runs per band: at most the workgroup's size over stride / 2
+    uint runs_per_band;  // at most the workgroup's size over stride / 2
 } pc;
 
 layout(std430, binding = 0) readonly buffer Bands { uvec2 bands[]; }; // (first row, rows)
@@ -78,16 +78,17 @@ void main() {
     uint pairs = pc.stride / 2u;
     uint pair = gl_LocalInvocationID.x % pairs;
     uint run = gl_LocalInvocationID.x / pairs;
-    bool summing = run < pc.chunks;
+    bool summing = run < pc.runs_per_band;
     uvec2 b = bands[band];
     uint first_row = b.x;
     uint rows = b.y - 1u;
     uint offset = first_row - band;
-    uint per_run = (rows + pc.chunks - 1u) / pc.chunks;
+    uint per_run = (rows + pc.runs_per_band - 1u) / pc.runs_per_band;
+    // Invocations past the last run get begin = end = rows.
     uint begin = min(run * per_run, rows);
     uint end = min(begin + per_run, rows);
     precise vec2 own = vec2(0.0);
-    for (uint i = begin; summing && i < end; ++i) {
+    for (uint i = begin; i < end; ++i) {
         own = add_row(own, offset + i, pair, pairs);
     }
     run_sums[gl_LocalInvocationID.x] = own;

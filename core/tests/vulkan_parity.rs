@@ -584,8 +584,8 @@ fn prefix_plan(scene: &Scene) -> PrefixPlan {
 /// the same sums in another order, so values may differ by rounding: a value is a weighted
 /// mean of basis values of at most 1 over up to a few thousand samples, and the two orders'
 /// rounding differs by about 1e-7 per value (mean relative error 2e-7 to 2e-6 on the
-/// built-in scenes, at most 1.1e-5 on colonnade, whose transmittance weights decay most
-/// along a band). So f32 values stay within 3e-5, and snorm16 values, rounded to steps of
+/// built-in scenes; the largest difference 1.1e-5, on colonnade, whose transmittance
+/// weights decay most along a band). So f32 values stay within 3e-5, and snorm16 values, rounded to steps of
 /// 1/32767, within one step, for the few percent that lie that close to a rounding
 /// boundary (1.3% on colonnade, 0.1–0.25% on the others).
 #[test]
