@@ -93,6 +93,10 @@ pub struct Overrides {
     /// media), on (the flag alone) or off.
     #[arg(long, num_args = 0..=1, default_missing_value = "on", value_name = "auto|on|off")]
     exact_ray_ends: Option<ExactRayEnds>,
+    /// The medium's extinction σ in 1/m, replacing the scene's (its albedo, phase and
+    /// extent stay).
+    #[arg(long)]
+    extinction: Option<f32>,
     /// A style preset (JSON) replacing the scene's style.
     #[arg(long)]
     style: Option<PathBuf>,
@@ -142,6 +146,9 @@ impl Overrides {
         }
         if let Some(setting) = self.exact_ray_ends {
             scene.render.exact_ray_ends = setting;
+        }
+        if let Some(extinction) = self.extinction {
+            scene.medium.extinction = extinction;
         }
         Ok(())
     }
