@@ -24,10 +24,12 @@ const float SHORT_RAY_TEXELS = 64.0;
 const float SHORT_STRETCH_TEXELS = 16.0;
 const float LOOKUP_DEPTH = 1.0;
 const float ALONG_THE_LIGHT_SIN = 0.15;
-// core/src/prefiltered.rs: EXACT_END_WIDTH, MAX_EXACT_END_SAMPLES, SAMPLES_PER_ROW.
+// core/src/prefiltered.rs: EXACT_END_WIDTH, MAX_EXACT_END_SAMPLES, SAMPLES_PER_ROW,
+// DARK_LOOKUP_VISIBILITY.
 const float EXACT_END_WIDTH = 0.35;
 const uint MAX_EXACT_END_SAMPLES = 64u;
 const float SAMPLES_PER_ROW = 2.0;
+const float DARK_LOOKUP_VISIBILITY = 0.02;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -406,12 +408,17 @@ uint look_up(vec4 located, float key, float x0, float x1, out float visibility) 
 }
 
 // Weighted average visibility between boundary positions x0 < x1: exact where the ray is
-// lit or shadowed all along, else looked up (Prefiltered::average).
+// lit or shadowed all along, else looked up, and marched where the lookup reads darker
+// than the series resolves (Prefiltered::average).
 uint average(vec4 located, float key, float x0, float x1, out float visibility) {
     if (uniform_visibility(located, x0, x1, visibility)) {
         return AVERAGE_VISIBILITY;
     }
-    return look_up(located, key, x0, x1, visibility);
+    uint outcome = look_up(located, key, x0, x1, visibility);
+    if (outcome == AVERAGE_VISIBILITY && visibility < DARK_LOOKUP_VISIBILITY) {
+        return AVERAGE_IMPRECISE;
+    }
+    return outcome;
 }
 
 float infinity() {

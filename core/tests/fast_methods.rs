@@ -524,7 +524,8 @@ fn rays_in_dense_fog_count_only_their_first_optical_depth() {
 /// optical depths out. Between two bands an octave apart, the blend of their averages,
 /// whose weights decay as e^(−σt) of rays up to √2 faster or slower, read 54% off the
 /// reference (+49% signed); with bands a third of an octave apart, 16% (+5%), the rest the
-/// series' (M = 64 halves it).
+/// series' residue on rays that the roof leaves nearly dark (M = 64 halved it). Lookups
+/// darker than `DARK_LOOKUP_VISIBILITY` are integrated exactly: 2.6% (+1.2%).
 #[test]
 fn dense_fog_from_under_a_closed_roof_keeps_its_light() {
     let mut scene = builtin_scene("plane").expect("built-in scene");
@@ -577,13 +578,77 @@ fn dense_fog_from_under_a_closed_roof_keeps_its_light() {
         bias * 100.0
     );
     assert!(mean > 0.0);
-    assert!(relative <= 0.25, "{:.2}%", relative * 100.0);
-    assert!(bias.abs() <= 0.1, "bias {:+.2}%", bias * 100.0);
+    assert!(relative <= 0.05, "{:.2}%", relative * 100.0);
+    assert!(bias.abs() <= 0.03, "bias {:+.2}%", bias * 100.0);
+}
+
+/// Denser fog (0.6 /m) under the slotted roof, looking level towards the sun through an
+/// 85 mm lens, the roof's slots narrowed by a silhouette dilation (fuzzed): the shafts let
+/// through 0.02–0.3% of the light, and the series' residue of about 0.5% of visibility
+/// made the frame 36% off the reference (min-max 5.8%). Such dark lookups are integrated
+/// exactly instead.
+#[test]
+fn nearly_dark_rays_in_dense_fog_are_integrated_exactly() {
+    let mut scene = builtin_scene("plane").expect("built-in scene");
+    scene.camera.width = 2 * WIDTH;
+    scene.camera.height = 2 * HEIGHT;
+    scene.camera.world_from_camera = Mat4::from_cols_array(&[
+        0.922_434_2,
+        0.386_154_3,
+        0.0,
+        0.0,
+        -0.005_140_479,
+        0.012_279_427,
+        0.999_911_4,
+        0.0,
+        0.386_120_1,
+        -0.922_352_5,
+        0.013_311_982,
+        0.0,
+        5.878_086,
+        -13.085_41,
+        1.421_141,
+        1.0,
+    ]);
+    scene.camera.projection = Projection::Perspective {
+        focal_length: 85.0,
+        sensor_width: 36.0,
+        sensor_height: 24.0,
+        sensor_fit: SensorFit::Auto,
+        shift_x: 0.0,
+        shift_y: 0.0,
+    };
+    scene.sun.direction = Vec3::new(0.093_502_84, -0.849_399_9, -0.519_400_6);
+    scene.medium.extinction = 0.6;
+    scene.medium.anisotropy = 0.208_648_26;
+    scene.style = Style {
+        silhouette: Some(Silhouette {
+            operation: SilhouetteOp::Dilate,
+            length: 0.3,
+            ..Silhouette::default()
+        }),
+        ..Style::default()
+    };
+    let reference = render_with(&scene, Method::Reference, 4096);
+    for (method, bound) in [(Method::MinMax, 0.1), (Method::Prefiltered, 0.05)] {
+        let fast = render_with(&scene, method, 4096);
+        assert_finite(&fast);
+        let (relative, mean) = error(&fast, &reference);
+        println!(
+            "nearly dark rays in dense fog: {method:?} error {:.2}% (mean radiance {mean:.4})",
+            relative * 100.0
+        );
+        assert!(mean > 0.0);
+        assert!(relative <= bound, "{method:?}: {:.2}%", relative * 100.0);
+    }
 }
 
 /// A sun below the horizon: its light travels upward, and the ground is the occluder of
 /// nearly every ray that ends on it, which a lookup reads about half lit there (fuzzed
 /// views read 14–947% off the reference). `auto` integrates those ends exactly, as `on`.
+/// On `plane`, whose frame is nearly black (mean radiance 0.00015), most lookups read
+/// darker than `DARK_LOOKUP_VISIBILITY` and are integrated exactly with or without exact
+/// ends (6.2% and 6.1% off, 13.4% and 13.9% before), so there the two need only agree.
 #[test]
 fn light_from_below_integrates_ray_ends_exactly() {
     for name in ["tree", "plane"] {
@@ -611,7 +676,12 @@ fn light_from_below_integrates_ray_ends_exactly() {
             without * 100.0
         );
         assert!(mean > 0.0);
-        assert!(relative < without, "{name}");
+        assert!(relative <= 0.1, "{name}: {:.2}%", relative * 100.0);
+        if name == "plane" {
+            assert!(relative <= without + 0.005, "{name}");
+        } else {
+            assert!(relative < without, "{name}");
+        }
     }
 }
 
