@@ -24,12 +24,10 @@ const float SHORT_RAY_TEXELS = 64.0;
 const float SHORT_STRETCH_TEXELS = 16.0;
 const float LOOKUP_DEPTH = 1.0;
 const float ALONG_THE_LIGHT_SIN = 0.15;
-// core/src/prefiltered.rs: EXACT_END_WIDTH, MAX_EXACT_END_SAMPLES, SAMPLES_PER_ROW,
-// DARK_LOOKUP_VISIBILITY.
+// core/src/prefiltered.rs: EXACT_END_WIDTH, MAX_EXACT_END_SAMPLES, SAMPLES_PER_ROW.
 const float EXACT_END_WIDTH = 0.35;
 const uint MAX_EXACT_END_SAMPLES = 64u;
 const float SAMPLES_PER_ROW = 2.0;
-const float DARK_LOOKUP_VISIBILITY = 0.02;
 
 layout(std430, binding = 6) readonly buffer PrefilteredParams {
     mat4 from_world;    // texel_from_world, or view_from_world for projective maps
@@ -53,6 +51,7 @@ layout(std430, binding = 6) readonly buffer PrefilteredParams {
     uint exact_ray_ends;
     uint frequencies;   // M/2
     float bands_per_octave;
+    float dark_lookup_limit;  // looked-up visibility below which a ray is marched
 } q;
 
 // Per band: its warp's KNOTS knots.
@@ -415,7 +414,7 @@ uint average(vec4 located, float key, float x0, float x1, out float visibility) 
         return AVERAGE_VISIBILITY;
     }
     uint outcome = look_up(located, key, x0, x1, visibility);
-    if (outcome == AVERAGE_VISIBILITY && visibility < DARK_LOOKUP_VISIBILITY) {
+    if (outcome == AVERAGE_VISIBILITY && visibility < q.dark_lookup_limit) {
         return AVERAGE_IMPRECISE;
     }
     return outcome;
@@ -663,6 +662,9 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
                                        sample_coordinate(located.y + located.z * last_end), whole);
     float scattering = 0.0;
     float unshadowed = 0.0;
+    // The looked-up pieces' light, and what of it the lookups let through.
+    float looked_up_light = 0.0;
+    float looked_up_seen = 0.0;
     for (uint k = 0u; k < pieces; ++k) {
         float t0 = a + (b - a) * float(k) / float(pieces);
         float t1 = a + (b - a) * float(k + 1u) / float(pieces);
@@ -683,7 +685,16 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         if (outcome == AVERAGE_OFF_THE_MAP) {
             v = 1.0;
         }
-        scattering += v * (has_end && k == last ? box_integrate(t0, until, a, sigma) : piece);
+        float light = has_end && k == last ? box_integrate(t0, until, a, sigma) : piece;
+        scattering += v * light;
+        looked_up_light += light;
+        looked_up_seen += v * light;
+    }
+    // A ray the lookups read nearly dark is marched instead (Prefiltered::average_pieces).
+    if (!uniform_ && looked_up_light > 0.0
+        && looked_up_seen < q.dark_lookup_limit * looked_up_light) {
+        ok = false;
+        return vec3(0.0);
     }
     if (has_end) {
         scattering += all_lit ? box_integrate(t_cut, b, a, sigma) : end_scattering;
