@@ -1209,7 +1209,8 @@ impl<'a> Prefiltered<'a> {
     /// where the whole is uniform ([`Prefiltered::uniform_visibility`]): the pieces of a ray
     /// in a box share their boundaries, so each boundary's rows are read and dotted once
     /// per band rather than twice. `None` where a piece is too imprecise
-    /// ([`CONDITION_LIMIT`]).
+    /// ([`CONDITION_LIMIT`]), or where the pieces, weighted by the light `lights` of each,
+    /// read darker than [`dark_lookup_limit`].
     fn average_pieces(
         &self,
         located: &RaySlice,
@@ -1620,30 +1621,29 @@ impl<'a> Prefiltered<'a> {
         let mut visibilities = [0.0; MAX_BOX_PIECES as usize];
         let visibilities = &mut visibilities[..looked_up as usize];
         // Each piece's unshadowed light, and the part of it that is looked up.
-        let mut lights = [(0.0, 0.0); MAX_BOX_PIECES as usize];
-        for (k, light) in lights[..pieces as usize].iter_mut().enumerate() {
-            let k = k as u32;
+        let mut piece_light = [0.0; MAX_BOX_PIECES as usize];
+        let mut looked_up_light = [0.0; MAX_BOX_PIECES as usize];
+        for k in 0..pieces {
             let piece = along.integrate(t_at(k), t_at(k + 1), a, sigma);
-            let looked_up_light = if end.is_some() && k == last {
+            piece_light[k as usize] = piece;
+            looked_up_light[k as usize] = if end.is_some() && k == last {
                 along.integrate(t_at(k), last_end, a, sigma)
             } else {
                 piece
             };
-            *light = (piece, looked_up_light);
         }
-        let looked_up_lights: [f64; MAX_BOX_PIECES as usize] = std::array::from_fn(|k| lights[k].1);
         self.average_pieces(
             located,
             key,
             &boundaries[..=looked_up as usize],
-            &looked_up_lights[..looked_up as usize],
+            &looked_up_light[..looked_up as usize],
             visibilities,
         )?;
         let (mut scattering, mut unshadowed) = (0.0, 0.0);
-        for (k, &(piece, looked_up_light)) in lights[..pieces as usize].iter().enumerate() {
-            unshadowed += piece;
+        for k in 0..pieces as usize {
+            unshadowed += piece_light[k];
             if let Some(visibility) = visibilities.get(k) {
-                scattering += visibility * looked_up_light;
+                scattering += visibility * looked_up_light[k];
             }
         }
         if let Some(end) = end {
