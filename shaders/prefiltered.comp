@@ -662,9 +662,9 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
                                        sample_coordinate(located.y + located.z * last_end), whole);
     float scattering = 0.0;
     float unshadowed = 0.0;
-    // The looked-up pieces' light, and what of it the lookups let through.
+    // The looked-up pieces' light; `scattering` is what of it they let through until the
+    // exact end is added.
     float looked_up_light = 0.0;
-    float looked_up_seen = 0.0;
     for (uint k = 0u; k < pieces; ++k) {
         float t0 = a + (b - a) * float(k) / float(pieces);
         float t1 = a + (b - a) * float(k + 1u) / float(pieces);
@@ -688,11 +688,10 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         float light = has_end && k == last ? box_integrate(t0, until, a, sigma) : piece;
         scattering += v * light;
         looked_up_light += light;
-        looked_up_seen += v * light;
     }
     // A ray the lookups read nearly dark is marched instead (Prefiltered::average_pieces).
     if (!uniform_ && looked_up_light > 0.0
-        && looked_up_seen < q.dark_lookup_limit * looked_up_light) {
+        && scattering < q.dark_lookup_limit * looked_up_light) {
         ok = false;
         return vec3(0.0);
     }

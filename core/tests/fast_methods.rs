@@ -519,6 +519,32 @@ fn rays_in_dense_fog_count_only_their_first_optical_depth() {
     }
 }
 
+/// `plane` seen from `world_from_camera` (column-major) at twice the tests' size, lit
+/// along `sun`, in open fog of `extinction`, its roof's slots changed by a silhouette
+/// operator of the given length: the fuzzed views from under the roof.
+fn plane_under_its_roof(
+    world_from_camera: [f32; 16],
+    sun: Vec3,
+    extinction: f32,
+    (operation, length): (SilhouetteOp, f32),
+) -> Scene {
+    let mut scene = builtin_scene("plane").expect("built-in scene");
+    scene.camera.width = 2 * WIDTH;
+    scene.camera.height = 2 * HEIGHT;
+    scene.camera.world_from_camera = Mat4::from_cols_array(&world_from_camera);
+    scene.sun.direction = sun;
+    scene.medium.extinction = extinction;
+    scene.style = Style {
+        silhouette: Some(Silhouette {
+            operation,
+            length,
+            ..Silhouette::default()
+        }),
+        ..Style::default()
+    };
+    scene
+}
+
 /// Dense fog seen from under a roof closed by a silhouette closing, looking out level
 /// with the ground (fuzzed): a ray's light comes from past the roof's shadow, a few
 /// optical depths out. Between two bands an octave apart, the blend of their averages,
@@ -528,38 +554,30 @@ fn rays_in_dense_fog_count_only_their_first_optical_depth() {
 /// darker than `DARK_LOOKUP_VISIBILITY` are integrated exactly: 2.6% (+1.2%).
 #[test]
 fn dense_fog_from_under_a_closed_roof_keeps_its_light() {
-    let mut scene = builtin_scene("plane").expect("built-in scene");
-    scene.camera.width = 2 * WIDTH;
-    scene.camera.height = 2 * HEIGHT;
-    scene.camera.world_from_camera = Mat4::from_cols_array(&[
-        0.484_350_17,
-        -0.874_874_2,
-        0.0,
-        0.0,
-        -0.035_138_45,
-        -0.019_453_44,
-        0.999_193_1,
-        0.0,
-        -0.874_168_3,
-        -0.483_959_35,
-        -0.040_164_01,
-        0.0,
-        -12.693_304,
-        -6.577_117_6,
-        0.320_010_2,
-        1.0,
-    ]);
-    scene.sun.direction = Vec3::new(-0.387_404_26, -0.790_223_1, -0.474_831_94);
-    scene.medium.extinction = 0.2;
+    let mut scene = plane_under_its_roof(
+        [
+            0.484_350_17,
+            -0.874_874_2,
+            0.0,
+            0.0,
+            -0.035_138_45,
+            -0.019_453_44,
+            0.999_193_1,
+            0.0,
+            -0.874_168_3,
+            -0.483_959_35,
+            -0.040_164_01,
+            0.0,
+            -12.693_304,
+            -6.577_117_6,
+            0.320_010_2,
+            1.0,
+        ],
+        Vec3::new(-0.387_404_26, -0.790_223_1, -0.474_831_94),
+        0.2,
+        (SilhouetteOp::Close, 0.4),
+    );
     scene.render.supersampling = 2;
-    scene.style = Style {
-        silhouette: Some(Silhouette {
-            operation: SilhouetteOp::Close,
-            length: 0.4,
-            ..Silhouette::default()
-        }),
-        ..Style::default()
-    };
     let reference = render_with(&scene, Method::Reference, 4096);
     let fast = render_with(&scene, Method::Prefiltered, 4096);
     assert_finite(&fast);
@@ -589,27 +607,29 @@ fn dense_fog_from_under_a_closed_roof_keeps_its_light() {
 /// exactly instead.
 #[test]
 fn nearly_dark_rays_in_dense_fog_are_integrated_exactly() {
-    let mut scene = builtin_scene("plane").expect("built-in scene");
-    scene.camera.width = 2 * WIDTH;
-    scene.camera.height = 2 * HEIGHT;
-    scene.camera.world_from_camera = Mat4::from_cols_array(&[
-        0.922_434_2,
-        0.386_154_3,
-        0.0,
-        0.0,
-        -0.005_140_479,
-        0.012_279_427,
-        0.999_911_4,
-        0.0,
-        0.386_120_1,
-        -0.922_352_5,
-        0.013_311_982,
-        0.0,
-        5.878_086,
-        -13.085_41,
-        1.421_141,
-        1.0,
-    ]);
+    let mut scene = plane_under_its_roof(
+        [
+            0.922_434_2,
+            0.386_154_3,
+            0.0,
+            0.0,
+            -0.005_140_479,
+            0.012_279_427,
+            0.999_911_4,
+            0.0,
+            0.386_120_1,
+            -0.922_352_5,
+            0.013_311_982,
+            0.0,
+            5.878_086,
+            -13.085_41,
+            1.421_141,
+            1.0,
+        ],
+        Vec3::new(0.093_502_84, -0.849_399_9, -0.519_400_6),
+        0.6,
+        (SilhouetteOp::Dilate, 0.3),
+    );
     scene.camera.projection = Projection::Perspective {
         focal_length: 85.0,
         sensor_width: 36.0,
@@ -618,17 +638,7 @@ fn nearly_dark_rays_in_dense_fog_are_integrated_exactly() {
         shift_x: 0.0,
         shift_y: 0.0,
     };
-    scene.sun.direction = Vec3::new(0.093_502_84, -0.849_399_9, -0.519_400_6);
-    scene.medium.extinction = 0.6;
     scene.medium.anisotropy = 0.208_648_26;
-    scene.style = Style {
-        silhouette: Some(Silhouette {
-            operation: SilhouetteOp::Dilate,
-            length: 0.3,
-            ..Silhouette::default()
-        }),
-        ..Style::default()
-    };
     let reference = render_with(&scene, Method::Reference, 4096);
     for (method, bound) in [(Method::MinMax, 0.1), (Method::Prefiltered, 0.05)] {
         let fast = render_with(&scene, method, 4096);
