@@ -572,6 +572,12 @@ impl<'a> Prefiltered<'a> {
         prefix: &dyn PrefixSums,
     ) -> Result<Self> {
         let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, slice_reaches);
+        Self::from_plan(plan, prefix)
+    }
+
+    /// The second half of [`Prefiltered::build_with`]: `plan`'s prefix sums by `prefix`,
+    /// checked, and the method that evaluates pixels from them.
+    pub fn from_plan(plan: PrefilteredPlan<'a>, prefix: &dyn PrefixSums) -> Result<Self> {
         let basis = prefix.prefix_sums(&plan.prefix)?;
         let expected = plan.prefix.total_rows * plan.prefix.stride;
         let got = match &basis {

@@ -3,7 +3,7 @@
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 
-use crate::adaptive::{shade_adaptively, EpipolarLines, SurfaceCoordinate};
+use crate::adaptive::{shade_adaptively, AdaptivePasses, EpipolarLines, SurfaceCoordinate};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
 use crate::epipolar::{
@@ -13,7 +13,9 @@ use crate::error::{Error, Result};
 use crate::layers::{Layers, Pixel};
 use crate::minmax::{MinMaxMethod, MinMaxMipmap};
 use crate::phase;
-use crate::prefiltered::{samples_read, CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefixSums};
+use crate::prefiltered::{
+    samples_read, CpuPrefixSums, Prefiltered, PrefilteredDesc, PrefilteredPlan, PrefixSums,
+};
 use crate::raster::{keep_camera_depth, keep_map_targets, rasterize_depth, RasterDesc, Rasterizer};
 use crate::reference::{Marcher, RaySample};
 use crate::scene::{
@@ -122,8 +124,13 @@ pub struct StageTimes {
     pub rectify: f64,
     /// The method's acceleration structure: min-max mipmap or filtered basis.
     pub prepare: f64,
+    /// Of `prepare`, prefiltering's plan on the CPU: each slice's sampled rays, bands and
+    /// sample weights; the rest is the prefix sums. 0 for the other methods.
+    pub planning: f64,
     /// Per-pixel evaluation, upsampling included.
     pub shading: f64,
+    /// Of `shading`, adaptive shading's passes (all 0 where every pixel is shaded).
+    pub passes: AdaptivePasses,
     /// Occluder manipulation of the scattering's shadow-map copy.
     pub occluders: f64,
     /// Transfer-function application, baking included.
@@ -188,6 +195,11 @@ pub(crate) struct Stopwatch(std::time::Instant);
 impl Stopwatch {
     pub(crate) fn start() -> Self {
         Self(std::time::Instant::now())
+    }
+
+    /// Seconds since the start or the last lap, without starting a new lap.
+    pub(crate) fn elapsed(&self) -> f64 {
+        self.0.elapsed().as_secs_f64()
     }
 
     /// Seconds since the start or the last lap.
@@ -283,7 +295,7 @@ pub(crate) fn scatter_timed(
     // Rectification is undefined for an orthographic camera looking straight along the
     // light; the reference handles that view as it does any other.
     let Some(map) = map else {
-        let (layers, shaded) = shade_pixels(
+        let layers = shade_pixels(
             &camera,
             &surfaces,
             frame.settings,
@@ -295,8 +307,8 @@ pub(crate) fn scatter_timed(
                     *out = reference(&query.ray, query.t_start, query.t_end);
                 }
             },
+            &mut times,
         )?;
-        (times.pixels, times.shaded_pixels) = shaded;
         times.shading = stopwatch.lap();
         return Ok((layers, times));
     };
@@ -333,7 +345,8 @@ pub(crate) fn scatter_timed(
             let reaches = reaches
                 .into_inner()
                 .unwrap_or_else(|| slice_reaches(&map, &camera, &surfaces.farthest, max_distance));
-            prefiltered = Prefiltered::build_with(
+            let planning = Stopwatch::start();
+            let plan = PrefilteredPlan::new(
                 &map,
                 &camera,
                 &ahead,
@@ -341,8 +354,9 @@ pub(crate) fn scatter_timed(
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
-                prefix,
-            )?;
+            );
+            times.planning = planning.elapsed();
+            prefiltered = Prefiltered::from_plan(plan, prefix)?;
             times.structure_bytes = prefiltered.memory_bytes();
             let method = &prefiltered;
             Box::new(move |queries, out| {
@@ -355,7 +369,7 @@ pub(crate) fn scatter_timed(
         }
     };
     times.prepare = stopwatch.lap();
-    let (layers, shaded) = shade_pixels(
+    let layers = shade_pixels(
         &camera,
         &surfaces,
         frame.settings,
@@ -373,8 +387,8 @@ pub(crate) fn scatter_timed(
                 };
             }
         },
+        &mut times,
     )?;
-    (times.pixels, times.shaded_pixels) = shaded;
     times.shading = stopwatch.lap();
     Ok((layers, times))
 }
@@ -599,8 +613,9 @@ pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
 /// every sample. With a `tolerance` above 0, pixels are shaded adaptively
 /// ([`shade_adaptively`]). Each pixel depends only on its own inputs (and adaptively, on
 /// the shaded pixels next to it), so the output is bit-identical for any thread count.
-/// Returns the layers, and how many pixels were evaluated (at the reduced size, if any)
-/// and how many of those shaded.
+/// Returns the layers, and records in `times` how many pixels were evaluated (at the
+/// reduced size, if any), how many of those were shaded, and adaptive shading's passes.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn shade_pixels(
     camera: &CameraModel,
     surfaces: &SurfaceDistances,
@@ -609,7 +624,8 @@ pub(crate) fn shade_pixels(
     tolerance: f32,
     control: &RenderControl,
     shade: impl Fn(&[RayQuery], &mut [PixelSample]) + Sync,
-) -> Result<(Layers, (usize, usize))> {
+    times: &mut StageTimes,
+) -> Result<Layers> {
     let stride = settings.downsample;
     let ss = surfaces.supersampling as usize;
     let sample_width = camera.width as usize * ss;
@@ -702,7 +718,7 @@ pub(crate) fn shade_pixels(
     };
     let width = reduced_size(camera.width, stride) as usize;
     let height = reduced_size(camera.height, stride) as usize;
-    let (layers, shaded) = if tolerance > 0.0 {
+    let (layers, shaded, passes) = if tolerance > 0.0 {
         shade_adaptively(
             width,
             height,
@@ -733,12 +749,12 @@ pub(crate) fn shade_pixels(
             }
             control.advance(band.rows as u64);
         });
-        (layers, width * height)
+        (layers, width * height, AdaptivePasses::default())
     };
     control.check()?;
-    let counts = (width * height, shaded);
+    (times.pixels, times.shaded_pixels, times.passes) = (width * height, shaded, passes);
     if stride == 1 {
-        return Ok((layers, counts));
+        return Ok(layers);
     }
     let mut upsampled = Layers::for_overwrite(camera.width, camera.height);
     upsampled
@@ -746,8 +762,7 @@ pub(crate) fn shade_pixels(
         .par_iter_mut()
         .zip(&surfaces.distances)
         .for_each(|(out, &d)| *out = layer_depth(d as f64, max_distance) as f32);
-    let layers = joint_bilateral_into(&layers, upsampled, stride);
-    Ok((layers, counts))
+    Ok(joint_bilateral_into(&layers, upsampled, stride))
 }
 
 impl<'a> Frame<'a> {
@@ -862,5 +877,43 @@ impl CameraDepth<'_> {
             ));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::builtin::builtin_scene;
+
+    /// What the bench splits a frame's stages into: prefiltering's plan within its
+    /// preparation and adaptive shading's passes within the shading, each taking some of
+    /// it; the min-max method plans nothing, and shading every pixel has no passes.
+    #[test]
+    fn stage_times_split_preparation_and_shading_where_they_apply() {
+        let mut scene = builtin_scene("torus").unwrap();
+        (scene.camera.width, scene.camera.height) = (320, 180);
+        let timed = |scene: &Scene| render_scene_timed(scene, &RenderControl::new()).unwrap().1;
+        scene.render.method = Method::Prefiltered;
+        let times = timed(&scene);
+        assert!(
+            times.planning > 0.0 && times.planning < times.prepare,
+            "{times:?}"
+        );
+        let passes = times.passes;
+        assert!(
+            passes.lattice > 0.0 && passes.finer_grid > 0.0 && passes.between > 0.0,
+            "{times:?}"
+        );
+        let total = passes.lattice + passes.finer_grid + passes.between;
+        assert!(total <= times.shading, "{times:?}");
+        scene.render.method = Method::MinMax;
+        let times = timed(&scene);
+        assert!(
+            times.planning == 0.0 && times.passes.lattice > 0.0,
+            "{times:?}"
+        );
+        scene.render.adaptive_tolerance = 0.0;
+        let times = timed(&scene);
+        assert_eq!(times.passes, AdaptivePasses::default());
     }
 }

@@ -5,10 +5,11 @@
 use std::sync::Arc;
 
 use clap::Args;
+use crepuscular::adaptive::AdaptivePasses;
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::gpu::Device;
 use crepuscular::scene::{Extent, Method, Scene};
-use crepuscular::{render_scene_timed, Backend, Error, RenderControl, Result};
+use crepuscular::{render_scene_timed, Backend, Error, RenderControl, Result, StageTimes};
 use glam::{Mat4, Vec3};
 
 use crate::{style_bench, Overrides};
@@ -304,13 +305,15 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 scattering_ms,
             };
             eprintln!(
-                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}, shading {:.1}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB; shaded {:.1}% of {} pixels)",
+                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}{}, shading {:.1}{}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB; shaded {:.1}% of {} pixels)",
                 row.label,
                 row.detail,
                 median(&row.scattering_ms),
                 stage.rectify * 1e3,
                 stage.prepare * 1e3,
+                preparation_split(&stage),
                 stage.shading * 1e3,
+                shading_split(&stage),
                 stage.shadow_map * 1e3,
                 stage.camera_depth * 1e3,
                 stage.rectified_bytes as f64 / (1 << 20) as f64,
@@ -333,6 +336,34 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         return Ok(());
     }
     stylization_table(&names, &overrides, runs)
+}
+
+/// Of a frame's preparation, prefiltering's plan and then its filtered basis (the prefix
+/// sums and the tables over them), where planned.
+fn preparation_split(stage: &StageTimes) -> String {
+    if stage.planning == 0.0 {
+        return String::new();
+    }
+    format!(
+        " [plan {:.1}, filtered basis {:.1}]",
+        stage.planning * 1e3,
+        (stage.prepare - stage.planning) * 1e3
+    )
+}
+
+/// Of a frame's shading, adaptive shading's passes, where it shaded adaptively; the rest
+/// of the shading (upsampling) is not counted in them.
+fn shading_split(stage: &StageTimes) -> String {
+    let passes = stage.passes;
+    if passes == AdaptivePasses::default() {
+        return String::new();
+    }
+    format!(
+        " [lattice {:.1}, finer grid {:.1}, between {:.1}]",
+        passes.lattice * 1e3,
+        passes.finer_grid * 1e3,
+        passes.between * 1e3
+    )
 }
 
 fn stylization_table(names: &[String], overrides: &Overrides, runs: usize) -> Result<()> {
