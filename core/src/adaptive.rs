@@ -893,9 +893,10 @@ pub fn shade_adaptively(
         };
         // Interpolated row by row, which streams through the finer grid and the
         // surfaces; the pixels that must be shaded are shaded afterwards tile by tile,
-        // for the locality of their rectified data. (Blending a row's pixels eight to an
-        // AVX2 register, bit for bit the same, made this pass 1–2 ms slower on torus and
-        // tree at 1080p: it is not bound by the blends' arithmetic.)
+        // for the locality of their rectified data. (Blending eight pixels to an AVX2
+        // register, bit for bit the same, from a planar copy of the finer grid made per
+        // band or per frame, made this pass 1–5 ms slower at 1080p: the loads, surface
+        // reads and writes around each blend cost more than its arithmetic.)
         let mut batch = Batch::default();
         for row in 0..rows {
             let y = band.first_row + row;
