@@ -125,7 +125,8 @@ pub struct StageTimes {
     /// The method's acceleration structure: min-max mipmap or filtered basis.
     pub prepare: f64,
     /// Of `prepare`, prefiltering's plan on the CPU: each slice's sampled rays, bands and
-    /// sample weights; the rest is the prefix sums. 0 for the other methods.
+    /// sample weights; the rest is its filtered basis (the prefix sums and the tables
+    /// over them). 0 for the other methods.
     pub planning: f64,
     /// Per-pixel evaluation, upsampling included.
     pub shading: f64,
