@@ -831,6 +831,8 @@ impl<'a> PrefilteredPlan<'a> {
             &mut scales,
             &mut weight,
         );
+        // Scenes are z-up: light travelling upward comes from below the horizon.
+        let light_from_below = light_travel.z > 0.0;
         let prefix = PrefixPlan {
             storage: desc.storage,
             stride: row,
@@ -863,13 +865,12 @@ impl<'a> PrefilteredPlan<'a> {
             light_travel,
             frequencies,
             bands_per_octave: bands_per_octave as f64,
-            // Scenes are z-up.
             exact_ray_ends: desc
                 .exact_ray_ends
-                .applies(box_medium.is_some(), light_travel.z > 0.0),
+                .applies(box_medium.is_some(), light_from_below),
             dark_lookup_limit: dark_lookup_limit(
                 box_medium.is_some(),
-                light_travel.z > 0.0,
+                light_from_below,
                 bands_per_octave,
             ),
             sample_reaches,
