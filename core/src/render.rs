@@ -720,20 +720,52 @@ pub(crate) fn shade_pixels(
     let width = reduced_size(camera.width, stride) as usize;
     let height = reduced_size(camera.height, stride) as usize;
     let (layers, shaded, passes) = if tolerance > 0.0 {
-        shade_adaptively(
-            width,
-            height,
-            tolerance,
-            settings.max_distance,
-            Some(EpipolarLines::of_view(camera, light_travel, stride)),
-            SurfaceCoordinate::of_camera(camera),
-            control,
-            |x, y| {
-                let (full_x, full_y) = full_pixel(x, y);
-                uniform(full_x, full_y)
-            },
-            shade_batch,
-        )
+        let lines = Some(EpipolarLines::of_view(camera, light_travel, stride));
+        let coordinate = SurfaceCoordinate::of_camera(camera);
+        if ss == 1 {
+            // One depth sample a pixel: its surface is one load, which the passes between
+            // shaded pixels make for every pixel they interpolate. Looked up through the
+            // downsampling and the supersampling, it was a fifth of the last pass.
+            let gathered: Vec<f32>;
+            let distances = if stride == 1 {
+                &surfaces.distances[..width * height]
+            } else {
+                gathered = (0..height)
+                    .flat_map(|y| (0..width).map(move |x| (x, y)))
+                    .map(|(x, y)| {
+                        let (full_x, full_y) = full_pixel(x, y);
+                        surface_at(full_x, full_y, 0, 0)
+                    })
+                    .collect();
+                &gathered
+            };
+            shade_adaptively(
+                width,
+                height,
+                tolerance,
+                settings.max_distance,
+                lines,
+                coordinate,
+                control,
+                |x, y| Some(distances[y * width + x] as f64),
+                shade_batch,
+            )
+        } else {
+            shade_adaptively(
+                width,
+                height,
+                tolerance,
+                settings.max_distance,
+                lines,
+                coordinate,
+                control,
+                |x, y| {
+                    let (full_x, full_y) = full_pixel(x, y);
+                    uniform(full_x, full_y)
+                },
+                shade_batch,
+            )
+        }
     } else {
         let mut layers = Layers::for_overwrite(width as u32, height as u32);
         layers.par_bands_mut(SHADING_TILE).for_each(|mut band| {
