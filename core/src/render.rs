@@ -663,8 +663,40 @@ pub(crate) fn shade_pixels(
                 .map(|(sx, sy)| surface_at(full_x, full_y, sx, sy)),
         )
     };
+    // Without supersampling, one ray a pixel: shaded straight into the pixels, as the
+    // averaging below gives them (its sums start at zero and divide by one).
+    let shade_one_ray_each = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
+        let queries: Vec<RayQuery> = pixels
+            .iter()
+            .map(|&(x, y)| {
+                let (full_x, full_y) = full_pixel(x, y);
+                let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
+                query(centre, surface_at(full_x, full_y, 0, 0) as f64)
+            })
+            .collect();
+        let mut samples = vec![PixelSample::default(); queries.len()];
+        shade(&queries, &mut samples);
+        for ((out, sample), &(x, y)) in out.iter_mut().zip(&samples).zip(pixels) {
+            let (full_x, full_y) = full_pixel(x, y);
+            let surface = surface_at(full_x, full_y, 0, 0) as f64;
+            let radiance = DVec3::ZERO + sample.radiance;
+            *out = Pixel {
+                volume: [
+                    radiance.x as f32,
+                    radiance.y as f32,
+                    radiance.z as f32,
+                    (0.0 + sample.alpha) as f32,
+                ],
+                visibility: (0.0 + sample.visibility) as f32,
+                depth: (0.0 + layer_depth(surface, max_distance)) as f32,
+            };
+        }
+    };
     // The pixels' rays, shaded together, then averaged per pixel.
     let shade_batch = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
+        if ss == 1 {
+            return shade_one_ray_each(pixels, out);
+        }
         let mut queries = Vec::with_capacity(pixels.len());
         // Per ray: its pixel's index in the batch and its depth for the depth layer.
         let mut owners = Vec::with_capacity(pixels.len());
