@@ -663,8 +663,9 @@ pub(crate) fn shade_pixels(
                 .map(|(sx, sy)| surface_at(full_x, full_y, sx, sy)),
         )
     };
-    // Without supersampling, one ray a pixel: shaded straight into the pixels, as the
-    // averaging below gives them (its sums start at zero and divide by one).
+    // Without supersampling, one ray a pixel: shaded straight into the pixels. The values
+    // are the averaging's below, bit for bit: its sums start at zero (so each value is
+    // added to zero here too, which turns −0 into +0 as there) and divide by one.
     let shade_one_ray_each = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
         let queries: Vec<RayQuery> = pixels
             .iter()
@@ -752,16 +753,13 @@ pub(crate) fn shade_pixels(
     let width = reduced_size(camera.width, stride) as usize;
     let height = reduced_size(camera.height, stride) as usize;
     let (layers, shaded, passes) = if tolerance > 0.0 {
-        let lines = Some(EpipolarLines::of_view(camera, light_travel, stride));
-        let coordinate = SurfaceCoordinate::of_camera(camera);
-        if ss == 1 {
-            // One depth sample a pixel: its surface is one load, which the passes between
-            // shaded pixels make for every pixel they interpolate. Looked up through the
-            // downsampling and the supersampling, it was a fifth of the last pass.
-            let gathered: Vec<f32>;
-            let distances = if stride == 1 {
-                &surfaces.distances[..width * height]
-            } else {
+        // One depth sample a pixel: its surface is one load, which the passes between
+        // shaded pixels make for every pixel they interpolate. Looked up through the
+        // downsampling and the supersampling, it was a fifth of the last pass.
+        let gathered: Vec<f32>;
+        let one_sample_each = match (ss, stride) {
+            (1, 1) => Some(&surfaces.distances[..width * height]),
+            (1, _) => {
                 gathered = (0..height)
                     .flat_map(|y| (0..width).map(move |x| (x, y)))
                     .map(|(x, y)| {
@@ -769,35 +767,27 @@ pub(crate) fn shade_pixels(
                         surface_at(full_x, full_y, 0, 0)
                     })
                     .collect();
-                &gathered
-            };
-            shade_adaptively(
-                width,
-                height,
-                tolerance,
-                settings.max_distance,
-                lines,
-                coordinate,
-                control,
-                |x, y| Some(distances[y * width + x] as f64),
-                shade_batch,
-            )
-        } else {
-            shade_adaptively(
-                width,
-                height,
-                tolerance,
-                settings.max_distance,
-                lines,
-                coordinate,
-                control,
-                |x, y| {
+                Some(gathered.as_slice())
+            }
+            _ => None,
+        };
+        shade_adaptively(
+            width,
+            height,
+            tolerance,
+            settings.max_distance,
+            Some(EpipolarLines::of_view(camera, light_travel, stride)),
+            SurfaceCoordinate::of_camera(camera),
+            control,
+            |x, y| match one_sample_each {
+                Some(distances) => Some(distances[y * width + x] as f64),
+                None => {
                     let (full_x, full_y) = full_pixel(x, y);
                     uniform(full_x, full_y)
-                },
-                shade_batch,
-            )
-        }
+                }
+            },
+            shade_batch,
+        )
     } else {
         let mut layers = Layers::for_overwrite(width as u32, height as u32);
         layers.par_bands_mut(SHADING_TILE).for_each(|mut band| {
