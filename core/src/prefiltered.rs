@@ -167,6 +167,20 @@ struct OuterKeys {
     slopes: [f64; 2],
 }
 
+impl OuterKeys {
+    /// The warp `z` of `key`, by its end segments, kept apart from the other outer keys
+    /// in the margins ([`Warp::spanning`]); the same within the knots.
+    #[cold]
+    fn in_margins(&self, key: f64, z: f64) -> f64 {
+        let low = lesser((key - self.keys[0]) * self.slopes[0], Warp::HALF_MARGIN);
+        let high = greater(
+            1.0 - (self.keys[1] - key) * self.slopes[1],
+            1.0 - Warp::HALF_MARGIN,
+        );
+        lesser(high, greater(low, z))
+    }
+}
+
 /// `a` where it is below `b`, else `b` (NaN in `a` gives `b`, as `_mm256_min_pd` does).
 #[inline(always)]
 fn lesser(a: f64, b: f64) -> f64 {
@@ -248,16 +262,10 @@ impl Warp {
         let k = &self.knots;
         let index = self.inner_knots_at_or_below(key);
         let z = RAY_MARGIN + Self::SEGMENT * index as f64 + (key - k[index]) * self.slopes[index];
+        // Keys inside the knots (nearly every ray's) warp as without outer keys.
         let z = match &self.outer {
-            None => z,
-            Some(outer) => {
-                let low = lesser((key - outer.keys[0]) * outer.slopes[0], Self::HALF_MARGIN);
-                let high = greater(
-                    1.0 - (outer.keys[1] - key) * outer.slopes[1],
-                    1.0 - Self::HALF_MARGIN,
-                );
-                lesser(high, greater(low, z))
-            }
+            Some(outer) if !(k[0] <= key && key <= k[KNOTS - 1]) => outer.in_margins(key, z),
+            _ => z,
         };
         z.clamp(0.0, 1.0)
     }
