@@ -223,9 +223,9 @@ impl Warp {
     /// that meet the texels beyond at one end of the series, which reads half lit: with
     /// 4,096 slices at 384×216 a dense-fog view was still 8% off the reference once the
     /// border's rays reached every slice ([`border_rays`]), where rays of one speed had
-    /// been sampled along a part of their slices only (1.5% with this). A side that the knots span
-    /// holds as many keys again beyond them in the same way. Unchanged where its end
-    /// segments already keep both keys inside (0, 1).
+    /// been sampled along a part of their slices only (1.5% with this). A side that the
+    /// knots span holds as many keys again beyond them in the same way. Unchanged where its
+    /// end segments already keep both keys inside (0, 1).
     fn spanning(self, lowest: f64, highest: f64) -> Self {
         let [first, last] = [self.knots[0], self.knots[KNOTS - 1]];
         if self.warp(lowest) > 0.0 && self.warp(highest) < 1.0 {
@@ -2411,9 +2411,10 @@ fn slice_frames(
 type BorderRay = (f64, [u32; 2], SampledRay);
 
 /// The rays of the image's border, given in order around it (`None` along the light), as
-/// [`slice_frames`] samples them: each ray belongs to the two slices it lies between, and where the border jumps
-/// more than a slice between it and a ray beside it, to every slice whose neighbourhood
-/// (the slice either side, which rays between them read too) the border crosses there. A
+/// [`slice_frames`] samples them: each ray belongs to the two slices it lies between, and
+/// where the border jumps more than a slice between it and a ray beside it, to every slice
+/// whose neighbourhood (the slice either side, which rays between them read too) the
+/// border crosses there. A
 /// slice's extreme keys lie where its line crosses the border, and slices thinner than
 /// the border's spacing fell between its points: their warps held none of the keys near
 /// their ends, which warped to one end with the texels beyond them and read half lit (a

@@ -269,22 +269,33 @@ fn assert_methods_within(
     bounds: [(Method, f64); 2],
 ) {
     for (method, bound) in bounds {
-        let fast = render_with(scene, method, 4096);
-        assert_finite(&fast);
-        let (relative, mean) = error(&fast, reference);
-        println!(
-            "{label} {:<11} error {:.3}% (mean radiance {mean:.4})",
-            method.name(),
-            relative * 100.0
-        );
-        assert!(mean > 0.0);
-        assert!(
-            relative <= bound,
-            "{label}, {}: {:.3}%",
-            method.name(),
-            relative * 100.0
-        );
+        assert_method_within(label, scene, reference, method, bound);
     }
+}
+
+/// `method` within `bound` of `reference`, with finite layers.
+fn assert_method_within(
+    label: &str,
+    scene: &Scene,
+    reference: &Layers,
+    method: Method,
+    bound: f64,
+) {
+    let fast = render_with(scene, method, 4096);
+    assert_finite(&fast);
+    let (relative, mean) = error(&fast, reference);
+    println!(
+        "{label} {:<11} error {:.3}% (mean radiance {mean:.4})",
+        method.name(),
+        relative * 100.0
+    );
+    assert!(mean > 0.0);
+    assert!(
+        relative <= bound,
+        "{label}, {}: {:.3}%",
+        method.name(),
+        relative * 100.0
+    );
 }
 
 /// Views whose rays cross only a few shadow-map texels, which rectified lookups resolve
@@ -483,15 +494,13 @@ fn rays_too_far_along_a_slice_are_integrated_exactly() {
             .expect("an orthographic view");
         scene.medium.extinction = extinction;
         let reference = render_with(&scene, Method::Reference, 4096);
-        let fast = render_with(&scene, Method::Prefiltered, 4096);
-        assert_finite(&fast);
-        let (relative, mean) = error(&fast, &reference);
-        println!(
-            "{name:>10} orthographic at σ = {extinction}: prefiltered error {:.3}% (mean radiance {mean:.4})",
-            relative * 100.0
+        assert_method_within(
+            &format!("{name:>10} orthographic at σ = {extinction}:"),
+            &scene,
+            &reference,
+            Method::Prefiltered,
+            0.02,
         );
-        assert!(mean > 0.0);
-        assert!(relative <= 0.02, "{name}: {:.3}%", relative * 100.0);
     }
 }
 
@@ -569,18 +578,12 @@ fn slices_thinner_than_the_sampling_keep_their_keys() {
     let reference = render_with(&scene, Method::Reference, 4096);
     for slices in [0, 2048, 4096, 8192] {
         scene.render.epipolar_slices = slices;
-        let fast = render_with(&scene, Method::Prefiltered, 4096);
-        assert_finite(&fast);
-        let (relative, mean) = error(&fast, &reference);
-        println!(
-            "plane in dense fog, {slices} slices: prefiltered error {:.3}% (mean radiance {mean:.4})",
-            relative * 100.0
-        );
-        assert!(mean > 0.0);
-        assert!(
-            relative <= 0.02,
-            "{slices} slices: {:.3}%",
-            relative * 100.0
+        assert_method_within(
+            &format!("plane in dense fog, {slices} slices:"),
+            &scene,
+            &reference,
+            Method::Prefiltered,
+            0.02,
         );
     }
 }
