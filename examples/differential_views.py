@@ -13,6 +13,10 @@ and a case is flagged when one leaves more than `BLACK_LEAK` there.
 
     .venv/bin/python examples/differential_views.py --seed 2 --cases 60 --out /tmp/cases
 
+`--geometry random` replaces each case's meshes with a scene of its own drawn from the same
+seed: a ground, walls with windows, pillars, a slatted roof and scattered leaves, at
+random sizes and places around the subject, as scenes the built-in ones do not resemble.
+
 `--exact-ray-ends on` (or `off`) renders the same cases with prefiltering's exact ray ends
 everywhere (or nowhere); by default they are on in box media only. `--box-only` puts
 every case's medium in a box, to compare those two on box media alone. `--below-horizon`
@@ -57,6 +61,118 @@ STYLES: list[dict | None] = [
 ]
 
 
+UP = np.array([0.0, 0.0, 1.0])
+IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+
+
+# A box's faces as corner indices (bit 0: +x, bit 1: +y, bit 2: +z), each in order around it.
+BOX_FACES = ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))
+
+
+class MeshDraft:
+    """Positions and triangles of one mesh, built box by box and quad by quad."""
+
+    def __init__(self) -> None:
+        self.positions: list[list[float]] = []
+        self.triangles: list[list[int]] = []
+
+    def quad(self, corners: np.ndarray) -> None:
+        """Two triangles over four corners given in order around the quad."""
+        base = len(self.positions)
+        self.positions.extend(corners.tolist())
+        self.triangles.extend([[base, base + 1, base + 2], [base, base + 2, base + 3]])
+
+    def box(self, centre: np.ndarray, half: np.ndarray, yaw: float) -> None:
+        """A closed box of half extents `half`, turned by `yaw` about the vertical."""
+        c, s = math.cos(yaw), math.sin(yaw)
+        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        signs = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)])
+        corners = centre + (signs * half) @ rotation.T
+        base = len(self.positions)
+        self.positions.extend(corners.tolist())
+        for face in BOX_FACES:
+            a, b, c_, d = (base + k for k in face)
+            self.triangles.extend([[a, b, c_], [a, c_, d]])
+
+    def mesh(self, name: str, object_id: int) -> dict:
+        return {
+            "name": name,
+            "object_id": object_id,
+            "world_from_object": list(IDENTITY),
+            "positions": self.positions,
+            "triangles": self.triangles,
+        }
+
+
+def random_geometry(rng: random.Random, around: np.ndarray, ground: bool = True) -> list[dict]:
+    """Meshes unlike the built-in scenes', around the point `around` that the camera aims
+    near: a ground (sometimes none, never without `ground`), a wall with a grid of windows,
+    pillars, a slatted roof, leaves."""
+    meshes = []
+    around = np.array([around[0], around[1], 0.0])
+    # Drawn either way, so that the rest is the same with or without `ground`.
+    has_ground, extent = rng.random() < 0.8, rng.uniform(15, 60)
+    if has_ground and ground:
+        plane = MeshDraft()
+        corners = [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]
+        plane.quad(around + extent * np.array(corners, float))
+        meshes.append(plane.mesh("ground", 1))
+    wall = MeshDraft()
+    yaw = rng.uniform(0, math.pi)
+    along = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    across = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+    offset = around + rng.uniform(-4, 4) * across
+    length, height = rng.uniform(4, 14), rng.uniform(2, 7)
+    columns, rows = rng.randint(2, 9), rng.randint(1, 4)
+    opening = rng.uniform(0.2, 0.7)
+    thickness = rng.uniform(0.05, 0.4)
+    cell_w, cell_h = length / columns, height / rows
+    # The solid parts: a frame around each window, as boxes between the openings.
+    post, rail = cell_w * (1 - opening) / 2, max(cell_h * (1 - opening) / 2, 0.02)
+    for k in range(columns + 1):
+        centre = offset + along * (k * cell_w - length / 2) + UP * height / 2
+        wall.box(centre, np.array([post, thickness, height / 2]), yaw)
+    for r in range(rows + 1):
+        wall.box(offset + UP * r * cell_h, np.array([length / 2, thickness, rail]), yaw)
+    meshes.append(wall.mesh("wall", 2))
+    pillars = MeshDraft()
+    for _ in range(rng.randint(0, 8)):
+        centre = around + np.array([rng.uniform(-8, 8), rng.uniform(-8, 8), 0.0])
+        radius, tall = rng.uniform(0.05, 0.6), rng.uniform(1, 9)
+        half = np.array([radius, radius, tall / 2])
+        pillars.box(centre + UP * tall / 2, half, rng.uniform(0, math.pi))
+    if pillars.triangles:
+        meshes.append(pillars.mesh("pillars", 3))
+    if rng.random() < 0.6:
+        roof = MeshDraft()
+        slats, spacing = rng.randint(4, 30), rng.uniform(0.1, 1.0)
+        width = spacing * rng.uniform(0.2, 0.8)
+        z = rng.uniform(2.5, 8)
+        span = rng.uniform(3, 12)
+        roof_yaw = rng.uniform(0, math.pi)
+        centre = around + np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), z])
+        direction = np.array([math.cos(roof_yaw), math.sin(roof_yaw), 0.0])
+        for k in range(slats):
+            shift = (k - (slats - 1) / 2) * spacing
+            roof.box(centre + direction * shift, np.array([width / 2, span / 2, 0.03]), roof_yaw)
+        meshes.append(roof.mesh("roof", 4))
+    if rng.random() < 0.5:
+        leaves = MeshDraft()
+        crown = around + np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(2, 6)])
+        spread, size = rng.uniform(0.8, 3.0), rng.uniform(0.05, 0.4)
+        for _ in range(rng.randint(50, 600)):
+            centre = crown + np.array([rng.gauss(0, spread) for _ in range(3)])
+            normal = np.array([rng.gauss(0, 1) for _ in range(3)])
+            normal /= np.linalg.norm(normal)
+            tangent = np.cross(normal, UP if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0])
+            tangent /= np.linalg.norm(tangent)
+            bitangent = np.cross(normal, tangent)
+            corners = [-tangent - bitangent, tangent - bitangent, tangent + bitangent]
+            leaves.quad(centre + size * np.array([*corners, bitangent - tangent]))
+        meshes.append(leaves.mesh("leaves", 5))
+    return meshes
+
+
 def look_at(eye: np.ndarray, target: np.ndarray) -> list[float]:
     """A column-major world-from-camera matrix looking from `eye` at `target`."""
     forward = target - eye
@@ -84,6 +200,7 @@ def random_case(
     height: int,
     box_only: bool = False,
     below_horizon: bool = False,
+    geometry: random.Random | None = None,
 ) -> tuple[str, dict]:
     name = rng.choice(list(crepuscular.builtin_scene_names()))
     scene = crepuscular.builtin_scene(name)
@@ -105,6 +222,13 @@ def random_case(
         target = eye - 5 * towards_sun + jitter
     else:
         target = np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(0, 3)])
+    if geometry is not None:
+        # Drawn from a generator of their own, so that the views are the same cases' views
+        # with the built-in meshes.
+        # Light from below the horizon would reach nothing above a ground but the film
+        # within the shadow bias of it.
+        scene["meshes"] = random_geometry(geometry, target, ground=not below_horizon)
+        name = "random"
     camera = scene["camera"]
     camera["world_from_camera"] = look_at(eye, target)
     camera["width"], camera["height"] = width, height
@@ -192,6 +316,12 @@ def main() -> int:
         help="turn every case's sun below the horizon, its light travelling upward",
     )
     parser.add_argument(
+        "--geometry",
+        choices=("builtin", "random"),
+        default="builtin",
+        help="each case's meshes: a built-in scene's, or drawn at random (see above)",
+    )
+    parser.add_argument(
         "--slices",
         type=int,
         default=0,
@@ -199,11 +329,19 @@ def main() -> int:
     )
     args = parser.parse_args()
     rng = random.Random(args.seed)
+    geometry = random.Random(f"{args.seed} geometry") if args.geometry == "random" else None
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
     flagged = 0
     for case in range(args.cases):
-        name, scene = random_case(rng, args.width, args.height, args.box_only, args.below_horizon)
+        name, scene = random_case(
+            rng,
+            args.width,
+            args.height,
+            args.box_only,
+            args.below_horizon,
+            geometry,
+        )
         scene["render"]["exact_ray_ends"] = args.exact_ray_ends
         scene["render"]["epipolar_slices"] = args.slices
         volumes = {}
