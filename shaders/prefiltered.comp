@@ -52,6 +52,7 @@ layout(std430, binding = 6) readonly buffer PrefilteredParams {
     uint frequencies;   // M/2
     float bands_per_octave;
     float dark_lookup_limit;  // looked-up visibility below which a ray is marched
+    float key_scale;    // what turns a pinhole camera's K into a slope free of units
 } q;
 
 // Per band: its warp's KNOTS knots.
@@ -123,7 +124,8 @@ float order_key(float value) {
     if (isinf(value)) {
         return -sign(value);
     }
-    return -value / (1.0 + abs(value));
+    float slope = value * q.key_scale;
+    return -slope / (1.0 + abs(slope));
 }
 
 float sample_coordinate(float s) {
@@ -435,7 +437,7 @@ float value_of_key(float key) {
     if (key >= 1.0) {
         return -infinity();
     }
-    return -key / (1.0 - abs(key));
+    return -key / (1.0 - abs(key)) / q.key_scale;
 }
 
 // The key that `band`'s warp takes to `z` (Warp::unwarp).

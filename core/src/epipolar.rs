@@ -254,6 +254,8 @@ pub struct MapGeometry {
     pub camera_depth: f64,
     /// texel_from_world (radial, parallel) or view_from_world (projective).
     pub from_world: glam::DMat4,
+    /// What a pinhole camera's K is scaled by before its key is bounded.
+    pub key_scale: f64,
 }
 
 /// The rectified shadow map: `slices` rows of `samples` values of K. Sample i of every
@@ -266,9 +268,26 @@ pub struct EpipolarMap {
     pub values: Vec<f32>,
     layout: Layout,
     texel_from_world: glam::DMat4,
+    /// What turns a pinhole camera's K into a slope free of units before
+    /// [`EpipolarMap::order_key`] bounds it ([`key_scale`]).
+    key_scale: f64,
     /// Per sample index, what turns K at a sample's centre into K at its ends (see
     /// [`EpipolarMap::sample_bounds`]); shared by all slices.
     bound_factors: Vec<[f32; 2]>,
+}
+
+/// The factor [`EpipolarMap::order_key`] scales K by for `layout`, of a shadow map whose
+/// texels are `texel_size` scene units wide. A radial map's K is light depth over texels
+/// along the slice, in scene units per texel: over the texel's size it is the slope of the
+/// view ray against the light, the same in metres as in centimetres, so that keys and the
+/// warps built from them do not depend on the scene's unit (they did: the same scene at
+/// 100× its size rendered 0.01–0.26% apart). A projective map's K is Z/X, already free of
+/// units, and a parallel map's keys are K itself, whose linear warps any unit leaves alike.
+fn key_scale(layout: &Layout, texel_size: f64) -> f64 {
+    match layout {
+        Layout::Radial { .. } => 1.0 / texel_size,
+        Layout::Parallel { .. } | Layout::Projective { .. } => 1.0,
+    }
 }
 
 /// Rays whose projection into the map is shorter than this (texels per scene unit) run
@@ -433,6 +452,7 @@ impl EpipolarMap {
             samples,
             spacing,
             values: SPARE_VALUES.take(slices as usize * samples as usize),
+            key_scale: key_scale(&layout, shadow.texel_size),
             layout,
             texel_from_world,
             bound_factors: Vec::new(),
@@ -529,6 +549,7 @@ impl EpipolarMap {
             samples,
             spacing,
             values,
+            key_scale: key_scale(&layout, shadow.texel_size),
             layout,
             texel_from_world: shadow.texel_from_world,
             bound_factors: Vec::new(),
@@ -782,14 +803,16 @@ impl EpipolarMap {
 
     /// A monotone key with: a ray is lit at a sample when key(threshold) ≥ key(K). For a
     /// pinhole camera it is bounded to [−1, 1] (like the angle between view ray and light,
-    /// without the arctangent), so that ±∞ map to finite keys.
+    /// without the arctangent: K is first made a slope free of units, `key_scale`), so
+    /// that ±∞ map to finite keys.
     #[inline]
     pub fn order_key(&self, value: f64) -> f64 {
         if self.layout.is_reciprocal() {
             if value.is_infinite() {
                 -value.signum()
             } else {
-                -value / (1.0 + value.abs())
+                let slope = value * self.key_scale;
+                -slope / (1.0 + slope.abs())
             }
         } else {
             -value
@@ -807,7 +830,7 @@ impl EpipolarMap {
         } else if key >= 1.0 {
             f64::NEG_INFINITY
         } else {
-            -key / (1.0 - key.abs())
+            -key / (1.0 - key.abs()) / self.key_scale
         }
     }
 
@@ -938,6 +961,7 @@ impl EpipolarMap {
             epipole: DVec2::ZERO,
             camera_depth: 0.0,
             from_world: self.texel_from_world,
+            key_scale: self.key_scale,
         };
         match self.layout {
             Layout::Radial {

@@ -82,6 +82,7 @@ pub fn prefiltered_params(
         .u32(tables.frequencies as u32)
         .f32(tables.bands_per_octave as f32)
         .f32(tables.dark_lookup_limit as f32)
+        .f32(g.key_scale as f32)
         .finish())
 }
 
