@@ -4,7 +4,10 @@
 //! and from Blender in metres differ in just this way; any length compared with a fixed
 //! constant (an epsilon, a bias, a step) would break it.
 
+use crepuscular::holes::HolesDesc;
 use crepuscular::scene::{Extent, Method, Projection, Rectification, Scene, SensorFit};
+use crepuscular::silhouette::SilhouetteOp;
+use crepuscular::style::{HoleFilling, Silhouette};
 use crepuscular::{builtin_scene, render_scene, Layers, RenderControl, BUILTIN_SCENES};
 use glam::{Mat4, Vec3};
 
@@ -35,6 +38,19 @@ fn scaled(scene: &Scene, factor: f32) -> Scene {
     }
     scene.render.max_distance *= factor;
     scene.render.shadow_bias = scene.render.shadow_bias.map(|bias| bias * factor);
+    // The occluder operators' sizes are in scene units too. (So is a transfer function's
+    // depth range; these scenes have none.)
+    let style = &mut scene.style;
+    if let Some(closing) = &mut style.closing {
+        closing.radius *= factor;
+    }
+    if let Some(silhouette) = &mut style.silhouette {
+        silhouette.length *= factor;
+    }
+    if let Some(holes) = &mut style.holes {
+        holes.frequency /= factor;
+        holes.pivot = holes.pivot.map(|coordinate| coordinate * factor);
+    }
     scene
 }
 
@@ -124,4 +140,52 @@ fn box_media_other_layouts_and_set_biases_render_the_same_in_any_unit() {
     let mut projective = small("plane");
     projective.render.rectification = Rectification::Projective;
     assert_unit_free("plane rectified projectively", &projective);
+}
+
+/// That `styled` renders more than 0.5% away from its scene without the style (a style that
+/// did nothing would not move it at all), so that comparing it across units tests the
+/// operators' sizes.
+fn assert_styled(label: &str, styled: &Scene) {
+    let plain = Scene {
+        style: Default::default(),
+        ..styled.clone()
+    };
+    let change = relative_difference(
+        &render(&plain, Method::Reference).volume,
+        &render(styled, Method::Reference).volume,
+        1.0,
+    );
+    eprintln!(
+        "{label}: the style changes the frame by {:.2}%",
+        100.0 * change
+    );
+    assert!(
+        change > 0.005,
+        "{label}: the style changes the frame by {change:.2e}"
+    );
+}
+
+#[test]
+fn occluder_operators_sized_in_scene_units_render_the_same_in_any_unit() {
+    let mut closed = small("tree");
+    closed.style.closing = Some(HoleFilling {
+        radius: 0.8,
+        ..HoleFilling::default()
+    });
+    closed.style.silhouette = Some(Silhouette {
+        operation: SilhouetteOp::Close,
+        length: 1.5,
+        length_texels: None,
+    });
+    assert_styled("tree, closed and extruded", &closed);
+    assert_unit_free("tree, closed and extruded", &closed);
+    let mut holed = small("colonnade");
+    holed.style.holes = Some(HolesDesc {
+        frequency: 0.05,
+        pivot: [1.0, -2.0, 0.5],
+        objects: vec![2, 3],
+        ..HolesDesc::default()
+    });
+    assert_styled("colonnade with holes", &holed);
+    assert_unit_free("colonnade with holes", &holed);
 }
