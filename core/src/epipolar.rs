@@ -1259,6 +1259,7 @@ mod tests {
             positions,
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             object_ids: vec![2, 2],
+            origin: glam::DVec3::ZERO,
         };
         let mut scene_camera = Camera::pinhole_looking_at(
             Vec3::new(-10.0, -1.0, 2.0),

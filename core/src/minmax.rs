@@ -338,6 +338,7 @@ mod tests {
             object_ids: vec![2; mesh.triangles.len()],
             positions: mesh.positions,
             triangles: mesh.triangles,
+            origin: glam::DVec3::ZERO,
         };
         let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view());
         let map = EpipolarMap::rectify(

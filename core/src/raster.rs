@@ -561,10 +561,11 @@ fn setup_triangles(
     pixel_from_world: &DMat4,
     desc: &RasterDesc,
 ) -> Vec<ScreenTriangle> {
+    let pixel_from_local = geometry.pixel_from_local(pixel_from_world);
     let clip_positions: Vec<DVec4> = geometry
         .positions
         .par_iter()
-        .map(|p| *pixel_from_world * DVec4::new(p[0] as f64, p[1] as f64, p[2] as f64, 1.0))
+        .map(|p| pixel_from_local * DVec4::new(p[0] as f64, p[1] as f64, p[2] as f64, 1.0))
         .collect();
     let planes = clip_planes(desc);
     geometry
@@ -854,6 +855,7 @@ mod tests {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
+            origin: glam::DVec3::ZERO,
         };
         let desc = RasterDesc::orthographic(256, 256);
         let screen = setup_triangles(&geometry, &identity_projection(), &desc);
@@ -879,6 +881,7 @@ mod tests {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
+            origin: glam::DVec3::ZERO,
         };
         let target = rasterize(
             &geometry,
@@ -914,6 +917,7 @@ mod tests {
             positions,
             triangles,
             object_ids: ids,
+            origin: glam::DVec3::ZERO,
         };
         let desc = RasterDesc::orthographic(157, 101);
         (
@@ -980,6 +984,7 @@ mod tests {
                 positions: &positions,
                 triangles: &triangles,
                 object_ids: &ids,
+                origin: glam::DVec3::ZERO,
             },
             &identity_projection(),
             &desc,
@@ -992,6 +997,7 @@ mod tests {
                     positions: &positions,
                     triangles: std::slice::from_ref(triangle),
                     object_ids: std::slice::from_ref(id),
+                    origin: glam::DVec3::ZERO,
                 },
                 &identity_projection(),
                 &desc,
@@ -1084,6 +1090,7 @@ mod tests {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
+            origin: glam::DVec3::ZERO,
         };
         let desc = RasterDesc::orthographic(128, 64);
         let screen = setup_triangles(&geometry, &identity_projection(), &desc);
@@ -1108,6 +1115,7 @@ mod tests {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
+            origin: glam::DVec3::ZERO,
         };
         let target = rasterize(
             &geometry,
@@ -1140,6 +1148,7 @@ mod tests {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
+            origin: glam::DVec3::ZERO,
         };
         let target = rasterize(&geometry, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0));
         for y in 33..64 {

@@ -112,6 +112,7 @@ fn render_arrays<'py>(
             positions: rows("positions", &positions)?,
             triangles: rows("triangles", &triangles)?,
             object_ids: values("object_ids", &object_ids)?,
+            origin: glam::DVec3::ZERO,
         };
         let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref())?;
         Ok((camera, sun, medium, settings, style, geometry, kind, depth))

@@ -183,7 +183,7 @@ pub fn clip_from_world(
 
 /// The smallest and largest depth of the geometry's vertices.
 pub fn depth_bounds(geometry: &Geometry, pixel_from_world: &DMat4) -> (f64, f64) {
-    let row = pixel_from_world.row(2);
+    let row = geometry.pixel_from_local(pixel_from_world).row(2);
     geometry
         .positions
         .par_iter()
@@ -344,7 +344,9 @@ impl GpuRasterizer {
         let corners = rec.upload(geometry.triangles, "triangle corners")?;
         let object_ids = rec.upload(geometry.object_ids, "object ids")?;
         rec.barrier(Access::TransferWrite, Access::VertexRead);
-        let clip = clip_from_world(pixel_from_world, width, height, guard, &encoding).as_mat4();
+        // The vertex shader's matrix takes the positions as stored, relative to the origin.
+        let pixel_from_local = geometry.pixel_from_local(pixel_from_world);
+        let clip = clip_from_world(&pixel_from_local, width, height, guard, &encoding).as_mat4();
         let push = Std430::new().mat4(clip.to_cols_array()).finish();
         let clear = [
             vk::ClearValue {
@@ -594,6 +596,7 @@ mod tests {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
+            origin: glam::DVec3::ZERO,
         };
         let doubled = DMat4::from_scale(DVec3::new(1.0, 1.0, 2.0));
         assert_eq!(depth_bounds(&geometry, &doubled), (-6.0, 5.0));
