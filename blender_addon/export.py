@@ -56,6 +56,7 @@ class GeometryCache:
 
 @dataclass
 class Geometry:
+    #: Relative to `origin`.
     positions: np.ndarray
     triangles: np.ndarray
     object_ids: np.ndarray
@@ -63,6 +64,8 @@ class Geometry:
     hole_ids: list[int]
     #: Object id -> original object name, for messages and tests.
     names: dict[int, str]
+    #: The world point the positions are relative to (float64).
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass
@@ -163,14 +166,18 @@ def export_geometry(
     *,
     cache: GeometryCache | None = None,
     exclude: set[str] | frozenset[str] = frozenset(),
+    origin: np.ndarray | None = None,
 ) -> Geometry:
-    """World-space triangles of everything that casts shafts in `depsgraph`.
+    """Triangles of everything that casts shafts in `depsgraph`, relative to the world point
+    `origin` (default the world's origin): the camera's position keeps float32 positions
+    precise however far the scene lies from the world's origin.
 
     An instance casts unless it or its instancer is set to Off; set to Auto, it follows
     Blender's Shadow ray visibility of both. With a viewport depsgraph, objects hidden in
     renders are left out too. `exclude` holds original object names (the fog box).
     """
     render_mode = depsgraph.mode == "RENDER"
+    offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
     names: dict[str, int] = {}
     holes: set[int] = set()
     # Decisions per (object, instancer) and meshes per evaluated mesh, so that thousands
@@ -217,7 +224,7 @@ def export_geometry(
         _check_memory(base + count * vertices, triangle_total, _name_of(names, object_id))
         stack = np.array(matrices, dtype=np.float64).reshape(count, 4, 4)
         world = np.einsum("kij,nj->kni", stack[:, :3, :3], arrays.positions.astype(np.float64))
-        world += stack[:, None, :3, 3]
+        world += stack[:, None, :3, 3] - offset
         offsets = base + vertices * np.arange(count, dtype=np.uint32)
         positions.append(world.reshape(-1, 3).astype(np.float32))
         triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
@@ -230,6 +237,7 @@ def export_geometry(
             np.zeros(0, np.uint32),
             [],
             {},
+            offset,
         )
     return Geometry(
         np.ascontiguousarray(np.concatenate(positions)),
@@ -237,6 +245,7 @@ def export_geometry(
         np.ascontiguousarray(np.concatenate(ids)),
         sorted(holes),
         {v: k for k, v in names.items()},
+        offset,
     )
 
 
@@ -520,7 +529,8 @@ def frame_inputs(
     notes += medium_notes
     fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None
     exclude = {fog.name_full} if fog is not None else set()
-    geometry = export_geometry(depsgraph, cache=cache, exclude=exclude)
+    eye = np.asarray(camera["world_from_camera"][12:15], dtype=np.float64)
+    geometry = export_geometry(depsgraph, cache=cache, exclude=exclude, origin=eye)
     settings = evaluated.data.crepuscular
     fps = scene.render.fps / scene.render.fps_base
     style = style_from_light(
@@ -538,6 +548,7 @@ def frame_inputs(
         "medium": medium,
         "settings": settings_dict(settings, preview=preview),
         "style": style,
+        "origin": geometry.origin,
     }
     return FrameInputs(kwargs, sun.name, notes, geometry)
 

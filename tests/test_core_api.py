@@ -11,7 +11,7 @@ import json
 import math
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -277,6 +277,42 @@ def test_nan_position_is_named(scene_arrays: dict[str, Any]) -> None:
     scene_arrays["positions"][5, 1] = np.nan
     with raises_invalid("positions[5]", "not finite"):
         render_arrays(**scene_arrays)
+
+
+def test_positions_relative_to_a_far_origin_render_as_near_the_world_origin(
+    scene: dict[str, Any], to_arrays: Callable[[dict[str, Any]], dict[str, Any]]
+) -> None:
+    # 100 km away float32 world positions lie 8 mm apart; relative to an origin at the
+    # camera they keep their precision (as world positions, this occluder's depths moved by
+    # 2.3e-3). The offset keeps the camera's float32 translation exact.
+    occluder = scene["meshes"][1]
+    occluder["positions"] = [
+        [1.03717 * x, y + 0.01139, 1.03717 * z] for x, y, z in occluder["positions"]
+    ]
+    offset = np.array([1e5, -7e4, 32.0])
+    near = render(scene)
+    far = copy.deepcopy(scene)
+    far["camera"]["world_from_camera"][12:15] = (
+        np.asarray(scene["camera"]["world_from_camera"][12:15]) + offset
+    ).tolist()
+    arrays = to_arrays(scene)
+    origin = np.asarray(far["camera"]["world_from_camera"][12:15], dtype=np.float64)
+    world = arrays["positions"].astype(np.float64) + offset
+    arrays["positions"] = (world - origin).astype(np.float32)
+    arrays["camera"] = far["camera"]
+    layers = render_arrays(**arrays, origin=origin)
+    scale = np.abs(near.volume).mean()
+    assert np.abs(layers.volume - near.volume).mean() <= 1e-5 * scale
+    assert np.allclose(layers.depth, near.depth, rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("origin", "reason"),
+    [((0.0, np.nan, 0.0), "must be finite"), ((1.0, 2.0), "must have shape (3,), got (2,)")],
+)
+def test_origin_is_checked(scene_arrays: dict[str, Any], origin: Any, reason: str) -> None:
+    with raises_invalid("origin", reason):
+        render_arrays(**scene_arrays, origin=origin)
 
 
 def test_triangles_wrong_shape(scene_arrays: dict[str, Any]) -> None:

@@ -91,6 +91,29 @@ def test_inconsistent_topology_names_the_mesh() -> None:
         triangulate([3], [0, 1, 9], point_count=4, where="/World/bad")
 
 
+def test_a_stage_far_from_its_origin_renders_as_near_it(tmp_path: Path) -> None:
+    # Georeferenced stages place their scene 100 km and more from the origin, where float32
+    # world positions lie 8 mm apart: the reader hands them over relative to the camera.
+    # The occluder's corners are not on any float32 grid there; the camera's are.
+    scene = build_scene(**SMALL)
+    occluder = scene["meshes"][1]
+    occluder["positions"] = [
+        [1.03717 * x, y + 0.01139, 1.03717 * z] for x, y, z in occluder["positions"]
+    ]
+    near = author_stage(str(tmp_path / "near.usda"), scene)
+    far = author_stage(str(tmp_path / "far.usda"), scene)
+    UsdGeom.Xformable(far.GetPrimAtPath("/World")).AddTranslateOp().Set(Gf.Vec3d(1e5, -7e4, 32))
+    frames = [
+        StageReader(stage, "/World/Camera", "/World/Sun", width=64).read(Usd.TimeCode.Default())
+        for stage in (near, far)
+    ]
+    assert np.abs(frames[1].geometry.positions).max() < 20
+    np.testing.assert_allclose(
+        frames[1].geometry.origin - frames[0].geometry.origin, [1e5, -7e4, 32]
+    )
+    _layers_close(*(crepuscular.render_arrays(**frame.render_kwargs()) for frame in frames), 1e-5)
+
+
 def test_usd_face_holes_and_orientation_are_read(tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     stage = author_stage(str(tmp_path / "s.usda"), scene)
@@ -489,10 +512,11 @@ def test_xform_resets_nested_transforms_and_animated_points(tmp_path: Path) -> N
     for time, x in ((1, 2.0), (2, 6.0), (1, 2.0)):
         geometry = reader.read(Usd.TimeCode(time)).geometry
         reset_id = geometry.ids_by_path[Sdf.Path("/World/Parent/Reset")]
-        corners = geometry.positions[geometry.triangles[geometry.object_ids == reset_id][0]]
+        world = geometry.positions + geometry.origin
+        corners = world[geometry.triangles[geometry.object_ids == reset_id][0]]
         np.testing.assert_allclose(corners, [[0, 5, 0], [x, 5, 0], [0, 7, 0]], atol=1e-6)
         kept_id = geometry.ids_by_path[Sdf.Path("/World/Parent/Kept")]
-        corners = geometry.positions[geometry.triangles[geometry.object_ids == kept_id][0]]
+        corners = world[geometry.triangles[geometry.object_ids == kept_id][0]]
         np.testing.assert_allclose(corners, [[100, 1, 0], [100, 2, 0], [99, 1, 0]], atol=1e-5)
 
 

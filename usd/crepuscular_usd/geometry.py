@@ -85,7 +85,8 @@ class _LocalMesh:
 
 @dataclass
 class SceneGeometry:
-    """World-space triangles in the renderer's space, with one object id per triangle."""
+    """Triangles in the renderer's space, relative to `origin`, with one object id per
+    triangle."""
 
     positions: npt.NDArray[np.float32]
     triangles: npt.NDArray[np.uint32]
@@ -97,6 +98,8 @@ class SceneGeometry:
     #: "TypeName" -> number of prims skipped because this step does not render them.
     unsupported: Counter[str] = field(default_factory=Counter)
     invalid: list[str] = field(default_factory=list)
+    #: The point `positions` are relative to, in the renderer's space (float64).
+    origin: F64 = field(default_factory=lambda: np.zeros(3))
 
     def ids_under(self, roots: Iterable[Sdf.Path]) -> list[int]:
         """Object ids of every owner at or below one of `roots`."""
@@ -168,8 +171,10 @@ class GeometryCollector:
 
     # --- traversal ------------------------------------------------------------------
 
-    def collect(self, time: Usd.TimeCode) -> SceneGeometry:
-        """Every visible render-purpose mesh at `time`, in the renderer's space."""
+    def collect(self, time: Usd.TimeCode, origin: F64 | None = None) -> SceneGeometry:
+        """Every visible render-purpose mesh at `time`, in the renderer's space, relative to
+        `origin` (default the origin): subtracted in float64, a point near the camera keeps
+        float32 positions precise however far the stage lies from its origin."""
         xforms = UsdGeom.XformCache(time)
         chunks: list[tuple[Sdf.Path, F64, npt.NDArray[np.uint32]]] = []
         instanced: dict[Sdf.Path, set[Sdf.Path]] = {}
@@ -208,7 +213,8 @@ class GeometryCollector:
                 )
                 continue
             self._count_unsupported(prim, unsupported)
-        return _assemble(chunks, instanced, unsupported, invalid)
+        offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+        return _assemble(chunks, instanced, unsupported, invalid, offset)
 
     @staticmethod
     def _renderable(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
@@ -336,6 +342,7 @@ def _assemble(
     instanced: dict[Sdf.Path, set[Sdf.Path]],
     unsupported: Counter[str],
     invalid: list[str],
+    origin: F64,
 ) -> SceneGeometry:
     ids_by_path: dict[Sdf.Path, int] = {}
     positions: list[F64] = []
@@ -352,7 +359,7 @@ def _assemble(
         raise MeshError(f"the stage has {base} vertices, more than 32-bit indices address")
     return SceneGeometry(
         positions=(
-            np.concatenate(positions).astype(np.float32)
+            (np.concatenate(positions) - origin).astype(np.float32)
             if positions
             else np.zeros((0, 3), dtype=np.float32)
         ),
@@ -366,4 +373,5 @@ def _assemble(
         instanced_paths=instanced,
         unsupported=unsupported,
         invalid=invalid,
+        origin=origin,
     )

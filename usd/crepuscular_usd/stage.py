@@ -93,6 +93,7 @@ class Frame:
             "positions": self.geometry.positions,
             "triangles": self.geometry.triangles,
             "object_ids": self.geometry.object_ids,
+            "origin": self.geometry.origin,
             "camera": self.camera,
             "sun": self.sun,
             "medium": self.medium,
@@ -189,7 +190,8 @@ class StageReader:
             skip = [extent_path] if extent_path is not None else []
             collector = GeometryCollector(self.stage, self.core_from_stage, skip=skip)
             self._collectors[extent_path] = collector
-        geometry = collector.collect(time)
+        camera = self.camera(time)
+        geometry = collector.collect(time, np.asarray(camera["world_from_camera"][12:15]))
         medium = dict(light.medium)
         medium["extent"] = self._extent(light, time)
         style: dict[str, Any] = {"version": crepuscular.STYLE_VERSION, "time": self.seconds(time)}
@@ -201,7 +203,7 @@ class StageReader:
         return Frame(
             time=time,
             geometry=geometry,
-            camera=self.camera(time),
+            camera=camera,
             sun=self.sun(time, intensity_scale=light.sun["intensity_scale"]),
             medium=medium,
             settings=light.render,

@@ -78,11 +78,12 @@ fn render_json<'py>(
 /// objects (the `camera`, `sun`, `medium` and `render` members of a scene description).
 ///
 /// `positions` (N, 3) float32, `triangles` (M, 3) uint32 and `object_ids` (M,) uint32 must
-/// be C-contiguous and aligned; they are read in place, never copied.
+/// be C-contiguous and aligned; they are read in place, never copied. `origin` is the world
+/// point the positions are relative to (the world's origin when `None`).
 #[pyfunction]
 #[pyo3(signature = (
     positions, triangles, object_ids, camera_json, sun_json, medium_json, settings_json, /,
-    *, style_json=None, camera_depth=None, depth_kind="planar", progress=None,
+    *, style_json=None, camera_depth=None, depth_kind="planar", progress=None, origin=None,
 ))]
 #[allow(clippy::too_many_arguments)]
 fn render_arrays<'py>(
@@ -98,8 +99,16 @@ fn render_arrays<'py>(
     camera_depth: Option<PyReadonlyArray2<'py, f32>>,
     depth_kind: &str,
     progress: Option<Bound<'py, PyAny>>,
+    origin: Option<[f64; 3]>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let prepared = (|| {
+        let origin = glam::DVec3::from(origin.unwrap_or_default());
+        if !origin.is_finite() {
+            return Err(Error::invalid(
+                "origin",
+                format!("must be finite, got {origin}"),
+            ));
+        }
         let camera: Camera = parse_json_at("camera", camera_json)?;
         let sun: Sun = parse_json_at("sun", sun_json)?;
         let medium: Medium = parse_json_at("medium", medium_json)?;
@@ -112,7 +121,7 @@ fn render_arrays<'py>(
             positions: rows("positions", &positions)?,
             triangles: rows("triangles", &triangles)?,
             object_ids: values("object_ids", &object_ids)?,
-            origin: glam::DVec3::ZERO,
+            origin,
         };
         let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref())?;
         Ok((camera, sun, medium, settings, style, geometry, kind, depth))

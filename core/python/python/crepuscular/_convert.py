@@ -159,6 +159,18 @@ def object_ids(value: npt.ArrayLike | None, triangle_count: int) -> npt.NDArray[
     return _uint32(array, "object_ids")
 
 
+def point(value: npt.ArrayLike, name: str) -> tuple[float, float, float]:
+    """Three finite coordinates for `name`, as float64."""
+    array = np.asarray(value)
+    if array.shape != (3,):
+        raise invalid(name, f"must have shape (3,), got {_shape(array)}")
+    _require_real(array, name)
+    x, y, z = (float(v) for v in array)
+    if not all(np.isfinite([x, y, z])):
+        raise invalid(name, f"must be finite, got ({x}, {y}, {z})")
+    return x, y, z
+
+
 def depth_map(value: npt.ArrayLike | None) -> npt.NDArray[np.float32] | None:
     """A (height, width) float32 camera depth map; the core checks it against the camera."""
     if value is None:

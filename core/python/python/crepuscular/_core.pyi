@@ -54,6 +54,7 @@ def render_arrays(
     camera_depth: _Float32Array | None = None,
     depth_kind: _DepthKind = "planar",
     progress: _Progress | None = None,
+    origin: tuple[float, float, float] | None = None,
 ) -> _RawLayers: ...
 def normalize_scene_json(
     scene_json: str, /, *, base_dir: str | os.PathLike[str] | None = None
