@@ -601,6 +601,26 @@ def test_adaptive_tolerance_reaches_the_renderer(addon: ModuleType, tmp_path: Pa
     assert not np.array_equal(layers[0.0]["volume.R"], layers[1.0]["volume.R"])
 
 
+def test_a_scene_far_from_the_origin_renders_as_near_it(addon: ModuleType, tmp_path: Path) -> None:
+    # The export hands positions over relative to the camera: 100 km out, float32 world
+    # positions would lie 8 mm apart. The roof's corners are off any float32 grid there;
+    # the objects' locations are on it, as Blender's float32 matrices hold them.
+    scene = _basic_scene()
+    for vertex in scene.objects["Roof"].data.vertices:
+        vertex.co = (1.03717 * vertex.co.x, 1.03717 * vertex.co.y, vertex.co.z + 0.01139)
+    layers = []
+    for step in range(2):
+        if step == 1:
+            for obj in scene.objects:
+                obj.location += Vector((1e5, -7e4, 32.0))
+        path = tmp_path / f"placed-{step}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        layers.append(crepuscular.read_exr(path))
+    for name in ("volume.R", "visibility", "depth"):
+        near, far = layers[0][name], layers[1][name]
+        assert np.abs(far - near).max() <= 1e-5 * np.abs(near).max(), name
+
+
 def test_exact_ray_ends_reach_the_renderer_and_auto_follows_the_medium(
     addon: ModuleType, tmp_path: Path
 ) -> None:
