@@ -9,6 +9,9 @@ use crepuscular::holes::HolesDesc;
 use crepuscular::scene::{Extent, Method, Projection, Rectification, Scene, SensorFit};
 use crepuscular::silhouette::SilhouetteOp;
 use crepuscular::style::{HoleFilling, Silhouette};
+use crepuscular::transfer_function::{
+    ColorStop, DepthRange, GradientShape, TfLayer, TfMode, TransferFunction,
+};
 use crepuscular::{builtin_scene, render_scene, Layers, RenderControl, BUILTIN_SCENES};
 use glam::{Mat4, Vec3};
 
@@ -39,9 +42,13 @@ fn scaled(scene: &Scene, factor: f32) -> Scene {
     }
     scene.render.max_distance *= factor;
     scene.render.shadow_bias = scene.render.shadow_bias.map(|bias| bias * factor);
-    // The occluder operators' sizes are in scene units too. (So is a transfer function's
-    // depth range; these scenes have none.)
+    // The occluder operators' sizes and a transfer function's depth range are in scene
+    // units too.
     let style = &mut scene.style;
+    if let Some(tf) = &mut style.tf {
+        tf.depth_range.near *= factor;
+        tf.depth_range.far *= factor;
+    }
     if let Some(closing) = &mut style.closing {
         closing.radius *= factor;
     }
@@ -167,7 +174,7 @@ fn assert_styled(label: &str, styled: &Scene) {
 }
 
 #[test]
-fn occluder_operators_sized_in_scene_units_render_the_same_in_any_unit() {
+fn styles_sized_in_scene_units_render_the_same_in_any_unit() {
     let mut closed = small("tree");
     closed.style.closing = Some(HoleFilling {
         radius: 0.8,
@@ -189,6 +196,30 @@ fn occluder_operators_sized_in_scene_units_render_the_same_in_any_unit() {
     });
     assert_styled("colonnade with holes", &holed);
     assert_unit_free("colonnade with holes", &holed);
+    // Colour by depth: blue near, orange far, over a range in scene units.
+    let stop = |position: f32, color: [f32; 4]| ColorStop { position, color };
+    let mut graded = small("torus");
+    graded.style.tf = Some(TransferFunction::new(
+        TfMode::Color,
+        DepthRange {
+            near: 5.0,
+            far: 40.0,
+        },
+        vec![TfLayer::Gradient {
+            opacity: 1.0,
+            blend: Default::default(),
+            shape: GradientShape::Linear {
+                from: [0.5, 0.0],
+                to: [0.5, 1.0],
+            },
+            stops: vec![
+                stop(0.0, [0.2, 0.4, 1.0, 1.0]),
+                stop(1.0, [1.0, 0.6, 0.2, 1.0]),
+            ],
+        }],
+    ));
+    assert_styled("torus coloured by depth", &graded);
+    assert_unit_free("torus coloured by depth", &graded);
 }
 
 /// `scene` moved by `offset`: the camera, every mesh and the box.
