@@ -495,7 +495,11 @@ fn auto_never_picks_a_cpu_device() {
 #[test]
 fn a_missing_driver_falls_back_to_the_cpu_with_one_message() {
     let out = std::env::temp_dir().join(format!("crepuscular-fallback-{}.exr", std::process::id()));
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_crepuscular"))
+    // The CLI built beside this test, or the one `CREPUSCULAR_CLI` names where the test
+    // binary runs on another machine than it was built on.
+    let cli = std::env::var_os("CREPUSCULAR_CLI")
+        .unwrap_or_else(|| env!("CARGO_BIN_EXE_crepuscular").into());
+    let output = std::process::Command::new(cli)
         .args([
             "render", "--scene", "torus", "--width", "32", "--height", "18", "--steps", "16",
         ])
