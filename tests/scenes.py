@@ -59,6 +59,15 @@ def build_scene(
     }
 
 
+def move_occluder_off_the_float32_grid(scene: dict[str, Any]) -> None:
+    """Puts `scene`'s occluder (from `build_scene`) where 100 km away no float32 holds its
+    corners exactly, so that tests of scenes far from the origin see rounding."""
+    occluder = scene["meshes"][1]
+    occluder["positions"] = [
+        [1.03717 * x, y + 0.01139, 1.03717 * z] for x, y, z in occluder["positions"]
+    ]
+
+
 def flatten(scene: dict[str, Any]) -> dict[str, Any]:
     """`render_arrays` keyword arguments equivalent to `scene` (its meshes in world space)."""
     positions, triangles, object_ids = [], [], []

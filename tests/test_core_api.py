@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scenes import move_occluder_off_the_float32_grid
 
 import crepuscular
 from crepuscular import (
@@ -285,10 +286,7 @@ def test_positions_relative_to_a_far_origin_render_as_near_the_world_origin(
     # 100 km away float32 world positions lie 8 mm apart; relative to an origin at the
     # camera they keep their precision (as world positions, this occluder's depths moved by
     # 2.3e-3). The offset keeps the camera's float32 translation exact.
-    occluder = scene["meshes"][1]
-    occluder["positions"] = [
-        [1.03717 * x, y + 0.01139, 1.03717 * z] for x, y, z in occluder["positions"]
-    ]
+    move_occluder_off_the_float32_grid(scene)
     offset = np.array([1e5, -7e4, 32.0])
     near = render(scene)
     far = copy.deepcopy(scene)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdVol, Vt
-from scenes import build_scene, flatten
+from scenes import build_scene, flatten, move_occluder_off_the_float32_grid
 from usd_helpers import author_stage, light_matrix
 
 import crepuscular
@@ -96,10 +96,7 @@ def test_a_stage_far_from_its_origin_renders_as_near_it(tmp_path: Path) -> None:
     # world positions lie 8 mm apart: the reader hands them over relative to the camera.
     # The occluder's corners are not on any float32 grid there; the camera's are.
     scene = build_scene(**SMALL)
-    occluder = scene["meshes"][1]
-    occluder["positions"] = [
-        [1.03717 * x, y + 0.01139, 1.03717 * z] for x, y, z in occluder["positions"]
-    ]
+    move_occluder_off_the_float32_grid(scene)
     near = author_stage(str(tmp_path / "near.usda"), scene)
     far = author_stage(str(tmp_path / "far.usda"), scene)
     UsdGeom.Xformable(far.GetPrimAtPath("/World")).AddTranslateOp().Set(Gf.Vec3d(1e5, -7e4, 32))

@@ -2307,7 +2307,6 @@ fn slice_frames(
     let (w, h) = (camera.width, camera.height);
     // Slices 2 px apart: at distance r from the epipole they are 2π·r/slices apart.
     let dense_radius = 2.0 * map.slices as f64 / std::f64::consts::TAU;
-    // A sampled ray, with the two slices it belongs to.
     // A sampled ray, with its slice coordinate and the two slices it belongs to.
     let sample = |x: f64, y: f64| -> Option<(f64, [u32; 2], SampledRay)> {
         let ray = camera.ray(x, y);
@@ -2414,14 +2413,13 @@ type BorderRay = (f64, [u32; 2], SampledRay);
 /// [`slice_frames`] samples them: each ray belongs to the two slices it lies between, and
 /// where the border jumps more than a slice between it and a ray beside it, to every slice
 /// whose neighbourhood (the slice either side, which rays between them read too) the
-/// border crosses there. A
-/// slice's extreme keys lie where its line crosses the border, and slices thinner than
-/// the border's spacing fell between its points: their warps held none of the keys near
-/// their ends, which warped to one end with the texels beyond them and read half lit (a
-/// dense-fog view with 4,096 slices at 1152×648 was 18% off the reference). Rays come in
-/// pairs of slices, as [`RaysBySlice`] takes them; `slices` go round a full turn where
-/// `wraps`, and `slice_of` gives the slice of a whole index past either end
-/// ([`EpipolarMap::slice_of`]).
+/// border crosses there. A slice's extreme keys lie where its line crosses the border,
+/// and slices thinner than the border's spacing fell between its points: their warps held
+/// none of the keys near their ends, which warped to one end with the texels beyond them
+/// and read half lit (a dense-fog view with 4,096 slices at 1152×648 was 18% off the
+/// reference). Rays come in pairs of slices, as [`RaysBySlice`] takes them; `slices` go
+/// round a full turn where `wraps`, and `slice_of` gives the slice of a whole index past
+/// either end ([`EpipolarMap::slice_of`]).
 fn border_rays(
     around: &[Option<BorderRay>],
     slices: u32,

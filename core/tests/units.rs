@@ -22,8 +22,7 @@ const HEIGHT: u32 = 90;
 /// and the clip distances; extinction, per unit length, divided by it.
 fn scaled(scene: &Scene, factor: f32) -> Scene {
     let mut scene = scene.clone();
-    let scale = Mat4::from_scale(Vec3::splat(factor));
-    let placed = |world_from_local: Mat4| scale * world_from_local;
+    place(&mut scene, Mat4::from_scale(Vec3::splat(factor)));
     // The camera's rotation stays a rotation: only its position moves.
     let camera = &mut scene.camera;
     camera.world_from_camera.w_axis = (camera.world_from_camera.w_axis.truncate() * factor)
@@ -33,13 +32,7 @@ fn scaled(scene: &Scene, factor: f32) -> Scene {
     if let Projection::Orthographic { ortho_scale, .. } = &mut camera.projection {
         *ortho_scale *= factor;
     }
-    for mesh in &mut scene.meshes {
-        mesh.world_from_object = placed(mesh.world_from_object);
-    }
     scene.medium.extinction /= factor;
-    if let Extent::Box { world_from_cube } = &mut scene.medium.extent {
-        *world_from_cube = placed(*world_from_cube);
-    }
     scene.render.max_distance *= factor;
     scene.render.shadow_bias = scene.render.shadow_bias.map(|bias| bias * factor);
     // The occluder operators' sizes and a transfer function's depth range are in scene
@@ -60,6 +53,16 @@ fn scaled(scene: &Scene, factor: f32) -> Scene {
         holes.pivot = holes.pivot.map(|coordinate| coordinate * factor);
     }
     scene
+}
+
+/// Every mesh and the box of `scene` transformed by `world_from_world`.
+fn place(scene: &mut Scene, world_from_world: Mat4) {
+    for mesh in &mut scene.meshes {
+        mesh.world_from_object = world_from_world * mesh.world_from_object;
+    }
+    if let Extent::Box { world_from_cube } = &mut scene.medium.extent {
+        *world_from_cube = world_from_world * *world_from_cube;
+    }
 }
 
 fn render(scene: &Scene, method: Method) -> Layers {
@@ -227,12 +230,7 @@ fn moved(scene: &Scene, offset: Vec3) -> Scene {
     let mut scene = scene.clone();
     let shift = Mat4::from_translation(offset);
     scene.camera.world_from_camera = shift * scene.camera.world_from_camera;
-    for mesh in &mut scene.meshes {
-        mesh.world_from_object = shift * mesh.world_from_object;
-    }
-    if let Extent::Box { world_from_cube } = &mut scene.medium.extent {
-        *world_from_cube = shift * *world_from_cube;
-    }
+    place(&mut scene, shift);
     scene
 }
 

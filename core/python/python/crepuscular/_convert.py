@@ -160,14 +160,12 @@ def object_ids(value: npt.ArrayLike | None, triangle_count: int) -> npt.NDArray[
 
 
 def point(value: npt.ArrayLike, name: str) -> tuple[float, float, float]:
-    """Three finite coordinates for `name`, as float64."""
+    """Three coordinates for `name`, as float64; the core checks that they are finite."""
     array = np.asarray(value)
     if array.shape != (3,):
         raise invalid(name, f"must have shape (3,), got {_shape(array)}")
     _require_real(array, name)
     x, y, z = (float(v) for v in array)
-    if not all(np.isfinite([x, y, z])):
-        raise invalid(name, f"must be finite, got ({x}, {y}, {z})")
     return x, y, z
 
 
