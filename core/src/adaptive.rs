@@ -10,11 +10,11 @@
 //! shadowed in strips parallel to the light, and turning the ray within the plane moves
 //! where it crosses each strip smoothly. So along an epipolar line the samples can lie
 //! farther apart than across it. Every other pixel of every other row (the finer grid)
-//! is found in two steps. In each square of the finer grid, the points on its lines
-//! along a short lattice vector close to the square's epipolar lines are shaded every
-//! few points (a lattice); each other point lies between two of those on its own line
-//! and is interpolated from them where that line runs along the epipolar line through
-//! it, closely enough to resolve shafts no worse than the finer grid would. The pixels
+//! is found in two steps. In each square of the finer grid, a sublattice of its points
+//! whose cells are long along the square's epipolar lines and thin across them is
+//! shaded first; each other point lies in a triangle of those (or on a side of one) and
+//! is interpolated from its corners where they lie along the epipolar line through it,
+//! closely enough to resolve shafts no worse than the finer grid would. The pixels
 //! between the finer grid's are then interpolated from it in any direction.
 //!
 //! A feature narrower than two pixels across the epipolar lines that no shaded pixel
@@ -34,9 +34,9 @@ use crate::spare::Spare;
 
 /// The default tolerance: neighbours whose radiance spreads by at most 1% of its mean
 /// (or, in regions darker than a quarter of the image's mean, of that quarter) are
-/// interpolated. On the built-in scenes' default views at 1920×1080 this shades 8–20%
-/// of the pixels (min-max 9–22%) and moves the layers from shading every pixel by at
-/// most 0.029% of the mean radiance (prefiltering; 0.066% for min-max).
+/// interpolated. On the built-in scenes' default views at 1920×1080 this shades 6–17%
+/// of the pixels (min-max 6–20%) and moves the layers from shading every pixel by at
+/// most 0.034% of the mean radiance (prefiltering; 0.072% for min-max).
 pub const DEFAULT_TOLERANCE: f32 = 0.01;
 
 /// The share of the image's mean radiance (per channel) under which neighbours may
@@ -156,11 +156,24 @@ impl EpipolarLines {
     /// at the epipole, where no line has a direction.
     #[inline]
     fn pairs_along(&self, x: usize, y: usize, span: [f64; 2]) -> bool {
+        self.spans_along(x, y, [span])
+    }
+
+    /// Whether pixels around (`x`, `y`), one of them and the others `spans` from it, lie
+    /// within [`MAX_ACROSS`] across the epipolar line through it: never at the epipole.
+    #[inline]
+    fn spans_along<const N: usize>(&self, x: usize, y: usize, spans: [[f64; 2]; N]) -> bool {
         let [dx, dy] = self.direction(x, y);
-        // The pair's distance across the line, times the direction's length.
-        let cross = dx * span[1] - dy * span[0];
+        // Distances across the line, times the direction's length.
+        let (mut low, mut high) = (0.0f64, 0.0f64);
+        for span in spans {
+            let cross = dx * span[1] - dy * span[0];
+            low = low.min(cross);
+            high = high.max(cross);
+        }
+        let spread = high - low;
         let length_squared = dx * dx + dy * dy;
-        length_squared > 1e-24 && cross * cross <= MAX_ACROSS * MAX_ACROSS * length_squared
+        length_squared > 1e-24 && spread * spread <= MAX_ACROSS * MAX_ACROSS * length_squared
     }
 
     /// For pixel (`x`, `y`) interpolated from the pixels at ±`offset` from it: how far
@@ -242,23 +255,22 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
             .or_else(|| self.mean(second()?, x, y))
     }
 
-    /// Pixel (x, y) between `pair`, apart along the epipolar line through it by the span
-    /// of `pairing`, `fraction` of the way from the first: the tolerance widened in
-    /// proportion to the span ([`TOLERANCE_SPAN`]).
+    /// Pixel (x, y) as the blend of `corners` by `weights`, which lie along the epipolar
+    /// line through it: the tolerance `widening`-fold ([`TOLERANCE_SPAN`]).
     #[inline]
-    fn along(
+    fn along<const N: usize>(
         &self,
-        pair: [Pixel; 2],
-        fraction: f32,
-        pairing: &Pairing,
+        corners: [Pixel; N],
+        weights: [f32; N],
+        widening: f32,
         x: usize,
         y: usize,
     ) -> Option<Pixel> {
         let wider = Interpolation {
-            tolerance: self.tolerance * pairing.widening,
+            tolerance: self.tolerance * widening,
             ..*self
         };
-        wider.between(pair, [1.0 - fraction, fraction], x, y)
+        wider.between(corners, weights, x, y)
     }
 }
 
@@ -355,152 +367,312 @@ impl Drop for BandEdges {
     }
 }
 
-/// The most points of the finer grid a pair may lie apart along an epipolar line, so
-/// that at best one in this many is shaded: along the grid's axes six, pairs
-/// [`MAX_ALONG`] apart, and along its diagonals four. (At most four shaded 21% more of
-/// plane's pixels, whose lines run down the image; eight, with pairs 16 px apart, took
-/// as long on tree and moved the layers twice as far from every pixel shaded.)
-const MAX_STRIDE: i64 = 6;
+/// The most points of the finer grid one lattice point may stand for, so that at best one
+/// in this many is shaded: along the grid's axes six, pairs [`MAX_ALONG`] apart, and
+/// along its diagonals four. (At most four shaded 21% more of plane's pixels, whose lines
+/// run down the image; eight, with pairs 16 px apart, took as long on tree and moved the
+/// layers twice as far from every pixel shaded.)
+const MAX_INDEX: i64 = 6;
 
-/// The largest component of a lattice's step.
+/// The largest component of a step of the lattices whose points all lie on lines along
+/// one step ([`LatticeCandidate::collinear`]).
 const MAX_STEP: i64 = 3;
 
-/// The longest a pair may span along an epipolar line, in pixels.
+/// The longest a pair, or a triangle's side, may span, in pixels.
 const MAX_ALONG: f64 = 12.0;
 
 /// Side of the squares of the finer grid that share one [`Lattice`], in its points.
 const LATTICE_TILE: usize = 8;
 
-/// The points of the finer grid shaded first in a square of it: on each of its lines
-/// along `step` (a primitive vector of the finer grid, close to the square's epipolar
-/// lines), every `stride`-th point, so that every other point lies between two of them
-/// on its own line, at most [`MAX_ALONG`] pixels apart and [`MAX_ACROSS`] across the
-/// epipolar line through it. A stride of 1 shades every point.
+/// The points of the finer grid shaded first in a square of it: a sublattice of the grid
+/// with basis `u`, `v` (in its points), each of whose points stands for `index` =
+/// det(u, v) points of the grid. Every other point p = o + m·u + n·v, with o a lattice
+/// point and 0 ≤ m, n < 1, lies in one of its cell's triangles, (o, o + u, o + v) or
+/// (o + u + v, o + v, o + u), and is interpolated from its corners, or from the two on
+/// whose side it lies. `u` runs close to the square's epipolar lines, so that a triangle
+/// spans at most [`MAX_ALONG`] and lies within [`MAX_ACROSS`] across the lines: at that
+/// width, a shaft that covers a point covers a corner. Where `u` is `index` times a step
+/// of the grid, every point lies on a line along `u` between two lattice points. An index
+/// of 1 shades every point.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct Lattice {
-    step: [i64; 2],
-    stride: i64,
-    /// Integer coefficients with `position`·`step` = 1, so that `position`·p counts
-    /// steps along the lines.
-    position: [i64; 2],
+    u: [i64; 2],
+    v: [i64; 2],
+    index: i64,
 }
 
 impl Lattice {
     const EVERY_POINT: Lattice = Lattice {
-        step: [1, 0],
-        stride: 1,
-        position: [1, 0],
+        u: [1, 0],
+        v: [0, 1],
+        index: 1,
     };
 
-    /// The steps a lattice may take, in the order [`Lattice::along`] prefers them among
-    /// equals, with their Bézout coefficients and length in pixels: the primitive vectors
-    /// of the finer grid up to [`MAX_STEP`], one of each ± pair, short enough that a pair
-    /// two steps apart fits within [`MAX_ALONG`] (longer ones only ever have stride 1,
-    /// which never wins). Found once per frame, not once per square.
-    fn candidates() -> Vec<LatticeStep> {
+    /// Point (i, j) as index·(m, n) modulo the index ([`Lattice`]): [0, 0] for the
+    /// lattice's own points. (index·m = det(p, v) and index·n = det(u, p).)
+    #[inline]
+    fn residues(&self, i: usize, j: usize) -> [i64; 2] {
+        let (i, j) = (i as i64, j as i64);
+        let [u, v] = [self.u, self.v];
+        [
+            self.wrap(i * v[1] - j * v[0]),
+            self.wrap(u[0] * j - u[1] * i),
+        ]
+    }
+
+    /// `value`, a multiple of the index, over the index.
+    #[inline]
+    fn divide(&self, value: i64) -> i64 {
+        // Constant divisors, as in `wrap`.
+        match self.index {
+            1 => value,
+            2 => value / 2,
+            3 => value / 3,
+            4 => value / 4,
+            5 => value / 5,
+            6 => value / 6,
+            index => value / index,
+        }
+    }
+
+    /// `value` modulo the index, in [0, index).
+    #[inline]
+    fn wrap(&self, value: i64) -> i64 {
+        // Indices are at most MAX_INDEX: constant divisors rather than a division by a
+        // variable, which took a tenth of completing the finer grid.
+        match self.index {
+            1 => 0,
+            2 => value.rem_euclid(2),
+            3 => value.rem_euclid(3),
+            4 => value.rem_euclid(4),
+            5 => value.rem_euclid(5),
+            6 => value.rem_euclid(6),
+            index => value.rem_euclid(index),
+        }
+    }
+
+    /// The sparsest lattice for a square whose epipolar lines run along `directions`
+    /// (in pixels, at its corners: around an epipole off the square the extremes lie
+    /// there), first in `choice`'s order of preference among equally sparse ones.
+    fn along(directions: &[[f64; 2]; 4], choice: &LatticeChoice) -> Self {
+        let Some(units) = unit_directions(directions) else {
+            return Self::EVERY_POINT;
+        };
+        choice
+            .fitting(units[0])
+            .iter()
+            .map(|&k| &choice.candidates[k as usize])
+            .find(|candidate| candidate.fits(&units))
+            .map_or(Self::EVERY_POINT, |candidate| candidate.lattice)
+    }
+}
+
+/// `directions` normalized, `None` where one has no direction.
+fn unit_directions(directions: &[[f64; 2]; 4]) -> Option<[[f64; 2]; 4]> {
+    let mut units = [[0.0; 2]; 4];
+    for (unit, &[dx, dy]) in units.iter_mut().zip(directions) {
+        let norm = dx.hypot(dy);
+        if !(norm > 1e-12 && norm.is_finite()) {
+            return None;
+        }
+        *unit = [dx / norm, dy / norm];
+    }
+    Some(units)
+}
+
+/// A lattice a square may take, with its basis in pixels.
+#[derive(Clone, Copy, Debug)]
+struct LatticeCandidate {
+    lattice: Lattice,
+    u: [f64; 2],
+    v: [f64; 2],
+    /// Whether `u` is `index` steps of the grid, so that every point lies on a line along
+    /// it and only `u` need run along the epipolar lines (then n = 0 everywhere).
+    collinear: bool,
+    /// The longest pair a point is interpolated from, in pixels: `u`, or a triangle's
+    /// longest side.
+    span: f64,
+}
+
+impl LatticeCandidate {
+    fn new(lattice: Lattice) -> Self {
+        let collinear = lattice.u.iter().all(|c| c % lattice.index == 0);
+        let pixels = |[a, b]: [i64; 2]| [2.0 * a as f64, 2.0 * b as f64];
+        let (u, v) = (pixels(lattice.u), pixels(lattice.v));
+        let length = |[a, b]: [f64; 2]| a.hypot(b);
+        let span = if collinear {
+            length(u)
+        } else {
+            length(u)
+                .max(length(v))
+                .max(length([u[0] - v[0], u[1] - v[1]]))
+        };
+        Self {
+            lattice,
+            u,
+            v,
+            collinear,
+            span,
+        }
+    }
+
+    /// Whether the lattice's pairs and triangles lie within [`MAX_ACROSS`] across lines
+    /// along each of the unit `directions`.
+    #[inline]
+    fn fits(&self, directions: &[[f64; 2]]) -> bool {
+        self.fits_within(directions, MAX_ACROSS)
+    }
+
+    #[inline]
+    fn fits_within(&self, directions: &[[f64; 2]], most_across: f64) -> bool {
+        directions.iter().all(|&[dx, dy]| {
+            let across_u = dx * self.u[1] - dy * self.u[0];
+            if self.collinear {
+                return across_u.abs() <= most_across;
+            }
+            let across_v = dx * self.v[1] - dy * self.v[0];
+            across_u.max(across_v).max(0.0) - across_u.min(across_v).min(0.0) <= most_across
+        })
+    }
+
+    /// Every lattice a square may take, sparsest first; among equals collinear ones
+    /// (whose points need only a pair to agree), then the shortest span.
+    fn all() -> Vec<Self> {
         let mut candidates = Vec::new();
+        // Lines along a primitive step, every `index`-th point on them: v completes the
+        // step's Bézout coefficients, so that m counts steps along the line.
         for a in -MAX_STEP..=MAX_STEP {
             for b in 0..=MAX_STEP {
                 // (−1, 0) is (1, 0) the other way round.
                 if b == 0 && a != 1 {
                     continue;
                 }
-                let Some(position) = bezout([a, b]) else {
+                let Some([c, d]) = bezout([a, b]) else {
                     continue;
                 };
-                // Pixels per step: the finer grid's points lie two pixels apart.
-                let length = 2.0 * ((a * a + b * b) as f64).sqrt();
-                if 2.0 * length <= MAX_ALONG {
-                    candidates.push(LatticeStep {
-                        step: [a, b],
-                        position,
-                        length,
-                    });
+                for index in 2..=MAX_INDEX {
+                    let lattice = Lattice {
+                        u: [index * a, index * b],
+                        v: [-d, c],
+                        index,
+                    };
+                    let candidate = Self::new(lattice);
+                    if candidate.span <= MAX_ALONG {
+                        candidates.push(candidate);
+                    }
                 }
             }
         }
+        // Every other sublattice of index up to MAX_INDEX (in Hermite normal form, the
+        // columns (a, 0) and (b, d) with a·d = index and 0 ≤ b < a), in every basis whose
+        // triangles are short enough: one of each ± pair.
+        let reach = (MAX_ALONG / 2.0) as i64;
+        for index in 2..=MAX_INDEX {
+            for a in (1..=index).filter(|a| index % a == 0) {
+                let d = index / a;
+                for b in 0..a {
+                    let mut vectors = Vec::new();
+                    for m in -reach..=reach {
+                        for n in -reach..=reach {
+                            let vector = [m * a + n * b, n * d];
+                            let [x, y] = vector;
+                            if vector != [0, 0] && 2.0 * (x as f64).hypot(y as f64) <= MAX_ALONG {
+                                vectors.push(vector);
+                            }
+                        }
+                    }
+                    for &u in vectors
+                        .iter()
+                        .filter(|u| u[0] > 0 || (u[0] == 0 && u[1] > 0))
+                    {
+                        for &v in &vectors {
+                            if u[0] * v[1] - u[1] * v[0] != index {
+                                continue;
+                            }
+                            let candidate = Self::new(Lattice { u, v, index });
+                            if !candidate.collinear && candidate.span <= MAX_ALONG {
+                                candidates.push(candidate);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        candidates.sort_by(|p, q| {
+            (q.lattice.index, q.collinear)
+                .cmp(&(p.lattice.index, p.collinear))
+                .then(p.span.total_cmp(&q.span))
+        });
         candidates
-    }
-
-    /// The sparsest lattice for a square whose epipolar lines run along `directions`
-    /// (in pixels, at its corners: around an epipole off the square the extremes lie
-    /// there), with the shortest pairs among equally sparse ones, of `candidates`
-    /// ([`Lattice::candidates`]).
-    fn along(directions: &[[f64; 2]; 4], candidates: &[LatticeStep]) -> Self {
-        let mut units = [[0.0; 2]; 4];
-        for (unit, &[dx, dy]) in units.iter_mut().zip(directions) {
-            let norm = dx.hypot(dy);
-            if !(norm > 1e-12 && norm.is_finite()) {
-                return Self::EVERY_POINT;
-            }
-            *unit = [dx / norm, dy / norm];
-        }
-        let mut best = Self::EVERY_POINT;
-        let mut best_span = f64::INFINITY;
-        for &LatticeStep {
-            step: [a, b],
-            position,
-            length,
-        } in candidates
-        {
-            let cross_max = units
-                .iter()
-                .map(|[dx, dy]| (dx * b as f64 - dy * a as f64).abs())
-                .fold(0.0, f64::max);
-            let sin_max = 2.0 * cross_max / length;
-            let mut stride = MAX_STRIDE;
-            while stride > 1 {
-                let span = stride as f64 * length;
-                if span <= MAX_ALONG && span * sin_max <= MAX_ACROSS {
-                    break;
-                }
-                stride -= 1;
-            }
-            let span = stride as f64 * length;
-            if stride > best.stride || (stride == best.stride && stride > 1 && span < best_span) {
-                best = Lattice {
-                    step: [a, b],
-                    stride,
-                    position,
-                };
-                best_span = span;
-            }
-        }
-        best
-    }
-
-    /// How many steps point (i, j) of the finer grid lies past the lattice point behind
-    /// it on its line: 0 for the lattice's own points.
-    #[inline]
-    fn offset(&self, i: usize, j: usize) -> i64 {
-        self.wrap(self.position[0] * i as i64 + self.position[1] * j as i64)
-    }
-
-    /// `steps` modulo the stride, in [0, stride).
-    #[inline]
-    fn wrap(&self, steps: i64) -> i64 {
-        // Strides are at most MAX_STRIDE: constant divisors rather than a division by a
-        // variable, which took a tenth of completing the finer grid.
-        match self.stride {
-            1 => 0,
-            2 => steps.rem_euclid(2),
-            3 => steps.rem_euclid(3),
-            4 => steps.rem_euclid(4),
-            5 => steps.rem_euclid(5),
-            6 => steps.rem_euclid(6),
-            stride => steps.rem_euclid(stride),
-        }
     }
 }
 
-/// A step a [`Lattice`] may take ([`Lattice::candidates`]).
-#[derive(Clone, Copy, Debug)]
-struct LatticeStep {
-    step: [i64; 2],
-    /// Its Bézout coefficients ([`Lattice::position`]).
-    position: [i64; 2],
-    /// Pixels per step.
-    length: f64,
+/// How many bins of the epipolar lines' angle (modulo π) [`LatticeChoice`] keeps.
+const DIRECTION_BINS: usize = 720;
+
+/// The candidate lattices ([`LatticeCandidate::all`]) and, for each bin of direction, the
+/// ones that fit some direction in it, in order of preference: a square tests only those
+/// of its first corner's bin. Found once per process.
+struct LatticeChoice {
+    candidates: Vec<LatticeCandidate>,
+    starts: Vec<usize>,
+    fitting: Vec<u32>,
+}
+
+impl LatticeChoice {
+    fn get() -> &'static Self {
+        static CHOICE: std::sync::OnceLock<LatticeChoice> = std::sync::OnceLock::new();
+        CHOICE.get_or_init(Self::new)
+    }
+
+    fn new() -> Self {
+        let candidates = LatticeCandidate::all();
+        // Each bin's edges and points between, with room for how far a pair or triangle
+        // no longer than MAX_ALONG turns across the lines between them, so that every
+        // lattice that fits a direction in the bin is kept.
+        const SAMPLES: usize = 4;
+        let between = std::f64::consts::PI / (DIRECTION_BINS * SAMPLES) as f64;
+        let most_across = MAX_ACROSS + MAX_ALONG * between;
+        let per_bin: Vec<Vec<u32>> = (0..DIRECTION_BINS)
+            .into_par_iter()
+            .map(|bin| {
+                let directions: Vec<[f64; 2]> = (0..=SAMPLES)
+                    .map(|k| {
+                        let angle = (bin as f64 + k as f64 / SAMPLES as f64) * std::f64::consts::PI
+                            / DIRECTION_BINS as f64;
+                        [angle.cos(), angle.sin()]
+                    })
+                    .collect();
+                (0..candidates.len() as u32)
+                    .filter(|&k| {
+                        let candidate = &candidates[k as usize];
+                        directions.iter().any(|direction| {
+                            candidate.fits_within(std::slice::from_ref(direction), most_across)
+                        })
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut starts = vec![0];
+        let mut fitting = Vec::new();
+        for bin in per_bin {
+            fitting.extend(bin);
+            starts.push(fitting.len());
+        }
+        Self {
+            candidates,
+            starts,
+            fitting,
+        }
+    }
+
+    /// The candidates that fit some direction in `unit`'s bin, in order of preference.
+    fn fitting(&self, [dx, dy]: [f64; 2]) -> &[u32] {
+        let angle = dy.atan2(dx).rem_euclid(std::f64::consts::PI);
+        let bin = ((angle / std::f64::consts::PI * DIRECTION_BINS as f64) as usize)
+            .min(DIRECTION_BINS - 1);
+        &self.fitting[self.starts[bin]..self.starts[bin + 1]]
+    }
 }
 
 /// Integers (c, d) with c·a + d·b = 1 for `step` (a, b), `None` where it is not primitive
@@ -520,32 +692,27 @@ fn bezout([a, b]: [i64; 2]) -> Option<[i64; 2]> {
     (r0.abs() == 1).then(|| [c0 * r0, d0 * r0])
 }
 
-/// What the pairs of a [`Lattice`] have in common, found once per square rather than
-/// once per point.
+/// What the points of a [`Lattice`]'s square have in common, found once per square
+/// rather than once per point.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Pairing {
-    /// From the first point of a pair to the second, in pixels.
-    span: [f64; 2],
-    /// The tolerance's factor for pairs that far apart ([`TOLERANCE_SPAN`]).
+    /// `u` and `v` in pixels.
+    u: [f64; 2],
+    v: [f64; 2],
+    /// The tolerance's factor for the lattice's longest pairs ([`TOLERANCE_SPAN`]).
     widening: f32,
-    /// The fraction of the way from the first point of a pair to the second that a point
-    /// `behind` steps past the first lies: `behind` / stride.
-    fractions: [f32; MAX_STRIDE as usize],
+    /// k / index, for the weights of a point whose residues are k.
+    fractions: [f32; MAX_INDEX as usize],
 }
 
 impl Pairing {
-    fn of(lattice: &Lattice) -> Self {
-        let [a, b] = lattice.step;
-        // The finer grid's points lie two pixels apart.
-        let span = [
-            (2 * lattice.stride * a) as f64,
-            (2 * lattice.stride * b) as f64,
-        ];
-        let length = (span[0] * span[0] + span[1] * span[1]).sqrt();
+    fn of(candidate: &LatticeCandidate) -> Self {
+        let index = candidate.lattice.index;
         Self {
-            span,
-            widening: (length / TOLERANCE_SPAN).max(1.0) as f32,
-            fractions: std::array::from_fn(|behind| behind as f32 / lattice.stride as f32),
+            u: candidate.u,
+            v: candidate.v,
+            widening: (candidate.span / TOLERANCE_SPAN).max(1.0) as f32,
+            fractions: std::array::from_fn(|k| k as f32 / index as f32),
         }
     }
 }
@@ -564,11 +731,11 @@ impl Lattices {
     fn of_grid(width: usize, height: usize, lines: Option<&EpipolarLines>) -> Self {
         let across = width.div_ceil(LATTICE_TILE);
         let down = height.div_ceil(LATTICE_TILE);
-        let candidates = Lattice::candidates();
+        let choice = lines.map(|_| LatticeChoice::get());
         let squares = (0..down * across)
             .into_par_iter()
             .map(|square| {
-                let Some(lines) = lines else {
+                let (Some(lines), Some(choice)) = (lines, choice) else {
                     return Lattice::EVERY_POINT;
                 };
                 let (i0, j0) = (
@@ -581,10 +748,13 @@ impl Lattices {
                 );
                 let corners = [(i0, j0), (i1, j0), (i0, j1), (i1, j1)]
                     .map(|(i, j)| lines.direction(2 * i, 2 * j));
-                Lattice::along(&corners, &candidates)
+                Lattice::along(&corners, choice)
             })
             .collect::<Vec<_>>();
-        let pairings = squares.iter().map(Pairing::of).collect();
+        let pairings = squares
+            .iter()
+            .map(|&lattice| Pairing::of(&LatticeCandidate::new(lattice)))
+            .collect();
         Self {
             across,
             squares,
@@ -606,29 +776,33 @@ impl Lattices {
     /// Whether point (i, j) is one of its square's lattice points.
     #[inline]
     fn contains(&self, i: usize, j: usize) -> bool {
-        self.at(i, j).offset(i, j) == 0
+        self.at(i, j).residues(i, j) == [0, 0]
     }
 
-    /// Calls `visit(i, offset)` for the points `columns` of row `j` with their
-    /// [`Lattice::offset`]s, found by adding rather than dividing.
+    /// Calls `visit(i, square, residues)` for the points `columns` of row `j` with their
+    /// square and [`Lattice::residues`], found by adding rather than dividing.
     #[inline]
-    fn offsets_in_row(
+    fn residues_in_row(
         &self,
         columns: std::ops::Range<usize>,
         j: usize,
-        mut visit: impl FnMut(usize, i64),
+        mut visit: impl FnMut(usize, usize, [i64; 2]),
     ) {
         let mut i = columns.start;
         while i < columns.end {
-            let lattice = self.at(i, j);
-            let advance = lattice.wrap(lattice.position[0]);
-            let mut offset = lattice.offset(i, j);
+            let square = self.square(i, j);
+            let lattice = &self.squares[square];
+            let index = lattice.index;
+            let advance = [lattice.wrap(lattice.v[1]), lattice.wrap(-lattice.u[1])];
+            let mut residues = lattice.residues(i, j);
             let square_end = ((i / LATTICE_TILE + 1) * LATTICE_TILE).min(columns.end);
             for i in i..square_end {
-                visit(i, offset);
-                offset += advance;
-                if offset >= lattice.stride {
-                    offset -= lattice.stride;
+                visit(i, square, residues);
+                for (residue, advance) in residues.iter_mut().zip(advance) {
+                    *residue += advance;
+                    if *residue >= index {
+                        *residue -= index;
+                    }
                 }
             }
             i = square_end;
@@ -692,23 +866,23 @@ pub fn shade_adaptively(
             for tile in (0..grid_width).step_by(TILE) {
                 for row in 0..pixels.len() / grid_width {
                     let columns = tile..(tile + TILE).min(grid_width);
-                    lattices.offsets_in_row(columns, first + row, |i, offset| {
-                        if offset == 0 {
+                    lattices.residues_in_row(columns, first + row, |i, _, residues| {
+                        if residues == [0, 0] {
                             batch.push(row * grid_width + i, (2 * i, 2 * (first + row)));
                         }
                     });
                 }
             }
             shaded_count.fetch_add(batch.shade(&shade, pixels), Ordering::Relaxed);
-            // Each lattice point stands for `stride` points of the finer grid.
+            // Each lattice point stands for `index` points of the finer grid.
             let (mut sums, mut points) = ([0.0; 4], 0);
             for &slot in &batch.slots {
                 let (i, j) = (slot % grid_width, first + slot / grid_width);
-                let stride = lattices.at(i, j).stride;
+                let index = lattices.at(i, j).index;
                 for (sum, value) in sums.iter_mut().zip(pixels[slot].volume) {
-                    *sum += stride as f64 * value as f64;
+                    *sum += index as f64 * value as f64;
                 }
-                points += stride as usize;
+                points += index as usize;
             }
             (sums, points)
         })
@@ -761,34 +935,70 @@ pub fn shade_adaptively(
                         b => beside[b / 2 * band_len + at],
                     })
                 };
-                // Point (i, j), `behind` steps past the lattice point behind it on its
-                // line, between that and the next where they lie along the epipolar line
-                // through it ([`MAX_ACROSS`]), agree and see its surface.
-                let interpolated = |pixels: &[Pixel], i: usize, j: usize, behind: i64| {
-                    let home = lattices.square(i, j);
+                // Point (i, j) of square `home`, with `residues` [m, n] (index·(m, n) in
+                // its cell, modulo the index): from the corners of the triangle of its
+                // cell it lies in, or of the side it lies on, where they lie along the
+                // epipolar line through it ([`MAX_ACROSS`]), agree and see its surface.
+                let interpolated = |pixels: &[Pixel], i, j, home: usize, [m, n]: [i64; 2]| {
                     let lattice = &lattices.squares[home];
-                    let ahead = lattice.stride - behind;
-                    let [a, b] = lattice.step;
-                    let (pi, pj) = (i as i64, j as i64);
-                    let pair = [
-                        lattice_point(pixels, pi - behind * a, pj - behind * b, home)?,
-                        lattice_point(pixels, pi + ahead * a, pj + ahead * b, home)?,
-                    ];
-                    let (x, y) = (2 * i, 2 * j);
+                    let Lattice { u, v, index } = *lattice;
                     let pairing = &lattices.pairings[home];
-                    if !lines?.pairs_along(x, y, pairing.span) {
-                        return None;
+                    // The cell's first corner: p less (m·u + n·v) / index, a point of the
+                    // grid.
+                    let o = [
+                        i as i64 - lattice.divide(m * u[0] + n * v[0]),
+                        j as i64 - lattice.divide(m * u[1] + n * v[1]),
+                    ];
+                    let corner = |[a, b]: [i64; 2]| {
+                        let (ci, cj) = (o[0] + a * u[0] + b * v[0], o[1] + a * u[1] + b * v[1]);
+                        lattice_point(pixels, ci, cj, home)
+                    };
+                    let lines = lines?;
+                    let (x, y) = (2 * i, 2 * j);
+                    let [fm, fn_] = [pairing.fractions[m as usize], pairing.fractions[n as usize]];
+                    let [pu, pv] = [pairing.u, pairing.v];
+                    let widening = pairing.widening;
+                    if n == 0 {
+                        let pair = [corner([0, 0])?, corner([1, 0])?];
+                        if !lines.spans_along(x, y, [pu]) {
+                            return None;
+                        }
+                        interpolation.along(pair, [1.0 - fm, fm], widening, x, y)
+                    } else if m == 0 {
+                        let pair = [corner([0, 0])?, corner([0, 1])?];
+                        if !lines.spans_along(x, y, [pv]) {
+                            return None;
+                        }
+                        interpolation.along(pair, [1.0 - fn_, fn_], widening, x, y)
+                    } else if m + n == index {
+                        let pair = [corner([1, 0])?, corner([0, 1])?];
+                        if !lines.spans_along(x, y, [[pv[0] - pu[0], pv[1] - pu[1]]]) {
+                            return None;
+                        }
+                        interpolation.along(pair, [fm, fn_], widening, x, y)
+                    } else if m + n < index {
+                        let triangle = [corner([0, 0])?, corner([1, 0])?, corner([0, 1])?];
+                        if !lines.spans_along(x, y, [pu, pv]) {
+                            return None;
+                        }
+                        let weights = [1.0 - fm - fn_, fm, fn_];
+                        interpolation.along(triangle, weights, widening, x, y)
+                    } else {
+                        let triangle = [corner([1, 1])?, corner([0, 1])?, corner([1, 0])?];
+                        if !lines.spans_along(x, y, [pu, pv]) {
+                            return None;
+                        }
+                        let weights = [fm + fn_ - 1.0, 1.0 - fm, 1.0 - fn_];
+                        interpolation.along(triangle, weights, widening, x, y)
                     }
-                    let fraction = pairing.fractions[behind as usize];
-                    interpolation.along(pair, fraction, pairing, x, y)
                 };
                 let mut batch = Batch::default();
                 for row in 0..rows {
                     let j = first + row;
-                    lattices.offsets_in_row(0..grid_width, j, |i, behind| {
-                        if behind != 0 {
+                    lattices.residues_in_row(0..grid_width, j, |i, home, residues| {
+                        if residues != [0, 0] {
                             let k = row * grid_width + i;
-                            match interpolated(pixels, i, j, behind) {
+                            match interpolated(pixels, i, j, home, residues) {
                                 Some(value) => pixels[k] = value,
                                 None => batch.push(k, (2 * i, 2 * j)),
                             }
@@ -1574,131 +1784,160 @@ mod tests {
     }
 
     #[test]
-    fn a_pairings_fractions_are_its_steps_over_the_stride_and_its_span_widens_the_tolerance() {
-        for stride in 1..=MAX_STRIDE {
-            let pairing = Pairing::of(&Lattice {
-                step: [1, 2],
-                stride,
-                position: [1, 0],
-            });
-            for behind in 0..stride {
-                assert_eq!(
-                    pairing.fractions[behind as usize],
-                    behind as f32 / stride as f32,
-                    "{behind} of {stride}"
-                );
+    fn a_pairings_fractions_are_residues_over_the_index_and_its_span_widens_the_tolerance() {
+        for candidate in LatticeCandidate::all() {
+            let pairing = Pairing::of(&candidate);
+            let index = candidate.lattice.index;
+            for k in 0..index {
+                assert_eq!(pairing.fractions[k as usize], k as f32 / index as f32);
             }
-            assert_eq!(pairing.span, [2.0 * stride as f64, 4.0 * stride as f64]);
-            let length = 2.0 * stride as f64 * 5f64.sqrt();
-            assert_eq!(pairing.widening, (length / TOLERANCE_SPAN).max(1.0) as f32);
+            let pixels = |[a, b]: [i64; 2]| [2.0 * a as f64, 2.0 * b as f64];
+            assert_eq!(pairing.u, pixels(candidate.lattice.u));
+            assert_eq!(pairing.v, pixels(candidate.lattice.v));
+            let widening = (candidate.span / TOLERANCE_SPAN).max(1.0) as f32;
+            assert_eq!(pairing.widening, widening);
         }
     }
 
     #[test]
-    fn lattice_offsets_wrap_like_the_euclidean_remainder() {
-        for stride in 1..=MAX_STRIDE {
+    fn lattice_residues_wrap_and_divide_like_the_euclidean_operations() {
+        for index in 1..=MAX_INDEX {
             let lattice = Lattice {
-                stride,
+                index,
                 ..Lattice::EVERY_POINT
             };
-            for steps in -50..50 {
+            for value in -50..50 {
                 assert_eq!(
-                    lattice.wrap(steps),
-                    steps.rem_euclid(stride),
-                    "{steps} % {stride}"
+                    lattice.wrap(value),
+                    value.rem_euclid(index),
+                    "{value} % {index}"
                 );
+                assert_eq!(lattice.divide(value * index), value, "{value}·{index}");
             }
         }
     }
 
+    /// The corners a point with `residues` off `lattice` is interpolated from, and their
+    /// weights (× index), found independently of the finer grid's pass: the triangle of
+    /// its cell it lies in, or the side it lies on.
+    fn corners_of(lattice: &Lattice, (i, j): (i64, i64), [m, n]: [i64; 2]) -> Vec<([i64; 2], i64)> {
+        let Lattice { u, v, index } = *lattice;
+        let o = [
+            (index * i - m * u[0] - n * v[0]) / index,
+            (index * j - m * u[1] - n * v[1]) / index,
+        ];
+        let at = |a: i64, b: i64| [o[0] + a * u[0] + b * v[0], o[1] + a * u[1] + b * v[1]];
+        let all = if m + n <= index {
+            [(at(0, 0), index - m - n), (at(1, 0), m), (at(0, 1), n)]
+        } else {
+            [
+                (at(1, 1), m + n - index),
+                (at(0, 1), index - m),
+                (at(1, 0), index - n),
+            ]
+        };
+        all.into_iter().filter(|&(_, weight)| weight != 0).collect()
+    }
+
     #[test]
-    fn lattices_pair_every_other_point_along_the_epipolar_line_through_it() {
-        let candidates = Lattice::candidates();
-        let mut strides = Vec::new();
-        for degrees in 0..360 {
-            let angle = (degrees as f64 + 0.3).to_radians();
+    fn lattices_put_every_other_point_between_lattice_points_along_the_epipolar_line() {
+        let choice = LatticeChoice::get();
+        let mut indices = Vec::new();
+        for tenths in 0..3600 {
+            let angle = (tenths as f64 / 10.0 + 0.03).to_radians();
             let direction = [angle.cos(), angle.sin()];
-            let lattice = Lattice::along(&[direction; 4], &candidates);
-            let [a, b] = lattice.step;
-            assert_eq!(lattice.position[0] * a + lattice.position[1] * b, 1);
-            strides.push(lattice.stride);
-            // Every point off the lattice lies between two lattice points on its line,
-            // at most MAX_ALONG apart and MAX_ACROSS across the epipolar line.
-            let span = [
-                2.0 * (lattice.stride * a) as f64,
-                2.0 * (lattice.stride * b) as f64,
-            ];
-            assert!(span[0].hypot(span[1]) <= MAX_ALONG + 1e-9, "{degrees}°");
-            let across = (direction[0] * span[1] - direction[1] * span[0]).abs();
-            assert!(across <= MAX_ACROSS + 1e-9, "{degrees}°: {across}");
-            for (i, j) in [(10usize, 20usize), (11, 20), (12, 23), (17, 31)] {
-                let behind = lattice.offset(i, j);
-                let ahead = lattice.stride - behind;
-                let back = (
-                    (i as i64 - behind * a) as usize,
-                    (j as i64 - behind * b) as usize,
-                );
-                let front = (
-                    (i as i64 + ahead * a) as usize,
-                    (j as i64 + ahead * b) as usize,
-                );
-                assert_eq!(lattice.offset(back.0, back.1), 0, "{degrees}°");
-                assert_eq!(lattice.offset(front.0, front.1), 0, "{degrees}°");
+            let lattice = Lattice::along(&[direction; 4], choice);
+            let Lattice { u, v, index } = lattice;
+            assert_eq!(u[0] * v[1] - u[1] * v[0], index, "{angle}");
+            indices.push(index);
+            let across =
+                |[a, b]: [i64; 2]| 2.0 * (direction[0] * b as f64 - direction[1] * a as f64);
+            for j in 20..20 + 2 * MAX_INDEX {
+                for i in 20..20 + 2 * MAX_INDEX {
+                    let residues = lattice.residues(i as usize, j as usize);
+                    if residues == [0, 0] {
+                        continue;
+                    }
+                    let corners = corners_of(&lattice, (i, j), residues);
+                    assert!((2..=3).contains(&corners.len()), "{angle}: {corners:?}");
+                    let mut sum = [0, 0, 0];
+                    for &([ci, cj], weight) in &corners {
+                        assert_eq!(lattice.residues(ci as usize, cj as usize), [0, 0]);
+                        sum = [sum[0] + weight * ci, sum[1] + weight * cj, sum[2] + weight];
+                    }
+                    assert_eq!(sum, [index * i, index * j, index], "{angle}: ({i}, {j})");
+                    let (mut low, mut high) = (0.0f64, 0.0f64);
+                    for &(a, _) in &corners {
+                        for &(b, _) in &corners {
+                            let span = [b[0] - a[0], b[1] - a[1]];
+                            let length = 2.0 * (span[0] as f64).hypot(span[1] as f64);
+                            assert!(length <= MAX_ALONG + 1e-9, "{angle}: {corners:?}");
+                        }
+                        let offset = [a[0] - corners[0].0[0], a[1] - corners[0].0[1]];
+                        low = low.min(across(offset));
+                        high = high.max(across(offset));
+                    }
+                    assert!(high - low <= MAX_ACROSS + 1e-9, "{angle}: {corners:?}");
+                }
             }
         }
-        // Along any direction at most half the finer grid is shaded first, a sixth along
-        // the grid's axes (pairs 12 px apart) and a quarter along its diagonals (11.3 px).
-        assert!(strides.iter().all(|&stride| stride >= 2), "{strides:?}");
-        for degrees in [0, 90, 180, 270] {
-            assert_eq!(strides[degrees], 6, "{degrees}°");
+        // At most half the finer grid is shaded first, a sixth along the grid's axes
+        // (pairs 12 px apart) and a quarter along its diagonals (11.3 px); on average
+        // over directions, about a fifth.
+        assert!(indices.iter().all(|&index| index >= 2), "{indices:?}");
+        for tenths in [0, 900, 1800, 2700] {
+            assert_eq!(indices[tenths], 6, "{tenths}");
         }
-        for degrees in [45, 135, 225, 315] {
-            assert_eq!(strides[degrees], 4, "{degrees}°");
+        for tenths in [450, 1350, 2250, 3150] {
+            assert_eq!(indices[tenths], 4, "{tenths}");
         }
+        let shaded = indices.iter().map(|&index| 1.0 / index as f64).sum::<f64>() / 3600.0;
+        assert!(shaded < 0.21, "{shaded}");
+        // Lines of lattice points alone (pairs, no triangles) shade half as much again.
+        let collinear = (0..3600)
+            .map(|tenths| {
+                let angle = (tenths as f64 / 10.0 + 0.03).to_radians();
+                let direction = [[angle.cos(), angle.sin()]];
+                let mut candidates = choice.candidates.iter().filter(|c| c.collinear);
+                let first = candidates.find(|c| c.fits(&direction));
+                1.0 / first.map_or(1, |c| c.lattice.index) as f64
+            })
+            .sum::<f64>()
+            / 3600.0;
+        assert!(shaded < collinear / 1.4, "{shaded} against {collinear}");
         // Around an epipole inside the square, and without a direction, every point.
         let around = [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]];
-        assert_eq!(Lattice::along(&around, &candidates), Lattice::EVERY_POINT);
+        assert_eq!(Lattice::along(&around, choice), Lattice::EVERY_POINT);
         assert_eq!(
-            Lattice::along(&[[0.0, 0.0]; 4], &candidates),
+            Lattice::along(&[[0.0, 0.0]; 4], choice),
             Lattice::EVERY_POINT
         );
         assert_eq!(
-            Lattice::along(&[[f64::NAN, 1.0]; 4], &candidates),
+            Lattice::along(&[[f64::NAN, 1.0]; 4], choice),
             Lattice::EVERY_POINT
         );
     }
 
     #[test]
-    fn lattices_choose_among_the_short_steps_what_they_would_among_all() {
-        // Every primitive step up to MAX_STEP, in the same order, none left out.
-        let mut every_step = Vec::new();
-        for a in -MAX_STEP..=MAX_STEP {
-            for b in 0..=MAX_STEP {
-                if b == 0 && a != 1 {
-                    continue;
-                }
-                if let Some(position) = bezout([a, b]) {
-                    every_step.push(LatticeStep {
-                        step: [a, b],
-                        position,
-                        length: 2.0 * ((a * a + b * b) as f64).sqrt(),
-                    });
-                }
-            }
-        }
-        let candidates = Lattice::candidates();
-        assert!(candidates.len() < every_step.len());
-        // Squares whose lines fan out by up to 20° from a direction, every 0.7°.
-        for step in 0..520 {
-            let angle = (step as f64 * 0.7).to_radians();
-            for fan in [0.0f64, 2.0, 8.0, 20.0] {
+    fn lattices_choose_from_their_direction_s_bin_what_they_would_from_all() {
+        let choice = LatticeChoice::get();
+        // Squares whose lines fan out by up to 20° from a direction, every 0.07°.
+        for step in 0..5200 {
+            let angle = (step as f64 * 0.07).to_radians();
+            for fan in [0.0f64, 0.5, 2.0, 8.0, 20.0] {
                 let corners: [[f64; 2]; 4] = std::array::from_fn(|k| {
                     let turned = angle + (k as f64 / 3.0 - 0.5) * fan.to_radians();
                     [3.0 * turned.cos(), 3.0 * turned.sin()]
                 });
+                let units = unit_directions(&corners).unwrap();
+                let first = choice
+                    .candidates
+                    .iter()
+                    .find(|candidate| candidate.fits(&units))
+                    .map_or(Lattice::EVERY_POINT, |candidate| candidate.lattice);
                 assert_eq!(
-                    Lattice::along(&corners, &candidates),
-                    Lattice::along(&corners, &every_step),
+                    Lattice::along(&corners, choice),
+                    first,
                     "{angle} rad, fan {fan}°"
                 );
             }
