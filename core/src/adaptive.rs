@@ -501,18 +501,11 @@ impl Lattice {
         }
     }
 
-    /// The sparsest lattice for a square whose epipolar lines run along `directions`
-    /// (in pixels, at its corners: around an epipole off the square the extremes lie
-    /// there), first in `choice`'s order of preference among equally sparse ones.
+    /// [`LatticeChoice::first_fitting`]'s lattice, or every point where none fits.
+    #[cfg(test)]
     fn along(directions: &[[f64; 2]; 4], choice: &LatticeChoice) -> Self {
-        let Some(units) = unit_directions(directions) else {
-            return Self::EVERY_POINT;
-        };
         choice
-            .fitting(units[0])
-            .iter()
-            .map(|&k| &choice.candidates[k as usize])
-            .find(|candidate| candidate.fits(&units))
+            .first_fitting(directions)
             .map_or(Self::EVERY_POINT, |candidate| candidate.lattice)
     }
 }
@@ -716,6 +709,18 @@ impl LatticeChoice {
         }
     }
 
+    /// The sparsest candidate for a square whose epipolar lines run along `directions`
+    /// (in pixels, at its corners: around an epipole off the square the extremes lie
+    /// there), first in order of preference among equally sparse ones; `None` where none
+    /// fits (or a corner has no direction), and every point is shaded.
+    fn first_fitting(&self, directions: &[[f64; 2]; 4]) -> Option<&LatticeCandidate> {
+        let units = unit_directions(directions)?;
+        self.fitting(units[0])
+            .iter()
+            .map(|&k| &self.candidates[k as usize])
+            .find(|candidate| candidate.fits(&units))
+    }
+
     /// The candidates that fit some direction in `unit`'s bin, in order of preference.
     fn fitting(&self, [dx, dy]: [f64; 2]) -> &[u32] {
         let angle = dy.atan2(dx).rem_euclid(std::f64::consts::PI);
@@ -782,11 +787,15 @@ impl Lattices {
         let across = width.div_ceil(LATTICE_TILE);
         let down = height.div_ceil(LATTICE_TILE);
         let choice = lines.map(|_| LatticeChoice::get());
-        let squares = (0..down * across)
+        let every_point = (
+            Lattice::EVERY_POINT,
+            Pairing::of(&LatticeCandidate::new(Lattice::EVERY_POINT)),
+        );
+        let (squares, pairings) = (0..down * across)
             .into_par_iter()
             .map(|square| {
                 let (Some(lines), Some(choice)) = (lines, choice) else {
-                    return Lattice::EVERY_POINT;
+                    return every_point;
                 };
                 let (i0, j0) = (
                     square % across * LATTICE_TILE,
@@ -798,13 +807,13 @@ impl Lattices {
                 );
                 let corners = [(i0, j0), (i1, j0), (i0, j1), (i1, j1)]
                     .map(|(i, j)| lines.direction(2 * i, 2 * j));
-                Lattice::along(&corners, choice)
+                choice
+                    .first_fitting(&corners)
+                    .map_or(every_point, |candidate| {
+                        (candidate.lattice, Pairing::of(candidate))
+                    })
             })
-            .collect::<Vec<_>>();
-        let pairings = squares
-            .iter()
-            .map(|&lattice| Pairing::of(&LatticeCandidate::new(lattice)))
-            .collect();
+            .unzip();
         Self {
             across,
             squares,
