@@ -1184,12 +1184,7 @@ mod tests {
             scene.render.shadow_map_size = size;
         }
         let (_, _, radial) = test_support::rectified(&scene, Rectification::Epipolar, desc);
-        scene.camera.projection = crate::scene::Projection::Orthographic {
-            ortho_scale: 20.0,
-            sensor_fit: crate::scene::SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
+        scene.camera.projection = crate::scene::Projection::orthographic(20.0);
         let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, desc);
         [radial, parallel]
     }

@@ -469,12 +469,7 @@ mod tests {
             "{stages:?}"
         );
         let mut ortho = Camera::pinhole_looking_at(Vec3::ZERO, Vec3::X, 35.0, WIDTH, HEIGHT);
-        ortho.projection = crate::scene::Projection::Orthographic {
-            ortho_scale: 10.0,
-            sensor_fit: Default::default(),
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
+        ortho.projection = crate::scene::Projection::orthographic(10.0);
         assert_eq!(
             ProjectiveFrame::fit(&CameraModel::new(&ortho), light, 20.0),
             Err(Unsupported::Orthographic)

@@ -101,6 +101,18 @@ pub enum Projection {
     },
 }
 
+impl Projection {
+    /// A parallel projection `ortho_scale` across the wider image side, unshifted.
+    pub const fn orthographic(ortho_scale: f32) -> Self {
+        Self::Orthographic {
+            ortho_scale,
+            sensor_fit: SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: 0.0,
+        }
+    }
+}
+
 fn default_sensor_width() -> f32 {
     36.0
 }
@@ -589,12 +601,7 @@ impl Camera {
         height: u32,
     ) -> Self {
         Camera {
-            projection: Projection::Orthographic {
-                ortho_scale,
-                sensor_fit: SensorFit::Auto,
-                shift_x: 0.0,
-                shift_y: 0.0,
-            },
+            projection: Projection::orthographic(ortho_scale),
             ..Camera::pinhole_looking_at(eye, target, 50.0, width, height)
         }
     }

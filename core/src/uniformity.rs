@@ -198,7 +198,7 @@ mod tests {
     use crate::builtin::builtin_scene;
     use crate::epipolar::test_support::rectified;
     use crate::epipolar::{MapLayout, RectifyDesc};
-    use crate::scene::{Projection, Rectification, SensorFit};
+    use crate::scene::{Projection, Rectification};
     use rand::{RngExt, SeedableRng};
 
     /// Small frames of the built-in scenes in each of the map's layouts.
@@ -211,12 +211,7 @@ mod tests {
             scene
         };
         let mut orthographic = small("plane");
-        orthographic.camera.projection = Projection::Orthographic {
-            ortho_scale: 30.0,
-            sensor_fit: SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
+        orthographic.camera.projection = Projection::orthographic(30.0);
         let desc = RectifyDesc::prefiltered(0);
         vec![
             (

@@ -49,12 +49,7 @@ fn views_at(name: &str, width: u32, height: u32) -> Vec<(&'static str, Scene)> {
     let side = Vec3::new(-towards_sun.y, towards_sun.x, -0.15).normalize();
     let side_view = Camera::pinhole_looking_at(eye, eye + side, focal, width, height);
     let mut orthographic = scene.camera.clone();
-    orthographic.projection = Projection::Orthographic {
-        ortho_scale: 24.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    orthographic.projection = Projection::orthographic(24.0);
     let with_camera = |camera: Camera| Scene {
         camera,
         ..scene.clone()

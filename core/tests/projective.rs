@@ -5,7 +5,7 @@
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{EpipolarMap, RectifyDesc};
 use crepuscular::render::FlatGeometry;
-use crepuscular::scene::{Camera, Method, Projection, Rectification, Scene, SensorFit};
+use crepuscular::scene::{Camera, Method, Projection, Rectification, Scene};
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::{builtin_scene, render_scene, Error, Layers, RenderControl, BUILTIN_SCENES};
 use glam::Vec3;
@@ -181,12 +181,7 @@ fn forcing_projective_where_it_cannot_work_names_the_setting() {
         HEIGHT,
     );
     expect_rectification_error(&scene, "anti-sun");
-    scene.camera.projection = Projection::Orthographic {
-        ortho_scale: 20.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    scene.camera.projection = Projection::orthographic(20.0);
     expect_rectification_error(&scene, "pinhole");
 }
 

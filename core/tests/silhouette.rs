@@ -4,7 +4,7 @@
 
 use crepuscular::builtin_scene;
 use crepuscular::camera::CameraModel;
-use crepuscular::scene::{Projection, SensorFit};
+use crepuscular::scene::Projection;
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{apply, apply_naive, Epipole, SilhouetteDesc};
 use crepuscular::Error;
@@ -404,12 +404,7 @@ fn a_camera_projects_to_its_position_or_its_view_direction() {
         other => panic!("a pinhole camera gave {other:?}"),
     }
 
-    scene.camera.projection = Projection::Orthographic {
-        ortho_scale: 10.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    scene.camera.projection = Projection::orthographic(10.0);
     let camera = CameraModel::new(&scene.camera);
     let Epipole::Direction(direction) = Epipole::of_camera(&camera, &map) else {
         panic!("an orthographic camera has its epipole at infinity");

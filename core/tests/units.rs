@@ -6,7 +6,7 @@
 //! from the world's origin must render as it does near it.
 
 use crepuscular::holes::HolesDesc;
-use crepuscular::scene::{Extent, Method, Projection, Rectification, Scene, SensorFit};
+use crepuscular::scene::{Extent, Method, Projection, Rectification, Scene};
 use crepuscular::silhouette::SilhouetteOp;
 use crepuscular::style::{HoleFilling, Silhouette};
 use crepuscular::transfer_function::{
@@ -140,12 +140,7 @@ fn box_media_other_layouts_and_set_biases_render_the_same_in_any_unit() {
     };
     assert_unit_free("tree in a box", &boxed);
     let mut orthographic = small("colonnade");
-    orthographic.camera.projection = Projection::Orthographic {
-        ortho_scale: 20.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    orthographic.camera.projection = Projection::orthographic(20.0);
     orthographic.render.shadow_bias = Some(0.05);
     assert_unit_free("orthographic colonnade", &orthographic);
     let mut projective = small("plane");

@@ -20,7 +20,7 @@ use crepuscular::prefiltered::{
 use crepuscular::raster::{rasterize, DepthTarget, Rasterizer, NO_OBJECT};
 use crepuscular::render::{camera_raster, render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{
-    BasisStorage, Camera, ExactRayEnds, Extent, Method, Projection, Rectification, Scene, SensorFit,
+    BasisStorage, Camera, ExactRayEnds, Extent, Method, Projection, Rectification, Scene,
 };
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{self, Epipole, SilhouetteDesc};
@@ -246,12 +246,7 @@ fn depth_parity(gpu: &[f32], cpu: &[f32]) -> (usize, f64) {
 /// A built-in scene seen through an orthographic camera.
 fn orthographic(scene: &Scene) -> Scene {
     let mut scene = scene.clone();
-    scene.camera.projection = Projection::Orthographic {
-        ortho_scale: 30.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    scene.camera.projection = Projection::orthographic(30.0);
     scene
 }
 
@@ -712,12 +707,7 @@ fn prefiltered_evaluation_matches_across_layouts() {
     grazing.render.exact_ray_ends = ExactRayEnds::On;
     variants.push(("plane, exact ray ends", grazing));
     let mut orthographic = prefiltered("plane");
-    orthographic.camera.projection = Projection::Orthographic {
-        ortho_scale: 30.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    orthographic.camera.projection = Projection::orthographic(30.0);
     variants.push(("plane orthographic", orthographic));
     // Looking up out of a box of fog: the stretches inside it are too short for the
     // prefix sums, and most rays take the exact walk through the box.
@@ -1067,12 +1057,7 @@ fn camera_depth_matches_the_cpu_rasterizer() {
         scene.camera.width = 640;
         scene.camera.height = 360;
         let mut orthographic = scene.clone();
-        orthographic.camera.projection = Projection::Orthographic {
-            ortho_scale: 30.0,
-            sensor_fit: SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        };
+        orthographic.camera.projection = Projection::orthographic(30.0);
         let geometry = FlatGeometry::from_scene(&scene);
         for (kind, scene) in [("pinhole", &scene), ("orthographic", &orthographic)] {
             let camera = CameraModel::new(&scene.camera);
