@@ -98,7 +98,7 @@ impl SurfaceCoordinate {
     }
 
     /// Whether a ray ending at `reach` ends on the surface whose coordinate at its pixel
-    /// is `expected` ([`blend_if_agreeing`]): within [`EDGE_DEPTH_SPREAD`] of it. Without
+    /// is `expected` ([`Agreement::blend`]): within [`EDGE_DEPTH_SPREAD`] of it. Without
     /// a division for the inverse distance e, |1/e − reach| ≤ spread·reach being
     /// |1 − e·reach| ≤ spread·e·reach for the e > 0 of reaches up to the max distance.
     #[inline(always)]
@@ -228,17 +228,12 @@ impl EpipolarLines {
 /// Interpolation from shaded neighbours, where they agree and the pixel sees the same
 /// surface.
 struct Interpolation<'s, S> {
-    tolerance: f32,
-    /// Per channel of RGBA, the value below which spreads are held to the tolerance of
-    /// this value rather than of the blend's ([`DARK_SHARE`]).
-    floor: [f32; 4],
-    max_distance: f32,
-    coordinate: SurfaceCoordinate,
+    agreement: Agreement,
     surface: &'s S,
 }
 
 impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
-    /// Pixel (x, y) as the blend of `neighbours` by `weights` ([`blend_if_agreeing`]),
+    /// Pixel (x, y) as the blend of `neighbours` by `weights` ([`Agreement::blend`]),
     /// where it lies on their surface.
     #[inline(always)]
     fn between<const N: usize>(
@@ -248,29 +243,27 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
         x: usize,
         y: usize,
     ) -> Option<Pixel> {
-        let blend = blend_if_agreeing(
-            neighbours,
-            weights,
-            self.tolerance,
-            self.floor,
-            self.max_distance,
-            self.coordinate,
-        )?;
+        let blend = self.agreement.blend(neighbours, weights)?;
         self.on_surface(blend, x, y)
     }
 
     /// Pixel (x, y) as `blend`, where its own ray ends on the surface the blend's do.
     #[inline(always)]
     fn on_surface(&self, blend: Blend, x: usize, y: usize) -> Option<Pixel> {
+        let Agreement {
+            max_distance,
+            coordinate,
+            ..
+        } = self.agreement;
         let surface = (self.surface)(x, y)?;
-        let reach = surface.min(self.max_distance as f64) as f32;
-        if !self.coordinate.holds(blend.coordinate, reach) {
+        let reach = surface.min(max_distance as f64) as f32;
+        if !coordinate.holds(blend.coordinate, reach) {
             return None;
         }
         Some(Pixel {
             volume: blend.volume,
             visibility: blend.visibility,
-            depth: layer_depth(surface, self.max_distance as f64) as f32,
+            depth: layer_depth(surface, max_distance as f64) as f32,
         })
     }
 
@@ -309,7 +302,10 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
         y: usize,
     ) -> Option<Pixel> {
         let wider = Interpolation {
-            tolerance: self.tolerance * widening,
+            agreement: Agreement {
+                tolerance: self.agreement.tolerance * widening,
+                ..self.agreement
+            },
             ..*self
         };
         wider.between(corners, weights, x, y)
@@ -317,19 +313,16 @@ impl<S: Fn(usize, usize) -> Option<f64>> Interpolation<'_, S> {
 
     /// Pixel (x, y) as the mean of the middle two of `points`, four in a row at even
     /// steps with the pixel midway, where the four lie on a smooth ramp
-    /// ([`blend_on_ramp`]) and it lies on their surface; `None` where a point is missing.
+    /// ([`Agreement::blend_on_ramp`]) and it lies on their surface; `None` where a point
+    /// is missing.
     #[inline]
     fn on_ramp(&self, points: [Option<Pixel>; 4], x: usize, y: usize) -> Option<Pixel> {
         let [Some(before), Some(first), Some(second), Some(after)] = points else {
             return None;
         };
-        let blend = blend_on_ramp(
-            [before, first, second, after],
-            self.tolerance,
-            self.floor,
-            self.max_distance,
-            self.coordinate,
-        )?;
+        let blend = self
+            .agreement
+            .blend_on_ramp([before, first, second, after])?;
         self.on_surface(blend, x, y)
     }
 
@@ -1009,10 +1002,12 @@ pub fn shade_adaptively(
     let lattice = stopwatch.lap();
     let floor = sums.map(|sum| (DARK_SHARE * sum / points.max(1) as f64) as f32);
     let interpolation = Interpolation {
-        tolerance,
-        floor,
-        max_distance,
-        coordinate,
+        agreement: Agreement {
+            tolerance,
+            floor,
+            max_distance,
+            coordinate,
+        },
         surface: &surface,
     };
     // The other points, the bands of each parity in parallel: a band's pairs reach only
@@ -1482,7 +1477,7 @@ impl Batch {
     }
 }
 
-/// Neighbours' blend where they agree ([`blend_if_agreeing`]).
+/// Neighbours' blend where they agree ([`Agreement::blend`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Blend {
     volume: [f32; 4],
@@ -1492,173 +1487,179 @@ struct Blend {
     coordinate: f32,
 }
 
-/// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of RGBA
-/// spreads by at most `tolerance` times its blend, or times its `floor` where the blend
-/// is below that (NaN stays a disagreement), and visibility by at most `tolerance`. Their
-/// rays' ends (background and surfaces beyond it at `max_distance`) blend in `coordinate`.
-/// NaN anywhere means disagreement.
-#[inline(always)]
-fn blend_if_agreeing<const N: usize>(
-    neighbours: [Pixel; N],
-    weights: [f32; N],
+/// What neighbours must share to be blended: how far their light may spread, and where
+/// their rays end.
+#[derive(Clone, Copy, Debug)]
+struct Agreement {
     tolerance: f32,
+    /// Per channel of RGBA, the value below which spreads are held to the tolerance of
+    /// this value rather than of the blend's ([`DARK_SHARE`]).
     floor: [f32; 4],
+    /// Where background rays end, and surfaces beyond it count as lying.
     max_distance: f32,
     coordinate: SurfaceCoordinate,
-) -> Option<Blend> {
-    let lanes = lanes_of(neighbours, max_distance, coordinate);
-    let lanes = |n: usize| lanes[n];
-    let mut low = [f32::INFINITY; 8];
-    let mut high = [f32::NEG_INFINITY; 8];
-    // The first neighbour plus the others' weighted differences from it, so that equal
-    // neighbours blend to exactly their value.
-    let first = lanes(0);
-    let mut blend = first;
-    for (n, weight) in weights.into_iter().enumerate() {
-        let values = lanes(n);
-        // Comparisons rather than f32::min and max, which vectorize without their NaN
-        // handling and give the same: NaN never replaces a bound, and blends to NaN.
-        for k in 0..8 {
-            low[k] = if values[k] < low[k] {
-                values[k]
-            } else {
-                low[k]
-            };
-            high[k] = if values[k] > high[k] {
-                values[k]
-            } else {
-                high[k]
-            };
-            blend[k] += weight * (values[k] - first[k]);
-        }
-    }
-    // The reaches may spread as a receding surface's do (the pixel's own is tested
-    // against their blend), and only NaN there disagrees.
-    let allowed = allowed_spreads(&blend, tolerance, floor);
-    // Comparisons drop NaN from the bounds, so the reach's blend is checked itself.
-    let mut agree = !blend[5].is_nan();
-    for k in 0..8 {
-        agree &= high[k] - low[k] <= allowed[k];
-    }
-    agree.then_some(Blend {
-        volume: [blend[0], blend[1], blend[2], blend[3]],
-        visibility: blend[4],
-        coordinate: blend[5],
-    })
 }
 
-/// Each pixel's eight lanes, RGBA, visibility, the reach's coordinate in `coordinate`
-/// (background and surfaces beyond it at `max_distance`) and two of padding, so that
-/// every step of a blend is one lane-wise operation.
-#[inline(always)]
-fn lanes_of<const N: usize>(
-    pixels: [Pixel; N],
-    max_distance: f32,
-    coordinate: SurfaceCoordinate,
-) -> [[f32; 8]; N] {
-    // The reaches' coordinates first, side by side, so that their divisions overlap.
-    let coordinates: [f32; N] = std::array::from_fn(|n| {
-        let depth = pixels[n].depth;
-        // NaN stays NaN.
-        coordinate.of(if depth > max_distance {
-            max_distance
+impl Agreement {
+    /// The blend of `neighbours` by `weights` (summing to 1) where they agree: each of
+    /// RGBA spreads by at most the tolerance times its blend, or times its floor where the
+    /// blend is below that (NaN stays a disagreement), and visibility by at most the
+    /// tolerance. Their rays' ends blend in the surface coordinate. NaN anywhere means
+    /// disagreement.
+    #[inline(always)]
+    fn blend<const N: usize>(&self, neighbours: [Pixel; N], weights: [f32; N]) -> Option<Blend> {
+        let lanes = self.lanes(neighbours);
+        let lanes = |n: usize| lanes[n];
+        let mut low = [f32::INFINITY; 8];
+        let mut high = [f32::NEG_INFINITY; 8];
+        // The first neighbour plus the others' weighted differences from it, so that equal
+        // neighbours blend to exactly their value.
+        let first = lanes(0);
+        let mut blend = first;
+        for (n, weight) in weights.into_iter().enumerate() {
+            let values = lanes(n);
+            // Comparisons rather than f32::min and max, which vectorize without their NaN
+            // handling and give the same: NaN never replaces a bound, and blends to NaN.
+            for k in 0..8 {
+                low[k] = if values[k] < low[k] {
+                    values[k]
+                } else {
+                    low[k]
+                };
+                high[k] = if values[k] > high[k] {
+                    values[k]
+                } else {
+                    high[k]
+                };
+                blend[k] += weight * (values[k] - first[k]);
+            }
+        }
+        // The reaches may spread as a receding surface's do (the pixel's own is tested
+        // against their blend), and only NaN there disagrees.
+        let allowed = self.allowed_spreads(&blend);
+        // Comparisons drop NaN from the bounds, so the reach's blend is checked itself.
+        let mut agree = !blend[5].is_nan();
+        for k in 0..8 {
+            agree &= high[k] - low[k] <= allowed[k];
+        }
+        agree.then_some(Blend {
+            volume: [blend[0], blend[1], blend[2], blend[3]],
+            visibility: blend[4],
+            coordinate: blend[5],
+        })
+    }
+
+    /// The mean of the middle two of `points`, four in a row at even steps, where they
+    /// lie on a smooth ramp: per lane, each step differs from the one before by at most
+    /// what [`Agreement::blend`] allows the pair to spread. The middle pair of a steep
+    /// smooth gradient (a shaft's soft edge, or the light where a shaft meets the ground)
+    /// may spread by far more than that, while their mean is off the curve between them
+    /// by about an eighth of that change of step. A step or a crease anywhere among them
+    /// changes the steps by as much as it rises, and is refused. What no four points show
+    /// is not found either: a line thinner than their spacing between the pair, or a
+    /// ripple that samples to a straight line, as [`Agreement::blend`] misses one between
+    /// agreeing neighbours. The reaches' coordinates need not be smooth (the pixel's own
+    /// is tested against their blend), but NaN anywhere is refused. Most ramps tried are
+    /// refused, so the coordinates (a division each) are found only for those that pass.
+    #[inline]
+    fn blend_on_ramp(&self, points: [Pixel; 4]) -> Option<Blend> {
+        let lanes = points.map(|pixel| {
+            let [r, g, b, a] = pixel.volume;
+            [r, g, b, a, pixel.visibility, 0.0, 0.0, 0.0]
+        });
+        let [before, first, second, after] = lanes;
+        let mut blend: [f32; 8] = std::array::from_fn(|k| first[k] + 0.5 * (second[k] - first[k]));
+        let allowed = self.allowed_spreads(&blend);
+        let mut smooth = true;
+        for k in 0..5 {
+            let steps = [
+                first[k] - before[k],
+                second[k] - first[k],
+                after[k] - second[k],
+            ];
+            smooth &= (steps[1] - steps[0]).abs() <= allowed[k];
+            smooth &= (steps[2] - steps[1]).abs() <= allowed[k];
+        }
+        if !smooth || points[0].depth.is_nan() || points[3].depth.is_nan() {
+            return None;
+        }
+        let [first, second] = [points[1], points[2]].map(|pixel| self.reach_coordinate(pixel));
+        blend[5] = first + 0.5 * (second - first);
+        (!blend[5].is_nan()).then_some(Blend {
+            volume: [blend[0], blend[1], blend[2], blend[3]],
+            visibility: blend[4],
+            coordinate: blend[5],
+        })
+    }
+
+    /// Each pixel's eight lanes, RGBA, visibility, the reach's coordinate
+    /// ([`Agreement::reach_coordinate`]) and two of padding, so that every step of a
+    /// blend is one lane-wise operation.
+    #[inline(always)]
+    fn lanes<const N: usize>(&self, pixels: [Pixel; N]) -> [[f32; 8]; N] {
+        // The reaches' coordinates first, side by side, so that their divisions overlap.
+        let coordinates: [f32; N] = std::array::from_fn(|n| self.reach_coordinate(pixels[n]));
+        std::array::from_fn(|n| {
+            let [r, g, b, a] = pixels[n].volume;
+            [r, g, b, a, pixels[n].visibility, coordinates[n], 0.0, 0.0]
+        })
+    }
+
+    /// Where `pixel`'s ray ends in the surface coordinate: background, and surfaces beyond
+    /// the max distance, at the max distance. NaN stays NaN.
+    #[inline(always)]
+    fn reach_coordinate(&self, pixel: Pixel) -> f32 {
+        let depth = pixel.depth;
+        self.coordinate.of(if depth > self.max_distance {
+            self.max_distance
         } else {
             depth
         })
-    });
-    std::array::from_fn(|n| {
-        let [r, g, b, a] = pixels[n].volume;
-        [r, g, b, a, pixels[n].visibility, coordinates[n], 0.0, 0.0]
-    })
-}
-
-/// Per lane of a `blend` ([`lanes_of`]), the spread allowed: `tolerance` relative to it
-/// for RGBA, or to `floor` where it is darker, and absolute for visibility; any for the
-/// reach's coordinate.
-#[inline(always)]
-fn allowed_spreads(blend: &[f32; 8], tolerance: f32, floor: [f32; 4]) -> [f32; 8] {
-    std::array::from_fn(|k| match k {
-        0..4 => {
-            let magnitude = blend[k].abs();
-            tolerance
-                * if magnitude < floor[k] {
-                    floor[k]
-                } else {
-                    magnitude
-                }
-        }
-        4 => tolerance,
-        5 => f32::INFINITY,
-        _ => 0.0,
-    })
-}
-
-/// The mean of the middle two of `points`, four in a row at even steps, where they lie
-/// on a smooth ramp: per lane, each step differs from the one before by at most what
-/// [`blend_if_agreeing`] allows the pair to spread. The middle pair of a steep smooth
-/// gradient (a shaft's soft edge, or the light where a shaft meets the ground) may spread
-/// by far more than that, while their mean is off the curve between them by about an
-/// eighth of that change of step. A step or a crease anywhere among them changes the
-/// steps by as much as it rises, and is refused. What no four points show is not found
-/// either: a line thinner than their spacing between the pair, or a ripple that samples
-/// to a straight line, as [`blend_if_agreeing`] misses one between agreeing neighbours.
-/// The reaches' coordinates need not be smooth (the pixel's own is tested against their
-/// blend), but NaN anywhere is refused. Most ramps tried are refused, so the
-/// coordinates (a division each) are found only for those that pass.
-#[inline]
-fn blend_on_ramp(
-    points: [Pixel; 4],
-    tolerance: f32,
-    floor: [f32; 4],
-    max_distance: f32,
-    coordinate: SurfaceCoordinate,
-) -> Option<Blend> {
-    let lanes = points.map(|pixel| {
-        let [r, g, b, a] = pixel.volume;
-        [r, g, b, a, pixel.visibility, 0.0, 0.0, 0.0]
-    });
-    let [before, first, second, after] = lanes;
-    let mut blend: [f32; 8] = std::array::from_fn(|k| first[k] + 0.5 * (second[k] - first[k]));
-    let allowed = allowed_spreads(&blend, tolerance, floor);
-    let mut smooth = true;
-    for k in 0..5 {
-        let steps = [
-            first[k] - before[k],
-            second[k] - first[k],
-            after[k] - second[k],
-        ];
-        smooth &= (steps[1] - steps[0]).abs() <= allowed[k];
-        smooth &= (steps[2] - steps[1]).abs() <= allowed[k];
     }
-    if !smooth || points[0].depth.is_nan() || points[3].depth.is_nan() {
-        return None;
+
+    /// Per lane of a `blend` ([`Agreement::lanes`]), the spread allowed: the tolerance
+    /// relative to it for RGBA, or to the floor where it is darker, and absolute for
+    /// visibility; any for the reach's coordinate.
+    #[inline(always)]
+    fn allowed_spreads(&self, blend: &[f32; 8]) -> [f32; 8] {
+        let (tolerance, floor) = (self.tolerance, self.floor);
+        std::array::from_fn(|k| match k {
+            0..4 => {
+                let magnitude = blend[k].abs();
+                tolerance
+                    * if magnitude < floor[k] {
+                        floor[k]
+                    } else {
+                        magnitude
+                    }
+            }
+            4 => tolerance,
+            5 => f32::INFINITY,
+            _ => 0.0,
+        })
     }
-    let [first, second] = lanes_of([points[1], points[2]], max_distance, coordinate);
-    blend[5] = first[5] + 0.5 * (second[5] - first[5]);
-    (!blend[5].is_nan()).then_some(Blend {
-        volume: [blend[0], blend[1], blend[2], blend[3]],
-        visibility: blend[4],
-        coordinate: blend[5],
-    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// No floor, reaches in inverse distance.
+    fn agreement(tolerance: f32, max_distance: f32) -> Agreement {
+        Agreement {
+            tolerance,
+            floor: [0.0; 4],
+            max_distance,
+            coordinate: SurfaceCoordinate::InverseDistance,
+        }
+    }
+
     fn mean_if_agreeing<const N: usize>(
         neighbours: [Pixel; N],
         tolerance: f32,
         max_distance: f32,
     ) -> Option<Blend> {
-        blend_if_agreeing(
-            neighbours,
-            [1.0 / N as f32; N],
-            tolerance,
-            [0.0; 4],
-            max_distance,
-            SurfaceCoordinate::InverseDistance,
-        )
+        agreement(tolerance, max_distance).blend(neighbours, [1.0 / N as f32; N])
     }
 
     fn pixel(rgb: f32, alpha: f32, visibility: f32, depth: f32) -> Pixel {
@@ -1673,13 +1674,7 @@ mod tests {
     fn smooth_ramps_give_their_middle_pairs_mean_and_steps_and_creases_are_refused() {
         let ramp = |f: &dyn Fn(f32) -> f32, visibility: &dyn Fn(f32) -> f32| {
             let points = [-3.0, -1.0, 1.0, 3.0].map(|t| pixel(f(t), 0.4, visibility(t), 10.0));
-            blend_on_ramp(
-                points,
-                0.01,
-                [0.0; 4],
-                100.0,
-                SurfaceCoordinate::InverseDistance,
-            )
+            agreement(0.01, 100.0).blend_on_ramp(points)
         };
         let level = |_: f32| 0.5;
         // A gradient of 5% per pixel, its pair 10% apart (ten times the tolerance), and a
@@ -1705,11 +1700,7 @@ mod tests {
         );
         let mut points = [-3.0f32, -1.0, 1.0, 3.0].map(|t| pixel(1.0 + 0.05 * t, 0.4, 0.5, 10.0));
         points[0].depth = f32::NAN;
-        let coordinate = SurfaceCoordinate::InverseDistance;
-        assert_eq!(
-            blend_on_ramp(points, 0.01, [0.0; 4], 100.0, coordinate),
-            None
-        );
+        assert_eq!(agreement(0.01, 100.0).blend_on_ramp(points), None);
     }
 
     #[test]
@@ -1746,14 +1737,11 @@ mod tests {
                 "{step}"
             );
         }
-        let parallel = blend_if_agreeing(
-            [near, far],
-            [0.5; 2],
-            0.01,
-            [0.0; 4],
-            100.0,
-            SurfaceCoordinate::Distance,
-        )
+        let parallel = Agreement {
+            coordinate: SurfaceCoordinate::Distance,
+            ..agreement(0.01, 100.0)
+        }
+        .blend([near, far], [0.5; 2])
         .unwrap();
         assert_eq!(SurfaceCoordinate::Distance.reach(parallel.coordinate), 20.0);
         assert!(SurfaceCoordinate::Distance.holds(parallel.coordinate, 20.0));
@@ -2512,7 +2500,7 @@ mod tests {
             .filter(|&(x, _)| x < 39)
             .collect::<Vec<_>>();
         // Without the lines, from the diagonal's four points as a ramp
-        // ([`blend_on_ramp`]), which along the edge are equal; except near the image's
+        // ([`Agreement::blend_on_ramp`]), which along the edge are equal; except near the image's
         // sides, where there are not four. (Every pixel keeps its exact value either way.)
         for centre in edges {
             assert!(!along.contains(&centre), "{centre:?} along the lines");
