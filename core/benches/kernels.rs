@@ -51,7 +51,8 @@ fn with_shadow_map(name: &str, size: Option<(u32, u32)>) -> (Scene, CameraModel,
     (scene, camera, shadow)
 }
 
-/// 1024 rays of 1024 steps each through the centre row of the image.
+/// 1024 rays of 1024 steps each through the centre row of the image, and the exact walk
+/// through the shadow map's texels.
 fn reference_march(c: &mut Criterion) {
     let mut group = c.benchmark_group("reference_march");
     group.sample_size(20);
@@ -71,6 +72,27 @@ fn reference_march(c: &mut Criterion) {
             b.iter(|| {
                 rays.iter()
                     .map(|ray| marcher.march(ray, 0.1, max_distance).scattering)
+                    .sum::<f64>()
+            })
+        });
+        // The fast methods' exact fallback, on the rays near a sun in view that cross few
+        // texels: a block of 64×64 pixels around it, walked to the max distance.
+        let Some([sun_x, sun_y]) = epipoles_in_image(&camera, &shadow, 0.0).next() else {
+            continue;
+        };
+        let block: Vec<_> = (0..64 * 64)
+            .map(|i| {
+                camera.ray(
+                    sun_x + (i % 64) as f64 - 32.0,
+                    sun_y + (i / 64) as f64 - 32.0,
+                )
+            })
+            .collect();
+        group.bench_function(BenchmarkId::new("walk_64x64_at_the_sun", name), |b| {
+            b.iter(|| {
+                block
+                    .iter()
+                    .map(|ray| marcher.walk_texels(ray, 0.1, max_distance).scattering)
                     .sum::<f64>()
             })
         });

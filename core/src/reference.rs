@@ -274,10 +274,17 @@ impl<'a> Marcher<'a> {
         self.lit_spans(ray, t_start, t_end, t_start + WALK_DEPTH / sigma, |a, b| {
             scattering += (-sigma * (a - t_start)).exp() * integral_exp(sigma, b - a);
         });
-        let unshadowed = integral_exp(sigma, t_end - t_start);
+        // One exponential for both the opacity and the unshadowed in-scattering.
+        let depth = sigma * (t_end - t_start);
+        let transmittance_m1 = (-depth).exp_m1();
+        let unshadowed = if depth.abs() < 1e-8 {
+            integral_exp(sigma, t_end - t_start)
+        } else {
+            -transmittance_m1 / sigma
+        };
         RaySample {
             scattering,
-            alpha: -(-sigma * (t_end - t_start)).exp_m1(),
+            alpha: -transmittance_m1,
             visibility: (scattering / unshadowed).clamp(0.0, 1.0),
         }
     }
@@ -351,47 +358,56 @@ impl<'a> Marcher<'a> {
                 f64::INFINITY
             }
         };
-        let mut next = [
+        let (mut next_x, mut next_y) = (
             axis(origin.x, step.x, cell[0]),
             axis(origin.y, step.y, cell[1]),
-        ];
-        let delta = [1.0 / step.x.abs(), 1.0 / step.y.abs()];
-        let direction = [step.x.signum() as i64, step.y.signum() as i64];
+        );
+        // Each axis in variables of its own: from arrays indexed by the axis stepped, the
+        // compiler divided again for the t between borders at every texel.
+        let (delta_x, delta_y) = (1.0 / step.x.abs(), 1.0 / step.y.abs());
+        let (direction_x, direction_y) = (step.x.signum() as i64, step.y.signum() as i64);
         let end = at(t_end);
         let cells = (end.x - start.x).abs().ceil() + (end.y - start.y).abs().ceil() + 2.0;
+        // Lit while origin.z + step.z·t ≤ threshold: the part of [t, exit] before or after
+        // the ray meets the threshold, by a multiplication rather than a division a texel.
+        // Comparisons rather than f64::min and max, whose NaN handling lengthened each
+        // step's chain of dependent operations: a NaN meet (no threshold) leaves the part
+        // lit, as they did.
+        let per_z = 1.0 / step.z;
+        let lit_part = |threshold: f64, t: f64, exit: f64| {
+            let meet = (threshold - origin.z) * per_z;
+            if step.z > 0.0 {
+                (t, if meet < exit { meet } else { exit })
+            } else if step.z < 0.0 {
+                (if meet > t { meet } else { t }, exit)
+            } else if origin.z <= threshold {
+                (t, exit)
+            } else {
+                (t, t)
+            }
+        };
         let mut t = t_start;
         let mut spans = JoinedSpans::default();
         for _ in 0..cells.min(1e7) as usize {
-            let exit = next[0].min(next[1]).min(t_end).max(t);
+            let along_y = next_y < next_x;
+            let border = if along_y { next_y } else { next_x };
+            let exit = if border < t_end { border } else { t_end };
+            let exit = if exit > t { exit } else { t };
             let inside = (0..size).contains(&cell[0]) && (0..size).contains(&cell[1]);
             let (lit_from, lit_to) = if !inside {
                 (t, exit)
             } else {
-                let threshold =
-                    shadow.depth[(cell[1] * size + cell[0]) as usize] as f64 + shadow.bias;
-                // Lit while origin.z + step.z·t ≤ threshold.
-                if step.z == 0.0 {
-                    if origin.z <= threshold {
-                        (t, exit)
-                    } else {
-                        (t, t)
-                    }
-                } else {
-                    let meet = (threshold - origin.z) / step.z;
-                    if step.z > 0.0 {
-                        (t, meet.min(exit))
-                    } else {
-                        (meet.max(t), exit)
-                    }
-                }
+                let texel = shadow.depth[(cell[1] * size + cell[0]) as usize];
+                lit_part(texel as f64 + shadow.bias, t, exit)
             };
             spans.push(lit_from, lit_to, &mut lit);
             if exit >= t_end || exit > enough {
                 break;
             }
-            let k = usize::from(next[1] < next[0]);
-            cell[k] += direction[k];
-            next[k] += delta[k];
+            cell[0] += if along_y { 0 } else { direction_x };
+            cell[1] += if along_y { direction_y } else { 0 };
+            next_x += if along_y { 0.0 } else { delta_x };
+            next_y += if along_y { delta_y } else { 0.0 };
             t = exit;
         }
         spans.finish(&mut lit);

@@ -16,7 +16,9 @@ impl JoinedSpans {
     pub(crate) fn push(&mut self, s0: f64, s1: f64, visit: &mut impl FnMut(f64, f64)) {
         if s1 > s0 {
             self.pending = match self.pending {
-                Some((p0, p1)) if s0 <= p1 => Some((p0, p1.max(s1))),
+                // A comparison: s1 is no NaN here, and f64::max's NaN handling costs a walk's
+                // every texel.
+                Some((p0, p1)) if s0 <= p1 => Some((p0, if s1 > p1 { s1 } else { p1 })),
                 Some((p0, p1)) => {
                     visit(p0, p1);
                     Some((s0, s1))
