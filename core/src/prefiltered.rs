@@ -578,6 +578,14 @@ pub struct Prefiltered<'a> {
     basis: FilteredBasis,
     /// The cumulative weight at each boundary.
     weight: Vec<f32>,
+    rays: RaySettings,
+    /// Where a stretch of a ray is lit or shadowed all along, it needs no lookup.
+    uniformity: UniformityTable,
+}
+
+/// How rays are integrated, fixed by the plan ([`PrefilteredPlan`]) and read by every ray.
+#[derive(Clone, Copy, Debug)]
+struct RaySettings {
     extinction: f64,
     near_plane_correction: bool,
     box_medium: Option<BoxMedium>,
@@ -589,8 +597,6 @@ pub struct Prefiltered<'a> {
     exact_ray_ends: bool,
     /// Looked-up visibility below which a ray is declined ([`dark_lookup_limit`]).
     dark_lookup_limit: f64,
-    /// Where a stretch of a ray is lit or shadowed all along, it needs no lookup.
-    uniformity: UniformityTable,
 }
 
 fn frequency(m: usize) -> f64 {
@@ -844,14 +850,7 @@ pub struct PrefilteredPlan<'a> {
     slice_bands: Vec<SliceBands>,
     bands: Vec<Band>,
     weight: Vec<f32>,
-    extinction: f64,
-    near_plane_correction: bool,
-    box_medium: Option<BoxMedium>,
-    light_travel: DVec3,
-    frequencies: usize,
-    bands_per_octave: f64,
-    exact_ray_ends: bool,
-    dark_lookup_limit: f64,
+    rays: RaySettings,
     /// Per slice, the samples its rays read at most (see `slice_reaches`).
     sample_reaches: Option<Vec<usize>>,
 }
@@ -991,20 +990,22 @@ impl<'a> PrefilteredPlan<'a> {
             slice_bands,
             bands,
             weight,
-            extinction,
-            near_plane_correction: desc.near_plane_correction,
-            box_medium,
-            light_travel,
-            frequencies,
-            bands_per_octave: bands_per_octave as f64,
-            exact_ray_ends: desc
-                .exact_ray_ends
-                .applies(box_medium.is_some(), light_from_below),
-            dark_lookup_limit: dark_lookup_limit(
-                box_medium.is_some(),
-                light_from_below,
-                bands_per_octave,
-            ),
+            rays: RaySettings {
+                extinction,
+                near_plane_correction: desc.near_plane_correction,
+                box_medium,
+                light_travel,
+                frequencies,
+                bands_per_octave: bands_per_octave as f64,
+                exact_ray_ends: desc
+                    .exact_ray_ends
+                    .applies(box_medium.is_some(), light_from_below),
+                dark_lookup_limit: dark_lookup_limit(
+                    box_medium.is_some(),
+                    light_from_below,
+                    bands_per_octave,
+                ),
+            },
             sample_reaches,
         }
     }
@@ -1019,14 +1020,7 @@ impl<'a> PrefilteredPlan<'a> {
             slice_bands,
             bands,
             weight,
-            extinction,
-            near_plane_correction,
-            box_medium,
-            light_travel,
-            frequencies,
-            bands_per_octave,
-            exact_ray_ends,
-            dark_lookup_limit,
+            rays,
             sample_reaches,
         } = self;
         let row = prefix.stride;
@@ -1039,14 +1033,7 @@ impl<'a> PrefilteredPlan<'a> {
             bands,
             basis,
             weight,
-            extinction,
-            near_plane_correction,
-            box_medium,
-            light_travel,
-            frequencies,
-            bands_per_octave,
-            exact_ray_ends,
-            dark_lookup_limit,
+            rays,
             uniformity: UniformityTable::build(map, sample_reaches.as_deref()),
         }
     }
@@ -1113,11 +1100,11 @@ impl<'a> PrefilteredPlan<'a> {
             band_knots: self.bands.iter().map(|b| b.warp.knots).collect(),
             weight: &self.weight,
             coefficients: &self.tables.coefficients,
-            near_plane_correction: self.near_plane_correction,
-            exact_ray_ends: self.exact_ray_ends,
-            dark_lookup_limit: self.dark_lookup_limit,
-            frequencies: self.frequencies,
-            bands_per_octave: self.bands_per_octave,
+            near_plane_correction: self.rays.near_plane_correction,
+            exact_ray_ends: self.rays.exact_ray_ends,
+            dark_lookup_limit: self.rays.dark_lookup_limit,
+            frequencies: self.rays.frequencies,
+            bands_per_octave: self.rays.bands_per_octave,
             samples_per_row: SAMPLES_PER_ROW,
         }
     }
@@ -1159,7 +1146,7 @@ impl<'a> Prefiltered<'a> {
         let position = band_position(
             range.log2_fastest,
             log2_rate,
-            self.bands_per_octave,
+            self.rays.bands_per_octave,
             range.count as usize,
         );
         let j = (position as u32 as usize).min(range.count as usize - 1);
@@ -1224,7 +1211,7 @@ impl<'a> Prefiltered<'a> {
         match self.uniform_visibility(located, x0, x1) {
             Some(visibility) => Average::Visibility(visibility),
             None => match self.look_up(located, key, x0, x1) {
-                Average::Visibility(visibility) if visibility < self.dark_lookup_limit => {
+                Average::Visibility(visibility) if visibility < self.rays.dark_lookup_limit => {
                     Average::Imprecise
                 }
                 looked_up => looked_up,
@@ -1441,7 +1428,7 @@ impl<'a> Prefiltered<'a> {
         // its pieces' visibilities weighted by their light.
         let light: f64 = lights.iter().sum();
         let seen: f64 = visibilities.iter().zip(lights).map(|(v, l)| v * l).sum();
-        if light > 0.0 && seen < self.dark_lookup_limit * light {
+        if light > 0.0 && seen < self.rays.dark_lookup_limit * light {
             return None;
         }
         Some(())
@@ -1463,15 +1450,15 @@ impl<'a> Prefiltered<'a> {
     /// [`Prefiltered::march`] itself, in their last piece.
     #[inline]
     fn exact_end_of(&self, located: &RaySlice, t_start: f64, t_end: f64) -> Option<ExactEnd> {
-        if !self.exact_ray_ends || self.box_medium.is_some() || t_end <= t_start {
+        if !self.rays.exact_ray_ends || self.rays.box_medium.is_some() || t_end <= t_start {
             return None;
         }
-        let from = if self.near_plane_correction {
+        let from = if self.rays.near_plane_correction {
             t_start
         } else {
             0.0
         };
-        let sigma = self.extinction;
+        let sigma = self.rays.extinction;
         self.exact_end(located, from, t_end, |t0, t1| {
             (-sigma * (t0 - t_start)).exp() * integral_exp(sigma, t1 - t0)
         })
@@ -1505,7 +1492,7 @@ impl<'a> Prefiltered<'a> {
         }
         let last = end as usize;
         let z = band.warp.warp(self.map.order_key(located.threshold));
-        let width = EXACT_END_WIDTH / self.frequencies as f64;
+        let width = EXACT_END_WIDTH / self.rays.frequencies as f64;
         // Warps clamp to [0, 1], which leaves the range open on a side it reaches past.
         let (upper, lower) = (z + width, z - width);
         let (open_upper, open_lower) = (upper >= 1.0, lower <= 0.0);
@@ -1597,7 +1584,7 @@ impl<'a> Prefiltered<'a> {
         let locate = |i: usize| {
             let (ray, _, t_end) = ray(i);
             let located = self.map.locate(ray);
-            if let (Some(located), true) = (&located, self.exact_ray_ends) {
+            if let (Some(located), true) = (&located, self.rays.exact_ray_ends) {
                 self.prefetch_end_sample(located, t_end);
             }
             located
@@ -1652,13 +1639,14 @@ impl<'a> Prefiltered<'a> {
         if self.map.is_short(located, t_start, t_end) {
             return None;
         }
-        if is_along_the_light(ray.direction, self.light_travel) {
+        if is_along_the_light(ray.direction, self.rays.light_travel) {
             return None;
         }
         let key = self.map.order_key(located.threshold);
         let x = |t: f64| row_coordinate(self.map, located.s_origin + located.s_per_t * t);
-        let sigma = self.extinction;
-        let Some((a, b)) = medium_segment(self.box_medium.as_ref(), ray, t_start, t_end) else {
+        let sigma = self.rays.extinction;
+        let Some((a, b)) = medium_segment(self.rays.box_medium.as_ref(), ray, t_start, t_end)
+        else {
             // Off the map (shorter than a sample) counts as lit, like the other methods.
             let visibility = self.average(located, key, x(t_start), x(t_end)).value()?;
             return Some(RaySample {
@@ -1671,13 +1659,13 @@ impl<'a> Prefiltered<'a> {
         }
         // Rays start at the slice's origin; what lies before the medium is subtracted when
         // asked to, or when the medium begins later than the near clip plane.
-        let from = if self.near_plane_correction || a > t_start {
+        let from = if self.rays.near_plane_correction || a > t_start {
             a
         } else {
             0.0
         };
         let alpha = -(-sigma * (b - a)).exp_m1();
-        let Some(box_medium) = &self.box_medium else {
+        let Some(box_medium) = &self.rays.box_medium else {
             let unshadowed = if sigma * (b - a) >= 1e-8 {
                 alpha / sigma
             } else {
@@ -1727,7 +1715,7 @@ impl<'a> Prefiltered<'a> {
         // ([`Prefiltered::exact_end`]): that piece is then looked up only to the cut, or
         // not at all.
         let last = pieces - 1;
-        let end = if self.exact_ray_ends && b >= t_end {
+        let end = if self.rays.exact_ray_ends && b >= t_end {
             self.exact_end(located, start_of(last), b, |t0, t1| {
                 along.integrate(t0, t1, a, sigma)
             })
