@@ -124,6 +124,10 @@ pub struct PrefilteredDesc {
     /// Half-width in pixels of the block around an on-screen epipole that is ray-marched
     /// instead: its rays need no tables.
     pub epipole_block: f64,
+    /// Whether the frame is nearly dark, so that rays its lookups read dark are walked
+    /// wherever it is ([`dark_lookup_limit`]); the frame decides, from a probe of its rays
+    /// (`crate::render::frame_is_dark`).
+    pub dark_frame: bool,
 }
 
 impl PrefilteredDesc {
@@ -135,6 +139,7 @@ impl PrefilteredDesc {
             exact_ray_ends: settings.exact_ray_ends,
             storage: settings.basis_storage,
             epipole_block: settings.epipole_block as f64,
+            dark_frame: false,
         }
     }
 }
@@ -1004,6 +1009,7 @@ impl<'a> PrefilteredPlan<'a> {
                     box_medium.is_some(),
                     light_from_below,
                     bands_per_octave,
+                    desc.dark_frame,
                 ),
             },
             sample_reaches,
@@ -1848,12 +1854,18 @@ pub const DARK_LOOKUP_VISIBILITY: f64 = 0.02;
 /// [`DARK_LOOKUP_VISIBILITY`] where frames tend to be dark, 0 (no ray declined for its
 /// darkness) elsewhere: in a `box`, under light from below (the ground then shadows most
 /// rays), and in fog dense enough for more than one band an octave, whose light comes from
-/// a few optical depths near the camera, where a roof or a crown shadows most of it. In
-/// thin open media dark rays are a few among lit ones, and walking them bought little:
-/// the built-in scenes' default views, whose errors moved by 0 to −0.26 points, took
-/// 8% (`plane`, 7,200 rays walked at 1080p) and 10% (`colonnade`, 23,000) longer.
-pub fn dark_lookup_limit(box_medium: bool, light_from_below: bool, bands_per_octave: u32) -> f64 {
-    if box_medium || light_from_below || bands_per_octave > 1 {
+/// a few optical depths near the camera, where a roof or a crown shadows most of it; and
+/// in a `dark_frame`, nearly all of whose light is that faint. In thin open media dark
+/// rays are otherwise a few among lit ones, and walking them bought little: the built-in
+/// scenes' default views, whose errors moved by 0 to −0.26 points, took 8% (`plane`, 7,200
+/// rays walked at 1080p) and 10% (`colonnade`, 23,000) longer.
+pub fn dark_lookup_limit(
+    box_medium: bool,
+    light_from_below: bool,
+    bands_per_octave: u32,
+    dark_frame: bool,
+) -> f64 {
+    if box_medium || light_from_below || bands_per_octave > 1 || dark_frame {
         DARK_LOOKUP_VISIBILITY
     } else {
         0.0
@@ -2892,10 +2904,23 @@ mod tests {
 
     #[test]
     fn dark_lookups_are_declined_only_where_frames_tend_to_be_dark() {
-        assert_eq!(dark_lookup_limit(false, false, 1), 0.0);
-        assert_eq!(dark_lookup_limit(true, false, 1), DARK_LOOKUP_VISIBILITY);
-        assert_eq!(dark_lookup_limit(false, true, 1), DARK_LOOKUP_VISIBILITY);
-        assert_eq!(dark_lookup_limit(false, false, 2), DARK_LOOKUP_VISIBILITY);
+        assert_eq!(dark_lookup_limit(false, false, 1, false), 0.0);
+        assert_eq!(
+            dark_lookup_limit(true, false, 1, false),
+            DARK_LOOKUP_VISIBILITY
+        );
+        assert_eq!(
+            dark_lookup_limit(false, true, 1, false),
+            DARK_LOOKUP_VISIBILITY
+        );
+        assert_eq!(
+            dark_lookup_limit(false, false, 2, false),
+            DARK_LOOKUP_VISIBILITY
+        );
+        assert_eq!(
+            dark_lookup_limit(false, false, 1, true),
+            DARK_LOOKUP_VISIBILITY
+        );
         // The built-in scenes' fog (0.05 /m over 70 m) keeps one band an octave.
         assert_eq!(bands_per_octave(0.05, 70.0), 1);
         assert_eq!(bands_per_octave(0.2, 70.0), 3);

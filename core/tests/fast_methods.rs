@@ -712,6 +712,57 @@ fn nearly_dark_rays_in_dense_fog_are_integrated_exactly() {
     );
 }
 
+/// Inside `colonnade`, every surface within 5.3 m, in thin fog (0.01 /m) under a sun 50°
+/// up (fuzzed): light reaches a corner of the frame only, through gaps that let through
+/// under 3% of it, and the frame is nearly black (mean radiance 2e-6). The dark-lookup rule
+/// does not apply in thin open fog by itself, and prefiltering's residue (0.008–0.01 of
+/// visibility on rays the reference has fully shadowed) read 18.7% off. The frame's probe
+/// finds it dark, and its dark lookups are walked: 4.6% (min-max 1.9%).
+#[test]
+fn a_nearly_dark_frame_in_thin_fog_walks_its_dark_lookups() {
+    let mut scene = builtin_scene("colonnade").expect("built-in scene");
+    scene.camera.width = 2 * WIDTH;
+    scene.camera.height = 2 * HEIGHT;
+    scene.camera.world_from_camera = Mat4::from_cols_array(&[
+        -0.834_497_7,
+        -0.551_011_5,
+        0.0,
+        0.0,
+        0.018_185_76,
+        -0.027_542_03,
+        0.999_455_2,
+        0.0,
+        -0.550_711_3,
+        0.834_043,
+        0.033_004_32,
+        0.0,
+        1.602_176_6,
+        6.193_858,
+        5.213_435,
+        1.0,
+    ]);
+    scene.camera.projection = Projection::Perspective {
+        focal_length: 85.0,
+        sensor_width: 36.0,
+        sensor_height: 24.0,
+        sensor_fit: SensorFit::Auto,
+        shift_x: 0.0,
+        shift_y: 0.0,
+    };
+    scene.sun.direction = Vec3::new(0.096_583_98, 0.630_425_7, -0.770_217_5);
+    scene.medium.extinction = 0.01;
+    scene.medium.anisotropy = -0.366_523_62;
+    scene.render.max_distance = 12.0;
+    scene.render.near_plane_correction = false;
+    let reference = render_with(&scene, Method::Reference, 4096);
+    assert_methods_within(
+        "a nearly dark frame in thin fog:",
+        &scene,
+        &reference,
+        [(Method::MinMax, 0.03), (Method::Prefiltered, 0.07)],
+    );
+}
+
 /// A sun below the horizon: its light travels upward, and the ground is the occluder of
 /// nearly every ray that ends on it, which a lookup reads about half lit there (fuzzed
 /// views read 14–947% off the reference). `auto` integrates those ends exactly, as `on`.

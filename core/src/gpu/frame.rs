@@ -31,7 +31,10 @@ use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
 use crate::layers::Layers;
 use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
-use crate::render::{camera_raster, scatter_timed, Frame, StageTimes, SurfaceDistances};
+use crate::reference::Marcher;
+use crate::render::{
+    camera_raster, frame_is_dark, scatter_timed, Frame, StageTimes, SurfaceDistances,
+};
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
 use crate::slice_reach::slice_reaches;
@@ -241,11 +244,24 @@ fn gpu_frame(
                 &surfaces.farthest,
                 frame.settings.max_distance as f64,
             );
+            let max_distance = frame.settings.max_distance as f64;
+            let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
+            let desc = PrefilteredDesc {
+                dark_frame: frame_is_dark(
+                    camera,
+                    &marcher,
+                    frame.medium,
+                    frame.sun.direction.as_dvec3().normalize(),
+                    &surfaces,
+                    max_distance,
+                ),
+                ..PrefilteredDesc::from_settings(frame.settings)
+            };
             let plan = PrefilteredPlan::new(
                 map,
                 camera,
                 &ahead,
-                &PrefilteredDesc::from_settings(frame.settings),
+                &desc,
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
