@@ -102,6 +102,19 @@ pub enum Projection {
 }
 
 impl Projection {
+    /// A perspective projection of `focal_length` mm on the default 36 × 24 mm sensor,
+    /// fitted automatically and unshifted.
+    pub fn pinhole(focal_length: f32) -> Self {
+        Self::Perspective {
+            focal_length,
+            sensor_width: default_sensor_width(),
+            sensor_height: default_sensor_height(),
+            sensor_fit: SensorFit::Auto,
+            shift_x: 0.0,
+            shift_y: 0.0,
+        }
+    }
+
     /// A parallel projection `ortho_scale` across the wider image side, unshifted.
     pub const fn orthographic(ortho_scale: f32) -> Self {
         Self::Orthographic {
@@ -576,14 +589,7 @@ impl Camera {
                 (-forward).extend(0.0),
                 eye.extend(1.0),
             ),
-            projection: Projection::Perspective {
-                focal_length,
-                sensor_width: default_sensor_width(),
-                sensor_height: default_sensor_height(),
-                sensor_fit: SensorFit::Auto,
-                shift_x: 0.0,
-                shift_y: 0.0,
-            },
+            projection: Projection::pinhole(focal_length),
             clip_start: 0.1,
             clip_end: 1000.0,
             width,

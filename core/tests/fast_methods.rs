@@ -2,9 +2,7 @@
 //! absolute error of volume RGB divided by the mean reference radiance.
 
 use crepuscular::camera::CameraModel;
-use crepuscular::scene::{
-    Camera, ExactRayEnds, Extent, Mesh, Method, Projection, Scene, SensorFit,
-};
+use crepuscular::scene::{Camera, ExactRayEnds, Extent, Mesh, Method, Projection, Scene};
 use crepuscular::silhouette::SilhouetteOp;
 use crepuscular::style::{Silhouette, Style};
 use crepuscular::{builtin_scene, render_scene, Layers, RenderControl, BUILTIN_SCENES};
@@ -551,14 +549,7 @@ fn slices_thinner_than_the_sampling_keep_their_keys() {
             2.290_027_4,
             1.0,
         ]),
-        projection: Projection::Perspective {
-            focal_length: 50.0,
-            sensor_width: 36.0,
-            sensor_height: 24.0,
-            sensor_fit: SensorFit::Auto,
-            shift_x: 0.0,
-            shift_y: 0.0,
-        },
+        projection: Projection::pinhole(50.0),
         clip_start: 0.1,
         clip_end: 1000.0,
         width: 2 * WIDTH,
@@ -694,14 +685,7 @@ fn nearly_dark_rays_in_dense_fog_are_integrated_exactly() {
         0.6,
         (SilhouetteOp::Dilate, 0.3),
     );
-    scene.camera.projection = Projection::Perspective {
-        focal_length: 85.0,
-        sensor_width: 36.0,
-        sensor_height: 24.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    scene.camera.projection = Projection::pinhole(85.0);
     scene.medium.anisotropy = 0.208_648_26;
     let reference = render_with(&scene, Method::Reference, 4096);
     assert_methods_within(
@@ -741,14 +725,7 @@ fn a_nearly_dark_frame_in_thin_fog_walks_its_dark_lookups() {
         5.213_435,
         1.0,
     ]);
-    scene.camera.projection = Projection::Perspective {
-        focal_length: 85.0,
-        sensor_width: 36.0,
-        sensor_height: 24.0,
-        sensor_fit: SensorFit::Auto,
-        shift_x: 0.0,
-        shift_y: 0.0,
-    };
+    scene.camera.projection = Projection::pinhole(85.0);
     scene.sun.direction = Vec3::new(0.096_583_98, 0.630_425_7, -0.770_217_5);
     scene.medium.extinction = 0.01;
     scene.medium.anisotropy = -0.366_523_62;
