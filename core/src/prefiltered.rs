@@ -2904,23 +2904,16 @@ mod tests {
 
     #[test]
     fn dark_lookups_are_declined_only_where_frames_tend_to_be_dark() {
-        assert_eq!(dark_lookup_limit(false, false, 1, false), 0.0);
-        assert_eq!(
-            dark_lookup_limit(true, false, 1, false),
-            DARK_LOOKUP_VISIBILITY
-        );
-        assert_eq!(
-            dark_lookup_limit(false, true, 1, false),
-            DARK_LOOKUP_VISIBILITY
-        );
-        assert_eq!(
-            dark_lookup_limit(false, false, 2, false),
-            DARK_LOOKUP_VISIBILITY
-        );
-        assert_eq!(
-            dark_lookup_limit(false, false, 1, true),
-            DARK_LOOKUP_VISIBILITY
-        );
+        // (box medium, light from below, bands per octave, dark frame) and the limit.
+        for (box_medium, below, bands, dark, limit) in [
+            (false, false, 1, false, 0.0),
+            (true, false, 1, false, DARK_LOOKUP_VISIBILITY),
+            (false, true, 1, false, DARK_LOOKUP_VISIBILITY),
+            (false, false, 2, false, DARK_LOOKUP_VISIBILITY),
+            (false, false, 1, true, DARK_LOOKUP_VISIBILITY),
+        ] {
+            assert_eq!(dark_lookup_limit(box_medium, below, bands, dark), limit);
+        }
         // The built-in scenes' fog (0.05 /m over 70 m) keeps one band an octave.
         assert_eq!(bands_per_octave(0.05, 70.0), 1);
         assert_eq!(bands_per_octave(0.2, 70.0), 3);

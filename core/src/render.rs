@@ -365,22 +365,11 @@ pub(crate) fn scatter_timed(
                 .into_inner()
                 .unwrap_or_else(|| slice_reaches(&map, &camera, &surfaces.farthest, max_distance));
             let planning = Stopwatch::start();
-            let desc = PrefilteredDesc {
-                dark_frame: frame_is_dark(
-                    &camera,
-                    &marcher,
-                    frame.medium,
-                    light_travel,
-                    &surfaces,
-                    max_distance,
-                ),
-                ..PrefilteredDesc::from_settings(frame.settings)
-            };
             let plan = PrefilteredPlan::new(
                 &map,
                 &camera,
                 &ahead,
-                &desc,
+                &prefiltered_desc(frame, &camera, &shadow, &surfaces),
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
@@ -423,6 +412,20 @@ pub(crate) fn scatter_timed(
     Ok((layers, times))
 }
 
+/// The prefiltered method's description for `frame`, with whether the frame is nearly
+/// dark ([`frame_is_dark`]): the CPU and GPU frames plan alike.
+pub(crate) fn prefiltered_desc(
+    frame: &Frame,
+    camera: &CameraModel,
+    shadow: &ShadowMap,
+    surfaces: &SurfaceDistances,
+) -> PrefilteredDesc {
+    PrefilteredDesc {
+        dark_frame: frame_is_dark(frame, camera, shadow, surfaces),
+        ..PrefilteredDesc::from_settings(frame.settings)
+    }
+}
+
 /// Whether a frame in open fog under light from above is nearly dark: nine in ten or more
 /// of a sparse grid of its rays, walked exactly, see less than [`DARK_LOOKUP_VISIBILITY`]
 /// of the sun. Prefiltering's residue, about 0.002–0.01 of visibility where a ray crosses
@@ -432,20 +435,21 @@ pub(crate) fn scatter_timed(
 /// off the reference, 4.6% so. In the built-in scenes' views dark rays are a few among lit
 /// ones, and the probe finds no dark frame. Each ray is walked in lengthening pieces, and
 /// stops once it has seen enough light: a lit frame's probe ends near the camera.
-pub(crate) fn frame_is_dark(
+fn frame_is_dark(
+    frame: &Frame,
     camera: &CameraModel,
-    marcher: &Marcher,
-    medium: &Medium,
-    light_travel: DVec3,
+    shadow: &ShadowMap,
     surfaces: &SurfaceDistances,
-    max_distance: f64,
 ) -> bool {
     const ACROSS: u32 = 16;
     const DOWN: u32 = 9;
     const PIECES: i32 = 8;
-    if !matches!(medium.extent, Extent::Unbounded) || light_travel.z > 0.0 {
+    let medium = frame.medium;
+    if !matches!(medium.extent, Extent::Unbounded) || frame.sun.direction.z > 0.0 {
         return false;
     }
+    let marcher = Marcher::new(shadow, frame.sun, medium, frame.settings.steps);
+    let max_distance = frame.settings.max_distance as f64;
     let sigma = medium.extinction as f64;
     let ss = surfaces.supersampling as usize;
     let sample_width = camera.width as usize * ss;
@@ -1048,15 +1052,7 @@ mod tests {
             &frame.geometry,
         );
         let surfaces = SurfaceDistances::new(&camera, &frame);
-        let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
-        frame_is_dark(
-            &camera,
-            &marcher,
-            frame.medium,
-            frame.sun.direction.as_dvec3().normalize(),
-            &surfaces,
-            frame.settings.max_distance as f64,
-        )
+        frame_is_dark(&frame, &camera, &shadow, &surfaces)
     }
 
     /// The built-in scenes' views are lit, so their frames keep looking dark rays up. In a

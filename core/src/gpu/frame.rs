@@ -30,10 +30,9 @@ use crate::control::RenderControl;
 use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
 use crate::layers::Layers;
-use crate::prefiltered::{CpuPrefixSums, PrefilteredDesc, PrefilteredPlan};
-use crate::reference::Marcher;
+use crate::prefiltered::{CpuPrefixSums, PrefilteredPlan};
 use crate::render::{
-    camera_raster, frame_is_dark, scatter_timed, Frame, StageTimes, SurfaceDistances,
+    camera_raster, prefiltered_desc, scatter_timed, Frame, StageTimes, SurfaceDistances,
 };
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
@@ -244,24 +243,11 @@ fn gpu_frame(
                 &surfaces.farthest,
                 frame.settings.max_distance as f64,
             );
-            let max_distance = frame.settings.max_distance as f64;
-            let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
-            let desc = PrefilteredDesc {
-                dark_frame: frame_is_dark(
-                    camera,
-                    &marcher,
-                    frame.medium,
-                    frame.sun.direction.as_dvec3().normalize(),
-                    &surfaces,
-                    max_distance,
-                ),
-                ..PrefilteredDesc::from_settings(frame.settings)
-            };
             let plan = PrefilteredPlan::new(
                 map,
                 camera,
                 &ahead,
-                &desc,
+                &prefiltered_desc(frame, camera, &shadow, &surfaces),
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
