@@ -195,7 +195,7 @@ fn upsampling(c: &mut Criterion) {
             }
         }
         group.bench_function(BenchmarkId::new("joint_bilateral", factor), |b| {
-            b.iter(|| joint_bilateral(&low, &depth, 1920, 1080, factor))
+            b.iter(|| joint_bilateral(&low, &depth, None, 1920, 1080, factor))
         });
     }
     group.finish();

@@ -244,6 +244,21 @@ impl<'a> Marcher<'a> {
         }
     }
 
+    /// Whether the medium fills a box rather than all space.
+    pub fn in_box(&self) -> bool {
+        self.box_medium.is_some()
+    }
+
+    /// In a `box` medium, 1 − transmittance along the ray over [t_start, t_end], the
+    /// opacity every method gives it; `None` in an unbounded one.
+    pub fn box_opacity(&self, ray: &Ray, t_start: f64, t_end: f64) -> Option<f64> {
+        let box_medium = self.box_medium.as_ref()?;
+        Some(
+            medium_segment(Some(box_medium), ray, t_start, t_end)
+                .map_or(0.0, |(a, b)| -(-self.extinction * (b - a)).exp_m1()),
+        )
+    }
+
     /// Integrates one ray over [t_start, t_end].
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
         self.march_in_steps(ray, t_start, t_end, self.steps)

@@ -25,7 +25,7 @@ use crate::scene::{
 use crate::shadow_map::ShadowMap;
 use crate::slice_reach::{slice_reaches, FarthestPerBlock};
 use crate::style::Style;
-use crate::upsample::{joint_bilateral_into, reduced_size, sample_pixel};
+use crate::upsample::{joint_bilateral_into, opacity_guide, reduced_size, sample_pixel};
 
 /// Triangles, borrowed so that hosts can pass their buffers without copies.
 #[derive(Clone, Copy, Debug)]
@@ -317,6 +317,7 @@ pub(crate) fn scatter_timed(
         let layers = shade_pixels(
             &camera,
             &surfaces,
+            &marcher,
             frame.settings,
             light_travel,
             frame.settings.effective_adaptive_tolerance(),
@@ -391,6 +392,7 @@ pub(crate) fn scatter_timed(
     let layers = shade_pixels(
         &camera,
         &surfaces,
+        &marcher,
         frame.settings,
         light_travel,
         frame.settings.effective_adaptive_tolerance(),
@@ -712,6 +714,7 @@ pub fn uniform_surface(depths: impl Iterator<Item = f32>) -> Option<f64> {
 pub(crate) fn shade_pixels(
     camera: &CameraModel,
     surfaces: &SurfaceDistances,
+    marcher: &Marcher,
     settings: &RenderSettings,
     light_travel: DVec3,
     tolerance: f32,
@@ -721,19 +724,13 @@ pub(crate) fn shade_pixels(
 ) -> Result<Layers> {
     let stride = settings.downsample;
     let ss = surfaces.supersampling as usize;
-    let sample_width = camera.width as usize * ss;
     let max_distance = settings.max_distance as f64;
-    // One depth sample's ray.
-    let query = |pixel: [f64; 2], surface: f64| {
-        let ray = camera.ray(pixel[0], pixel[1]);
-        let t_start = camera.clip_start * ray.distance_per_depth;
-        RayQuery {
-            pixel,
-            ray,
-            t_start,
-            t_end: surface.min(max_distance),
-        }
+    let rays = SampleRays {
+        camera,
+        surfaces,
+        max_distance,
     };
+    let query = |pixel: [f64; 2], surface: f64| rays.query(pixel, surface);
     // Output sample (x, y) is one exact full-size pixel, also with downsampling.
     let full_pixel = |x: usize, y: usize| {
         (
@@ -741,20 +738,9 @@ pub(crate) fn shade_pixels(
             sample_pixel(y as u32, stride, camera.height) as usize,
         )
     };
-    let surface_at = |full_x: usize, full_y: usize, sx: usize, sy: usize| {
-        surfaces.distances[(full_y * ss + sy) * sample_width + full_x * ss + sx]
-    };
-    // The surface a whole pixel sees; `None` where a depth edge runs through it.
-    let uniform = |full_x: usize, full_y: usize| {
-        if ss == 1 {
-            return Some(surface_at(full_x, full_y, 0, 0) as f64);
-        }
-        uniform_surface(
-            (0..ss)
-                .flat_map(|sy| (0..ss).map(move |sx| (sx, sy)))
-                .map(|(sx, sy)| surface_at(full_x, full_y, sx, sy)),
-        )
-    };
+    let surface_at =
+        |full_x: usize, full_y: usize, sx: usize, sy: usize| rays.surface(full_x, full_y, sx, sy);
+    let uniform = |full_x: usize, full_y: usize| rays.uniform(full_x, full_y);
     // Without supersampling, one ray a pixel: shaded straight into the pixels. The values
     // are the averaging's below, bit for bit: its sums start at zero (so each value is
     // added to zero here too, which turns −0 into +0 as there) and divide by one.
@@ -909,7 +895,88 @@ pub(crate) fn shade_pixels(
         .par_iter_mut()
         .zip(&surfaces.distances)
         .for_each(|(out, &d)| *out = layer_depth(d as f64, max_distance) as f32);
-    Ok(joint_bilateral_into(&layers, upsampled, stride))
+    let opacity = marcher
+        .in_box()
+        .then(|| {
+            opacity_guide(&layers, camera.width, camera.height, stride, |x, y| {
+                rays.opacity(marcher, x as usize, y as usize)
+            })
+        })
+        .flatten();
+    Ok(joint_bilateral_into(
+        &layers,
+        upsampled,
+        opacity.as_deref(),
+        stride,
+    ))
+}
+
+/// The rays of a frame's depth samples, as shading casts them: one per pixel, or with
+/// supersampling one per depth sample where a depth edge runs through the pixel.
+pub(crate) struct SampleRays<'a> {
+    pub camera: &'a CameraModel,
+    pub surfaces: &'a SurfaceDistances,
+    pub max_distance: f64,
+}
+
+impl SampleRays<'_> {
+    /// The ray through `pixel` (continuous full-size coordinates) to `surface`.
+    fn query(&self, pixel: [f64; 2], surface: f64) -> RayQuery {
+        let ray = self.camera.ray(pixel[0], pixel[1]);
+        let t_start = self.camera.clip_start * ray.distance_per_depth;
+        RayQuery {
+            pixel,
+            ray,
+            t_start,
+            t_end: surface.min(self.max_distance),
+        }
+    }
+
+    /// The surface distance of depth sample (sx, sy) of full-size pixel (x, y).
+    #[inline]
+    fn surface(&self, x: usize, y: usize, sx: usize, sy: usize) -> f32 {
+        let ss = self.surfaces.supersampling as usize;
+        let sample_width = self.camera.width as usize * ss;
+        self.surfaces.distances[(y * ss + sy) * sample_width + x * ss + sx]
+    }
+
+    /// The surface a whole pixel sees; `None` where a depth edge runs through it.
+    fn uniform(&self, x: usize, y: usize) -> Option<f64> {
+        let ss = self.surfaces.supersampling as usize;
+        if ss == 1 {
+            return Some(self.surface(x, y, 0, 0) as f64);
+        }
+        uniform_surface(
+            (0..ss)
+                .flat_map(|sy| (0..ss).map(move |sx| (sx, sy)))
+                .map(|(sx, sy)| self.surface(x, y, sx, sy)),
+        )
+    }
+
+    /// The opacity shading gives full-size pixel (x, y) in a box medium
+    /// ([`Marcher::box_opacity`]), averaged over its rays as shading averages them.
+    pub(crate) fn opacity(&self, marcher: &Marcher, x: usize, y: usize) -> f32 {
+        let of = |query: RayQuery| {
+            marcher
+                .box_opacity(&query.ray, query.t_start, query.t_end)
+                .unwrap_or(0.0)
+        };
+        if let Some(surface) = self.uniform(x, y) {
+            return of(self.query([x as f64 + 0.5, y as f64 + 0.5], surface)) as f32;
+        }
+        let ss = self.surfaces.supersampling as usize;
+        let mut sum = 0.0;
+        for sy in 0..ss {
+            for sx in 0..ss {
+                let pixel = [
+                    x as f64 + (sx as f64 + 0.5) / ss as f64,
+                    y as f64 + (sy as f64 + 0.5) / ss as f64,
+                ];
+                sum += of(self.query(pixel, self.surface(x, y, sx, sy) as f64));
+            }
+        }
+        (sum / (ss * ss) as f64) as f32
+    }
 }
 
 impl<'a> Frame<'a> {

@@ -6,6 +6,11 @@
 //! surrounding samples by bilinear distance times depth similarity; where none of them
 //! lies at a similar depth (a thin object between samples), it takes the sample of the
 //! closest depth rather than blending across the edge.
+//!
+//! In a box of fog the layers also jump where no depth does: at the box's silhouette a
+//! sample just inside is lit fog and one just outside is nothing, in front of the same
+//! background. There an [`opacity_guide`] gives pixels their exact opacity, and they blend
+//! their samples' radiance per unit opacity, which is smooth across the silhouette.
 
 use rayon::prelude::*;
 
@@ -15,6 +20,14 @@ use crate::layers::Layers;
 /// Relative depth difference at which a sample's weight falls to e⁻¹.
 pub const DEPTH_TOLERANCE: f32 = 0.05;
 
+/// Spread of the four samples' opacity around a pixel, relative to the largest, above
+/// which [`opacity_guide`] gives the pixel its exact opacity.
+pub const OPACITY_SPREAD: f32 = 0.25;
+
+/// An [`opacity_guide`]'s value for a pixel whose samples' opacities agree: it blends them
+/// as everywhere else.
+pub const BLENDED: f32 = -1.0;
+
 /// The full-resolution pixel that low-resolution sample `index` stands for.
 pub fn sample_pixel(index: u32, factor: u32, full: u32) -> u32 {
     (index * factor + factor / 2).min(full - 1)
@@ -23,6 +36,27 @@ pub fn sample_pixel(index: u32, factor: u32, full: u32) -> u32 {
 /// Low-resolution size for a full-resolution side.
 pub fn reduced_size(full: u32, factor: u32) -> u32 {
     full.div_ceil(factor)
+}
+
+/// The low-resolution samples a frame reduced by `factor` shades, taken from `full`'s
+/// pixels: to measure upsampling apart from shading.
+pub fn samples_of(full: &Layers, factor: u32) -> Layers {
+    let (lw, lh) = (
+        reduced_size(full.width, factor),
+        reduced_size(full.height, factor),
+    );
+    let mut low = Layers::new(lw, lh);
+    for j in 0..lh {
+        for i in 0..lw {
+            let x = sample_pixel(i, factor, full.width);
+            let y = sample_pixel(j, factor, full.height);
+            let (k, f) = ((j * lw + i) as usize, (y * full.width + x) as usize);
+            low.volume[k * 4..k * 4 + 4].copy_from_slice(&full.volume[f * 4..f * 4 + 4]);
+            low.visibility[k] = full.visibility[f];
+            low.depth[k] = full.depth[f];
+        }
+    }
+    low
 }
 
 /// Where a full-resolution position falls between low-resolution samples: the lower and
@@ -104,11 +138,13 @@ struct RowTaps {
 /// then the blend. Weights computed eight pixels at a time straight after their gathers
 /// read back values still in the store buffer, a fifth of upsampling's time.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn upsample_row(
     low: &Layers,
     columns: &Columns,
     row: Between,
     depth: &[f32],
+    opacity: Option<&[f32]>,
     volume: &mut [f32],
     visibility: &mut [f32],
     taps: &mut RowTaps,
@@ -168,6 +204,20 @@ fn upsample_row(
         ];
         let weights = [w0[x], w1[x], w2[x], w3[x]];
         let total = weights[0] + weights[1] + weights[2] + weights[3];
+        let exact = opacity.map_or(BLENDED, |opacity| opacity[x]);
+        if exact >= 0.0 {
+            let weights = if total > 1e-6 {
+                weights
+            } else {
+                let mut one = [0.0; 4];
+                one[closest_depth(&[d0[x], d1[x], d2[x], d3[x]])] = 1.0;
+                one
+            };
+            let (rgba, seen) = blend_through_opacity(low, &indices, &weights, exact);
+            rgba_out.copy_from_slice(&rgba);
+            *seen_out = seen;
+            continue;
+        }
         let mut rgba = [0.0f32; 4];
         let mut seen = 0.0f32;
         for (&index, &weight) in indices.iter().zip(&weights) {
@@ -185,33 +235,144 @@ fn upsample_row(
             *seen_out = seen * scale;
         } else {
             // No sample at a similar depth: the closest in depth, not a blend.
-            let differences = [d0[x], d1[x], d2[x], d3[x]];
-            let closest = (1..4).fold(0, |best, k| {
-                if differences[k] < differences[best] {
-                    k
-                } else {
-                    best
-                }
-            });
-            let index = indices[closest];
+            let index = indices[closest_depth(&[d0[x], d1[x], d2[x], d3[x]])];
             rgba_out.copy_from_slice(&low.volume[index * 4..index * 4 + 4]);
             *seen_out = low.visibility[index];
         }
     }
 }
 
+/// Which of four taps' depth `differences` is least (the first of equals).
+fn closest_depth(differences: &[f32; 4]) -> usize {
+    (1..4).fold(0, |best, k| {
+        if differences[k] < differences[best] {
+            k
+        } else {
+            best
+        }
+    })
+}
+
+/// A pixel of exact `opacity` among samples whose opacities spread ([`opacity_guide`]):
+/// their radiance per unit opacity, blended by `weights` times each sample's opacity,
+/// times the pixel's own opacity. Its visibility blends the samples on its side of the
+/// medium's edge: weighted by opacity inside, and those that see no medium outside (whose
+/// visibility is the lit share of the ray rather than a weighted one).
+fn blend_through_opacity(
+    low: &Layers,
+    indices: &[usize; 4],
+    weights: &[f32; 4],
+    opacity: f32,
+) -> ([f32; 4], f32) {
+    let mut radiance = [0.0f32; 3];
+    let mut through = 0.0f32;
+    let (mut seen, mut seen_weight) = (0.0f32, 0.0f32);
+    let (mut plain_seen, mut plain_weight) = (0.0f32, 0.0f32);
+    for (&index, &weight) in indices.iter().zip(weights) {
+        let sample = &low.volume[index * 4..index * 4 + 4];
+        let alpha = sample[3];
+        for (sum, value) in radiance.iter_mut().zip(sample) {
+            *sum += weight * value;
+        }
+        through += weight * alpha;
+        let side = match (opacity > 0.0, alpha > 0.0) {
+            (true, _) => alpha,
+            (false, false) => 1.0,
+            (false, true) => 0.0,
+        };
+        let visibility = low.visibility[index];
+        seen += weight * side * visibility;
+        seen_weight += weight * side;
+        plain_seen += weight * visibility;
+        plain_weight += weight;
+    }
+    // No sample sees the medium: a sliver thinner than the samples' spacing stays dark.
+    let scale = if through > 0.0 {
+        opacity / through
+    } else {
+        0.0
+    };
+    let visibility = if seen_weight > 0.0 {
+        seen / seen_weight
+    } else {
+        plain_seen / plain_weight
+    };
+    (
+        [
+            radiance[0] * scale,
+            radiance[1] * scale,
+            radiance[2] * scale,
+            opacity,
+        ],
+        visibility,
+    )
+}
+
+/// Per full-size pixel, its exact opacity (`exact(x, y)`, 1 − transmittance through the
+/// medium along its ray) where the opacities of the four samples around it spread by more
+/// than [`OPACITY_SPREAD`] of the largest, and [`BLENDED`] elsewhere: the guide
+/// [`joint_bilateral_into`] takes in bounded media, where opacity jumps at the medium's
+/// silhouette. Only those pixels pay for a ray; `None` where no samples spread.
+pub fn opacity_guide(
+    low: &Layers,
+    width: u32,
+    height: u32,
+    factor: u32,
+    exact: impl Fn(u32, u32) -> f32 + Sync,
+) -> Option<Vec<f32>> {
+    let (lw, lh) = (low.width as usize, low.height as usize);
+    if lw == 0 || lh == 0 {
+        return None;
+    }
+    let alpha = |index: usize| low.volume[index * 4 + 3];
+    // Per cell between sample rows j, j + 1 and columns i, i + 1 (the last with itself):
+    // whether its four samples spread. Every pixel in the cell shares the answer.
+    let spread: Vec<bool> = (0..lh * lw)
+        .into_par_iter()
+        .map(|k| {
+            let (j, i) = (k / lw, k % lw);
+            let (above, below) = (j * lw, (j + 1).min(lh - 1) * lw);
+            let next = (i + 1).min(lw - 1);
+            let alphas = [above + i, above + next, below + i, below + next].map(alpha);
+            let most = alphas.iter().fold(0.0f32, |a, &b| a.max(b));
+            let least = alphas.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+            most > 0.0 && most - least > OPACITY_SPREAD * most
+        })
+        .collect();
+    if !spread.contains(&true) {
+        return None;
+    }
+    let columns = Columns::of(width, factor, lw);
+    let w = (width as usize).max(1);
+    let mut guide = vec![BLENDED; width as usize * height as usize];
+    guide.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let cells = &spread[Between::of(y as u32, factor, lh).lower * lw..][..lw];
+        if !cells.contains(&true) {
+            return;
+        }
+        for (x, out) in row.iter_mut().enumerate() {
+            if cells[columns.lower[x]] {
+                *out = exact(x as u32, y as u32);
+            }
+        }
+    });
+    Some(guide)
+}
+
 /// Upsamples `low` (whose `depth` holds each sample's depth) to `width` × `height`,
-/// guided by the full-resolution `depth`, which the result keeps as its depth layer.
+/// guided by the full-resolution `depth`, which the result keeps as its depth layer, and
+/// in bounded media by an [`opacity_guide`].
 pub fn joint_bilateral(
     low: &Layers,
     depth: &[f32],
+    opacity: Option<&[f32]>,
     width: u32,
     height: u32,
     factor: u32,
 ) -> Layers {
     let mut out = Layers::for_overwrite(width, height);
     out.depth.copy_from_slice(depth);
-    joint_bilateral_into(low, out, factor)
+    joint_bilateral_into(low, out, opacity, factor)
 }
 
 /// [`upsample_row`] compiled for AVX2, whose weights take eight pixels a step rather than
@@ -221,25 +382,39 @@ pub fn joint_bilateral(
 /// The CPU must have AVX2 ([`Kernels::detect`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
 unsafe fn upsample_row_avx2(
     low: &Layers,
     columns: &Columns,
     row: Between,
     depth: &[f32],
+    opacity: Option<&[f32]>,
     volume: &mut [f32],
     visibility: &mut [f32],
     taps: &mut RowTaps,
 ) {
-    upsample_row(low, columns, row, depth, volume, visibility, taps)
+    upsample_row(low, columns, row, depth, opacity, volume, visibility, taps)
 }
 
 /// [`joint_bilateral`] into `out`, whose depth layer is the full-resolution guide and is
 /// kept; its other layers are overwritten. Frames fill the guide straight into the
 /// layers they return, rather than into a fresh buffer that is then copied (2M pixels at
-/// 1080p, their pages faulted in every frame).
-pub fn joint_bilateral_into(low: &Layers, mut out: Layers, factor: u32) -> Layers {
+/// 1080p, their pages faulted in every frame). `opacity`, if any, is full size.
+pub fn joint_bilateral_into(
+    low: &Layers,
+    mut out: Layers,
+    opacity: Option<&[f32]>,
+    factor: u32,
+) -> Layers {
     let (lw, lh) = (low.width as usize, low.height as usize);
     let columns = Columns::of(out.width, factor, lw);
+    if let Some(guide) = opacity {
+        assert_eq!(
+            guide.len(),
+            out.depth.len(),
+            "an opacity guide is full size"
+        );
+    }
     let width = (out.width as usize).max(1);
     let kernels = Kernels::detect();
     let Layers {
@@ -257,14 +432,17 @@ pub fn joint_bilateral_into(low: &Layers, mut out: Layers, factor: u32) -> Layer
             RowTaps::default,
             |taps, (y, ((volume, visibility), depth))| {
                 let row = Between::of(y as u32, factor, lh);
+                let opacity = opacity.map(|guide| &guide[y * width..(y + 1) * width]);
                 match kernels {
                     // SAFETY: `Kernels::detect` chose this variant where the CPU has AVX2.
                     #[cfg(target_arch = "x86_64")]
                     Kernels::Avx2Fma => unsafe {
-                        upsample_row_avx2(low, &columns, row, depth, volume, visibility, taps)
+                        upsample_row_avx2(
+                            low, &columns, row, depth, opacity, volume, visibility, taps,
+                        )
                     },
                     Kernels::Portable => {
-                        upsample_row(low, &columns, row, depth, volume, visibility, taps)
+                        upsample_row(low, &columns, row, depth, opacity, volume, visibility, taps)
                     }
                 }
             },
@@ -310,7 +488,7 @@ mod tests {
                 low.depth[k] = depth[(y * width + x) as usize];
             }
         }
-        let up = joint_bilateral(&low, &depth, width, height, factor);
+        let up = joint_bilateral(&low, &depth, None, width, height, factor);
         for y in 0..height {
             for x in 0..width {
                 let (rgba, seen) = value(x);
@@ -328,7 +506,8 @@ mod tests {
     }
 
     /// The AVX2 build of a row gives the portable build's bits, on layers with depth edges,
-    /// ramps and a pixel far from every sample (the closest-sample fallback).
+    /// ramps, a pixel far from every sample (the closest-sample fallback) and, at ¼, pixels
+    /// an opacity guide gives their opacity.
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_rows_are_the_portable_rows_bit_for_bit() {
@@ -357,15 +536,25 @@ mod tests {
                     sample_pixel(j, factor, height),
                 );
                 let level = ((i * 13 + j * 5) % 17) as f32 / 16.0;
-                low.volume[k * 4..k * 4 + 4].copy_from_slice(&[level, 0.5 * level, 0.1, 1.0]);
+                low.volume[k * 4..k * 4 + 4].copy_from_slice(&[level, 0.5 * level, 0.1, level]);
                 low.visibility[k] = 1.0 - level;
                 low.depth[k] = depth[(y * width + x) as usize];
             }
+            // Opacity guided at ¼, where the samples' opacities spread.
+            let opacity = (factor == 4).then(|| {
+                opacity_guide(&low, width, height, factor, |x, y| {
+                    ((x + y) % 3) as f32 / 3.0
+                })
+                .expect("samples that spread")
+            });
             let columns = Columns::of(width, factor, lw as usize);
             let w = width as usize;
             for y in 0..height {
                 let row = Between::of(y, factor, lh as usize);
                 let guide = &depth[y as usize * w..(y as usize + 1) * w];
+                let opacity = opacity
+                    .as_deref()
+                    .map(|guide| &guide[y as usize * w..(y as usize + 1) * w]);
                 let (mut portable, mut avx2) = (
                     (vec![0.0; 4 * w], vec![0.0; w]),
                     (vec![0.0; 4 * w], vec![0.0; w]),
@@ -376,6 +565,7 @@ mod tests {
                     &columns,
                     row,
                     guide,
+                    opacity,
                     &mut portable.0,
                     &mut portable.1,
                     &mut taps,
@@ -387,6 +577,7 @@ mod tests {
                         &columns,
                         row,
                         guide,
+                        opacity,
                         &mut avx2.0,
                         &mut avx2.1,
                         &mut taps,
@@ -397,6 +588,57 @@ mod tests {
                 assert_eq!(bits(&portable.1), bits(&avx2.1), "factor {factor}, row {y}");
             }
         }
+    }
+
+    /// A fog box's silhouette between columns 12 and 13, every pixel at one depth: fog of
+    /// opacity 0.6 and radiance 0.6·(1, 0.5, 0.25) inside it, nothing outside.
+    fn box_silhouette(x: u32) -> ([f32; 4], f32) {
+        if x < 13 {
+            ([0.0; 4], 0.3)
+        } else {
+            ([0.6, 0.3, 0.15, 0.6], 0.8)
+        }
+    }
+
+    #[test]
+    fn an_opacity_guide_keeps_the_fog_off_pixels_outside_a_box() {
+        let (width, height, factor) = (30u32, 12u32, 4u32);
+        let depth = vec![50.0f32; (width * height) as usize];
+        let (lw, lh) = (reduced_size(width, factor), reduced_size(height, factor));
+        let mut low = Layers::new(lw, lh);
+        for k in 0..(lw * lh) as usize {
+            let (rgba, seen) = box_silhouette(sample_pixel(k as u32 % lw, factor, width));
+            low.volume[k * 4..k * 4 + 4].copy_from_slice(&rgba);
+            low.visibility[k] = seen;
+            low.depth[k] = 50.0;
+        }
+        let guide = opacity_guide(&low, width, height, factor, |x, _| box_silhouette(x).0[3])
+            .expect("samples that spread");
+        // Only the columns that blend the samples either side of the edge (10 and 14) take
+        // their exact opacity.
+        for y in 0..height {
+            for x in 0..width {
+                let expected = if (10..=13).contains(&x) {
+                    box_silhouette(x).0[3]
+                } else {
+                    BLENDED
+                };
+                assert_eq!(guide[(y * width + x) as usize], expected, "({x}, {y})");
+            }
+        }
+        let guided = joint_bilateral(&low, &depth, Some(&guide), width, height, factor);
+        let depth_only = joint_bilateral(&low, &depth, None, width, height, factor);
+        for x in 10..=13 {
+            let (rgba, seen) = box_silhouette(x);
+            let got = guided.volume_rgba(x, 5);
+            for c in 0..4 {
+                assert!((got[c] - rgba[c]).abs() < 1e-6, "({x}) {got:?} vs {rgba:?}");
+            }
+            assert!((guided.visibility[(5 * width + x) as usize] - seen).abs() < 1e-6);
+        }
+        // Depth alone spreads the fog over the background beside the box.
+        assert!(depth_only.volume_rgba(12, 5)[0] > 0.2);
+        assert!(depth_only.volume_rgba(13, 5)[0] < 0.5);
     }
 
     #[test]
@@ -417,8 +659,8 @@ mod tests {
         kept.volume.fill(f32::NAN);
         kept.visibility.fill(f32::NAN);
         kept.depth.copy_from_slice(&depth);
-        let into = joint_bilateral_into(&low, kept, factor);
-        let fresh = joint_bilateral(&low, &depth, width, height, factor);
+        let into = joint_bilateral_into(&low, kept, None, factor);
+        let fresh = joint_bilateral(&low, &depth, None, width, height, factor);
         assert!(into
             .volume
             .iter()
@@ -458,7 +700,7 @@ mod tests {
                 low.depth[k] = 10.0;
             }
         }
-        let up = joint_bilateral(&low, &depth, width, height, factor);
+        let up = joint_bilateral(&low, &depth, None, width, height, factor);
         // Between the samples at pixels 1 and 3 a linear ramp is reproduced, up to the
         // small spatial-weight floor.
         let at = |x: u32| up.visibility[(3 * width + x) as usize];

@@ -25,7 +25,7 @@ use crepuscular::scene::{
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::silhouette::{self, Epipole, SilhouetteDesc};
 use crepuscular::transfer_function::{self, ApplySettings, DepthRange, TfMode, TfTexture};
-use crepuscular::upsample::{self, reduced_size, sample_pixel};
+use crepuscular::upsample;
 use crepuscular::{Backend, Error, Layers, RenderControl, Style};
 
 const MEAN_RELATIVE: f64 = 1e-3;
@@ -752,8 +752,9 @@ fn prefiltered_evaluation_matches_across_layouts() {
 }
 
 /// Joint-bilateral upsampling alone, on low-resolution samples of CPU-rendered layers
-/// (every second and fourth pixel) guided by their full-size depth: the same arithmetic
-/// in f32, so max abs error 1e-5 of the peak radiance and 1e-5 in visibility.
+/// (every second and fourth pixel) guided by their full-size depth, and again with an
+/// opacity guide: the same arithmetic in f32, so max abs error 1e-5 of the peak radiance
+/// and 1e-5 in visibility.
 #[test]
 fn upsampling_matches_the_cpu() {
     let Some(device) = device("the upsampling parity test") else {
@@ -765,26 +766,14 @@ fn upsampling_matches_the_cpu() {
         let frame = Frame::of_scene(&scene, &geometry);
         let (full, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
         for factor in [2, 4] {
-            let (lw, lh) = (
-                reduced_size(full.width, factor),
-                reduced_size(full.height, factor),
-            );
-            let mut low = Layers::new(lw, lh);
-            for j in 0..lh {
-                for i in 0..lw {
-                    let x = sample_pixel(i, factor, full.width);
-                    let y = sample_pixel(j, factor, full.height);
-                    let (k, f) = ((j * lw + i) as usize, (y * full.width + x) as usize);
-                    low.volume[k * 4..k * 4 + 4].copy_from_slice(&full.volume[f * 4..f * 4 + 4]);
-                    low.visibility[k] = full.visibility[f];
-                    low.depth[k] = full.depth[f];
-                }
-            }
-            let cpu = upsample::joint_bilateral(&low, &full.depth, full.width, full.height, factor);
+            let low = upsample::samples_of(&full, factor);
+            let cpu =
+                upsample::joint_bilateral(&low, &full.depth, None, full.width, full.height, factor);
             let (gpu, _) = gpu::upsample::joint_bilateral(
                 &device,
                 &low,
                 &full.depth,
+                None,
                 full.width,
                 full.height,
                 factor,
@@ -792,6 +781,33 @@ fn upsampling_matches_the_cpu() {
             .unwrap();
             check_layers(
                 &format!("upsampling {name} 1/{factor}"),
+                &gpu,
+                &cpu,
+                1e-5,
+                1e-5,
+            );
+            // Guided by the exact opacity where the samples' opacities spread (at depth
+            // edges here, where the fog's opacity changes with its length).
+            let (width, height) = (full.width, full.height);
+            let guide = upsample::opacity_guide(&low, width, height, factor, |x, y| {
+                full.volume[((y * width + x) * 4 + 3) as usize]
+            })
+            .expect("samples whose opacities spread");
+            assert!(guide.iter().any(|&o| o >= 0.0), "{name}: nothing guided");
+            let cpu =
+                upsample::joint_bilateral(&low, &full.depth, Some(&guide), width, height, factor);
+            let (gpu, _) = gpu::upsample::joint_bilateral(
+                &device,
+                &low,
+                &full.depth,
+                Some(&guide),
+                width,
+                height,
+                factor,
+            )
+            .unwrap();
+            check_layers(
+                &format!("opacity-guided upsampling {name} 1/{factor}"),
                 &gpu,
                 &cpu,
                 1e-5,
@@ -807,8 +823,22 @@ fn downsampled_prefiltered_frames_match_the_cpu() {
     let Some(device) = device("the downsampled prefiltered parity test") else {
         return;
     };
-    for name in ["torus", "colonnade"] {
-        let mut scene = small(name);
+    let mut boxed = small("torus");
+    boxed.medium.extinction = 0.6;
+    boxed.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::new(3.0, 2.5, 2.0),
+            glam::Quat::from_rotation_z(0.6),
+            glam::Vec3::new(1.5, -1.0, 2.5),
+        ),
+    };
+    // In a box, upsampling also takes an opacity guide at the box's silhouette.
+    let scenes = [
+        ("torus", small("torus")),
+        ("colonnade", small("colonnade")),
+        ("torus in a dense box", boxed),
+    ];
+    for (name, mut scene) in scenes {
         scene.render.method = Method::Prefiltered;
         scene.render.downsample = 2;
         let (gpu, cpu, times) = render_both(&device, &scene);

@@ -31,14 +31,15 @@ use crate::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crate::error::Result;
 use crate::layers::Layers;
 use crate::prefiltered::{CpuPrefixSums, PrefilteredPlan};
+use crate::reference::Marcher;
 use crate::render::{
-    camera_raster, prefiltered_desc, scatter_timed, Frame, StageTimes, SurfaceDistances,
+    camera_raster, prefiltered_desc, scatter_timed, Frame, SampleRays, StageTimes, SurfaceDistances,
 };
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
 use crate::slice_reach::slice_reaches;
 use crate::style::{OccluderOperator, Style};
-use crate::upsample::reduced_size;
+use crate::upsample::{opacity_guide, reduced_size};
 
 /// GPU timestamps of the stages that ran on the GPU, in milliseconds, and the names of
 /// the stages that ran on the CPU.
@@ -286,10 +287,27 @@ fn gpu_frame(
             .iter()
             .map(|&d| if d.is_finite() { d } else { max_distance })
             .collect();
+        let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
+        let opacity = marcher
+            .in_box()
+            .then(|| {
+                gpu.cpu_stages
+                    .push("upsampling's opacity guide (box media)");
+                let rays = SampleRays {
+                    camera,
+                    surfaces: &surfaces,
+                    max_distance: max_distance as f64,
+                };
+                opacity_guide(&layers, camera.width, camera.height, stride, |x, y| {
+                    rays.opacity(&marcher, x as usize, y as usize)
+                })
+            })
+            .flatten();
         let (layers, ms) = super::upsample::joint_bilateral(
             device,
             &layers,
             &depth,
+            opacity.as_deref(),
             camera.width,
             camera.height,
             stride,

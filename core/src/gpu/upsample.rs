@@ -1,5 +1,6 @@
 //! Joint-bilateral upsampling on the GPU: [`crate::upsample::joint_bilateral`] of layers
-//! evaluated at reduced resolution, guided by the full-size depth.
+//! evaluated at reduced resolution, guided by the full-size depth and, in bounded media,
+//! by an opacity guide ([`crate::upsample::opacity_guide`]).
 
 use std::sync::Arc;
 
@@ -11,13 +12,13 @@ use super::dispatch::{groups_2d, Std430};
 use super::error::{GpuError, GpuResult};
 use super::shader::Shader;
 use crate::layers::Layers;
-use crate::upsample::{reduced_size, DEPTH_TOLERANCE};
+use crate::upsample::{reduced_size, BLENDED, DEPTH_TOLERANCE};
 
 pub const STAGE: &str = "upsampling";
 const LOCAL: [u32; 2] = [8, 8];
 const PUSH_BYTES: u32 = 32;
 
-fn push_constants(width: u32, height: u32, low: &Layers, factor: u32) -> Vec<u8> {
+fn push_constants(width: u32, height: u32, low: &Layers, factor: u32, guided: bool) -> Vec<u8> {
     Std430::new()
         .u32(width)
         .u32(height)
@@ -25,45 +26,52 @@ fn push_constants(width: u32, height: u32, low: &Layers, factor: u32) -> Vec<u8>
         .u32(low.height)
         .u32(factor)
         .f32(DEPTH_TOLERANCE)
-        .u32(0)
+        .u32(guided as u32)
         .u32(0)
         .finish()
 }
 
 /// Upsamples `low` to `width × height` by `factor`, guided by `depth` (full size), which
-/// the result keeps as its depth layer; also returns the GPU time in milliseconds.
+/// the result keeps as its depth layer, and by `opacity` (full size) if given; also
+/// returns the GPU time in milliseconds.
 pub fn joint_bilateral(
     device: &Arc<Device>,
     low: &Layers,
     depth: &[f32],
+    opacity: Option<&[f32]>,
     width: u32,
     height: u32,
     factor: u32,
 ) -> GpuResult<(Layers, Option<f64>)> {
     let pixels = width as usize * height as usize;
     if depth.len() != pixels
+        || opacity.is_some_and(|guide| guide.len() != pixels)
         || low.width != reduced_size(width, factor)
         || low.height != reduced_size(height, factor)
     {
         return Err(GpuError::Unsupported(format!(
-            "upsampling {}×{} layers by {factor} to {width}×{height} with {} guide depths",
+            "upsampling {}×{} layers by {factor} to {width}×{height} with {} guide depths \
+             and {} guide opacities",
             low.width,
             low.height,
-            depth.len()
+            depth.len(),
+            opacity.map_or(0, <[f32]>::len)
         )));
     }
     let groups = groups_2d(width, height, LOCAL, device.physical.max_workgroup_count)?;
     let run = || {
-        let mut rec = Recorder::new(device, STAGE, 1, 6)?;
+        let mut rec = Recorder::new(device, STAGE, 1, 7)?;
         let low_volume = rec.upload(&low.volume, "low-resolution volume")?;
         let low_visibility = rec.upload(&low.visibility, "low-resolution visibility")?;
         let low_depth = rec.upload(&low.depth, "low-resolution depth")?;
         let guide = rec.upload(depth, "full-size depth")?;
+        // Unguided, the shader reads no opacity, but the binding still needs a buffer.
+        let opacity_guide = rec.upload(opacity.unwrap_or(&[BLENDED]), "full-size opacity")?;
         let volume = rec.storage(pixels as u64 * 16, "volume layer")?;
         let visibility = rec.storage(pixels as u64 * 4, "visibility layer")?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
-        let desc = ComputePipelineDesc::new(Shader::Upsample, 6).push_constants(PUSH_BYTES);
-        let push = push_constants(width, height, low, factor);
+        let desc = ComputePipelineDesc::new(Shader::Upsample, 7).push_constants(PUSH_BYTES);
+        let push = push_constants(width, height, low, factor, opacity.is_some());
         rec.timed(STAGE, |rec| {
             rec.dispatch(
                 &desc,
@@ -74,6 +82,7 @@ pub fn joint_bilateral(
                     &guide,
                     &volume,
                     &visibility,
+                    &opacity_guide,
                 ],
                 &push,
                 groups,
@@ -99,9 +108,9 @@ mod tests {
     use super::*;
 
     #[test]
-    fn push_constants_carry_both_sizes_and_the_tolerance() {
+    fn push_constants_carry_both_sizes_the_tolerance_and_the_guide() {
         let low = Layers::new(5, 3);
-        let bytes = push_constants(10, 6, &low, 2);
+        let bytes = push_constants(10, 6, &low, 2, true);
         assert_eq!(bytes.len(), PUSH_BYTES as usize);
         let word = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
         assert_eq!(
@@ -109,5 +118,7 @@ mod tests {
             [10, 6, 5, 3, 2]
         );
         assert_eq!(f32::from_bits(word(20)), DEPTH_TOLERANCE);
+        assert_eq!(word(24), 1);
+        assert_eq!(push_constants(10, 6, &low, 2, false)[24..28], [0; 4]);
     }
 }
