@@ -730,7 +730,6 @@ pub(crate) fn shade_pixels(
         surfaces,
         max_distance,
     };
-    let query = |pixel: [f64; 2], surface: f64| rays.query(pixel, surface);
     // Output sample (x, y) is one exact full-size pixel, also with downsampling.
     let full_pixel = |x: usize, y: usize| {
         (
@@ -738,9 +737,6 @@ pub(crate) fn shade_pixels(
             sample_pixel(y as u32, stride, camera.height) as usize,
         )
     };
-    let surface_at =
-        |full_x: usize, full_y: usize, sx: usize, sy: usize| rays.surface(full_x, full_y, sx, sy);
-    let uniform = |full_x: usize, full_y: usize| rays.uniform(full_x, full_y);
     // Without supersampling, one ray a pixel: shaded straight into the pixels. The values
     // are the averaging's below, bit for bit: its sums start at zero (so each value is
     // added to zero here too, which turns −0 into +0 as there) and divide by one.
@@ -750,14 +746,14 @@ pub(crate) fn shade_pixels(
             .map(|&(x, y)| {
                 let (full_x, full_y) = full_pixel(x, y);
                 let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
-                query(centre, surface_at(full_x, full_y, 0, 0) as f64)
+                rays.query(centre, rays.surface(full_x, full_y, 0, 0) as f64)
             })
             .collect();
         let mut samples = vec![PixelSample::default(); queries.len()];
         shade(&queries, &mut samples);
         for ((out, sample), &(x, y)) in out.iter_mut().zip(&samples).zip(pixels) {
             let (full_x, full_y) = full_pixel(x, y);
-            let surface = surface_at(full_x, full_y, 0, 0) as f64;
+            let surface = rays.surface(full_x, full_y, 0, 0) as f64;
             let radiance = DVec3::ZERO + sample.radiance;
             *out = Pixel {
                 volume: [
@@ -781,11 +777,11 @@ pub(crate) fn shade_pixels(
         let mut owners = Vec::with_capacity(pixels.len());
         for (n, &(x, y)) in pixels.iter().enumerate() {
             let (full_x, full_y) = full_pixel(x, y);
-            match uniform(full_x, full_y) {
+            match rays.uniform(full_x, full_y) {
                 // Shaded once, like MSAA: no edge runs through the pixel.
                 Some(surface) => {
                     let centre = [full_x as f64 + 0.5, full_y as f64 + 0.5];
-                    queries.push(query(centre, surface));
+                    queries.push(rays.query(centre, surface));
                     owners.push((n, layer_depth(surface, max_distance)));
                 }
                 None => {
@@ -795,8 +791,8 @@ pub(crate) fn shade_pixels(
                                 full_x as f64 + (sx as f64 + 0.5) / ss as f64,
                                 full_y as f64 + (sy as f64 + 0.5) / ss as f64,
                             ];
-                            let surface = surface_at(full_x, full_y, sx, sy) as f64;
-                            queries.push(query(pixel, surface));
+                            let surface = rays.surface(full_x, full_y, sx, sy) as f64;
+                            queries.push(rays.query(pixel, surface));
                             owners.push((n, layer_depth(surface, max_distance)));
                         }
                     }
@@ -842,7 +838,7 @@ pub(crate) fn shade_pixels(
                     .flat_map(|y| (0..width).map(move |x| (x, y)))
                     .map(|(x, y)| {
                         let (full_x, full_y) = full_pixel(x, y);
-                        surface_at(full_x, full_y, 0, 0)
+                        rays.surface(full_x, full_y, 0, 0)
                     })
                     .collect();
                 Some(gathered.as_slice())
@@ -861,7 +857,7 @@ pub(crate) fn shade_pixels(
                 Some(distances) => Some(distances[y * width + x] as f64),
                 None => {
                     let (full_x, full_y) = full_pixel(x, y);
-                    uniform(full_x, full_y)
+                    rays.uniform(full_x, full_y)
                 }
             },
             shade_batch,
@@ -954,28 +950,17 @@ impl SampleRays<'_> {
     }
 
     /// The opacity shading gives full-size pixel (x, y) in a box medium
-    /// ([`Marcher::box_opacity`]), averaged over its rays as shading averages them.
+    /// ([`Marcher::box_opacity`]). Only reduced frames ask, and they do not supersample
+    /// ([`RenderSettings::validate`]): one ray a pixel.
     pub(crate) fn opacity(&self, marcher: &Marcher, x: usize, y: usize) -> f32 {
-        let of = |query: RayQuery| {
-            marcher
-                .box_opacity(&query.ray, query.t_start, query.t_end)
-                .unwrap_or(0.0)
-        };
-        if let Some(surface) = self.uniform(x, y) {
-            return of(self.query([x as f64 + 0.5, y as f64 + 0.5], surface)) as f32;
-        }
-        let ss = self.surfaces.supersampling as usize;
-        let mut sum = 0.0;
-        for sy in 0..ss {
-            for sx in 0..ss {
-                let pixel = [
-                    x as f64 + (sx as f64 + 0.5) / ss as f64,
-                    y as f64 + (sy as f64 + 0.5) / ss as f64,
-                ];
-                sum += of(self.query(pixel, self.surface(x, y, sx, sy) as f64));
-            }
-        }
-        (sum / (ss * ss) as f64) as f32
+        debug_assert_eq!(self.surfaces.supersampling, 1);
+        let query = self.query(
+            [x as f64 + 0.5, y as f64 + 0.5],
+            self.surface(x, y, 0, 0) as f64,
+        );
+        marcher
+            .box_opacity(&query.ray, query.t_start, query.t_end)
+            .unwrap_or(0.0) as f32
     }
 }
 

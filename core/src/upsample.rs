@@ -204,20 +204,6 @@ fn upsample_row(
         ];
         let weights = [w0[x], w1[x], w2[x], w3[x]];
         let total = weights[0] + weights[1] + weights[2] + weights[3];
-        let exact = opacity.map_or(BLENDED, |opacity| opacity[x]);
-        if exact >= 0.0 {
-            let weights = if total > 1e-6 {
-                weights
-            } else {
-                let mut one = [0.0; 4];
-                one[closest_depth(&[d0[x], d1[x], d2[x], d3[x]])] = 1.0;
-                one
-            };
-            let (rgba, seen) = blend_through_opacity(low, &indices, &weights, exact);
-            rgba_out.copy_from_slice(&rgba);
-            *seen_out = seen;
-            continue;
-        }
         let mut rgba = [0.0f32; 4];
         let mut seen = 0.0f32;
         for (&index, &weight) in indices.iter().zip(&weights) {
@@ -239,6 +225,32 @@ fn upsample_row(
             rgba_out.copy_from_slice(&low.volume[index * 4..index * 4 + 4]);
             *seen_out = low.visibility[index];
         }
+    }
+    // The few pixels the opacity guide gives, over the blend: a sweep of their own keeps
+    // the branch out of every other pixel's.
+    let Some(opacity) = opacity else {
+        return;
+    };
+    for (x, &exact) in opacity.iter().enumerate() {
+        if exact < 0.0 {
+            continue;
+        }
+        let indices = [
+            above + lower[x],
+            above + upper[x],
+            below + lower[x],
+            below + upper[x],
+        ];
+        let mut weights = [w0[x], w1[x], w2[x], w3[x]];
+        let total = weights[0] + weights[1] + weights[2] + weights[3];
+        // As in the blend, a pixel with no sample at a similar depth takes the closest.
+        if total <= 1e-6 {
+            weights = [0.0; 4];
+            weights[closest_depth(&[d0[x], d1[x], d2[x], d3[x]])] = 1.0;
+        }
+        let (rgba, seen) = blend_through_opacity(low, &indices, &weights, exact);
+        volume[x * 4..x * 4 + 4].copy_from_slice(&rgba);
+        visibility[x] = seen;
     }
 }
 
