@@ -378,7 +378,13 @@ impl EpipolarMap {
                 full_circle,
             };
             let s_last = s_last.max(1.0);
-            (layout, 0.0, s_last, span, span * s_last)
+            // Slices start where they enter the map: an epipole far outside it (a camera
+            // far from a small box of fog, which the map then covers alone) otherwise
+            // asked for samples over the whole way there, terabytes for a box 1 cm across
+            // seen from 15 m. Inside the map the slices start at the epipole.
+            let nearest = epipole.clamp(DVec2::ZERO, DVec2::splat(size));
+            let s_first = epipole.distance(nearest).min(s_last - 1.0);
+            (layout, s_first, s_last, span, span * s_last)
         } else {
             let view = texel_from_world.transform_vector3(camera.ray(0.0, 0.0).direction);
             let projected = view.truncate();
@@ -1187,6 +1193,46 @@ mod tests {
         scene.camera.projection = crate::scene::Projection::orthographic(20.0);
         let (_, _, parallel) = test_support::rectified(&scene, Rectification::Epipolar, desc);
         [radial, parallel]
+    }
+
+    /// A radial map's slices run from the epipole where it lies on the map, else from where
+    /// they enter the map: a camera far from a small box of fog, which the map covers alone,
+    /// has its epipole far off the map, and the samples cover the map's square and no more.
+    #[test]
+    fn radial_slices_start_where_they_enter_the_map() {
+        let desc = RectifyDesc::prefiltered(0);
+        let [on_map, _] = torus_seen_both_ways(&desc, Some(256));
+        let mut scene = crate::builtin::builtin_scene("torus").expect("built-in scene");
+        (scene.camera.width, scene.camera.height) = (64, 36);
+        scene.medium.extent = crate::scene::Extent::Box {
+            world_from_cube: glam::Mat4::from_translation(Vec3::new(1.0, -2.5, 3.5))
+                * glam::Mat4::from_scale(Vec3::splat(0.05)),
+        };
+        scene.render.shadow_map_size = 256;
+        let (_, shadow, off_map) = test_support::rectified(&scene, Rectification::Epipolar, &desc);
+        let size = shadow.size as f64;
+        for map in [&on_map, &off_map] {
+            let Layout::Radial { epipole, .. } = map.layout else {
+                panic!("a pinhole camera's map is radial");
+            };
+            let nearest = epipole.clamp(DVec2::ZERO, DVec2::splat(size));
+            let farthest = [[0.0, 0.0], [size, 0.0], [0.0, size], [size, size]]
+                .map(|c| DVec2::from(c).distance(epipole))
+                .into_iter()
+                .fold(0.0, f64::max);
+            let (first, last) = map.s_range();
+            assert!((first - epipole.distance(nearest)).abs() < 1e-6 * farthest);
+            assert!((last - farthest).abs() < 1e-6 * farthest);
+            let diagonal = std::f64::consts::SQRT_2 * size;
+            assert!(map.samples as f64 <= (diagonal * desc.samples_per_texel).ceil());
+        }
+        let Layout::Radial { epipole, .. } = off_map.layout else {
+            unreachable!()
+        };
+        assert!(
+            epipole.length() > 50.0 * size,
+            "the epipole {epipole} lies far off"
+        );
     }
 
     /// Automatic slice counts: a radial map's slices lie 1/`slices_per_texel` texels apart

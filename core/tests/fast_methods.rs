@@ -5,7 +5,9 @@ use crepuscular::camera::CameraModel;
 use crepuscular::scene::{Camera, ExactRayEnds, Extent, Mesh, Method, Projection, Scene};
 use crepuscular::silhouette::SilhouetteOp;
 use crepuscular::style::{Silhouette, Style};
-use crepuscular::{builtin_scene, render_scene, Layers, RenderControl, BUILTIN_SCENES};
+use crepuscular::{
+    builtin_scene, render_scene, render_scene_timed, Layers, RenderControl, BUILTIN_SCENES,
+};
 use glam::{Mat4, Vec3};
 
 const WIDTH: u32 = 192;
@@ -229,6 +231,47 @@ fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
     scene.render.max_distance = 60.0;
     let reference = render_with(&scene, Method::Reference, 4096);
     assert_fast_methods_within("box under a slotted roof", &scene, &reference, 0.0025);
+}
+
+/// A box of fog 10 cm across, through a long lens from 15 m, a shadow edge of the torus
+/// crossing it. The shadow map covers the box alone, so the camera's epipole lies about
+/// 150,000 texels off the map: slices rectified from the epipole asked for gigabytes (a
+/// box 1 cm across, terabytes) and the process aborted. Slices start where they enter
+/// the map, whose diagonal bounds their length.
+#[test]
+fn a_small_box_of_fog_far_from_the_camera_matches_the_reference() {
+    let mut scene = builtin_scene("torus").expect("built-in scene");
+    let centre = Vec3::new(1.0, -2.5, 3.5);
+    let eye = centre + 15.0 * (Vec3::new(9.0, -8.0, 9.0) - centre).normalize();
+    scene.camera = Camera::pinhole_looking_at(eye, centre, 1800.0, WIDTH, HEIGHT);
+    scene.medium.extinction = 3.0;
+    scene.medium.extent = Extent::Box {
+        world_from_cube: Mat4::from_translation(centre) * Mat4::from_scale(Vec3::splat(0.05)),
+    };
+    let reference = render_with(&scene, Method::Reference, 4096);
+    let visibility: Vec<f32> = reference
+        .visibility
+        .iter()
+        .zip(reference.volume.chunks(4))
+        .filter(|(_, volume)| volume[3] > 0.01)
+        .map(|(&v, _)| v)
+        .collect();
+    // The box fills a good part of the frame, partly in shadow.
+    assert!(visibility.len() > (WIDTH * HEIGHT / 10) as usize);
+    assert!(visibility.iter().any(|&v| v < 0.1) && visibility.iter().any(|&v| v > 0.9));
+    assert_fast_methods_match("small box far off", &scene, &reference);
+    let samples_bound = 2.0 * std::f64::consts::SQRT_2 * scene.render.shadow_map_size as f64;
+    for method in [Method::MinMax, Method::Prefiltered] {
+        scene.render.method = method;
+        let (_, times) = render_scene_timed(&scene, &RenderControl::new()).expect("renders");
+        let slices = 8192.0;
+        assert!(
+            times.rectified_bytes as f64 <= 4.0 * slices * (samples_bound + 1.0),
+            "{}: {} bytes rectified",
+            method.name(),
+            times.rectified_bytes
+        );
+    }
 }
 
 /// Min-max within 1% and prefiltering within 2% of `reference`, a render of `scene`.

@@ -736,6 +736,18 @@ fn prefiltered_evaluation_matches_across_layouts() {
     let mut dense = prefiltered("colonnade");
     dense.medium.extinction = 0.6;
     variants.push(("colonnade in dense fog", dense));
+    // A box 10 cm across through a long lens from 15 m: the epipole lies far off the map,
+    // and slices start where they enter it (the spacing's first sample is past zero).
+    let mut small_box = prefiltered("torus");
+    let centre = glam::Vec3::new(1.0, -2.5, 3.5);
+    let eye = centre + 15.0 * (glam::Vec3::new(9.0, -8.0, 9.0) - centre).normalize();
+    small_box.camera = Camera::pinhole_looking_at(eye, centre, 1800.0, width, height);
+    small_box.medium.extinction = 3.0;
+    small_box.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_translation(centre)
+            * glam::Mat4::from_scale(glam::Vec3::splat(0.05)),
+    };
+    variants.push(("a small box far off", small_box));
     let mut supersampled = prefiltered("tree");
     supersampled.render.supersampling = 2;
     variants.push(("tree 2×2 samples", supersampled));
