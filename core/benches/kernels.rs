@@ -112,7 +112,9 @@ fn prefiltering(c: &mut Criterion) {
         group.bench_function(BenchmarkId::new("rectify", name), |b| {
             b.iter(|| EpipolarMap::build(&camera, &shadow, &desc))
         });
-        let map = EpipolarMap::build(&camera, &shadow, &desc).expect("rectifiable view");
+        let map = EpipolarMap::build(&camera, &shadow, &desc)
+            .expect("memory for the map")
+            .expect("rectifiable view");
         let epipoles: Vec<[f64; 2]> = epipoles_in_image(&camera, &shadow, f64::INFINITY).collect();
         for bases in [16, 32, 64] {
             group.bench_function(BenchmarkId::new(format!("filter_m{bases}"), name), |b| {
@@ -127,7 +129,8 @@ fn prefiltering(c: &mut Criterion) {
         }
         let desc = PrefilteredDesc::from_settings(&scene.render);
         let prefiltered =
-            Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
+            Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium)
+                .expect("memory for the method");
         let rays: Vec<_> = (0..4096)
             .map(|i| {
                 camera.ray(

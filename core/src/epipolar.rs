@@ -323,10 +323,17 @@ impl EpipolarMap {
     /// Rectifies `shadow` for `camera` as `desc` says. Returns `None` when the
     /// camera looks exactly along the light (an orthographic camera whose rays all
     /// project to points), where rectification is undefined.
-    pub fn build(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
-        let mut map = Self::layout_for(camera, shadow, desc)?;
+    /// An error where the map's memory cannot be allocated.
+    pub fn build(
+        camera: &CameraModel,
+        shadow: &ShadowMap,
+        desc: &RectifyDesc,
+    ) -> Result<Option<Self>> {
+        let Some(mut map) = Self::layout_for(camera, shadow, desc)? else {
+            return Ok(None);
+        };
         map.resample(shadow, None);
-        Some(map)
+        Ok(Some(map))
     }
 
     /// [`EpipolarMap::build`] with the resampling done by `resampler` (another backend).
@@ -336,7 +343,7 @@ impl EpipolarMap {
         desc: &RectifyDesc,
         resampler: &dyn Resampler,
     ) -> Result<Option<Self>> {
-        let Some(mut map) = Self::layout_for(camera, shadow, desc) else {
+        let Some(mut map) = Self::layout_for(camera, shadow, desc)? else {
             return Ok(None);
         };
         resampler.resample(&mut map, shadow)?;
@@ -353,7 +360,11 @@ impl EpipolarMap {
 
     /// The map's layout and spacing for `desc`, its values not yet sampled (left as a kept
     /// buffer's: resampling sets every one).
-    fn layout_for(camera: &CameraModel, shadow: &ShadowMap, desc: &RectifyDesc) -> Option<Self> {
+    fn layout_for(
+        camera: &CameraModel,
+        shadow: &ShadowMap,
+        desc: &RectifyDesc,
+    ) -> Result<Option<Self>> {
         let texel_from_world = shadow.texel_from_world;
         let size = shadow.size as f64;
         let corners = [
@@ -390,7 +401,7 @@ impl EpipolarMap {
             let projected = view.truncate();
             let length = projected.length();
             if length < MIN_PROJECTED_LENGTH {
-                return None;
+                return Ok(None);
             }
             let direction = projected / length;
             let normal = DVec2::new(-direction.y, direction.x);
@@ -457,14 +468,16 @@ impl EpipolarMap {
             slices,
             samples,
             spacing,
-            values: SPARE_VALUES.take(slices as usize * samples as usize),
+            values: SPARE_VALUES.try_take(slices as usize * samples as usize, || {
+                format!("the rectified shadow map ({slices} slices × {samples} samples)")
+            })?,
             key_scale: key_scale(&layout, shadow.texel_size),
             layout,
             texel_from_world,
             bound_factors: Vec::new(),
         };
         map.bound_factors = map.compute_bound_factors();
-        Some(map)
+        Ok(Some(map))
     }
 
     /// The rectified map `rectification` asks for: projective where it is forced, or

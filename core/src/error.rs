@@ -51,6 +51,20 @@ impl Error {
         }
     }
 
+    /// A buffer the render settings size that could not be allocated: the settings that
+    /// size the rectified data are named, as the value to change.
+    pub fn out_of_memory(what: &str, bytes: usize) -> Self {
+        Error::invalid(
+            "render",
+            format!(
+                "{what} needs {:.1} GiB, more memory than could be allocated; lower \
+                 render.epipolar_slices or render.shadow_map_size (for the prefiltered \
+                 method also render.bases, or render.basis_storage 'snorm16')",
+                bytes as f64 / (1u64 << 30) as f64
+            ),
+        )
+    }
+
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.into(),

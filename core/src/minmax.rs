@@ -12,6 +12,7 @@ use rayon::prelude::*;
 
 use crate::camera::Ray;
 use crate::epipolar::{EpipolarMap, RaySlice};
+use crate::error::Result;
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 use crate::spans::JoinedSpans;
@@ -43,7 +44,8 @@ impl Drop for MinMaxMipmap {
 }
 
 impl MinMaxMipmap {
-    pub fn build(map: &EpipolarMap) -> Self {
+    /// An error where its memory cannot be allocated.
+    pub fn build(map: &EpipolarMap) -> Result<Self> {
         let samples = map.samples as usize;
         let mut level_offsets = Vec::new();
         let mut stride = 0;
@@ -54,7 +56,9 @@ impl MinMaxMipmap {
             stride += width;
         }
         // Every node is set below, so a kept buffer's old values do not matter.
-        let mut nodes = SPARE_NODES.take(map.slices as usize * stride);
+        let mut nodes = SPARE_NODES.try_take(map.slices as usize * stride, || {
+            format!("the min-max mipmaps ({} slices)", map.slices)
+        })?;
         if stride > 0 {
             nodes
                 .par_chunks_mut(stride)
@@ -91,11 +95,11 @@ impl MinMaxMipmap {
                     }
                 });
         }
-        Self {
+        Ok(Self {
             level_offsets,
             stride,
             nodes,
-        }
+        })
     }
 
     pub fn memory_bytes(&self) -> usize {
@@ -368,7 +372,7 @@ mod tests {
     }
 
     fn walk_equals_testing_every_sample(map: &EpipolarMap) {
-        let mipmap = MinMaxMipmap::build(map);
+        let mipmap = MinMaxMipmap::build(map).expect("memory for the mipmaps");
         let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
         let (s_start, s_end) = map.s_range();
         for _ in 0..2000 {

@@ -657,9 +657,9 @@ impl<'a> Prefiltered<'a> {
         desc: &PrefilteredDesc,
         sun: &Sun,
         medium: &Medium,
-    ) -> Self {
-        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, None);
-        let basis = plan.prefix.sums_on_cpu(plan.kernels);
+    ) -> Result<Self> {
+        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, None)?;
+        let basis = plan.prefix.sums_on_cpu(plan.kernels)?;
         plan.finish(basis)
     }
 
@@ -674,7 +674,7 @@ impl<'a> Prefiltered<'a> {
         sun: &Sun,
         medium: &Medium,
         slice_reaches: &[f64],
-    ) -> Self {
+    ) -> Result<Self> {
         let plan = PrefilteredPlan::with_rows_to(
             map,
             camera,
@@ -684,8 +684,8 @@ impl<'a> Prefiltered<'a> {
             medium,
             Some(slice_reaches),
             None,
-        );
-        let basis = plan.prefix.sums_on_cpu(plan.kernels);
+        )?;
+        let basis = plan.prefix.sums_on_cpu(plan.kernels)?;
         plan.finish(basis)
     }
 
@@ -697,8 +697,8 @@ impl<'a> Prefiltered<'a> {
         desc: &PrefilteredDesc,
         sun: &Sun,
         medium: &Medium,
-    ) -> PrefixPlan {
-        PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, None).prefix
+    ) -> Result<PrefixPlan> {
+        Ok(PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, None)?.prefix)
     }
 
     /// [`Prefiltered::build`] with the prefix sums computed by `prefix` (another backend),
@@ -714,7 +714,7 @@ impl<'a> Prefiltered<'a> {
         slice_reaches: Option<&[f64]>,
         prefix: &dyn PrefixSums,
     ) -> Result<Self> {
-        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, slice_reaches);
+        let plan = PrefilteredPlan::new(map, camera, epipoles, desc, sun, medium, slice_reaches)?;
         Self::from_plan(plan, prefix)
     }
 
@@ -732,7 +732,7 @@ impl<'a> Prefiltered<'a> {
                 "prefix sums returned {got} values, expected {expected}"
             )));
         }
-        Ok(plan.finish(basis))
+        plan.finish(basis)
     }
 }
 
@@ -746,7 +746,7 @@ pub struct CpuPrefixSums;
 
 impl PrefixSums for CpuPrefixSums {
     fn prefix_sums(&self, plan: &PrefixPlan) -> Result<FilteredBasis> {
-        Ok(plan.sums_on_cpu(Kernels::detect()))
+        plan.sums_on_cpu(Kernels::detect())
     }
 }
 
@@ -790,7 +790,7 @@ pub struct PrefixPlan {
 }
 
 impl PrefixPlan {
-    fn sums_on_cpu(&self, kernels: Kernels) -> FilteredBasis {
+    fn sums_on_cpu(&self, kernels: Kernels) -> Result<FilteredBasis> {
         fn fill<T: BasisValue>(plan: &PrefixPlan, kernels: Kernels, basis: &mut [T]) {
             let row = plan.stride;
             let mut parts = Vec::with_capacity(plan.bands.len());
@@ -816,18 +816,19 @@ impl PrefixPlan {
         }
         // `fill` writes every value, so a kept buffer's old values do not matter.
         let values = self.total_rows * self.stride;
-        match self.storage {
+        let what = || format!("the filtered basis ({} rows)", self.total_rows);
+        Ok(match self.storage {
             BasisStorage::F32 => {
-                let mut basis = SPARE_F32_BASIS.take(values);
+                let mut basis = SPARE_F32_BASIS.try_take(values, what)?;
                 fill(self, kernels, &mut basis);
                 FilteredBasis::F32(basis)
             }
             BasisStorage::Snorm16 => {
-                let mut basis = SPARE_SNORM16_BASIS.take(values);
+                let mut basis = SPARE_SNORM16_BASIS.try_take(values, what)?;
                 fill(self, kernels, &mut basis);
                 FilteredBasis::Snorm16(basis)
             }
-        }
+        })
     }
 }
 
@@ -874,7 +875,7 @@ impl<'a> PrefilteredPlan<'a> {
         sun: &Sun,
         medium: &Medium,
         slice_reaches: Option<&[f64]>,
-    ) -> Self {
+    ) -> Result<Self> {
         Self::with_rows_to(
             map,
             camera,
@@ -899,7 +900,7 @@ impl<'a> PrefilteredPlan<'a> {
         medium: &Medium,
         slice_reaches: Option<&[f64]>,
         row_reaches: Option<&[f64]>,
-    ) -> Self {
+    ) -> Result<Self> {
         let frequencies = (desc.bases / 2) as usize;
         let row = padded(2 * frequencies);
         let extinction = medium.extinction as f64;
@@ -949,11 +950,12 @@ impl<'a> PrefilteredPlan<'a> {
         let (slice_bands, bands) = plan_bands(map, &frames, &warps, reach, row_reaches);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         // `plan_slices` writes every value, so kept buffers' old values do not matter.
-        let mut weight = SPARE_ROW_WEIGHTS.take(total_rows);
+        let what = || format!("the prefiltered method's plan ({total_rows} rows)");
+        let mut weight = SPARE_ROW_WEIGHTS.try_take(total_rows, what)?;
         let rows_total = total_rows - bands.len();
-        let mut entries = SPARE_ENTRIES.take(rows_total * SAMPLES_PER_ROW);
-        let mut weights = SPARE_SAMPLE_WEIGHTS.take(rows_total * SAMPLES_PER_ROW);
-        let mut scales = SPARE_SCALES.take(rows_total);
+        let mut entries = SPARE_ENTRIES.try_take(rows_total * SAMPLES_PER_ROW, what)?;
+        let mut weights = SPARE_SAMPLE_WEIGHTS.try_take(rows_total * SAMPLES_PER_ROW, what)?;
+        let mut scales = SPARE_SCALES.try_take(rows_total, what)?;
         let kernels = Kernels::detect();
         plan_slices(
             map,
@@ -986,7 +988,7 @@ impl<'a> PrefilteredPlan<'a> {
             scales,
             table: &tables.basis,
         };
-        Self {
+        Ok(Self {
             map,
             prefix,
             kernels,
@@ -1013,10 +1015,12 @@ impl<'a> PrefilteredPlan<'a> {
                 ),
             },
             sample_reaches,
-        }
+        })
     }
 
-    pub fn finish(self, basis: FilteredBasis) -> Prefiltered<'a> {
+    /// The method evaluating pixels from the filtered basis `basis`; an error where its
+    /// uniformity table's memory cannot be allocated.
+    pub fn finish(self, basis: FilteredBasis) -> Result<Prefiltered<'a>> {
         let PrefilteredPlan {
             map,
             prefix,
@@ -1030,7 +1034,7 @@ impl<'a> PrefilteredPlan<'a> {
             sample_reaches,
         } = self;
         let row = prefix.stride;
-        Prefiltered {
+        Ok(Prefiltered {
             map,
             stride: row,
             kernels,
@@ -1040,8 +1044,8 @@ impl<'a> PrefilteredPlan<'a> {
             basis,
             weight,
             rays,
-            uniformity: UniformityTable::build(map, sample_reaches.as_deref()),
-        }
+            uniformity: UniformityTable::build(map, sample_reaches.as_deref())?,
+        })
     }
 }
 
@@ -2933,7 +2937,8 @@ mod tests {
         };
         let (camera, map, epipoles) = frame_inputs(&scene);
         let desc = PrefilteredDesc::from_settings(&scene.render);
-        let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
+        let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium)
+            .expect("memory for the method");
         let (mut compared, mut worst) = (0, 0.0f64);
         for pixel in (0..96 * 54).step_by(53) {
             let ray = camera.ray((pixel % 96) as f64 + 0.5, (pixel / 96) as f64 + 0.5);
@@ -2984,8 +2989,9 @@ mod tests {
         scene.camera.height = 54;
         let (camera, map, epipoles) = frame_inputs(&scene);
         let desc = PrefilteredDesc::from_settings(&scene.render);
-        let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium);
-        let mipmap = MinMaxMipmap::build(&map);
+        let method = Prefiltered::build(&map, &camera, &epipoles, &desc, &scene.sun, &scene.medium)
+            .expect("memory for the method");
+        let mipmap = MinMaxMipmap::build(&map).expect("memory for the mipmaps");
         let exact = MinMaxMethod::new(&map, &mipmap, &scene.sun, &scene.medium);
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
         let (mut lit, mut shadowed, mut mixed) = (0, 0, 0);

@@ -349,7 +349,7 @@ pub(crate) fn scatter_timed(
     let fast: FastMethod = match frame.settings.method {
         Method::Reference => Box::new(|_, out| out.fill(None)),
         Method::MinMax => {
-            mipmap = MinMaxMipmap::build(&map);
+            mipmap = MinMaxMipmap::build(&map)?;
             times.structure_bytes = mipmap.memory_bytes();
             let method = MinMaxMethod::new(&map, &mipmap, frame.sun, frame.medium);
             Box::new(move |queries, out| {
@@ -374,7 +374,7 @@ pub(crate) fn scatter_timed(
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
-            );
+            )?;
             times.planning = planning.elapsed();
             prefiltered = Prefiltered::from_plan(plan, prefix)?;
             times.structure_bytes = prefiltered.memory_bytes();

@@ -25,6 +25,9 @@ pub const MAX_STEPS: u32 = 1 << 20;
 pub const MAX_EPIPOLAR_SLICES: u32 = 65536;
 /// Largest accepted supersampling factor per axis.
 pub const MAX_SUPERSAMPLING: u32 = 8;
+/// Most camera-depth samples a frame may take (width × height × supersampling²): 4 GiB of
+/// depth. The largest image at the largest supersampling would take 64 GiB.
+pub const MAX_DEPTH_SAMPLES: u64 = 1 << 30;
 
 /// A complete, self-contained frame description.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -555,6 +558,19 @@ impl Scene {
         self.sun.validate()?;
         self.medium.validate()?;
         self.render.validate()?;
+        let ss = self.render.supersampling as u64;
+        let samples = self.camera.width as u64 * self.camera.height as u64 * ss * ss;
+        if samples > MAX_DEPTH_SAMPLES {
+            return Err(Error::invalid(
+                "render.supersampling",
+                format!(
+                    "{}×{} pixels at {ss}×{ss} samples each are {samples} camera-depth \
+                     samples, more than the {MAX_DEPTH_SAMPLES} a frame may take; lower the \
+                     supersampling or the resolution",
+                    self.camera.width, self.camera.height
+                ),
+            ));
+        }
         self.style.validate()?;
         for (index, mesh) in self.meshes.iter().enumerate() {
             mesh.validate(&format!("meshes[{index}]"))?;

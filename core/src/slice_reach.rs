@@ -398,7 +398,8 @@ mod tests {
             let (sun, medium) = (&scene.sun, &scene.medium);
             let whole = Prefiltered::build_with_every_row(
                 &map, &camera, &epipoles, &desc, sun, medium, &reaches,
-            );
+            )
+            .expect("memory for the method");
             let cut = Prefiltered::build_with(
                 &read_map,
                 &camera,

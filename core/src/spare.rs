@@ -5,6 +5,8 @@
 
 use std::sync::Mutex;
 
+use crate::error::{Error, Result};
+
 /// A few buffers of `T` kept for reuse: the most recently handed back.
 pub(crate) struct Spare<T> {
     kept: Mutex<Vec<Vec<T>>>,
@@ -50,8 +52,37 @@ impl<T: Copy + Default> Spare<T> {
     /// released by later [`Spare::keep`]s), and then its values are whatever they were:
     /// callers overwrite every one.
     pub(crate) fn take(&self, len: usize) -> Vec<T> {
+        let buffer = self.kept_fitting(len).unwrap_or_else(|| {
+            let mut fresh = Vec::with_capacity(len);
+            self.advise(&mut fresh);
+            fresh
+        });
+        Self::sized(buffer, len)
+    }
+
+    /// [`Spare::take`] for buffers whose size the scene's settings decide: where a fresh
+    /// one cannot be allocated (after letting go of the kept ones), an error that names
+    /// `what` and its size, rather than the abort an allocation failure is in Rust: a
+    /// host such as Blender would lose its unsaved work.
+    pub(crate) fn try_take(&self, len: usize, what: impl FnOnce() -> String) -> Result<Vec<T>> {
+        if let Some(kept) = self.kept_fitting(len) {
+            return Ok(Self::sized(kept, len));
+        }
+        let mut fresh = Vec::new();
+        if fresh.try_reserve_exact(len).is_err() {
+            self.clear();
+            fresh.try_reserve_exact(len).map_err(|_| {
+                Error::out_of_memory(&what(), len.saturating_mul(std::mem::size_of::<T>()))
+            })?;
+        }
+        self.advise(&mut fresh);
+        Ok(Self::sized(fresh, len))
+    }
+
+    /// The smallest kept buffer that fits `len` values without more than doubling it.
+    fn kept_fitting(&self, len: usize) -> Option<Vec<T>> {
         // A poisoned lock only means another frame panicked while swapping: allocate anew.
-        let found = self.kept.lock().ok().and_then(|mut kept| {
+        self.kept.lock().ok().and_then(|mut kept| {
             let fitting = kept
                 .iter()
                 .enumerate()
@@ -59,14 +90,16 @@ impl<T: Copy + Default> Spare<T> {
                 .min_by_key(|(_, buffer)| buffer.capacity())
                 .map(|(index, _)| index)?;
             Some(kept.swap_remove(fitting))
-        });
-        let mut buffer = found.unwrap_or_else(|| {
-            let mut fresh = Vec::with_capacity(len);
-            if self.huge_pages {
-                advise_huge_pages(&mut fresh);
-            }
-            fresh
-        });
+        })
+    }
+
+    fn advise(&self, fresh: &mut Vec<T>) {
+        if self.huge_pages {
+            advise_huge_pages(fresh);
+        }
+    }
+
+    fn sized(mut buffer: Vec<T>, len: usize) -> Vec<T> {
         buffer.truncate(len);
         buffer.resize(len, T::default());
         buffer
@@ -181,6 +214,32 @@ mod tests {
         assert_eq!(capacities, [10]);
         single.clear();
         assert!(single.kept.lock().unwrap().is_empty());
+    }
+
+    /// A buffer the allocator cannot give (4 PiB, more than any address space maps) is an
+    /// error naming it and its size, not an abort; the kept buffers are let go first, and
+    /// taking smaller buffers goes on working.
+    #[test]
+    fn a_buffer_too_large_to_allocate_is_an_error_naming_it() {
+        let spare = Spare::<f32>::new();
+        spare.keep(vec![0.0; 1000]);
+        let len = 1usize << 50;
+        let error = spare
+            .try_take(len, || "the test's buffer".to_string())
+            .expect_err("4 PiB cannot be allocated");
+        let message = error.to_string();
+        assert!(
+            matches!(&error, Error::InvalidInput { field, .. } if field == "render")
+                && message.contains("the test's buffer needs 4194304.0 GiB")
+                && message.contains("render.epipolar_slices"),
+            "{message}"
+        );
+        assert!(kept_capacities(&spare).is_empty());
+        let small = spare.try_take(800, String::new).expect("800 values");
+        assert_eq!(small.len(), 800);
+        spare.keep(small);
+        assert_eq!(kept_capacities(&spare), [800]);
+        assert_eq!(spare.try_take(700, String::new).unwrap().len(), 700);
     }
 
     /// The kernel's flags for the mapping that holds `address`, from `/proc/self/smaps`.

@@ -12,6 +12,7 @@
 use rayon::prelude::*;
 
 use crate::epipolar::EpipolarMap;
+use crate::error::Result;
 use crate::spare::Spare;
 
 /// Samples per block: one cache line of rectified values.
@@ -62,13 +63,16 @@ pub fn table_bytes(slices: u32, samples: u32) -> usize {
 impl UniformityTable {
     /// The table of `map`, each slice's only over the samples before its `reaches`
     /// (queries there may read no farther), or over all of them.
-    pub fn build(map: &EpipolarMap, reaches: Option<&[usize]>) -> Self {
+    /// An error where its memory cannot be allocated.
+    pub fn build(map: &EpipolarMap, reaches: Option<&[usize]>) -> Result<Self> {
         let samples = map.samples as usize;
         let (blocks, levels) = table_shape(samples);
         let stride = levels * blocks;
         // Every entry a query reads is set below, so a kept buffer's old values do not
         // matter.
-        let mut runs = SPARE_RUNS.take(map.slices as usize * stride);
+        let mut runs = SPARE_RUNS.try_take(map.slices as usize * stride, || {
+            format!("the uniformity table ({} slices)", map.slices)
+        })?;
         if stride > 0 {
             runs.par_chunks_mut(stride)
                 .enumerate()
@@ -95,11 +99,11 @@ impl UniformityTable {
                     }
                 });
         }
-        Self {
+        Ok(Self {
             blocks,
             levels,
             runs,
-        }
+        })
     }
 
     pub fn memory_bytes(&self) -> usize {
@@ -258,7 +262,7 @@ mod tests {
                     false => samples,
                 })
                 .collect();
-            let table = UniformityTable::build(&map, Some(&reaches));
+            let table = UniformityTable::build(&map, Some(&reaches)).expect("memory for the table");
             let (mut lit, mut shadowed, mut mixed) = (0, 0, 0);
             for _ in 0..4000 {
                 let slice = rng.random_range(0..map.slices);

@@ -4,7 +4,9 @@ mod common;
 
 use common::*;
 use crepuscular::render::{CameraDepth, DepthKind, FlatGeometry, Frame};
-use crepuscular::scene::{ExactRayEnds, Scene, MAX_SHADOW_MAP_SIZE};
+use crepuscular::scene::{
+    ExactRayEnds, Scene, MAX_IMAGE_SIZE, MAX_SHADOW_MAP_SIZE, MAX_SUPERSAMPLING,
+};
 use crepuscular::{render, render_scene, Error, RenderControl};
 use glam::{Mat4, Vec3};
 
@@ -90,6 +92,14 @@ fn sizes_out_of_range_are_named() {
     check(|s| s.render.bases = 7, "render.bases");
     check(|s| s.render.bases = 66, "render.bases");
     check(|s| s.render.epipolar_slices = 1, "render.epipolar_slices");
+    // Each within its range, together more camera depth than a frame may take (64 GiB).
+    check(
+        |s| {
+            (s.camera.width, s.camera.height) = (MAX_IMAGE_SIZE, MAX_IMAGE_SIZE);
+            s.render.supersampling = MAX_SUPERSAMPLING;
+        },
+        "render.supersampling",
+    );
     let mut both = valid_scene();
     both.render.downsample = 2;
     both.render.supersampling = 2;

@@ -576,6 +576,7 @@ fn prefix_plan(scene: &Scene) -> PrefixPlan {
         &scene.sun,
         &scene.medium,
     )
+    .expect("memory for the plan")
 }
 
 /// Prefiltering's basis computation and prefix sums. The GPU sums each band in runs side
@@ -882,7 +883,9 @@ fn rectification_matches_the_cpu() {
         let camera = CameraModel::new(&scene.camera);
         let shadow = ShadowMap::of_scene(&scene, &camera);
         for desc in [RectifyDesc::prefiltered(0), RectifyDesc::min_max(0)] {
-            let cpu = EpipolarMap::build(&camera, &shadow, &desc).expect("rectifiable view");
+            let cpu = EpipolarMap::build(&camera, &shadow, &desc)
+                .expect("memory for the map")
+                .expect("rectifiable view");
             let gpu = EpipolarMap::build_with(&camera, &shadow, &desc, &resampler)
                 .unwrap()
                 .expect("rectifiable view");

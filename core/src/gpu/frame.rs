@@ -252,7 +252,7 @@ fn gpu_frame(
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
-            );
+            )?;
             // The filtered basis stays on the device: evaluation reads it there.
             let (basis, ms) = super::prefix::resident(device, plan.prefix())?;
             gpu.prefix_sums = ms;

@@ -224,7 +224,8 @@ mod tests {
             &RectifyDesc::prefiltered(0),
         );
         let desc = PrefilteredDesc::from_settings(&scene.render);
-        let plan = PrefilteredPlan::new(&map, &camera, &[], &desc, &scene.sun, &scene.medium, None);
+        let plan = PrefilteredPlan::new(&map, &camera, &[], &desc, &scene.sun, &scene.medium, None)
+            .expect("memory for the plan");
         let tables = plan.tables();
         let epipoles = [[10.0, 20.0]];
         let bytes =
