@@ -582,7 +582,8 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         }
         return vec3(0.0, 0.0, visibility);
     }
-    float from = (q.near_plane_correction != 0u || a > t_start) ? a : 0.0;
+    // In a box the stretch before the medium is always subtracted (see the CPU's march).
+    float from = (q.near_plane_correction != 0u || a > t_start || p.box_medium != 0u) ? a : 0.0;
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
     // Dense fog: the first LOOKUP_DEPTH of optical depth is what counts (is_short_in_medium).

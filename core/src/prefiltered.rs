@@ -1668,12 +1668,16 @@ impl<'a> Prefiltered<'a> {
             return None;
         }
         // Rays start at the slice's origin; what lies before the medium is subtracted when
-        // asked to, or when the medium begins later than the near clip plane.
-        let from = if self.rays.near_plane_correction || a > t_start {
-            a
-        } else {
-            0.0
-        };
+        // asked to, where the medium begins later than the near clip plane, and in a box
+        // always: there the stretch would be averaged into the ray's first piece rather
+        // than the whole ray (a camera inside a box, its clip 1 m out, read 43% bright),
+        // and subtracting it costs a row read, not a lookup.
+        let from =
+            if self.rays.near_plane_correction || a > t_start || self.rays.box_medium.is_some() {
+                a
+            } else {
+                0.0
+            };
         let alpha = -(-sigma * (b - a)).exp_m1();
         let Some(box_medium) = &self.rays.box_medium else {
             let unshadowed = if sigma * (b - a) >= 1e-8 {

@@ -749,6 +749,25 @@ fn prefiltered_evaluation_matches_across_layouts() {
             * glam::Mat4::from_scale(glam::Vec3::splat(0.05)),
     };
     variants.push(("a small box far off", small_box));
+    // A camera inside a box without the near-plane correction: in a box the stretch before
+    // the clip plane is subtracted all the same.
+    let mut inside = prefiltered("plane");
+    let eye = glam::Vec3::new(0.0, -14.0, 1.6);
+    inside.camera = Camera::pinhole_looking_at(
+        eye,
+        eye + glam::Vec3::new(0.0, 0.95, 0.3),
+        50.0,
+        width,
+        height,
+    );
+    inside.camera.clip_start = 2.0;
+    inside.render.near_plane_correction = false;
+    inside.medium.extinction = 0.2;
+    inside.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_translation(glam::Vec3::new(0.0, 5.0, 2.5))
+            * glam::Mat4::from_scale(glam::Vec3::new(10.0, 25.0, 2.5)),
+    };
+    variants.push(("a camera inside a box, near plane uncorrected", inside));
     let mut supersampled = prefiltered("tree");
     supersampled.render.supersampling = 2;
     variants.push(("tree 2×2 samples", supersampled));
