@@ -51,16 +51,15 @@ impl Error {
         }
     }
 
-    /// A buffer the render settings size that could not be allocated: the settings that
-    /// size the rectified data are named, as the value to change.
-    pub fn out_of_memory(what: &str, bytes: usize) -> Self {
+    /// A buffer the render settings size (`gib` of it) that could not be allocated: the
+    /// settings that size the rectified data are named, as the values to change.
+    pub fn out_of_memory(what: &str, gib: f64) -> Self {
         Error::invalid(
             "render",
             format!(
-                "{what} needs {:.1} GiB, more memory than could be allocated; lower \
+                "{what} needs {gib:.1} GiB, more memory than could be allocated; lower \
                  render.epipolar_slices or render.shadow_map_size (for the prefiltered \
-                 method also render.bases, or render.basis_storage 'snorm16')",
-                bytes as f64 / (1u64 << 30) as f64
+                 method also render.bases, or render.basis_storage 'snorm16')"
             ),
         )
     }

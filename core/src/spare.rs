@@ -51,12 +51,19 @@ impl<T: Copy + Default> Spare<T> {
     /// than twice the size (a small frame does not take on a large frame's memory; that is
     /// released by later [`Spare::keep`]s), and then its values are whatever they were:
     /// callers overwrite every one.
+    ///
+    /// Where a fresh one cannot be allocated, it panics rather than aborting as a failed
+    /// allocation does: hosts catch panics at their boundary (the Python module raises
+    /// them as errors), so Blender keeps running. Buffers the settings size use
+    /// [`Spare::try_take`], whose error says which settings to lower.
     pub(crate) fn take(&self, len: usize) -> Vec<T> {
-        let buffer = self.kept_fitting(len).unwrap_or_else(|| {
-            let mut fresh = Vec::with_capacity(len);
-            self.advise(&mut fresh);
-            fresh
-        });
+        let buffer = self.kept_fitting(len).or_else(|| self.fresh(len));
+        let Some(buffer) = buffer else {
+            panic!(
+                "out of memory: a buffer of {:.1} GiB could not be allocated",
+                gib::<T>(len)
+            );
+        };
         Self::sized(buffer, len)
     }
 
@@ -65,18 +72,21 @@ impl<T: Copy + Default> Spare<T> {
     /// `what` and its size, rather than the abort an allocation failure is in Rust: a
     /// host such as Blender would lose its unsaved work.
     pub(crate) fn try_take(&self, len: usize, what: impl FnOnce() -> String) -> Result<Vec<T>> {
-        if let Some(kept) = self.kept_fitting(len) {
-            return Ok(Self::sized(kept, len));
-        }
+        let buffer = self.kept_fitting(len).or_else(|| self.fresh(len));
+        let buffer = buffer.ok_or_else(|| Error::out_of_memory(&what(), gib::<T>(len)))?;
+        Ok(Self::sized(buffer, len))
+    }
+
+    /// A fresh buffer with room for `len` values, letting go of the kept ones if the
+    /// allocator refuses at first; `None` if it refuses again.
+    fn fresh(&self, len: usize) -> Option<Vec<T>> {
         let mut fresh = Vec::new();
         if fresh.try_reserve_exact(len).is_err() {
             self.clear();
-            fresh.try_reserve_exact(len).map_err(|_| {
-                Error::out_of_memory(&what(), len.saturating_mul(std::mem::size_of::<T>()))
-            })?;
+            fresh.try_reserve_exact(len).ok()?;
         }
         self.advise(&mut fresh);
-        Ok(Self::sized(fresh, len))
+        Some(fresh)
     }
 
     /// The smallest kept buffer that fits `len` values without more than doubling it.
@@ -124,6 +134,11 @@ impl<T: Copy + Default> Spare<T> {
             kept.truncate(self.slots);
         }
     }
+}
+
+/// The size of `len` values of `T`, in GiB.
+fn gib<T>(len: usize) -> f64 {
+    len as f64 * std::mem::size_of::<T>() as f64 / (1u64 << 30) as f64
 }
 
 /// The size of a transparent huge page on x86-64 and most arm64 kernels.
@@ -240,6 +255,13 @@ mod tests {
         spare.keep(small);
         assert_eq!(kept_capacities(&spare), [800]);
         assert_eq!(spare.try_take(700, String::new).unwrap().len(), 700);
+        // `take` panics, which hosts catch, rather than aborting.
+        let panic = std::panic::catch_unwind(|| spare.take(len)).expect_err("a panic");
+        let message = panic.downcast_ref::<String>().expect("a formatted message");
+        assert!(
+            message.contains("4194304.0 GiB could not be allocated"),
+            "{message}"
+        );
     }
 
     /// The kernel's flags for the mapping that holds `address`, from `/proc/self/smaps`.
