@@ -57,14 +57,12 @@ impl<T: Copy + Default> Spare<T> {
     /// them as errors), so Blender keeps running. Buffers the settings size use
     /// [`Spare::try_take`], whose error says which settings to lower.
     pub(crate) fn take(&self, len: usize) -> Vec<T> {
-        let buffer = self.kept_fitting(len).or_else(|| self.fresh(len));
-        let Some(buffer) = buffer else {
+        self.obtained(len).unwrap_or_else(|| {
             panic!(
                 "out of memory: a buffer of {:.1} GiB could not be allocated",
                 gib::<T>(len)
-            );
-        };
-        Self::sized(buffer, len)
+            )
+        })
     }
 
     /// [`Spare::take`] for buffers whose size the scene's settings decide: where a fresh
@@ -72,21 +70,30 @@ impl<T: Copy + Default> Spare<T> {
     /// `what` and its size, rather than the abort an allocation failure is in Rust: a
     /// host such as Blender would lose its unsaved work.
     pub(crate) fn try_take(&self, len: usize, what: impl FnOnce() -> String) -> Result<Vec<T>> {
-        let buffer = self.kept_fitting(len).or_else(|| self.fresh(len));
-        let buffer = buffer.ok_or_else(|| Error::out_of_memory(&what(), gib::<T>(len)))?;
-        Ok(Self::sized(buffer, len))
+        self.obtained(len)
+            .ok_or_else(|| Error::out_of_memory(&what(), gib::<T>(len)))
     }
 
-    /// A fresh buffer with room for `len` values, letting go of the kept ones if the
-    /// allocator refuses at first; `None` if it refuses again.
-    fn fresh(&self, len: usize) -> Option<Vec<T>> {
-        let mut fresh = Vec::new();
-        if fresh.try_reserve_exact(len).is_err() {
-            self.clear();
-            fresh.try_reserve_exact(len).ok()?;
-        }
-        self.advise(&mut fresh);
-        Some(fresh)
+    /// `len` values in a kept buffer that fits, else in a fresh one, letting go of the
+    /// kept ones if the allocator refuses at first; `None` if it refuses again.
+    fn obtained(&self, len: usize) -> Option<Vec<T>> {
+        let mut buffer = match self.kept_fitting(len) {
+            Some(kept) => kept,
+            None => {
+                let mut fresh = Vec::new();
+                if fresh.try_reserve_exact(len).is_err() {
+                    self.clear();
+                    fresh.try_reserve_exact(len).ok()?;
+                }
+                if self.huge_pages {
+                    advise_huge_pages(&mut fresh);
+                }
+                fresh
+            }
+        };
+        buffer.truncate(len);
+        buffer.resize(len, T::default());
+        Some(buffer)
     }
 
     /// The smallest kept buffer that fits `len` values without more than doubling it.
@@ -101,18 +108,6 @@ impl<T: Copy + Default> Spare<T> {
                 .map(|(index, _)| index)?;
             Some(kept.swap_remove(fitting))
         })
-    }
-
-    fn advise(&self, fresh: &mut Vec<T>) {
-        if self.huge_pages {
-            advise_huge_pages(fresh);
-        }
-    }
-
-    fn sized(mut buffer: Vec<T>, len: usize) -> Vec<T> {
-        buffer.truncate(len);
-        buffer.resize(len, T::default());
-        buffer
     }
 
     /// Lets go of every kept buffer.

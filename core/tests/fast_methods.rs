@@ -1,6 +1,9 @@
 //! Fast methods against the reference at 4096 steps on the same shadow map: the mean
 //! absolute error of volume RGB divided by the mean reference radiance.
 
+mod common;
+
+use common::{camera_inside_a_fog_box, small_fog_box_far_off};
 use crepuscular::camera::CameraModel;
 use crepuscular::scene::{Camera, ExactRayEnds, Extent, Mesh, Method, Projection, Scene};
 use crepuscular::silhouette::SilhouetteOp;
@@ -241,13 +244,8 @@ fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
 #[test]
 fn a_small_box_of_fog_far_from_the_camera_matches_the_reference() {
     let mut scene = builtin_scene("torus").expect("built-in scene");
-    let centre = Vec3::new(1.0, -2.5, 3.5);
-    let eye = centre + 15.0 * (Vec3::new(9.0, -8.0, 9.0) - centre).normalize();
-    scene.camera = Camera::pinhole_looking_at(eye, centre, 1800.0, WIDTH, HEIGHT);
-    scene.medium.extinction = 3.0;
-    scene.medium.extent = Extent::Box {
-        world_from_cube: Mat4::from_translation(centre) * Mat4::from_scale(Vec3::splat(0.05)),
-    };
+    (scene.camera.width, scene.camera.height) = (WIDTH, HEIGHT);
+    small_fog_box_far_off(&mut scene);
     let reference = render_with(&scene, Method::Reference, 4096);
     let visibility: Vec<f32> = reference
         .visibility
@@ -283,16 +281,8 @@ fn a_small_box_of_fog_far_from_the_camera_matches_the_reference() {
 #[test]
 fn a_camera_inside_a_box_subtracts_the_stretch_before_its_clip_plane() {
     let mut scene = builtin_scene("plane").expect("built-in scene");
-    let eye = Vec3::new(0.0, -14.0, 1.6);
-    scene.camera =
-        Camera::pinhole_looking_at(eye, eye + Vec3::new(0.0, 0.95, 0.3), 50.0, WIDTH, HEIGHT);
-    scene.camera.clip_start = 2.0;
-    scene.render.near_plane_correction = false;
-    scene.medium.extinction = 0.2;
-    scene.medium.extent = Extent::Box {
-        world_from_cube: Mat4::from_translation(Vec3::new(0.0, 5.0, 2.5))
-            * Mat4::from_scale(Vec3::new(10.0, 25.0, 2.5)),
-    };
+    (scene.camera.width, scene.camera.height) = (WIDTH, HEIGHT);
+    camera_inside_a_fog_box(&mut scene);
     let reference = render_with(&scene, Method::Reference, 4096);
     assert_methods_within(
         "camera inside a box, near plane uncorrected",

@@ -5,8 +5,11 @@
 //! Errors are measured per layer as the mean relative error Σ|gpu − cpu| / Σ|cpu| (bound
 //! 1e-3) and the largest absolute difference (bounds stated per test).
 
+mod common;
+
 use std::sync::Arc;
 
+use common::{camera_inside_a_fog_box, small_fog_box_far_off};
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
@@ -740,33 +743,12 @@ fn prefiltered_evaluation_matches_across_layouts() {
     // A box 10 cm across through a long lens from 15 m: the epipole lies far off the map,
     // and slices start where they enter it (the spacing's first sample is past zero).
     let mut small_box = prefiltered("torus");
-    let centre = glam::Vec3::new(1.0, -2.5, 3.5);
-    let eye = centre + 15.0 * (glam::Vec3::new(9.0, -8.0, 9.0) - centre).normalize();
-    small_box.camera = Camera::pinhole_looking_at(eye, centre, 1800.0, width, height);
-    small_box.medium.extinction = 3.0;
-    small_box.medium.extent = Extent::Box {
-        world_from_cube: glam::Mat4::from_translation(centre)
-            * glam::Mat4::from_scale(glam::Vec3::splat(0.05)),
-    };
+    small_fog_box_far_off(&mut small_box);
     variants.push(("a small box far off", small_box));
     // A camera inside a box without the near-plane correction: in a box the stretch before
     // the clip plane is subtracted all the same.
     let mut inside = prefiltered("plane");
-    let eye = glam::Vec3::new(0.0, -14.0, 1.6);
-    inside.camera = Camera::pinhole_looking_at(
-        eye,
-        eye + glam::Vec3::new(0.0, 0.95, 0.3),
-        50.0,
-        width,
-        height,
-    );
-    inside.camera.clip_start = 2.0;
-    inside.render.near_plane_correction = false;
-    inside.medium.extinction = 0.2;
-    inside.medium.extent = Extent::Box {
-        world_from_cube: glam::Mat4::from_translation(glam::Vec3::new(0.0, 5.0, 2.5))
-            * glam::Mat4::from_scale(glam::Vec3::new(10.0, 25.0, 2.5)),
-    };
+    camera_inside_a_fog_box(&mut inside);
     variants.push(("a camera inside a box, near plane uncorrected", inside));
     let mut supersampled = prefiltered("tree");
     supersampled.render.supersampling = 2;

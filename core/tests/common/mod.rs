@@ -70,3 +70,33 @@ pub fn settings(shadow_map_size: u32, steps: u32, max_distance: f32) -> RenderSe
 pub fn relative_error(got: f64, expected: f64) -> f64 {
     (got - expected).abs() / expected.abs().max(1e-30)
 }
+
+/// `torus` (any size) turned on a box of fog 10 cm across (σ = 3 /m) that a shadow edge of
+/// its ring crosses, seen through an 1800 mm lens from 15 m: the shadow map covers the box
+/// alone, and the camera's epipole lies far off it.
+pub fn small_fog_box_far_off(torus: &mut Scene) {
+    let centre = Vec3::new(1.0, -2.5, 3.5);
+    let eye = centre + 15.0 * (Vec3::new(9.0, -8.0, 9.0) - centre).normalize();
+    let (width, height) = (torus.camera.width, torus.camera.height);
+    torus.camera = Camera::pinhole_looking_at(eye, centre, 1800.0, width, height);
+    torus.medium.extinction = 3.0;
+    torus.medium.extent = Extent::Box {
+        world_from_cube: Mat4::from_translation(centre) * Mat4::from_scale(Vec3::splat(0.05)),
+    };
+}
+
+/// `plane` (any size) with its camera inside a box of fog (σ = 0.2 /m) under the slotted
+/// roof, looking up the shafts, its clip plane 2 m out, without the near-plane correction.
+pub fn camera_inside_a_fog_box(plane: &mut Scene) {
+    let eye = Vec3::new(0.0, -14.0, 1.6);
+    let (width, height) = (plane.camera.width, plane.camera.height);
+    plane.camera =
+        Camera::pinhole_looking_at(eye, eye + Vec3::new(0.0, 0.95, 0.3), 50.0, width, height);
+    plane.camera.clip_start = 2.0;
+    plane.render.near_plane_correction = false;
+    plane.medium.extinction = 0.2;
+    plane.medium.extent = Extent::Box {
+        world_from_cube: Mat4::from_translation(Vec3::new(0.0, 5.0, 2.5))
+            * Mat4::from_scale(Vec3::new(10.0, 25.0, 2.5)),
+    };
+}
