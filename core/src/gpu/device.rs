@@ -37,9 +37,17 @@ impl Device {
             .queue_family_index(physical.queue_family)
             .queue_priorities(&priorities);
         let features = vk::PhysicalDeviceFeatures::default().shader_float64(physical.float64);
-        let info = vk::DeviceCreateInfo::default()
+        let mut clock =
+            vk::PhysicalDeviceShaderClockFeaturesKHR::default().shader_subgroup_clock(true);
+        let clock_extension = [ash::khr::shader_clock::NAME.as_ptr()];
+        let mut info = vk::DeviceCreateInfo::default()
             .queue_create_infos(std::slice::from_ref(&queue_info))
             .enabled_features(&features);
+        if physical.shader_clock {
+            info = info
+                .enabled_extension_names(&clock_extension)
+                .push_next(&mut clock);
+        }
         // SAFETY: `physical.raw` belongs to `instance`; `info` outlives the call.
         let raw = unsafe { instance.raw.create_device(physical.raw, &info, None) }
             .call("vkCreateDevice")?;

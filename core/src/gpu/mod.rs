@@ -8,10 +8,12 @@
 //! (timestamps), [`layer_buffers`] (the layers' device buffers and read-back), [`dispatch`]
 //! (workgroup counts and parameter packing), and one per ported stage: [`raster`] (shadow
 //! map and camera depth), [`march`], [`morphology`], [`silhouette`], [`holes`],
-//! [`transfer`], [`prefix`], [`prefiltered`], [`upsample`], [`rectify`].
+//! [`transfer`], [`prefix`], [`prefiltered`], [`upsample`], [`rectify`]; and [`clock`], the
+//! bench's probe of the shader cores' clock rate.
 
 pub mod barrier;
 pub mod buffer;
+pub mod clock;
 pub mod command;
 pub mod compute_pipeline;
 pub mod device;

@@ -107,6 +107,9 @@ pub struct PhysicalDevice {
     /// Whether shaders may use double precision (silhouettes and hole creation place
     /// their samples in f64, as the CPU does).
     pub float64: bool,
+    /// Whether shaders may read their subgroup's cycle counter (VK_KHR_shader_clock): the
+    /// bench's clock probe.
+    pub shader_clock: bool,
 }
 
 impl PhysicalDevice {
@@ -133,6 +136,7 @@ impl PhysicalDevice {
             let queue = families[family];
             // SAFETY: as above.
             let features = unsafe { instance.raw.get_physical_device_features(raw) };
+            let shader_clock = Self::has_shader_clock(instance, raw, properties.api_version);
             let name = properties
                 .device_name_as_c_str()
                 .map(|name| name.to_string_lossy().into_owned())
@@ -164,9 +168,38 @@ impl PhysicalDevice {
                     .min(properties.limits.max_compute_work_group_size[0]),
                 max_storage_buffer_range: properties.limits.max_storage_buffer_range,
                 float64: features.shader_float64 == vk::TRUE,
+                shader_clock,
             });
         }
         Ok(devices)
+    }
+
+    /// Whether `raw` offers VK_KHR_shader_clock with the subgroup clock. A failed query
+    /// only means no clock probe.
+    fn has_shader_clock(instance: &Instance, raw: vk::PhysicalDevice, api_version: u32) -> bool {
+        if api_version < vk::API_VERSION_1_1 {
+            return false;
+        }
+        // SAFETY: `raw` came from this instance.
+        let extensions = unsafe { instance.raw.enumerate_device_extension_properties(raw) };
+        let listed = extensions.is_ok_and(|extensions| {
+            extensions.iter().any(|extension| {
+                extension.extension_name_as_c_str() == Ok(ash::khr::shader_clock::NAME)
+            })
+        });
+        if !listed {
+            return false;
+        }
+        let mut clock = vk::PhysicalDeviceShaderClockFeaturesKHR::default();
+        let mut features = vk::PhysicalDeviceFeatures2::default().push_next(&mut clock);
+        // SAFETY: as above; the device supports Vulkan 1.1, and `features` chains only
+        // structures of extensions it lists.
+        unsafe {
+            instance
+                .raw
+                .get_physical_device_features2(raw, &mut features)
+        };
+        clock.shader_subgroup_clock == vk::TRUE
     }
 
     /// The device `policy` picks, or an error listing what there is.

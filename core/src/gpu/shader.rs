@@ -23,10 +23,12 @@ pub enum Shader {
     RasterVertex,
     /// The shadow map's fragment shader, which writes object ids.
     RasterFragment,
+    /// The clock probe (needs VK_KHR_shader_clock).
+    Clock,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 12] = [
+    pub const ALL: [Shader; 13] = [
         Shader::March,
         Shader::Morphology,
         Shader::Transfer,
@@ -39,6 +41,7 @@ impl Shader {
         Shader::Holes,
         Shader::RasterVertex,
         Shader::RasterFragment,
+        Shader::Clock,
     ];
 
     /// The source's file name in `shaders/`.
@@ -56,6 +59,7 @@ impl Shader {
             Shader::Holes => "holes.comp",
             Shader::RasterVertex => "raster.vert",
             Shader::RasterFragment => "raster.frag",
+            Shader::Clock => "clock.comp",
         }
     }
 
@@ -92,6 +96,7 @@ impl Shader {
             Shader::RasterFragment => {
                 include_bytes!(concat!(env!("OUT_DIR"), "/raster.frag.spv"))
             }
+            Shader::Clock => include_bytes!(concat!(env!("OUT_DIR"), "/clock.comp.spv")),
         }
     }
 

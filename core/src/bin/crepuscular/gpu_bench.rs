@@ -1,12 +1,14 @@
 //! `crepuscular bench --backend vulkan`: per-stage GPU timestamps of the Vulkan backend on
 //! the built-in scenes, physically based and stylized, next to the CPU backend's times
-//! for the same frames.
+//! for the same frames, with the shader cores' clock rate each row ran at.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use crepuscular::builtin::{builtin_scene, torus_tessellated};
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
-use crepuscular::gpu::{Device, DeviceKind, GpuError};
+use crepuscular::gpu::{clock, Device, DeviceKind, GpuError};
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{Method, Rectification, Scene};
 use crepuscular::{Backend, Error, RenderControl, Result, StageTimes, Style};
@@ -33,10 +35,48 @@ const BENCH_STYLE: &str = r#"{
   }
 }"#;
 
+/// How long each row first keeps the device busy, so that its clock can rise from idle
+/// before the timed runs.
+const CLOCK_WARM_UP: Duration = Duration::from_millis(300);
+
+/// Whether the bench reads the clock: CPU implementations have a counter, but their
+/// timestamps do not time the probe (see [`print_table`]).
+fn reads_clock(device: &Device) -> bool {
+    clock::supported(device) && device.physical.kind != DeviceKind::Cpu
+}
+
+/// Keeps the device busy for [`CLOCK_WARM_UP`] where the bench reads its clock.
+fn warm_up(device: &Arc<Device>) {
+    if reads_clock(device) {
+        if let Err(err) = clock::warm_up(device, CLOCK_WARM_UP) {
+            eprintln!("the clock warm-up failed: {err}");
+        }
+    }
+}
+
+/// The shader cores' clock in MHz now, or `None` where the bench cannot tell; a probe
+/// that fails says so once and the bench goes on without it.
+fn clock_now(device: &Arc<Device>) -> Option<f64> {
+    static REPORTED: AtomicBool = AtomicBool::new(false);
+    if !reads_clock(device) {
+        return None;
+    }
+    clock::measure(device, clock::CHAIN_LINKS)
+        .map_err(|err| {
+            if !REPORTED.swap(true, Ordering::Relaxed) {
+                eprintln!("the clock probe failed, so rows show no clock rate: {err}");
+            }
+        })
+        .ok()
+        .flatten()
+}
+
 struct Row {
     scene: String,
     method: &'static str,
     look: &'static str,
+    /// The shader cores' clock after each timed run, median MHz.
+    clock: Option<f64>,
     shadow_map: Option<f64>,
     camera_depth: Option<f64>,
     hole_filling: Option<f64>,
@@ -106,7 +146,10 @@ pub fn run(
         if overrides.method.is_none() {
             let mut scene = base.clone();
             scene.render.method = Method::Prefiltered;
-            looks.push(("physical", scene.clone()));
+            // The built-in scenes' own method is prefiltering: no second row of it.
+            if base.render.method != Method::Prefiltered {
+                looks.push(("physical", scene.clone()));
+            }
             if overrides.downsample.is_none() && scene.render.supersampling == 1 {
                 scene.render.downsample = 2;
                 looks.push(("phys. 1/2", scene));
@@ -130,6 +173,8 @@ pub fn run(
             let mut cpu_side = Vec::new();
             let mut wall = Vec::new();
             let mut walls: Vec<StageTimes> = Vec::new();
+            let mut clocks = Vec::new();
+            warm_up(device);
             for _ in 0..runs {
                 let started = std::time::Instant::now();
                 let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
@@ -137,6 +182,7 @@ pub fn run(
                 walls.push(stages);
                 cpu_side.push((stages.shadow_map + stages.camera_depth + stages.rectify) * 1e3);
                 gpu.push(times);
+                clocks.extend(clock_now(device));
             }
             let cpu = if compare_cpu {
                 let started = std::time::Instant::now();
@@ -149,6 +195,7 @@ pub fn run(
                 scene: name.clone(),
                 method: scene.render.method.name(),
                 look,
+                clock: (!clocks.is_empty()).then(|| median_of(clocks.into_iter())),
                 shadow_map: median_option(&gpu, |t| t.shadow_map),
                 camera_depth: median_option(&gpu, |t| t.camera_depth),
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
@@ -216,16 +263,20 @@ fn raster_row(
     render_timed(device, &frame, &RenderControl::new())?;
     let mut gpu = Vec::new();
     let mut walls = Vec::new();
+    let mut clocks = Vec::new();
+    warm_up(device);
     for _ in 0..runs {
         let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
         gpu.push(times);
         walls.push(stages);
+        clocks.extend(clock_now(device));
     }
+    let clock = (!clocks.is_empty()).then(|| median_of(clocks.into_iter()));
     let wall = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
     println!(
         "\nRasterization of {} triangles (torus at {}×{} segments, and the ground), {}×{}, {}² map; \
-         GPU timestamp medians of {runs}: shadow map {} ms, camera depth {} ms; wall with the \
-         geometry upload and read-backs: shadow map {:.1} ms, camera depth {:.1} ms",
+         GPU timestamp medians of {runs}: shadow map {} ms, camera depth {} ms (clock {} MHz); \
+         wall with the geometry upload and read-backs: shadow map {:.1} ms, camera depth {:.1} ms",
         geometry.triangles.len(),
         DENSE_TORUS_SEGMENTS.0,
         DENSE_TORUS_SEGMENTS.1,
@@ -234,6 +285,7 @@ fn raster_row(
         scene.render.shadow_map_size,
         gpu_ms(median_option(&gpu, |t| t.shadow_map)),
         gpu_ms(median_option(&gpu, |t| t.camera_depth)),
+        megahertz(clock),
         wall(|s| s.shadow_map),
         wall(|s| s.camera_depth),
     );
@@ -265,6 +317,11 @@ fn least_traffic(scene: &Scene, stages: &StageTimes) -> usize {
         + pixels * 6 * FLOAT
 }
 
+/// A clock rate in whole MHz, or "-" where the device cannot tell.
+fn megahertz(rate: Option<f64>) -> String {
+    rate.map_or("-".to_owned(), |rate| format!("{rate:.0}"))
+}
+
 /// A GPU time in ms, or "-" for a stage that did not run.
 fn gpu_ms(v: Option<f64>) -> String {
     v.map_or("-".to_owned(), |v| format!("{v:.3}"))
@@ -288,10 +345,11 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     }
     let width = scene_column(rows.iter().map(|row| row.scene.as_str()));
     println!(
-        "{:<width$} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+        "{:<width$} {:<11} {:<9} {:>5} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>7} | {:>9} {:>10} {:>9} {:>10} {:>9}",
         "scene",
         "method",
         "look",
+        "MHz",
         "smap",
         "cdepth",
         "holes",
@@ -323,10 +381,11 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
         };
         let march_column = cpu.map(|(s, _)| s.shading * 1e3);
         println!(
-            "{:<width$} {:<11} {:<9} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
+            "{:<width$} {:<11} {:<9} {:>5} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8.3} {:>8.1} {:>8.3} {:>8.1} {:>7.1} | {:>9} {:>10} {:>9} {:>10} {:>9}",
             row.scene,
             row.method,
             row.look,
+            megahertz(row.clock),
             ms(row.shadow_map),
             ms(row.camera_depth),
             ms(row.hole_filling),
@@ -353,7 +412,11 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     on_cpu.sort();
     on_cpu.dedup();
     println!(
-        "\nsmap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); silh = silhouette enhancement (1D epipolar dilation or closure); hcreate = hole creation (noise holes in chosen objects); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
+        "\nMHz = the shader cores' clock rate after each timed run (median), read by a probe \
+         (VK_KHR_shader_clock; '-' where the device lacks it, and on CPU implementations): GPUs lower their clock when \
+         lightly loaded, and stages timed at a lowered clock take longer in proportion, so \
+         compare rows at like clocks; each row first keeps the device busy for {} ms. \
+         smap = shadow-map depth pass (depth and object ids); cdepth = camera depth pass; holes = hole filling (2D closing); silh = silhouette enhancement (1D epipolar dilation or closure); hcreate = hole creation (noise holes in chosen objects); rect = epipolar rectification; shade = per-pixel scattering (the reference march, or \
          prefiltered evaluation with the exact texel walk near on-screen epipoles and for the rays it declines); prefix = \
          prefiltering's basis computation and prefix sums; up = joint-bilateral upsampling of \
          evaluation at 1/2 size; TF = transfer-function application; scatter = rect + prefix + shade + up, \
@@ -363,8 +426,19 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
          divided by the device's memory bandwidth, the time they cannot beat. Uploads and read-backs lie outside the GPU columns but inside `frame`, the \
          wall time of the whole Vulkan-path frame. `maps` = wall time of the shadow map, camera \
          depth and rectification stages (GPU passes with their transfers, and CPU work). Stages the Vulkan path still runs on the CPU: {}.",
+        CLOCK_WARM_UP.as_millis(),
         on_cpu.join(", ")
     );
+    let clocks: Vec<f64> = rows.iter().filter_map(|row| row.clock).collect();
+    let highest = clocks.iter().copied().fold(0.0, f64::max);
+    let slowed = clocks.iter().filter(|&&rate| rate < 0.9 * highest).count();
+    if slowed > 0 {
+        println!(
+            "{slowed} of {} rows ran below 90% of the highest clock read ({highest:.0} MHz): \
+             their GPU columns overstate the stages' time at full clock",
+            clocks.len()
+        );
+    }
     println!(
         "{} runs per row after one warm-up; reference at {} steps; speed-up = cpu shade / GPU \
          shade; CPU columns from one run with {} threads; peak resident memory {}",
