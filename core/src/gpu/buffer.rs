@@ -9,6 +9,7 @@ use gpu_allocator::MemoryLocation;
 
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
+use super::host_time::{timed, HostWork};
 
 /// Where a buffer lives and what it is for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -84,6 +85,10 @@ pub struct Buffer {
 
 impl Buffer {
     pub fn new(device: &Arc<Device>, desc: BufferDesc, name: &str) -> GpuResult<Buffer> {
+        timed(HostWork::Allocation, || Self::create(device, desc, name))
+    }
+
+    fn create(device: &Arc<Device>, desc: BufferDesc, name: &str) -> GpuResult<Buffer> {
         let (usage, location, size) = desc.vk_usage();
         let info = vk::BufferCreateInfo::default()
             .size(size)
@@ -141,7 +146,9 @@ impl Buffer {
                 bytes.len()
             )));
         }
-        mapped[..bytes.len()].copy_from_slice(bytes);
+        timed(HostWork::Writes, || {
+            mapped[..bytes.len()].copy_from_slice(bytes)
+        });
         Ok(())
     }
 
@@ -162,6 +169,12 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
+        timed(HostWork::Allocation, || self.release());
+    }
+}
+
+impl Buffer {
+    fn release(&mut self) {
         // SAFETY: command buffers that use this buffer have completed (every submission
         // waits for its fence before its buffers can be dropped).
         unsafe { self.device.raw.destroy_buffer(self.raw, None) };

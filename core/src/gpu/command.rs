@@ -12,6 +12,7 @@ use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
 use super::graphics_pipeline::{Framebuffer, GraphicsPipeline, GraphicsPipelineDesc};
+use super::host_time::{timed, HostWork};
 use super::image::Image;
 use super::query::TimestampPool;
 
@@ -419,9 +420,11 @@ impl Recorder {
         }
         self.in_flight = true;
         // SAFETY: the fence belongs to this device.
-        unsafe { raw.wait_for_fences(&[self.fence], true, u64::MAX) }
-            .call("vkWaitForFences")
-            .map_err(|e| e.in_stage(stage))?;
+        timed(HostWork::Waits, || unsafe {
+            raw.wait_for_fences(&[self.fence], true, u64::MAX)
+        })
+        .call("vkWaitForFences")
+        .map_err(|e| e.in_stage(stage))?;
         self.in_flight = false;
         let timings = match &self.timestamps {
             Some(pool) => pool
@@ -476,7 +479,8 @@ impl Completed {
             .readbacks
             .get(readback.0)
             .ok_or_else(|| GpuError::Unsupported("an unknown read-back".to_owned()))?;
-        Ok(from_bytes(buffer.read()?))
+        let bytes = buffer.read()?;
+        Ok(timed(HostWork::Reads, || from_bytes(bytes)))
     }
 
     pub fn milliseconds(&self, label: &str) -> Option<f64> {

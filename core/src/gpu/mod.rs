@@ -5,7 +5,8 @@
 //! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
 //! [`image`], [`shader`], [`compute_pipeline`], [`graphics_pipeline`] (render passes and
 //! framebuffers), [`command`] (recording and submission), [`barrier`], [`query`]
-//! (timestamps), [`layer_buffers`] (the layers' device buffers and read-back), [`dispatch`]
+//! (timestamps), [`layer_buffers`] (the layers' device buffers and read-back), [`host_time`] (host-side
+//! time by kind of work), [`dispatch`]
 //! (workgroup counts and parameter packing), and one per ported stage: [`raster`] (shadow
 //! map and camera depth), [`march`], [`morphology`], [`silhouette`], [`holes`],
 //! [`transfer`], [`prefix`], [`prefiltered`], [`upsample`], [`rectify`]; and [`clock`], the
@@ -22,6 +23,7 @@ pub mod error;
 pub mod frame;
 pub mod graphics_pipeline;
 pub mod holes;
+pub mod host_time;
 pub mod image;
 pub mod instance;
 pub mod layer_buffers;

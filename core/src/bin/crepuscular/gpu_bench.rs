@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use crepuscular::builtin::{builtin_scene, torus_tessellated};
 use crepuscular::gpu::frame::{render_timed, GpuTimes};
+use crepuscular::gpu::host_time::{self, HostTimes};
 use crepuscular::gpu::{clock, Device, DeviceKind, GpuError};
 use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{Method, Rectification, Scene};
@@ -174,10 +175,13 @@ pub fn run(
             let mut wall = Vec::new();
             let mut walls: Vec<StageTimes> = Vec::new();
             let mut clocks = Vec::new();
+            let mut host: Vec<HostTimes> = Vec::new();
             warm_up(device);
             for _ in 0..runs {
+                host_time::take();
                 let started = std::time::Instant::now();
                 let (_, stages, times) = render_timed(device, &frame, &RenderControl::new())?;
+                host.push(host_time::take());
                 wall.push(started.elapsed().as_secs_f64() * 1e3);
                 walls.push(stages);
                 cpu_side.push((stages.shadow_map + stages.camera_depth + stages.rectify) * 1e3);
@@ -214,12 +218,14 @@ pub fn run(
                 cpu,
                 cpu_stages: gpu[0].cpu_stages.clone(),
             };
-            // Where the frame's wall time goes (GPU stages include their copies here).
+            // Where the frame's wall time goes (GPU stages include their copies here), and
+            // the Vulkan path's host work within it.
             let wall_of = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
+            let host_of = |of: fn(&HostTimes) -> f64| median_of(host.iter().map(|h| of(h) * 1e3));
             eprintln!(
                 "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms; wall ms: shadow map {:.1}, \
                  occluders {:.1}, camera depth {:.1}, rectify {:.1}, prepare {:.1}, shading {:.1}, \
-                 TF {:.1}",
+                 TF {:.1}; host ms: buffers {:.1}, uploads {:.1}, waits {:.1}, read-backs {:.1}",
                 row.method,
                 row.gpu_total,
                 row.frame,
@@ -230,6 +236,10 @@ pub fn run(
                 wall_of(|s| s.prepare),
                 wall_of(|s| s.shading),
                 wall_of(|s| s.transfer_function),
+                host_of(|h| h.allocation),
+                host_of(|h| h.writes),
+                host_of(|h| h.waits),
+                host_of(|h| h.reads),
             );
             rows.push(row);
         }
