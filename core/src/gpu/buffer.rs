@@ -165,15 +165,8 @@ impl Buffer {
     pub fn size(&self) -> u64 {
         self.desc.size
     }
-}
 
-impl Drop for Buffer {
-    fn drop(&mut self) {
-        timed(HostWork::Allocation, || self.release());
-    }
-}
-
-impl Buffer {
+    /// Destroys the buffer and frees its memory (its `Drop`).
     fn release(&mut self) {
         // SAFETY: command buffers that use this buffer have completed (every submission
         // waits for its fence before its buffers can be dropped).
@@ -189,6 +182,12 @@ impl Buffer {
                     })
             });
         }
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        timed(HostWork::Allocation, || self.release());
     }
 }
 
