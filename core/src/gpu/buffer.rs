@@ -9,7 +9,7 @@ use gpu_allocator::MemoryLocation;
 
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
-use super::host_time::{timed, HostWork};
+use super::host_time::{self, timed, HostWork};
 
 /// Where a buffer lives and what it is for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -149,6 +149,7 @@ impl Buffer {
         timed(HostWork::Writes, || {
             mapped[..bytes.len()].copy_from_slice(bytes)
         });
+        host_time::count_written(bytes.len());
         Ok(())
     }
 

@@ -12,7 +12,7 @@ use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
 use super::graphics_pipeline::{Framebuffer, GraphicsPipeline, GraphicsPipelineDesc};
-use super::host_time::{timed, HostWork};
+use super::host_time::{self, timed, HostWork};
 use super::image::Image;
 use super::query::TimestampPool;
 
@@ -480,6 +480,7 @@ impl Completed {
             .get(readback.0)
             .ok_or_else(|| GpuError::Unsupported("an unknown read-back".to_owned()))?;
         let bytes = buffer.read()?;
+        host_time::count_read(bytes.len());
         Ok(timed(HostWork::Reads, || from_bytes(bytes)))
     }
 

@@ -22,14 +22,18 @@ pub enum HostWork {
 const KINDS: usize = 4;
 
 static NANOSECONDS: [AtomicU64; KINDS] = [const { AtomicU64::new(0) }; KINDS];
+static BYTES_WRITTEN: AtomicU64 = AtomicU64::new(0);
+static BYTES_READ: AtomicU64 = AtomicU64::new(0);
 
-/// Seconds of host work per kind.
+/// Seconds of host work per kind, and the bytes the copies moved.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct HostTimes {
     pub allocation: f64,
     pub writes: f64,
     pub waits: f64,
     pub reads: f64,
+    pub bytes_written: u64,
+    pub bytes_read: u64,
 }
 
 /// Runs `f`, adding its wall time to `work`'s sum.
@@ -41,6 +45,16 @@ pub fn timed<T>(work: HostWork, f: impl FnOnce() -> T) -> T {
     result
 }
 
+/// Adds `bytes` copied into mapped memory.
+pub fn count_written(bytes: usize) {
+    BYTES_WRITTEN.fetch_add(bytes as u64, Ordering::Relaxed);
+}
+
+/// Adds `bytes` copied out of mapped memory.
+pub fn count_read(bytes: usize) {
+    BYTES_READ.fetch_add(bytes as u64, Ordering::Relaxed);
+}
+
 /// The sums since the last call, which starts new ones.
 pub fn take() -> HostTimes {
     let take = |work: HostWork| NANOSECONDS[work as usize].swap(0, Ordering::Relaxed) as f64 * 1e-9;
@@ -49,6 +63,8 @@ pub fn take() -> HostTimes {
         writes: take(HostWork::Writes),
         waits: take(HostWork::Waits),
         reads: take(HostWork::Reads),
+        bytes_written: BYTES_WRITTEN.swap(0, Ordering::Relaxed),
+        bytes_read: BYTES_READ.swap(0, Ordering::Relaxed),
     }
 }
 
@@ -66,6 +82,13 @@ mod tests {
         assert_eq!(value, 7);
         let first = take();
         assert!(first.reads >= pause.as_secs_f64(), "{first:?}");
+        count_written(1000);
+        count_read(24);
+        let counted = take();
+        assert!(
+            counted.bytes_written >= 1000 && counted.bytes_read >= 24,
+            "{counted:?}"
+        );
         timed(HostWork::Waits, || std::thread::sleep(pause));
         let second = take();
         // Other tests may render on a GPU meanwhile and add to any sum: only lower bounds.

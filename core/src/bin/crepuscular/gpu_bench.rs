@@ -225,7 +225,8 @@ pub fn run(
             eprintln!(
                 "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms; wall ms: shadow map {:.1}, \
                  occluders {:.1}, camera depth {:.1}, rectify {:.1}, prepare {:.1}, shading {:.1}, \
-                 TF {:.1}; host ms: buffers {:.1}, uploads {:.1}, waits {:.1}, read-backs {:.1}",
+                 TF {:.1}; host ms: buffers {:.1}, uploads {:.1} ({:.0} MB), waits {:.1}, \
+                 read-backs {:.1} ({:.0} MB)",
                 row.method,
                 row.gpu_total,
                 row.frame,
@@ -238,8 +239,10 @@ pub fn run(
                 wall_of(|s| s.transfer_function),
                 host_of(|h| h.allocation),
                 host_of(|h| h.writes),
+                host_of(|h| h.bytes_written as f64 * 1e-9),
                 host_of(|h| h.waits),
                 host_of(|h| h.reads),
+                host_of(|h| h.bytes_read as f64 * 1e-9),
             );
             rows.push(row);
         }
