@@ -65,9 +65,12 @@ pub fn measure(device: &Arc<Device>, links: u32) -> GpuResult<Option<f64>> {
 /// Keeps the device busy with probes for `duration` (clocks rise under load), and returns
 /// the last rate read.
 pub fn warm_up(device: &Arc<Device>, duration: Duration) -> GpuResult<Option<f64>> {
+    if !supported(device) {
+        return Ok(None);
+    }
     let started = Instant::now();
     let mut rate = None;
-    while supported(device) && started.elapsed() < duration {
+    while started.elapsed() < duration {
         rate = measure(device, CHAIN_LINKS * 8)?;
     }
     Ok(rate)

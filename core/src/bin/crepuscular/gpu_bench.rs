@@ -107,9 +107,13 @@ fn median_of(values: impl Iterator<Item = f64>) -> f64 {
     median(&values)
 }
 
-fn median_option(times: &[GpuTimes], of: fn(&GpuTimes) -> Option<f64>) -> Option<f64> {
-    let values: Vec<f64> = times.iter().filter_map(of).collect();
+/// The median of `values`, or `None` where there are none.
+fn median_if_any(values: Vec<f64>) -> Option<f64> {
     (!values.is_empty()).then(|| median_of(values.into_iter()))
+}
+
+fn median_option(times: &[GpuTimes], of: fn(&GpuTimes) -> Option<f64>) -> Option<f64> {
+    median_if_any(times.iter().filter_map(of).collect())
 }
 
 pub fn run(
@@ -199,7 +203,7 @@ pub fn run(
                 scene: name.clone(),
                 method: scene.render.method.name(),
                 look,
-                clock: (!clocks.is_empty()).then(|| median_of(clocks.into_iter())),
+                clock: median_if_any(clocks),
                 shadow_map: median_option(&gpu, |t| t.shadow_map),
                 camera_depth: median_option(&gpu, |t| t.camera_depth),
                 hole_filling: median_option(&gpu, |t| t.hole_filling),
@@ -284,7 +288,7 @@ fn raster_row(
         walls.push(stages);
         clocks.extend(clock_now(device));
     }
-    let clock = (!clocks.is_empty()).then(|| median_of(clocks.into_iter()));
+    let clock = median_if_any(clocks);
     let wall = |of: fn(&StageTimes) -> f64| median_of(walls.iter().map(|s| of(s) * 1e3));
     println!(
         "\nRasterization of {} triangles (torus at {}×{} segments, and the ground), {}×{}, {}² map; \
