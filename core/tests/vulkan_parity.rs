@@ -536,6 +536,51 @@ fn stylized_frames_match_the_cpu_on_the_builtin_scenes() {
     }
 }
 
+/// The device keeps released buffers for the next frame, contents and all: no stage may
+/// read what it did not write. A stylized prefiltered frame of tree, rendered on a device
+/// of its own, comes out bit for bit the same after colonnade's frames have filled the
+/// kept buffers with their data; and the device keeps what the frames released, no more
+/// than its limit.
+#[test]
+fn kept_buffers_do_not_leak_into_the_next_frame() {
+    let Some(shared) = device("the kept-buffer test") else {
+        return;
+    };
+    let device = Device::new(DevicePolicy::Any).unwrap();
+    assert_eq!(device.physical.name, shared.physical.name);
+    assert_eq!(device.kept_buffer_bytes(), 0);
+    let frame_of = |name: &str, method: Method| {
+        let mut scene = small(name);
+        scene.style = stylized();
+        scene.render.method = method;
+        let geometry = FlatGeometry::from_scene(&scene);
+        let frame = Frame::of_scene(&scene, &geometry);
+        gpu::frame::render_timed(&device, &frame, &RenderControl::new())
+            .unwrap()
+            .0
+    };
+    let first = frame_of("tree", Method::Prefiltered);
+    let kept = device.kept_buffer_bytes();
+    assert!(kept > 0, "the frame released no buffer to keep");
+    frame_of("colonnade", Method::Prefiltered);
+    frame_of("colonnade", Method::Reference);
+    let again = frame_of("tree", Method::Prefiltered);
+    let limit = gpu::buffer_pool::kept_bytes_limit(device.physical.device_local_bytes);
+    assert!(device.kept_buffer_bytes() <= limit);
+    for (layer, a, b) in [
+        ("volume", &first.volume, &again.volume),
+        ("visibility", &first.visibility, &again.visibility),
+        ("depth", &first.depth, &again.depth),
+    ] {
+        let differing = a
+            .iter()
+            .zip(b.iter())
+            .filter(|(x, y)| x.to_bits() != y.to_bits())
+            .count();
+        assert_eq!(differing, 0, "{layer}: {differing} values changed");
+    }
+}
+
 /// The clock probe runs where the device has VK_KHR_shader_clock (lavapipe does), and
 /// reads a positive, finite rate; its counter and timestamps agree on real GPUs only, so
 /// the rate itself is checked against nothing here.

@@ -7,6 +7,7 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
+use super::buffer_pool::pooled_capacity;
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
 use super::host_time::{self, timed, HostWork};
@@ -78,20 +79,48 @@ impl BufferDesc {
 
 pub struct Buffer {
     pub raw: vk::Buffer,
+    /// What was asked for; the buffer may be larger ([`Buffer::capacity`]).
     pub desc: BufferDesc,
+    capacity: u64,
     allocation: Option<Allocation>,
     device: Arc<Device>,
 }
 
+/// A released buffer with its memory, kept by the device for the next request of its
+/// role and capacity ([`super::buffer_pool`]).
+pub struct KeptBuffer {
+    pub raw: vk::Buffer,
+    pub allocation: Allocation,
+}
+
 impl Buffer {
+    /// A buffer for `desc`: one the device kept of its role and capacity, or a new one.
+    /// A kept buffer's contents are whatever its last user left.
     pub fn new(device: &Arc<Device>, desc: BufferDesc, name: &str) -> GpuResult<Buffer> {
-        timed(HostWork::Allocation, || Self::create(device, desc, name))
+        timed(HostWork::Allocation, || {
+            let capacity = pooled_capacity(desc.vk_usage().2);
+            match device.take_kept_buffer(desc.role, capacity) {
+                Some(kept) => Ok(Buffer {
+                    raw: kept.raw,
+                    desc,
+                    capacity,
+                    allocation: Some(kept.allocation),
+                    device: device.clone(),
+                }),
+                None => Self::create(device, desc, capacity, name),
+            }
+        })
     }
 
-    fn create(device: &Arc<Device>, desc: BufferDesc, name: &str) -> GpuResult<Buffer> {
-        let (usage, location, size) = desc.vk_usage();
+    fn create(
+        device: &Arc<Device>,
+        desc: BufferDesc,
+        capacity: u64,
+        name: &str,
+    ) -> GpuResult<Buffer> {
+        let (usage, location, _) = desc.vk_usage();
         let info = vk::BufferCreateInfo::default()
-            .size(size)
+            .size(capacity)
             .usage(usage)
             .sharing_mode(vk::SharingMode::EXCLUSIVE);
         // SAFETY: the device is valid and `info` outlives the call.
@@ -100,6 +129,7 @@ impl Buffer {
         let mut buffer = Buffer {
             raw,
             desc,
+            capacity,
             allocation: None,
             device: device.clone(),
         };
@@ -115,7 +145,7 @@ impl Buffer {
                     allocation_scheme: AllocationScheme::GpuAllocatorManaged,
                 })
                 .map_err(|source| GpuError::Allocation {
-                    what: format!("{name} ({size} bytes)"),
+                    what: format!("{name} ({capacity} bytes)"),
                     source,
                 })
         })?;
@@ -125,8 +155,13 @@ impl Buffer {
                 .raw
                 .bind_buffer_memory(raw, allocation.memory(), allocation.offset())
         };
+        if let Err(err) = bound.call("vkBindBufferMemory") {
+            // Not kept: a buffer whose binding failed is released with its memory.
+            device.release_buffer(KeptBuffer { raw, allocation });
+            buffer.raw = vk::Buffer::null();
+            return Err(err);
+        }
         buffer.allocation = Some(allocation);
-        bound.call("vkBindBufferMemory")?;
         Ok(buffer)
     }
 
@@ -153,7 +188,7 @@ impl Buffer {
         Ok(())
     }
 
-    /// The contents of a host-visible buffer.
+    /// The contents of a host-visible buffer, as far as its desc's size.
     pub fn read(&self) -> GpuResult<&[u8]> {
         let size = self.desc.size as usize;
         self.allocation
@@ -167,28 +202,36 @@ impl Buffer {
         self.desc.size
     }
 
-    /// Destroys the buffer and frees its memory (its `Drop`).
-    fn release(&mut self) {
-        // SAFETY: command buffers that use this buffer have completed (every submission
-        // waits for its fence before its buffers can be dropped).
-        unsafe { self.device.raw.destroy_buffer(self.raw, None) };
-        if let Some(allocation) = self.allocation.take() {
-            // A failure to free leaks the block until the allocator goes; nothing to report to.
-            let _ = self.device.with_allocator(|allocator| {
-                allocator
-                    .free(allocation)
-                    .map_err(|source| GpuError::Allocation {
-                        what: "a freed buffer".to_owned(),
-                        source,
-                    })
-            });
-        }
+    /// The bytes the buffer really has: its size rounded up to what the device keeps.
+    pub fn capacity(&self) -> u64 {
+        self.capacity
+    }
+
+    /// The range a descriptor binds: the size asked for (at least 4 bytes, as created).
+    pub fn bound_size(&self) -> u64 {
+        self.desc.vk_usage().2
     }
 }
 
 impl Drop for Buffer {
+    /// Hands the buffer to the device to keep. Command buffers that use it have completed:
+    /// every submission waits for its fence before its buffers can be dropped.
     fn drop(&mut self) {
-        timed(HostWork::Allocation, || self.release());
+        timed(HostWork::Allocation, || match self.allocation.take() {
+            Some(allocation) => self.device.keep_buffer(
+                self.desc.role,
+                self.capacity,
+                KeptBuffer {
+                    raw: self.raw,
+                    allocation,
+                },
+            ),
+            None if self.raw != vk::Buffer::null() => {
+                // SAFETY: created from this device, never bound, never used.
+                unsafe { self.device.raw.destroy_buffer(self.raw, None) };
+            }
+            None => {}
+        });
     }
 }
 
@@ -209,15 +252,19 @@ pub fn as_bytes<T: Pod>(values: &[T]) -> &[u8] {
 
 /// Copies bytes into values (the source need not be aligned).
 pub fn from_bytes<T: Pod + Default>(bytes: &[u8]) -> Vec<T> {
-    let count = bytes.len() / std::mem::size_of::<T>();
-    let mut values = vec![T::default(); count];
-    // SAFETY: the destination holds exactly `count` values of `Pod` type.
-    unsafe {
-        std::ptr::copy_nonoverlapping(
-            bytes.as_ptr(),
-            values.as_mut_ptr().cast::<u8>(),
-            count * std::mem::size_of::<T>(),
-        )
-    };
+    let mut values = vec![T::default(); bytes.len() / std::mem::size_of::<T>()];
+    copy_from_bytes(bytes, &mut values);
     values
+}
+
+/// Copies the first `size_of_val(values)` bytes into `values` (the source need not be
+/// aligned). Panics where there are fewer bytes.
+pub fn copy_from_bytes<T: Pod>(bytes: &[u8], values: &mut [T]) {
+    let size = std::mem::size_of_val(values);
+    assert!(bytes.len() >= size, "{} bytes for {size}", bytes.len());
+    // SAFETY: the destination holds exactly `size` bytes of `Pod` values, and the source
+    // at least as many.
+    unsafe {
+        std::ptr::copy_nonoverlapping(bytes.as_ptr(), values.as_mut_ptr().cast::<u8>(), size)
+    };
 }

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use ash::vk;
 
 use super::barrier::{barrier_between, Access};
-use super::buffer::{as_bytes, from_bytes, Buffer, BufferDesc, Pod};
+use super::buffer::{as_bytes, copy_from_bytes, from_bytes, Buffer, BufferDesc, Pod};
 use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
 use super::device::Device;
 use super::error::{GpuError, GpuResult, VkContext};
@@ -257,7 +257,8 @@ impl Recorder {
                 vk::DescriptorBufferInfo::default()
                     .buffer(b.raw)
                     .offset(0)
-                    .range(vk::WHOLE_SIZE)
+                    // Not the whole buffer: a kept one may be larger than asked for.
+                    .range(b.bound_size())
             })
             .collect();
         let writes: Vec<vk::WriteDescriptorSet> = infos
@@ -475,13 +476,32 @@ pub struct Completed {
 
 impl Completed {
     pub fn read<T: Pod + Default>(&self, readback: Readback) -> GpuResult<Vec<T>> {
-        let buffer = self
-            .readbacks
-            .get(readback.0)
-            .ok_or_else(|| GpuError::Unsupported("an unknown read-back".to_owned()))?;
-        let bytes = buffer.read()?;
+        let bytes = self.bytes(readback)?;
         host_time::count_read(bytes.len());
         Ok(timed(HostWork::Reads, || from_bytes(bytes)))
+    }
+
+    /// Reads into `values`, which must hold exactly what was copied back: memory the
+    /// caller kept from an earlier frame, whose pages need not fault in again.
+    pub fn read_into<T: Pod>(&self, readback: Readback, values: &mut [T]) -> GpuResult<()> {
+        let bytes = self.bytes(readback)?;
+        if bytes.len() != std::mem::size_of_val(values) {
+            return Err(GpuError::Unsupported(format!(
+                "reading {} bytes back into {} bytes",
+                bytes.len(),
+                std::mem::size_of_val(values)
+            )));
+        }
+        host_time::count_read(bytes.len());
+        timed(HostWork::Reads, || copy_from_bytes(bytes, values));
+        Ok(())
+    }
+
+    fn bytes(&self, readback: Readback) -> GpuResult<&[u8]> {
+        self.readbacks
+            .get(readback.0)
+            .ok_or_else(|| GpuError::Unsupported("an unknown read-back".to_owned()))?
+            .read()
     }
 
     pub fn milliseconds(&self, label: &str) -> Option<f64> {

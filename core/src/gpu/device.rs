@@ -1,5 +1,7 @@
 //! The logical device: one queue (compute, and graphics where the device has it), the
-//! memory allocator, and the caches of compute and graphics pipelines. Shared as `Arc<Device>`; everything created from it is destroyed first.
+//! memory allocator, the buffers kept between frames, and the caches of compute and
+//! graphics pipelines. Shared as `Arc<Device>`; everything created from it is destroyed
+//! first.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -7,6 +9,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
+use super::buffer::{BufferRole, KeptBuffer};
+use super::buffer_pool::{kept_bytes_limit, BufferPool};
 use super::compute_pipeline::{ComputePipeline, ComputePipelineDesc};
 use super::error::{GpuError, GpuResult, VkContext};
 use super::graphics_pipeline::{GraphicsPipeline, GraphicsPipelineDesc};
@@ -21,6 +25,7 @@ pub struct Device {
     queue_lock: Mutex<()>,
     /// `None` only while the device is being dropped.
     allocator: Mutex<Option<Allocator>>,
+    kept_buffers: Mutex<BufferPool<KeptBuffer>>,
     pipelines: Mutex<HashMap<ComputePipelineDesc, Arc<ComputePipeline>>>,
     graphics_pipelines: Mutex<HashMap<GraphicsPipelineDesc, Arc<GraphicsPipeline>>>,
     /// Declared last: dropped after the device is destroyed.
@@ -72,12 +77,14 @@ impl Device {
                 });
             }
         };
+        let kept_limit = kept_bytes_limit(physical.device_local_bytes);
         Ok(Arc::new(Device {
             raw,
             physical,
             queue,
             queue_lock: Mutex::new(()),
             allocator: Mutex::new(Some(allocator)),
+            kept_buffers: Mutex::new(BufferPool::new(kept_limit)),
             pipelines: Mutex::new(HashMap::new()),
             graphics_pipelines: Mutex::new(HashMap::new()),
             instance,
@@ -96,6 +103,41 @@ impl Device {
                 "the device is shutting down".to_owned(),
             )),
         }
+    }
+
+    /// A buffer kept of `role` and `capacity`, if there is one.
+    pub(crate) fn take_kept_buffer(&self, role: BufferRole, capacity: u64) -> Option<KeptBuffer> {
+        lock(&self.kept_buffers).take(role, capacity)
+    }
+
+    /// Keeps a released buffer for the next request of its role and capacity, releasing
+    /// what no longer fits the limit.
+    pub(crate) fn keep_buffer(&self, role: BufferRole, capacity: u64, buffer: KeptBuffer) {
+        let released = lock(&self.kept_buffers).keep(role, capacity, buffer);
+        for buffer in released {
+            self.release_buffer(buffer);
+        }
+    }
+
+    /// The bytes of the buffers kept now.
+    pub fn kept_buffer_bytes(&self) -> u64 {
+        lock(&self.kept_buffers).kept_bytes()
+    }
+
+    /// Destroys a buffer that no command buffer uses any more, and frees its memory.
+    pub(crate) fn release_buffer(&self, buffer: KeptBuffer) {
+        // SAFETY: the buffer was created from this device, and its last submission has
+        // completed (see `Buffer`'s Drop).
+        unsafe { self.raw.destroy_buffer(buffer.raw, None) };
+        // A failure to free leaks the block until the allocator goes; nothing to report to.
+        let _ = self.with_allocator(|allocator| {
+            allocator
+                .free(buffer.allocation)
+                .map_err(|source| GpuError::Allocation {
+                    what: "a released buffer".to_owned(),
+                    source,
+                })
+        });
     }
 
     pub(crate) fn queue_guard(&self) -> MutexGuard<'_, ()> {
@@ -158,6 +200,10 @@ impl Drop for Device {
         }
         for (_, pipeline) in lock(&self.graphics_pipelines).drain() {
             pipeline.destroy(&self.raw);
+        }
+        let kept = lock(&self.kept_buffers).drain();
+        for buffer in kept {
+            self.release_buffer(buffer);
         }
         // The allocator frees its memory blocks through the device, so it goes first.
         drop(lock(&self.allocator).take());

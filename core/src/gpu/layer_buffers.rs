@@ -49,13 +49,12 @@ impl LayerBuffers {
 }
 
 impl LayerReadback {
+    /// The layers, in memory kept from an earlier frame's.
     pub fn read(self, done: &Completed) -> GpuResult<Layers> {
-        Ok(Layers {
-            width: self.width,
-            height: self.height,
-            volume: done.read(self.volume)?,
-            visibility: done.read(self.visibility)?,
-            depth: done.read(self.depth)?,
-        })
+        let mut layers = Layers::for_overwrite(self.width, self.height);
+        done.read_into(self.volume, &mut layers.volume)?;
+        done.read_into(self.visibility, &mut layers.visibility)?;
+        done.read_into(self.depth, &mut layers.depth)?;
+        Ok(layers)
     }
 }

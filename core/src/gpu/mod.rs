@@ -3,17 +3,18 @@
 //! backend stays the oracle; [`frame`] says which stages run where.
 //!
 //! One file per Vulkan concept: [`instance`], [`physical_device`], [`device`], [`buffer`],
-//! [`image`], [`shader`], [`compute_pipeline`], [`graphics_pipeline`] (render passes and
-//! framebuffers), [`command`] (recording and submission), [`barrier`], [`query`]
-//! (timestamps), [`layer_buffers`] (the layers' device buffers and read-back), [`host_time`] (host-side
-//! time by kind of work), [`dispatch`]
-//! (workgroup counts and parameter packing), and one per ported stage: [`raster`] (shadow
-//! map and camera depth), [`march`], [`morphology`], [`silhouette`], [`holes`],
-//! [`transfer`], [`prefix`], [`prefiltered`], [`upsample`], [`rectify`]; and [`clock`], the
-//! bench's probe of the shader cores' clock rate.
+//! [`buffer_pool`] (buffers kept between frames), [`image`], [`shader`],
+//! [`compute_pipeline`], [`graphics_pipeline`] (render passes and framebuffers),
+//! [`command`] (recording and submission), [`barrier`], [`query`] (timestamps),
+//! [`layer_buffers`] (the layers' device buffers and read-back), [`host_time`] (host-side
+//! time by kind of work), [`dispatch`] (workgroup counts and parameter packing), and one
+//! per ported stage: [`raster`] (shadow map and camera depth), [`march`], [`morphology`],
+//! [`silhouette`], [`holes`], [`transfer`], [`prefix`], [`prefiltered`], [`upsample`],
+//! [`rectify`]; and [`clock`], the bench's probe of the shader cores' clock rate.
 
 pub mod barrier;
 pub mod buffer;
+pub mod buffer_pool;
 pub mod clock;
 pub mod command;
 pub mod compute_pipeline;

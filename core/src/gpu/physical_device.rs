@@ -110,6 +110,9 @@ pub struct PhysicalDevice {
     /// Whether shaders may read their subgroup's cycle counter (VK_KHR_shader_clock): the
     /// bench's clock probe.
     pub shader_clock: bool,
+    /// The bytes of its device-local memory heaps: what bounds the buffers it keeps
+    /// between frames ([`super::buffer_pool`]).
+    pub device_local_bytes: u64,
 }
 
 impl PhysicalDevice {
@@ -137,6 +140,14 @@ impl PhysicalDevice {
             // SAFETY: as above.
             let features = unsafe { instance.raw.get_physical_device_features(raw) };
             let shader_clock = Self::has_shader_clock(instance, raw, properties.api_version);
+            // SAFETY: as above.
+            let memory = unsafe { instance.raw.get_physical_device_memory_properties(raw) };
+            let device_local_bytes = memory
+                .memory_heaps_as_slice()
+                .iter()
+                .filter(|heap| heap.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL))
+                .map(|heap| heap.size)
+                .sum();
             let name = properties
                 .device_name_as_c_str()
                 .map(|name| name.to_string_lossy().into_owned())
@@ -169,6 +180,7 @@ impl PhysicalDevice {
                 max_storage_buffer_range: properties.limits.max_storage_buffer_range,
                 float64: features.shader_float64 == vk::TRUE,
                 shader_clock,
+                device_local_bytes,
             });
         }
         Ok(devices)

@@ -66,7 +66,7 @@ pub fn apply(
     }
     let groups = groups_1d(pixels as u32, LOCAL, device.physical.max_workgroup_count)?;
     let push = push_constants(pixels as u32, texture.size(), settings);
-    let run = || {
+    let mut run = || {
         let mut rec = Recorder::new(device, STAGE, 1, 4)?;
         let texels = rec.upload(texture.texels(), "TF texels")?;
         let visibility = rec.upload(&layers.visibility, "visibility layer")?;
@@ -84,11 +84,11 @@ pub fn apply(
         })?;
         let back = rec.download(&volume, "volume read-back")?;
         let done = rec.submit_and_wait()?;
-        Ok::<_, super::GpuError>((done.read(back)?, done.milliseconds(STAGE)))
+        // Into the layer itself: it has the size copied back, and its pages are in.
+        done.read_into(back, &mut layers.volume)?;
+        Ok::<_, super::GpuError>(done.milliseconds(STAGE))
     };
-    let (volume, ms) = run().map_err(|err| err.in_stage(STAGE))?;
-    layers.volume = volume;
-    Ok(ms)
+    Ok(run().map_err(|err| err.in_stage(STAGE))?)
 }
 
 #[cfg(test)]

@@ -91,13 +91,10 @@ pub fn joint_bilateral(
         let volume_back = rec.download(&volume, "volume read-back")?;
         let visibility_back = rec.download(&visibility, "visibility read-back")?;
         let done = rec.submit_and_wait()?;
-        let layers = Layers {
-            width,
-            height,
-            volume: done.read(volume_back)?,
-            visibility: done.read(visibility_back)?,
-            depth: depth.to_vec(),
-        };
+        let mut layers = Layers::for_overwrite(width, height);
+        done.read_into(volume_back, &mut layers.volume)?;
+        done.read_into(visibility_back, &mut layers.visibility)?;
+        layers.depth.copy_from_slice(depth);
         Ok::<_, GpuError>((layers, done.milliseconds(STAGE)))
     };
     run().map_err(|err| err.in_stage(STAGE))
