@@ -38,9 +38,10 @@ layout(std430, binding = 0) readonly buffer Params {
 layout(std430, binding = 1) readonly buffer ShadowDepth { float shadow_depth[]; };
 // Ray distance to the first surface per depth sample; negative for background.
 layout(std430, binding = 2) readonly buffer Surfaces { float surfaces[]; };
-layout(std430, binding = 3) writeonly buffer Volume { vec4 volume_out[]; };
-layout(std430, binding = 4) writeonly buffer Visibility { float visibility_out[]; };
-layout(std430, binding = 5) writeonly buffer Depth { float depth_out[]; };
+// Read back by adaptive shading (prefiltered.comp), which blends shaded neighbours.
+layout(std430, binding = 3) buffer Volume { vec4 volume_out[]; };
+layout(std430, binding = 4) buffer Visibility { float visibility_out[]; };
+layout(std430, binding = 5) buffer Depth { float depth_out[]; };
 
 vec3 texel_origin;
 vec3 texel_step;
@@ -461,13 +462,55 @@ void add_sample(vec2 pixel, float surface, inout vec3 radiance, inout float alph
     depth_sum += background ? p.max_distance : surface;
 }
 
+void shade_pixel(uvec2 id);
+
+// The pixel of the output image `id` samples: its centre at full size (downsampled
+// images take every stride-th pixel).
+uvec2 full_pixel(uvec2 id) {
+    return uvec2(min(id.x * p.stride + p.stride / 2u, p.full_width - 1u),
+                 min(id.y * p.stride + p.stride / 2u, p.full_height - 1u));
+}
+
+// Where output pixel `id`'s ray ends, where all its depth samples agree (render.rs:
+// uniform_surface): `surface` < 0 for background. False at a depth edge.
+bool uniform_pixel_surface(uvec2 id, out float surface) {
+    uvec2 full = full_pixel(id);
+    uint ss = p.supersampling;
+    uint sample_width = p.full_width * ss;
+    float low = 1e30;
+    float high = 0.0;
+    float sum = 0.0;
+    bool all_background = true;
+    bool any_background = false;
+    for (uint sy = 0; sy < ss; ++sy) {
+        for (uint sx = 0; sx < ss; ++sx) {
+            float s = surfaces[(full.y * ss + sy) * sample_width + full.x * ss + sx];
+            bool background = s < 0.0;
+            all_background = all_background && background;
+            any_background = any_background || background;
+            if (!background) {
+                low = min(low, s);
+                high = max(high, s);
+                sum += s;
+            }
+        }
+    }
+    surface = all_background ? -1.0 : sum / float(ss * ss);
+    return all_background || (!any_background && high <= low * (1.0 + EDGE_DEPTH_SPREAD));
+}
+
 void shade_output_pixel() {
     uvec2 id = gl_GlobalInvocationID.xy;
     if (id.x >= p.width || id.y >= p.height) {
         return;
     }
-    uint full_x = min(id.x * p.stride + p.stride / 2u, p.full_width - 1u);
-    uint full_y = min(id.y * p.stride + p.stride / 2u, p.full_height - 1u);
+    shade_pixel(id);
+}
+
+void shade_pixel(uvec2 id) {
+    uvec2 full = full_pixel(id);
+    uint full_x = full.x;
+    uint full_y = full.y;
     uint ss = p.supersampling;
     uint sample_width = p.full_width * ss;
     vec3 radiance = vec3(0.0);
@@ -477,31 +520,11 @@ void shade_output_pixel() {
     float spp = float(ss * ss);
     bool uniform_depth = false;
     if (ss > 1u) {
-        // Shaded once at the centre, like MSAA, where no depth edge runs through the pixel
-        // (render.rs: uniform_surface).
-        float low = 1e30;
-        float high = 0.0;
-        float sum = 0.0;
-        bool all_background = true;
-        bool any_background = false;
-        for (uint sy = 0; sy < ss; ++sy) {
-            for (uint sx = 0; sx < ss; ++sx) {
-                float surface = surfaces[(full_y * ss + sy) * sample_width + full_x * ss + sx];
-                bool background = surface < 0.0;
-                all_background = all_background && background;
-                any_background = any_background || background;
-                if (!background) {
-                    low = min(low, surface);
-                    high = max(high, surface);
-                    sum += surface;
-                }
-            }
-        }
-        uniform_depth = all_background
-            || (!any_background && high <= low * (1.0 + EDGE_DEPTH_SPREAD));
+        // Shaded once at the centre, like MSAA, where no depth edge runs through the pixel.
+        float surface;
+        uniform_depth = uniform_pixel_surface(id, surface);
         if (uniform_depth) {
             vec2 centre = vec2(float(full_x), float(full_y)) + 0.5;
-            float surface = all_background ? -1.0 : sum / spp;
             add_sample(centre, surface, radiance, alpha, visibility, depth_sum);
         }
     }

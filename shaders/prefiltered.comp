@@ -724,6 +724,209 @@ vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float 
     return ok ? s : fallback_sample(origin, direction, t_start, t_end);
 }
 
+// Adaptive shading (core/src/adaptive.rs, in the GPU's own order): a coarse grid of every
+// fourth pixel each way is shaded; then, at steps 4 and 2, the midpoints between resolved
+// pixels (first those on the grid's lines, then the cells' centres) take the mean of a
+// pair of resolved neighbours either side where the pair agrees, or lies on a smooth ramp
+// with the points beyond, and the pixel sees their surface. The others are listed, and
+// shaded by an indirect dispatch over the list, so that shading threads run side by side
+// rather than among threads that only interpolated.
+const uint FULL = 0u;
+const uint COARSE = 1u;
+const uint EDGES = 2u;
+const uint CENTRES = 3u;
+const uint ARGS = 4u;
+const uint LISTED = 5u;
+const uint COARSE_STEP = 4u;
+const uint GROUP_SIZE = 64u;
+// The least maximum workgroup count along x that Vulkan guarantees.
+const uint MAX_GROUPS_X = 65535u;
+
+layout(push_constant) uniform Adaptive {
+    uint phase;
+    uint step;          // EDGES, CENTRES: the resolved grid's step
+    float tolerance;
+    uint perspective;   // reaches compare in inverse distance (else distance)
+} a;
+
+// Set up by adaptive_floor.comp after COARSE.
+layout(std430, binding = 17) buffer AdaptiveState {
+    uint listed;        // appended by EDGES and CENTRES
+    uint to_shade;      // LISTED's count, set by ARGS
+    uint shaded;        // pixels shaded in all
+    uint unused;
+    uvec4 args;         // LISTED's workgroups (the indirect dispatch's arguments)
+    vec4 floor_rgba;    // per channel, the value below which spreads are held to it
+} state;
+layout(std430, binding = 18) buffer ShadeList { uint shade_list[]; };
+
+float reach_coordinate(float depth) {
+    float reach = min(depth, p.max_distance);
+    return a.perspective != 0u ? 1.0 / reach : reach;
+}
+
+// adaptive.rs: SurfaceCoordinate::holds.
+bool on_surface(float expected, float reach) {
+    if (a.perspective != 0u) {
+        float product = expected * reach;
+        return abs(1.0 - product) <= EDGE_DEPTH_SPREAD * product;
+    }
+    return abs(expected - reach) <= EDGE_DEPTH_SPREAD * reach;
+}
+
+// Writes pixel `id` as a blend of its neighbours whose rays end at `coordinate`, where
+// its own ray ends on that surface (adaptive.rs: Interpolation::on_surface).
+bool blended(ivec2 id, vec4 volume, float visibility, float coordinate) {
+    float surface;
+    if (isnan(coordinate) || !uniform_pixel_surface(uvec2(id), surface)) {
+        return false;
+    }
+    float depth = surface < 0.0 ? p.max_distance : surface;
+    if (!on_surface(coordinate, min(depth, p.max_distance))) {
+        return false;
+    }
+    uint index = uint(id.y) * p.width + uint(id.x);
+    volume_out[index] = volume;
+    visibility_out[index] = visibility;
+    depth_out[index] = depth;
+    return true;
+}
+
+bool in_image(ivec2 pixel) {
+    return pixel.x >= 0 && pixel.y >= 0 && pixel.x < int(p.width) && pixel.y < int(p.height);
+}
+
+uint index_of(ivec2 pixel) {
+    return uint(pixel.y) * p.width + uint(pixel.x);
+}
+
+// The spreads a blend allows (adaptive.rs: Agreement::allowed_spreads): RGBA relative to
+// the blend or the floor, whichever is larger.
+vec4 allowed_spreads(vec4 volume) {
+    return a.tolerance * max(abs(volume), state.floor_rgba);
+}
+
+// Pixel `id` as the mean of the pair at ±`offset` where they agree (adaptive.rs:
+// Agreement::blend). Comparisons are written so that NaN disagrees.
+bool pair_mean(ivec2 id, ivec2 offset) {
+    ivec2 n0 = id - offset;
+    ivec2 n1 = id + offset;
+    if (!in_image(n0) || !in_image(n1)) {
+        return false;
+    }
+    vec4 v0 = volume_out[index_of(n0)];
+    vec4 v1 = volume_out[index_of(n1)];
+    float vis0 = visibility_out[index_of(n0)];
+    float vis1 = visibility_out[index_of(n1)];
+    vec4 volume = v0 + 0.5 * (v1 - v0);
+    bool agree = all(lessThanEqual(abs(v1 - v0), allowed_spreads(volume)))
+        && abs(vis1 - vis0) <= a.tolerance;
+    if (!agree) {
+        return false;
+    }
+    float c0 = reach_coordinate(depth_out[index_of(n0)]);
+    float c1 = reach_coordinate(depth_out[index_of(n1)]);
+    return blended(id, volume, vis0 + 0.5 * (vis1 - vis0), c0 + 0.5 * (c1 - c0));
+}
+
+// Pixel `id` as the mean of the pair at ±`offset` where it and the points beyond, at
+// ±3·`offset`, lie on a smooth ramp: each step differs from the one before by at most
+// what the pair may spread (adaptive.rs: Agreement::blend_on_ramp).
+bool ramp_mean(ivec2 id, ivec2 offset) {
+    ivec2 points[4] = ivec2[4](id - 3 * offset, id - offset, id + offset, id + 3 * offset);
+    if (!in_image(points[0]) || !in_image(points[3])) {
+        return false;
+    }
+    vec4 v[4];
+    float vis[4];
+    for (int i = 0; i < 4; ++i) {
+        v[i] = volume_out[index_of(points[i])];
+        vis[i] = visibility_out[index_of(points[i])];
+    }
+    vec4 volume = v[1] + 0.5 * (v[2] - v[1]);
+    vec4 allowed = allowed_spreads(volume);
+    vec4 s0 = v[1] - v[0];
+    vec4 s1 = v[2] - v[1];
+    vec4 s2 = v[3] - v[2];
+    float w0 = vis[1] - vis[0];
+    float w1 = vis[2] - vis[1];
+    float w2 = vis[3] - vis[2];
+    bool smooth_ramp = all(lessThanEqual(abs(s1 - s0), allowed))
+        && all(lessThanEqual(abs(s2 - s1), allowed))
+        && abs(w1 - w0) <= a.tolerance
+        && abs(w2 - w1) <= a.tolerance
+        && !isnan(depth_out[index_of(points[0])])
+        && !isnan(depth_out[index_of(points[3])]);
+    if (!smooth_ramp) {
+        return false;
+    }
+    float c1 = reach_coordinate(depth_out[index_of(points[1])]);
+    float c2 = reach_coordinate(depth_out[index_of(points[2])]);
+    return blended(id, volume, vis[1] + 0.5 * (vis[2] - vis[1]), c1 + 0.5 * (c2 - c1));
+}
+
+// Pixel `id` from the pair at ±`offset` (or, where `other` is not zero, the pair at
+// ±`other`), on a ramp if not alone; listed to be shaded where none serves.
+void resolve(ivec2 id, ivec2 offset, ivec2 other) {
+    bool both = other != ivec2(0);
+    bool done = pair_mean(id, offset)
+        || (both && pair_mean(id, other))
+        || ramp_mean(id, offset)
+        || (both && ramp_mean(id, other));
+    if (!done) {
+        shade_list[atomicAdd(state.listed, 1u)] = index_of(id);
+    }
+}
+
 void main() {
-    shade_output_pixel();
+    uvec2 gid = gl_GlobalInvocationID.xy;
+    // One call of shade_pixel for every phase that shades: lavapipe inlines each call,
+    // and with three the shader ran three times as slowly even where they were skipped.
+    uvec2 shaded_id = gid;
+    bool shade = false;
+    if (a.phase == FULL) {
+        shade = gid.x < p.width && gid.y < p.height;
+    } else if (a.phase == COARSE) {
+        shaded_id = gid * COARSE_STEP;
+        shade = shaded_id.x < p.width && shaded_id.y < p.height;
+    } else if (a.phase == EDGES) {
+        // Two candidates a cell: the midpoints of its top and left sides.
+        int s = int(a.step);
+        int h = s / 2;
+        ivec2 cell = ivec2(gid.x / 2u, gid.y);
+        bool vertical = (gid.x & 1u) != 0u;
+        ivec2 id = cell * s + (vertical ? ivec2(0, h) : ivec2(h, 0));
+        if (in_image(id)) {
+            resolve(id, vertical ? ivec2(0, h) : ivec2(h, 0), ivec2(0));
+        }
+    } else if (a.phase == CENTRES) {
+        int s = int(a.step);
+        int h = s / 2;
+        ivec2 id = ivec2(gid) * s + ivec2(h);
+        if (in_image(id)) {
+            resolve(id, ivec2(h, 0), ivec2(0, h));
+        }
+    } else if (a.phase == ARGS) {
+        // One invocation.
+        if (gl_LocalInvocationIndex == 0u) {
+            uint count = state.listed;
+            uint groups = (count + GROUP_SIZE - 1u) / GROUP_SIZE;
+            state.to_shade = count;
+            state.shaded += count;
+            state.listed = 0u;
+            uint x = max(min(groups, MAX_GROUPS_X), 1u);
+            state.args = uvec4(x, (groups + x - 1u) / x, 1u, 0u);
+        }
+    } else if (a.phase == LISTED) {
+        uint group = gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x;
+        uint i = group * GROUP_SIZE + gl_LocalInvocationIndex;
+        if (i < state.to_shade) {
+            uint index = shade_list[i];
+            shaded_id = uvec2(index % p.width, index / p.width);
+            shade = true;
+        }
+    }
+    if (shade) {
+        shade_pixel(shaded_id);
+    }
 }

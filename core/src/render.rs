@@ -161,7 +161,7 @@ pub struct StageTimes {
     pub structure_bytes: usize,
     /// Pixels evaluated (at the reduced size with downsampling) and how many of them were
     /// shaded rather than interpolated (adaptive shading); 0 where not counted (the
-    /// Vulkan backend).
+    /// Vulkan backend's reference march).
     pub pixels: usize,
     pub shaded_pixels: usize,
 }

@@ -536,6 +536,80 @@ fn stylized_frames_match_the_cpu_on_the_builtin_scenes() {
     }
 }
 
+/// Σ|a − b| / Σ|b| over the volume's RGB, and over the visibility.
+fn adaptive_errors(a: &Layers, b: &Layers) -> (f64, f64) {
+    let (mut diff, mut total) = (0.0f64, 0.0f64);
+    for (x, y) in a.volume.chunks(4).zip(b.volume.chunks(4)) {
+        for k in 0..3 {
+            diff += (x[k] as f64 - y[k] as f64).abs();
+            total += (y[k] as f64).abs();
+        }
+    }
+    (
+        diff / total.max(1e-30),
+        compare(&a.visibility, &b.visibility).0,
+    )
+}
+
+/// Adaptive shading on the GPU (its own order: a coarse grid, then midpoints at steps 4
+/// and 2, shading what disagrees) against shading every pixel: it shades a share of the
+/// pixels, and moves the radiance and the visibility by at most 0.2% (their mean
+/// relative error). The CPU's adaptive shading of the same frame is printed beside.
+#[test]
+fn adaptive_shading_stays_near_every_pixel_shaded() {
+    let Some(device) = device("the adaptive-shading test") else {
+        return;
+    };
+    let full = std::env::var_os("CREPUSCULAR_PARITY_FULL").is_some();
+    for name in BUILTIN_SCENES {
+        let mut scene = builtin_scene(name).unwrap();
+        (scene.camera.width, scene.camera.height) = if full { (1920, 1080) } else { (256, 144) };
+        scene.render.shadow_map_size = if full { 1024 } else { 256 };
+        scene.render.method = Method::Prefiltered;
+        let render = |tolerance: f32, on_gpu: bool| {
+            let mut scene = scene.clone();
+            scene.render.adaptive_tolerance = tolerance;
+            let geometry = FlatGeometry::from_scene(&scene);
+            let frame = Frame::of_scene(&scene, &geometry);
+            let control = RenderControl::new();
+            if on_gpu {
+                let (layers, times, _) =
+                    gpu::frame::render_timed(&device, &frame, &control).unwrap();
+                (layers, times)
+            } else {
+                render_timed_cpu(&frame, &control).unwrap()
+            }
+        };
+        let tolerance = crepuscular::adaptive::DEFAULT_TOLERANCE;
+        let (gpu_every, every_times) = render(0.0, true);
+        let (gpu_adaptive, times) = render(tolerance, true);
+        let (cpu_every, _) = render(0.0, false);
+        let (cpu_adaptive, cpu_times) = render(tolerance, false);
+        let share = times.shaded_pixels as f64 / times.pixels as f64;
+        let cpu_share = cpu_times.shaded_pixels as f64 / cpu_times.pixels as f64;
+        let (radiance, visibility) = adaptive_errors(&gpu_adaptive, &gpu_every);
+        let (cpu_radiance, cpu_visibility) = adaptive_errors(&cpu_adaptive, &cpu_every);
+        eprintln!(
+            "{name}: GPU shaded {:.1}%, radiance {:.4}% and visibility {:.4}% off; \
+             CPU {:.1}%, {:.4}% and {:.4}%",
+            100.0 * share,
+            100.0 * radiance,
+            100.0 * visibility,
+            100.0 * cpu_share,
+            100.0 * cpu_radiance,
+            100.0 * cpu_visibility
+        );
+        assert_eq!(every_times.shaded_pixels, every_times.pixels);
+        assert!(share > 1.0 / 16.0 && share < 0.75, "{name}: shaded {share}");
+        assert!(
+            radiance < 2e-3 && visibility < 2e-3,
+            "{name}: {radiance}, {visibility}"
+        );
+        // Interpolated pixels keep their own depth.
+        assert_eq!(gpu_adaptive.depth, gpu_every.depth, "{name}");
+    }
+}
+
 /// The device keeps released buffers for the next frame, contents and all: no stage may
 /// read what it did not write. A stylized prefiltered frame of tree, rendered on a device
 /// of its own, comes out bit for bit the same after colonnade's frames have filled the

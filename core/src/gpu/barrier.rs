@@ -13,6 +13,8 @@ pub enum Access {
     TransferRead,
     TransferWrite,
     HostRead,
+    /// An indirect dispatch reading its workgroup counts from a buffer.
+    IndirectRead,
 }
 
 impl Access {
@@ -26,6 +28,7 @@ impl Access {
             Access::ComputeRead | Access::ComputeWrite => vk::PipelineStageFlags::COMPUTE_SHADER,
             Access::TransferRead | Access::TransferWrite => vk::PipelineStageFlags::TRANSFER,
             Access::HostRead => vk::PipelineStageFlags::HOST,
+            Access::IndirectRead => vk::PipelineStageFlags::DRAW_INDIRECT,
         }
     }
 
@@ -36,6 +39,7 @@ impl Access {
             Access::TransferRead => vk::AccessFlags::TRANSFER_READ,
             Access::TransferWrite => vk::AccessFlags::TRANSFER_WRITE,
             Access::HostRead => vk::AccessFlags::HOST_READ,
+            Access::IndirectRead => vk::AccessFlags::INDIRECT_COMMAND_READ,
         }
     }
 }
@@ -101,6 +105,14 @@ mod tests {
         let b = barrier_between(Access::TransferWrite, Access::HostRead).unwrap();
         assert_eq!(b.dst_stage, vk::PipelineStageFlags::HOST);
         assert_eq!(b.dst_access, vk::AccessFlags::HOST_READ);
+    }
+
+    #[test]
+    fn an_indirect_dispatch_waits_for_the_shader_that_wrote_its_counts() {
+        let b = barrier_between(Access::ComputeWrite, Access::IndirectRead).unwrap();
+        assert_eq!(b.src_access, vk::AccessFlags::SHADER_WRITE);
+        assert_eq!(b.dst_stage, vk::PipelineStageFlags::DRAW_INDIRECT);
+        assert_eq!(b.dst_access, vk::AccessFlags::INDIRECT_COMMAND_READ);
     }
 
     #[test]

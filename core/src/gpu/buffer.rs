@@ -15,7 +15,8 @@ use super::host_time::{self, timed, HostWork};
 /// Where a buffer lives and what it is for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum BufferRole {
-    /// Device-local shader storage, filled and read through copies.
+    /// Device-local shader storage, filled and read through copies; shaders may also
+    /// write an indirect dispatch's workgroup counts into it.
     Storage,
     /// Host-visible, written by the CPU and copied to storage.
     Upload,
@@ -58,6 +59,7 @@ impl BufferDesc {
         match self.role {
             BufferRole::Storage => (
                 vk::BufferUsageFlags::STORAGE_BUFFER
+                    | vk::BufferUsageFlags::INDIRECT_BUFFER
                     | vk::BufferUsageFlags::TRANSFER_SRC
                     | vk::BufferUsageFlags::TRANSFER_DST,
                 MemoryLocation::GpuOnly,

@@ -185,6 +185,51 @@ impl Recorder {
         push: &[u8],
         groups: [u32; 3],
     ) -> GpuResult<()> {
+        self.bind_compute(desc, buffers, push)?;
+        // SAFETY: recording, with the pipeline and its set bound above.
+        unsafe {
+            self.device
+                .raw
+                .cmd_dispatch(self.cb, groups[0], groups[1], groups[2])
+        };
+        Ok(())
+    }
+
+    /// [`Recorder::dispatch`] with the workgroup counts read on the device from `args` at
+    /// `offset` (three u32), as an earlier dispatch wrote them: follow that one with
+    /// [`Recorder::barrier`]`(ComputeWrite, IndirectRead)`.
+    pub fn dispatch_indirect(
+        &mut self,
+        desc: &ComputePipelineDesc,
+        buffers: &[&Buffer],
+        push: &[u8],
+        args: &Buffer,
+        offset: u64,
+    ) -> GpuResult<()> {
+        if !offset.is_multiple_of(4) || offset + 12 > args.size() {
+            return Err(GpuError::Unsupported(format!(
+                "indirect arguments at byte {offset} of a {}-byte buffer",
+                args.size()
+            )));
+        }
+        self.bind_compute(desc, buffers, push)?;
+        // SAFETY: recording, with the pipeline and its set bound above; the arguments lie
+        // inside `args`, which outlives the submission.
+        unsafe {
+            self.device
+                .raw
+                .cmd_dispatch_indirect(self.cb, args.raw, offset)
+        };
+        Ok(())
+    }
+
+    /// Binds `desc`'s pipeline with `buffers` at bindings 0.. and pushes `push`.
+    fn bind_compute(
+        &mut self,
+        desc: &ComputePipelineDesc,
+        buffers: &[&Buffer],
+        push: &[u8],
+    ) -> GpuResult<()> {
         if buffers.len() != desc.buffers as usize || push.len() != desc.push_constant_bytes as usize
         {
             return Err(GpuError::Shader {
@@ -200,10 +245,13 @@ impl Recorder {
         }
         let pipeline = self.device.pipeline(desc)?;
         let set = self.descriptor_set(pipeline.set_layout, buffers)?;
-        let raw = &self.device.raw;
         // SAFETY: recording; the buffers outlive the submission.
         unsafe {
-            raw.cmd_bind_pipeline(self.cb, vk::PipelineBindPoint::COMPUTE, pipeline.raw);
+            self.device.raw.cmd_bind_pipeline(
+                self.cb,
+                vk::PipelineBindPoint::COMPUTE,
+                pipeline.raw,
+            );
             self.bind_set_and_push(
                 vk::PipelineBindPoint::COMPUTE,
                 pipeline.layout,
@@ -211,7 +259,6 @@ impl Recorder {
                 vk::ShaderStageFlags::COMPUTE,
                 push,
             );
-            raw.cmd_dispatch(self.cb, groups[0], groups[1], groups[2]);
         }
         self.pipelines.push(pipeline);
         Ok(())

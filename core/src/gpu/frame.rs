@@ -11,7 +11,7 @@
 //! | epipolar rectification (resampling) for `prefiltered` | GPU |
 //! | projective rectification (rasterized: projected depth), min-max scattering (its shadow map and camera depth included) | CPU |
 //! | prefiltered: planning (frames, bands, weights) | CPU |
-//! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation | GPU |
+//! | prefiltered: basis computation, per-band prefix sums, per-pixel evaluation (adaptive shading included) | GPU |
 //! | upsampling of downsampled evaluation | GPU |
 //! | transfer function: baking | CPU; application | GPU |
 //!
@@ -262,7 +262,7 @@ fn gpu_frame(
                 + crate::uniformity::table_bytes(map.slices, map.samples);
             times.rectified_bytes = map.memory_bytes();
             times.prepare = stopwatch.lap();
-            super::prefiltered::shade(
+            let shaded = super::prefiltered::shade(
                 device,
                 &inputs,
                 map,
@@ -271,7 +271,10 @@ fn gpu_frame(
                 &basis,
                 &epipoles,
                 block,
-            )?
+            )?;
+            times.pixels = shaded.layers.pixel_count();
+            times.shaded_pixels = shaded.shaded_pixels as usize;
+            (shaded.layers, shaded.milliseconds)
         }
     };
     if map.is_some() {

@@ -13,6 +13,8 @@ pub enum Shader {
     Transfer,
     Prefix,
     Prefiltered,
+    /// Adaptive shading's dark floor from the coarse grid, for `prefiltered.comp`.
+    AdaptiveFloor,
     /// The rectified map's uniformity table, which prefiltered evaluation reads.
     Uniformity,
     Upsample,
@@ -28,12 +30,13 @@ pub enum Shader {
 }
 
 impl Shader {
-    pub const ALL: [Shader; 13] = [
+    pub const ALL: [Shader; 14] = [
         Shader::March,
         Shader::Morphology,
         Shader::Transfer,
         Shader::Prefix,
         Shader::Prefiltered,
+        Shader::AdaptiveFloor,
         Shader::Uniformity,
         Shader::Upsample,
         Shader::Rectify,
@@ -52,6 +55,7 @@ impl Shader {
             Shader::Transfer => "transfer.comp",
             Shader::Prefix => "prefix.comp",
             Shader::Prefiltered => "prefiltered.comp",
+            Shader::AdaptiveFloor => "adaptive_floor.comp",
             Shader::Uniformity => "uniformity.comp",
             Shader::Upsample => "upsample.comp",
             Shader::Rectify => "rectify.comp",
@@ -82,6 +86,9 @@ impl Shader {
             Shader::Prefix => include_bytes!(concat!(env!("OUT_DIR"), "/prefix.comp.spv")),
             Shader::Prefiltered => {
                 include_bytes!(concat!(env!("OUT_DIR"), "/prefiltered.comp.spv"))
+            }
+            Shader::AdaptiveFloor => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/adaptive_floor.comp.spv"))
             }
             Shader::Uniformity => {
                 include_bytes!(concat!(env!("OUT_DIR"), "/uniformity.comp.spv"))

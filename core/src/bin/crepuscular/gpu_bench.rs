@@ -230,7 +230,7 @@ pub fn run(
                 "{name} {} {look}: GPU {:.3} ms, frame {:.1} ms; wall ms: shadow map {:.1}, \
                  occluders {:.1}, camera depth {:.1}, rectify {:.1}, prepare {:.1}, shading {:.1}, \
                  TF {:.1}; host ms: buffers {:.1}, uploads {:.1} ({:.0} MB), waits {:.1}, \
-                 read-backs {:.1} ({:.0} MB)",
+                 read-backs {:.1} ({:.0} MB); {}",
                 row.method,
                 row.gpu_total,
                 row.frame,
@@ -247,6 +247,13 @@ pub fn run(
                 host_of(|h| h.waits),
                 host_of(|h| h.reads),
                 host_of(|h| h.bytes_read as f64 * 1e-9),
+                match walls[0].pixels {
+                    0 => "every pixel shaded".to_owned(),
+                    pixels => format!(
+                        "shaded {:.1}% of {pixels} pixels",
+                        100.0 * walls[0].shaded_pixels as f64 / pixels as f64
+                    ),
+                },
             );
             rows.push(row);
         }
