@@ -778,7 +778,9 @@ bool on_surface(float expected, float reach) {
 // its own ray ends on that surface (adaptive.rs: Interpolation::on_surface).
 bool blended(ivec2 id, vec4 volume, float visibility, float coordinate) {
     float surface;
-    if (isnan(coordinate) || !uniform_pixel_surface(uvec2(id), surface)) {
+    // Not NaN, nor infinite: a reach of 0 (a resolved pixel's buffer never written) would
+    // hold any surface.
+    if (isnan(coordinate) || isinf(coordinate) || !uniform_pixel_surface(uvec2(id), surface)) {
         return false;
     }
     float depth = surface < 0.0 ? p.max_distance : surface;

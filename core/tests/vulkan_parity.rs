@@ -553,19 +553,44 @@ fn adaptive_errors(a: &Layers, b: &Layers) -> (f64, f64) {
 
 /// Adaptive shading on the GPU (its own order: a coarse grid, then midpoints at steps 4
 /// and 2, shading what disagrees) against shading every pixel: it shades a share of the
-/// pixels, and moves the radiance and the visibility by at most 0.2% (their mean
-/// relative error). The CPU's adaptive shading of the same frame is printed beside.
+/// pixels, and moves the radiance and the visibility by at most 0.15% (their mean
+/// relative error; 0.004–0.06% at 1080p). The views: the built-in scenes, a box medium,
+/// an orthographic camera, 2×2 samples and ½ size. The CPU's adaptive shading of the same
+/// frame is printed beside.
 #[test]
 fn adaptive_shading_stays_near_every_pixel_shaded() {
     let Some(device) = device("the adaptive-shading test") else {
         return;
     };
     let full = std::env::var_os("CREPUSCULAR_PARITY_FULL").is_some();
-    for name in BUILTIN_SCENES {
+    let sized = |name: &str| {
         let mut scene = builtin_scene(name).unwrap();
         (scene.camera.width, scene.camera.height) = if full { (1920, 1080) } else { (256, 144) };
         scene.render.shadow_map_size = if full { 1024 } else { 256 };
         scene.render.method = Method::Prefiltered;
+        scene
+    };
+    let mut views: Vec<(String, Scene)> = BUILTIN_SCENES
+        .iter()
+        .map(|name| (name.to_string(), sized(name)))
+        .collect();
+    let mut boxed = sized("torus");
+    boxed.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::new(6.0, 5.0, 3.0),
+            glam::Quat::from_rotation_z(0.3),
+            glam::Vec3::new(0.0, 0.0, 2.0),
+        ),
+    };
+    views.push(("torus in a box".into(), boxed));
+    views.push(("tree orthographic".into(), orthographic(&sized("tree"))));
+    let mut supersampled = sized("colonnade");
+    supersampled.render.supersampling = 2;
+    views.push(("colonnade 2×2 samples".into(), supersampled));
+    let mut downsampled = sized("plane");
+    downsampled.render.downsample = 2;
+    views.push(("plane at ½ size".into(), downsampled));
+    for (name, scene) in views {
         let render = |tolerance: f32, on_gpu: bool| {
             let mut scene = scene.clone();
             scene.render.adaptive_tolerance = tolerance;
@@ -581,8 +606,10 @@ fn adaptive_shading_stays_near_every_pixel_shaded() {
             }
         };
         let tolerance = crepuscular::adaptive::DEFAULT_TOLERANCE;
-        let (gpu_every, every_times) = render(0.0, true);
+        // Adaptive first: the device keeps released buffers, and the every-pixel frame's
+        // layers left in them would pass for whatever pixels the refinement failed to write.
         let (gpu_adaptive, times) = render(tolerance, true);
+        let (gpu_every, every_times) = render(0.0, true);
         let (cpu_every, _) = render(0.0, false);
         let (cpu_adaptive, cpu_times) = render(tolerance, false);
         let share = times.shaded_pixels as f64 / times.pixels as f64;
@@ -602,7 +629,7 @@ fn adaptive_shading_stays_near_every_pixel_shaded() {
         assert_eq!(every_times.shaded_pixels, every_times.pixels);
         assert!(share > 1.0 / 16.0 && share < 0.75, "{name}: shaded {share}");
         assert!(
-            radiance < 2e-3 && visibility < 2e-3,
+            radiance < 1.5e-3 && visibility < 1.5e-3,
             "{name}: {radiance}, {visibility}"
         );
         // Interpolated pixels keep their own depth.
