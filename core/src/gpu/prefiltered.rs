@@ -338,7 +338,10 @@ pub fn shade(
         let shaded_pixels = match state_back {
             Some(state_back) => {
                 let words: Vec<u32> = done.read(state_back)?;
-                words[SHADED_WORD] as u64
+                let shaded = words.get(SHADED_WORD).ok_or_else(|| {
+                    GpuError::Unsupported("a short adaptive shading state".to_owned())
+                })?;
+                *shaded as u64
             }
             None => pixels,
         };
