@@ -1,4 +1,5 @@
 #version 450
+#extension GL_GOOGLE_include_directive : require
 // Adaptive shading's dark floor (core/src/adaptive.rs: DARK_SHARE): a share of the coarse
 // grid's mean radiance, per channel, below which neighbours' spreads are held to it. Kept
 // out of prefiltered.comp, whose invocations share nothing: a workgroup barrier there made
@@ -29,15 +30,9 @@ layout(push_constant) uniform Push {
 
 layout(std430, binding = 0) readonly buffer Volume { vec4 volume[]; };
 layout(std430, binding = 1) buffer Partials { vec4 partials[]; };
-// prefiltered.comp's AdaptiveState.
-layout(std430, binding = 2) buffer AdaptiveState {
-    uint listed;
-    uint to_shade;
-    uint shaded;
-    uint unused;
-    uvec4 args;
-    vec4 floor_rgba;
-} state;
+#define ADAPTIVE_STATE_BINDING 2
+#include "adaptive_state.glsl"
+
 
 shared vec4 sums[GROUP_SIZE];
 

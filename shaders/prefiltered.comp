@@ -750,14 +750,9 @@ layout(push_constant) uniform Adaptive {
 } a;
 
 // Set up by adaptive_floor.comp after COARSE.
-layout(std430, binding = 17) buffer AdaptiveState {
-    uint listed;        // appended by EDGES and CENTRES
-    uint to_shade;      // LISTED's count, set by ARGS
-    uint shaded;        // pixels shaded in all
-    uint unused;
-    uvec4 args;         // LISTED's workgroups (the indirect dispatch's arguments)
-    vec4 floor_rgba;    // per channel, the value below which spreads are held to it
-} state;
+#define ADAPTIVE_STATE_BINDING 17
+#include "adaptive_state.glsl"
+
 layout(std430, binding = 18) buffer ShadeList { uint shade_list[]; };
 
 float reach_coordinate(float depth) {

@@ -127,8 +127,8 @@ enum FloorPhase {
 /// The coarse grid's step, and the steps of the grids the refinement resolves from it.
 const COARSE_STEP: u32 = 4;
 const REFINED_STEPS: [u32; 2] = [4, 2];
-/// `AdaptiveState` in `prefiltered.comp`: three counts and a pad, the indirect arguments
-/// at byte 16, the floor at 32.
+/// `AdaptiveState` (`shaders/adaptive_state.glsl`): three counts and a pad, the
+/// indirect arguments at byte 16, the floor at 32.
 const STATE_BYTES: u64 = 48;
 const ARGS_OFFSET: u64 = 16;
 /// Index, in 32-bit words, of the count of pixels shaded in all.
@@ -257,7 +257,14 @@ pub fn shade(
         // Shading every pixel, the shader reads none of these, but bindings need buffers.
         let state = rec.storage(STATE_BYTES, "adaptive shading state")?;
         let list = rec.storage(if adaptive { pixels * 4 } else { 4 }, "pixels to shade")?;
-        let partials = rec.storage(partial_count as u64 * 16, "coarse sums")?;
+        let partials = rec.storage(
+            if adaptive {
+                partial_count as u64 * 16
+            } else {
+                16
+            },
+            "coarse sums",
+        )?;
         rec.barrier(Access::TransferWrite, Access::ComputeRead);
         let table_push = uniformity_push(map);
         let table_desc =
