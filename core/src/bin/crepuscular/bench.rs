@@ -326,9 +326,10 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     print_table(&rows);
     println!(
-        "\n{} runs per row after one warm-up; {} threads; reference at {} steps; peak resident memory {}",
+        "\n{} runs per row after one warm-up; {} threads on {}; reference at {} steps; peak resident memory {}",
         runs,
         rayon::current_num_threads(),
+        processor(),
         overrides.steps.unwrap_or(1024),
         peak_memory()
     );
@@ -447,10 +448,25 @@ pub fn print_demo_table(rows: &[DemoRow]) {
         );
     }
     println!(
-        "\n{} threads; peak resident memory {}",
+        "\n{} threads on {}; peak resident memory {}",
         rayon::current_num_threads(),
+        processor(),
         peak_memory()
     );
+}
+
+/// The processor's model name, from the kernel: the machines benchmarks run on change
+/// between runs (one CPU model's table may be 1.7× another's), so tables name theirs.
+pub fn processor() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|info| {
+            info.lines()
+                .find(|line| line.starts_with("model name"))
+                .and_then(|line| line.split_once(':'))
+                .map(|(_, name)| name.trim().to_owned())
+        })
+        .unwrap_or_else(|| "an unknown processor".to_owned())
 }
 
 /// Peak resident set size of this process, from the kernel's accounting.

@@ -14,7 +14,7 @@ use crepuscular::render::{render_timed_cpu, FlatGeometry, Frame};
 use crepuscular::scene::{Method, Rectification, Scene};
 use crepuscular::{Backend, Error, RenderControl, Result, StageTimes, Style};
 
-use crate::bench::{median, peak_memory, scene_column};
+use crate::bench::{median, peak_memory, processor, scene_column};
 use crate::Overrides;
 
 /// The stylized rows' look when no `--style` is given: a disk closing of 0.25 scene units
@@ -465,10 +465,11 @@ fn print_table(device: &Device, rows: &[Row], overrides: &Overrides, runs: usize
     }
     println!(
         "{} runs per row after one warm-up; reference at {} steps; speed-up = cpu shade / GPU \
-         shade; CPU columns from one run with {} threads; peak resident memory {}",
+         shade; CPU columns from one run with {} threads on {}; peak resident memory {}",
         runs,
         overrides.steps.unwrap_or(1024),
         rayon::current_num_threads(),
+        processor(),
         peak_memory()
     );
 }
