@@ -2113,8 +2113,14 @@ fn plan_slices(
     parts.into_par_iter().for_each(
         |(slice, own, entries_part, weights_part, scales_part, weight_part)| {
             let frame = &frames[slice];
-            let keys: Vec<f64> = map
-                .row(slice as u32)
+            // Keys as far as the slice's longest band reads: past its reach a slice's
+            // samples are planned for no band.
+            let read = own
+                .iter()
+                .map(|band| (band.rows - 1) * SAMPLES_PER_ROW)
+                .max();
+            let samples = map.row(slice as u32);
+            let keys: Vec<f64> = samples[..read.unwrap_or(0).min(samples.len())]
                 .iter()
                 .map(|&value| map.order_key(value as f64))
                 .collect();
