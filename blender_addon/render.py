@@ -19,6 +19,7 @@ duration of a render (and restored after), so the beauty does not count the medi
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -126,6 +127,16 @@ def layers_path(scene: bpy.types.Scene, frame: int) -> str:
     return os.path.join(directory, f"{stem}crepuscular_{frame:04d}.exr")
 
 
+def layers_compression(scene: bpy.types.Scene) -> str:
+    """The layer EXRs' codec: the scene's own where it renders to OpenEXR with a codec the
+    core writes, else ZIP (the lossy B44, B44A, DWAA and DWAB are not among those)."""
+    settings = scene.render.image_settings
+    codec = settings.exr_codec.lower()
+    if settings.file_format == "OPEN_EXR" and codec in crepuscular.EXR_COMPRESSIONS:
+        return codec
+    return "zip"
+
+
 class LayerWriter:
     """Writes layer EXRs on one worker thread, at most one file in flight: compressing a
     1080p frame takes about as long as rendering its layers, and the core releases the GIL
@@ -135,13 +146,14 @@ class LayerWriter:
         self._executor: ThreadPoolExecutor | None = None
         self._pending: tuple[str, Future[None]] | None = None
 
-    def submit(self, path: str, layers: crepuscular.Layers) -> None:
-        """Starts writing `layers` to `path` once the previous file is done; raises the
-        previous file's error, if it failed."""
+    def submit(self, path: str, layers: crepuscular.Layers, compression: str) -> None:
+        """Starts writing `layers` to `path` with the EXR codec `compression` once the
+        previous file is done; raises the previous file's error, if it failed."""
         self.wait()
         if self._executor is None:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="crepuscular")
-        self._pending = (path, self._executor.submit(crepuscular.write_exr, path, layers))
+        write = functools.partial(crepuscular.write_exr, compression=compression)
+        self._pending = (path, self._executor.submit(write, path, layers))
 
     def wait(self) -> None:
         """Blocks until the file in flight is written; raises its error, if it failed."""
@@ -353,7 +365,7 @@ def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph)
         path = layers_path(scene, frame)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         finish_layer_files(scene)
-        WRITER.submit(path, layers)
+        WRITER.submit(path, layers, layers_compression(scene))
 
 
 @bpy.app.handlers.persistent
@@ -418,7 +430,7 @@ class CREPUSCULAR_OT_render_layers(bpy.types.Operator):
             directory = os.path.dirname(path)
             if directory:
                 os.makedirs(directory, exist_ok=True)
-            crepuscular.write_exr(path, layers)
+            crepuscular.write_exr(path, layers, compression=layers_compression(scene))
         except USER_ERRORS as error:
             scene.crepuscular.last_error = str(error)
             self.report({"ERROR"}, str(error))

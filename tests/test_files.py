@@ -57,6 +57,44 @@ def test_exr_round_trip_is_exact(tmp_path: Path) -> None:
     np.testing.assert_array_equal(channels["depth"], layers.depth)
 
 
+def exr_codec(path: Path) -> int:
+    """The OpenEXR code of the file's codec: its header attribute `compression`."""
+    data = path.read_bytes()
+    attribute = b"compression\0compression\0" + struct.pack("<i", 1)
+    return data[data.index(attribute) + len(attribute)]
+
+
+def test_every_exr_codec_is_written_and_read_back(tmp_path: Path) -> None:
+    layers = crepuscular.render(small(crepuscular.builtin_scene("tree")))
+    assert crepuscular.EXR_COMPRESSIONS[0] == "zip"
+    codes = {"none": 0, "rle": 1, "zips": 2, "zip": 3, "piz": 4, "pxr24": 5}
+    assert sorted(crepuscular.EXR_COMPRESSIONS) == sorted(codes)
+    default = tmp_path / "default.exr"
+    crepuscular.write_exr(default, layers)
+    assert exr_codec(default) == codes["zip"]
+    for name, code in codes.items():
+        path = tmp_path / f"{name}.exr"
+        crepuscular.write_exr(path, layers, compression=name.upper() if code % 2 else name)
+        assert exr_codec(path) == code, name
+        channels = crepuscular.read_exr(path)
+        # Pxr24 rounds f32 to 24 bits; the others are lossless.
+        rtol = 2.0**-16 if name == "pxr24" else 0.0
+        np.testing.assert_allclose(channels["volume.G"], layers.volume[..., 1], rtol=rtol, atol=0)
+        np.testing.assert_allclose(channels["depth"], layers.depth, rtol=rtol, atol=0)
+    planes = {"R": layers.visibility}
+    crepuscular.write_exr_channels(tmp_path / "piz_rgba.exr", planes, compression="piz")
+    assert exr_codec(tmp_path / "piz_rgba.exr") == codes["piz"]
+    for write in (
+        lambda: crepuscular.write_exr(tmp_path / "bad.exr", layers, compression="dwaa"),
+        lambda: crepuscular.write_exr_channels(tmp_path / "bad.exr", planes, compression="b44"),
+    ):
+        message = r'compression: "(dwaa|b44)" is not an EXR codec; use one of .*piz'
+        with pytest.raises(crepuscular.InvalidInputError, match=message) as info:
+            write()
+        assert info.value.field == "compression"
+    assert not (tmp_path / "bad.exr").exists()
+
+
 def test_half_float_exr_keeps_values_to_half_precision(tmp_path: Path) -> None:
     layers = crepuscular.render(small(crepuscular.builtin_scene("torus")))
     path = tmp_path / "torus_half.exr"

@@ -98,6 +98,33 @@ def test_progress_bar_and_timing_go_to_stderr(stage_path: Path, tmp_path: Path) 
     assert "read USD" in err
 
 
+def test_exr_compression_applies_to_layers_and_composites(stage_path: Path, tmp_path: Path) -> None:
+    frame = tmp_path / "beauty.0001.exr"
+    rgba = np.full((36, 64), 0.5, dtype=np.float32)
+    crepuscular.write_exr_channels(frame, {c: rgba for c in "RGBA"})
+    out = tmp_path / "out"
+    status, err = run(
+        "render",
+        str(stage_path),
+        "--frames",
+        "1",
+        "--out",
+        str(out / "shafts.####.exr"),
+        "--beauty",
+        str(tmp_path / "beauty.####.exr"),
+        "--exr-compression",
+        "piz",
+        "--quiet",
+    )
+    assert status == 0, err
+    piz = b"compression\0compression\0\x01\0\0\0\x04"
+    assert piz in (out / "shafts.0001.exr").read_bytes()
+    assert piz in (out / "comp.shafts.0001.exr").read_bytes()
+    status, err = run(*render_args(stage_path, out, "-f", "1", "--exr-compression", "dwaa"))
+    assert status == 2, err
+    assert "invalid choice: 'dwaa'" in err, err
+
+
 def test_beauty_composite_uses_the_beauty_depth(stage_path: Path, tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     height, width = 36, 64

@@ -40,13 +40,106 @@ pub enum Precision {
     F16,
 }
 
+/// How the channels' blocks are compressed: the OpenEXR codecs that Blender and Nuke
+/// offer too, under Blender's names. All are lossless but [`ExrCompression::Pxr24`].
+///
+/// Measured on a 1920×1080 f32 layer set (`torus` and `colonnade`) on two cores: `zip`
+/// writes in 1.2–1.6 s to 20–34 MB and reads in 0.2 s; `piz` writes in 0.8 s to 25–26 MB
+/// but reads in 0.5–0.8 s; `none` writes 50 MB in under 0.1 s. Rendering such a frame
+/// takes about 0.5 s, so on a farm the codec may decide a frame's time.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum ExrCompression {
+    /// Uncompressed.
+    None,
+    /// Run-length encoding: fast, and small only for flat regions.
+    Rle,
+    /// Deflate per scanline.
+    Zips,
+    /// Deflate per 16 scanlines: compact, and fast to read (the default, as in Blender).
+    #[default]
+    Zip,
+    /// Wavelet and Huffman coding per 32 scanlines: faster to write than `zip`, slower
+    /// to read.
+    Piz,
+    /// Lossy: f32 channels rounded to 24 bits (a relative error of up to 2⁻¹⁶), then
+    /// deflated; f16 channels stay lossless.
+    Pxr24,
+}
+
+impl ExrCompression {
+    /// Every codec, in the order of OpenEXR's codes (0 to 5).
+    pub const ALL: [Self; 6] = [
+        Self::None,
+        Self::Rle,
+        Self::Zips,
+        Self::Zip,
+        Self::Piz,
+        Self::Pxr24,
+    ];
+
+    /// The codec's name, as the CLI, Python and the scene's output settings spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::Rle => "rle",
+            Self::Zips => "zips",
+            Self::Zip => "zip",
+            Self::Piz => "piz",
+            Self::Pxr24 => "pxr24",
+        }
+    }
+
+    fn codec(self) -> Compression {
+        match self {
+            Self::None => Compression::Uncompressed,
+            Self::Rle => Compression::RLE,
+            Self::Zips => Compression::ZIP1,
+            Self::Zip => Compression::ZIP16,
+            Self::Piz => Compression::PIZ,
+            Self::Pxr24 => Compression::PXR24,
+        }
+    }
+}
+
+impl std::fmt::Display for ExrCompression {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for ExrCompression {
+    type Err = Error;
+
+    /// A codec by its name, in any case; an error naming `compression` and the names.
+    fn from_str(name: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|codec| codec.name().eq_ignore_ascii_case(name))
+            .ok_or_else(|| {
+                let names: Vec<&str> = Self::ALL.iter().map(|codec| codec.name()).collect();
+                Error::invalid(
+                    "compression",
+                    format!(
+                        "{name:?} is not an EXR codec; use one of {}",
+                        names.join(", ")
+                    ),
+                )
+            })
+    }
+}
+
 /// Writes `layers` to `path` as one single-part scanline EXR with channels
 /// `volume.R/G/B/A`, `visibility` and `depth`.
 ///
 /// With [`Precision::F16`] the depth channel is still written as f32: distances beyond
 /// 65504 (the background's max distance, typically) would become infinity in half, and
 /// half's 11-bit mantissa is too coarse for depth-based compositing.
-pub fn write_layers(path: &Path, layers: &Layers, precision: Precision) -> Result<()> {
+pub fn write_layers(
+    path: &Path,
+    layers: &Layers,
+    precision: Precision,
+    compression: ExrCompression,
+) -> Result<()> {
     let pixels = layers.pixel_count();
     if layers.volume.len() != pixels * 4 {
         return Err(Error::invalid(
@@ -84,10 +177,11 @@ pub fn write_layers(path: &Path, layers: &Layers, precision: Precision) -> Resul
             (VISIBILITY, &layers.visibility, precision),
             (DEPTH, &layers.depth, Precision::F32),
         ],
+        compression,
     )
 }
 
-/// Writes a single-part scanline EXR (lossless ZIP) with the given named channels, each
+/// Writes a single-part scanline EXR with the given named channels, each
 /// `width * height` values with rows top to bottom.
 pub fn write_channels(
     path: &Path,
@@ -95,12 +189,13 @@ pub fn write_channels(
     height: u32,
     channels: &[(&str, &[f32])],
     precision: Precision,
+    compression: ExrCompression,
 ) -> Result<()> {
     let planes: Vec<_> = channels
         .iter()
         .map(|&(name, values)| (name, values, precision))
         .collect();
-    write_planes(path, width, height, &planes)
+    write_planes(path, width, height, &planes, compression)
 }
 
 fn write_planes(
@@ -108,6 +203,7 @@ fn write_planes(
     width: u32,
     height: u32,
     channels: &[(&str, &[f32], Precision)],
+    compression: ExrCompression,
 ) -> Result<()> {
     if width == 0 || height == 0 {
         return Err(Error::invalid(
@@ -146,7 +242,7 @@ fn write_planes(
     }
 
     let encoding = Encoding {
-        compression: Compression::ZIP16,
+        compression: compression.codec(),
         blocks: Blocks::ScanLines,
         line_order: LineOrder::Increasing,
     };
@@ -461,7 +557,14 @@ mod tests {
             (2, 1, vec![("", &two)], "channels."),
         ];
         for (width, height, channels, expected) in cases {
-            match write_channels(&path, width, height, &channels, Precision::F32) {
+            match write_channels(
+                &path,
+                width,
+                height,
+                &channels,
+                Precision::F32,
+                ExrCompression::Zip,
+            ) {
                 Err(Error::InvalidInput { field, .. }) => assert_eq!(field, expected),
                 other => panic!("expected InvalidInput for {expected}, got {other:?}"),
             }
@@ -634,9 +737,94 @@ mod tests {
         }
         layers.visibility = vec![0.0, 0.5, 1.0, 0.25, 0.75, 0.125];
         layers.depth = vec![1.0e10, 123_456.79, 0.1, 2.0, 3.0, 4.0];
-        write_layers(&path, &layers, Precision::F16).unwrap();
+        write_layers(&path, &layers, Precision::F16, ExrCompression::Zip).unwrap();
         let read = read_exr(&path).unwrap();
         std::fs::remove_file(&path).unwrap();
         assert_eq!(read.to_layers().unwrap(), layers);
+    }
+
+    #[test]
+    fn codecs_parse_by_name_in_any_case_and_name_the_choices_otherwise() {
+        for codec in ExrCompression::ALL {
+            assert_eq!(codec.name().parse::<ExrCompression>().unwrap(), codec);
+            let upper = codec.name().to_uppercase();
+            assert_eq!(upper.parse::<ExrCompression>().unwrap(), codec);
+        }
+        match "dwaa".parse::<ExrCompression>() {
+            Err(Error::InvalidInput { field, reason }) => {
+                assert_eq!(field, "compression");
+                assert!(
+                    reason.contains("\"dwaa\"") && reason.contains("piz"),
+                    "{reason}"
+                );
+            }
+            other => panic!("expected InvalidInput, got {other:?}"),
+        }
+    }
+
+    /// Every lossless codec gives back the exact layers, f32 and f16 alike; `pxr24` keeps
+    /// f32 channels to 2⁻¹⁶ of their magnitude and f16 ones exactly.
+    #[test]
+    fn every_codec_round_trips_the_layers() {
+        let mut layers = Layers::new(37, 21);
+        let mut state = 0x2545_f491_u32;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            state as f32 / u32::MAX as f32
+        };
+        for v in layers.volume.iter_mut() {
+            *v = next() * 3.0;
+        }
+        for (i, v) in layers.visibility.iter_mut().enumerate() {
+            *v = if i % 7 == 0 { 0.0 } else { next() };
+        }
+        for v in layers.depth.iter_mut() {
+            *v = 0.1 + next() * 500.0;
+        }
+        for codec in ExrCompression::ALL {
+            for precision in [Precision::F32, Precision::F16] {
+                let path = temp_path(&format!("codec-{codec}-{precision:?}.exr"));
+                write_layers(&path, &layers, precision, codec).unwrap();
+                // The header names the codec (an attribute `compression` of type
+                // `compression`, one byte long).
+                let bytes = std::fs::read(&path).unwrap();
+                let attribute = b"compression\0compression\0\x01\0\0\0";
+                let at = bytes
+                    .windows(attribute.len())
+                    .position(|window| window == attribute)
+                    .unwrap();
+                // `ALL` lists the codecs in the order of OpenEXR's codes.
+                let code = ExrCompression::ALL.iter().position(|&c| c == codec);
+                assert_eq!(Some(bytes[at + attribute.len()] as usize), code, "{codec}");
+                let read = read_exr(&path).unwrap().to_layers().unwrap();
+                std::fs::remove_file(&path).unwrap();
+                let expected = match precision {
+                    Precision::F32 => layers.clone(),
+                    Precision::F16 => {
+                        let mut half = layers.clone();
+                        let round = |v: &mut f32| *v = f16::from_f32(*v).to_f32();
+                        half.volume.iter_mut().for_each(round);
+                        half.visibility.iter_mut().for_each(round);
+                        half
+                    }
+                };
+                let lossy_f32 = codec == ExrCompression::Pxr24;
+                let planes = |l: &Layers| [l.volume.clone(), l.visibility.clone(), l.depth.clone()];
+                for (index, (got, want)) in planes(&read).iter().zip(planes(&expected)).enumerate()
+                {
+                    // Depth stays f32 in half files; the others are f16 there.
+                    let f32_plane = precision == Precision::F32 || index == 2;
+                    for (&g, &w) in got.iter().zip(&want) {
+                        if lossy_f32 && f32_plane {
+                            assert!((g - w).abs() <= w.abs() * 2f32.powi(-16), "{codec} {g} {w}");
+                        } else {
+                            assert_eq!(g.to_bits(), w.to_bits(), "{codec} {precision:?}");
+                        }
+                    }
+                }
+            }
+        }
     }
 }

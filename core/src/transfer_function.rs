@@ -2192,6 +2192,7 @@ mod tests {
             1,
             &channels,
             crate::exr_file::Precision::F32,
+            crate::exr_file::ExrCompression::Zip,
         )
         .unwrap();
         let layer = TfLayer::Image {
@@ -2208,8 +2209,15 @@ mod tests {
 
         // Non-finite values are refused, naming the file.
         let nan: [(&str, &[f32]); 3] = [("R", &[f32::NAN]), ("G", &[0.0]), ("B", &[0.0])];
-        crate::exr_file::write_channels(&exr_path, 1, 1, &nan, crate::exr_file::Precision::F32)
-            .unwrap();
+        crate::exr_file::write_channels(
+            &exr_path,
+            1,
+            1,
+            &nan,
+            crate::exr_file::Precision::F32,
+            crate::exr_file::ExrCompression::Zip,
+        )
+        .unwrap();
         let result = bake_layers(&[layer], 2, "layers");
         std::fs::remove_file(&exr_path).ok();
         match result {

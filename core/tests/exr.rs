@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crepuscular::exr_file::{read_exr, write_channels, write_layers, Precision};
+use crepuscular::exr_file::{read_exr, write_channels, write_layers, ExrCompression, Precision};
 use crepuscular::{Error, Layers};
 
 fn temp_path(name: &str) -> PathBuf {
@@ -50,7 +50,7 @@ fn bits(values: &[f32]) -> Vec<u32> {
 fn f32_round_trip_is_bit_identical() {
     let path = temp_path("f32.exr");
     let layers = awkward_layers();
-    write_layers(&path, &layers, Precision::F32).unwrap();
+    write_layers(&path, &layers, Precision::F32, ExrCompression::Zip).unwrap();
     let image = read_exr(&path).unwrap();
     std::fs::remove_file(&path).unwrap();
 
@@ -100,7 +100,7 @@ fn f16_round_trip_is_exact_where_representable() {
     let inexact: Vec<f32> = (0..12).map(|i| 0.1 + i as f32 * 0.0137).collect();
     layers.visibility = inexact.clone();
     layers.depth = (0..12).map(|i| 1.0e6 + i as f32 * 0.1).collect();
-    write_layers(&path, &layers, Precision::F16).unwrap();
+    write_layers(&path, &layers, Precision::F16, ExrCompression::Zip).unwrap();
     let back = read_exr(&path).unwrap().to_layers().unwrap();
     std::fs::remove_file(&path).unwrap();
 
@@ -120,7 +120,7 @@ fn generic_channels_write_rgba() {
     let b = [0.25, 0.0];
     let a = [1.0, 0.5];
     let channels: [(&str, &[f32]); 4] = [("R", &r), ("G", &g), ("B", &b), ("A", &a)];
-    write_channels(&path, 1, 2, &channels, Precision::F16).unwrap();
+    write_channels(&path, 1, 2, &channels, Precision::F16, ExrCompression::Zip).unwrap();
     let image = read_exr(&path).unwrap();
     std::fs::remove_file(&path).unwrap();
     assert_eq!((image.width, image.height), (1, 2));
@@ -146,7 +146,13 @@ fn assert_exr_error_naming(path: &Path) {
 #[test]
 fn truncated_files_are_errors_not_panics() {
     let path = temp_path("whole.exr");
-    write_layers(&path, &awkward_layers(), Precision::F32).unwrap();
+    write_layers(
+        &path,
+        &awkward_layers(),
+        Precision::F32,
+        ExrCompression::Zip,
+    )
+    .unwrap();
     let bytes = std::fs::read(&path).unwrap();
     std::fs::remove_file(&path).unwrap();
 
@@ -165,7 +171,13 @@ fn truncated_files_are_errors_not_panics() {
 #[test]
 fn corrupted_bytes_are_errors_not_panics() {
     let path = temp_path("corrupt-src.exr");
-    write_layers(&path, &awkward_layers(), Precision::F16).unwrap();
+    write_layers(
+        &path,
+        &awkward_layers(),
+        Precision::F16,
+        ExrCompression::Zip,
+    )
+    .unwrap();
     let bytes = std::fs::read(&path).unwrap();
     std::fs::remove_file(&path).unwrap();
 

@@ -98,7 +98,8 @@ def test_unregister_leaves_nothing_behind(addon: ModuleType, tmp_path: Path) -> 
     # A layer file still being written when the add-on goes is finished, not lost.
     pending = tmp_path / "pending.exr"
     zeros = np.zeros((2, 4), np.float32)
-    render.WRITER.submit(str(pending), crepuscular.Layers(4, 2, np.zeros((2, 4, 4)), zeros, zeros))
+    layers = crepuscular.Layers(4, 2, np.zeros((2, 4, 4)), zeros, zeros)
+    render.WRITER.submit(str(pending), layers, "zip")
     addon_utils.disable(blender_scenes.ADDON_MODULE, default_set=True)
     try:
         for name in dir(bpy.app.handlers):
@@ -728,6 +729,23 @@ def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> Non
     with pytest.raises(RuntimeError, match="pano"):
         bpy.ops.crepuscular.render_layers(filepath=path)
     assert not os.path.exists(path)
+
+
+def test_layer_files_take_the_scenes_exr_codec(addon: ModuleType, tmp_path: Path) -> None:
+    scene = _basic_scene()
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    codec_byte = b"compression\0compression\0\x01\0\0\0"
+    for blender_codec, ours, code in [("PIZ", "piz", 4), ("ZIPS", "zips", 2), ("DWAA", "zip", 3)]:
+        settings.exr_codec = blender_codec
+        assert addon.render.layers_compression(scene) == ours
+        path = tmp_path / f"{blender_codec}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        assert codec_byte + bytes([code]) in path.read_bytes(), blender_codec
+    # A scene that renders to PNG keeps its EXR codec setting, which does not apply.
+    settings.exr_codec = "PIZ"
+    settings.file_format = "PNG"
+    assert addon.render.layers_compression(scene) == "zip"
 
 
 def test_layers_are_named_next_to_the_render_output(addon: ModuleType) -> None:

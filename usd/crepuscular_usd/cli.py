@@ -2,7 +2,8 @@
 
     crepuscular-usd render STAGE --camera /cam --frames 1-100x2 --out 'shafts.####.exr'
         [--light /sun] [--beauty 'beauty.####.exr' [--comp 'comp.####.exr']]
-        [--out-layer shafts.usda] [--width W] [--height H] [--half] [--quiet]
+        [--out-layer shafts.usda] [--width W] [--height H] [--half]
+        [--exr-compression zip|zips|piz|rle|none|pxr24] [--quiet]
     crepuscular-usd apply-schema STAGE --light /sun [--medium-extent /fog] [--output FILE]
 
 Exit status: 0 on success, 2 for command-line errors (a bad frame range or frame
@@ -85,6 +86,15 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument("--width", type=int, help="image width (default 1920 or the beauty's)")
     render.add_argument("--height", type=int, help="image height (default from the aperture)")
     render.add_argument("--half", action="store_true", help="write volume and visibility as half")
+    render.add_argument(
+        "--exr-compression",
+        choices=crepuscular.EXR_COMPRESSIONS,
+        default="zip",
+        help=(
+            "EXR codec of the layers and composites: zip (default), zips, piz (faster to "
+            "write, slower to read), rle, none, or pxr24 (lossy: floats rounded to 24 bits)"
+        ),
+    )
     render.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
     schema = commands.add_parser("apply-schema", help=f"apply {API_NAME} with its defaults")
@@ -263,6 +273,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 "comp",
                 "beauty_depth",
                 "half",
+                "exr_compression",
             )
         },
     )
@@ -322,7 +333,9 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
             timings["render"] += time.perf_counter() - started
             out_path = _frame_path(frame_args.formats["out"], time_code)
             writer.submit(
-                lambda p=out_path, lay=layers: crepuscular.write_exr(p, lay, half=args.half),
+                lambda p=out_path, lay=layers: crepuscular.write_exr(
+                    p, lay, half=args.half, compression=args.exr_compression
+                ),
                 out_path,
             )
             record.shafts[key] = out_path
@@ -331,7 +344,10 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 comp = crepuscular.composite(layers.volume, beauty_rgba)
                 planes = {c: comp[..., i] for i, c in enumerate("RGBA")}
                 writer.submit(
-                    lambda p=comp_path, pl=planes: crepuscular.write_exr_channels(p, pl), comp_path
+                    lambda p=comp_path, pl=planes: crepuscular.write_exr_channels(
+                        p, pl, compression=args.exr_compression
+                    ),
+                    comp_path,
                 )
                 record.composites[key] = comp_path
             record.resolution = (layers.width, layers.height)

@@ -3,7 +3,9 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use crepuscular::exr_file::{read_exr as read_exr_file, write_channels, write_layers, Precision};
+use crepuscular::exr_file::{
+    read_exr as read_exr_file, write_channels, write_layers, ExrCompression, Precision,
+};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
 use crepuscular::{composite::composite_over, Error, Layers};
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
@@ -54,7 +56,7 @@ fn contiguous<'a>(
 /// Writes the layer set (`volume` (H, W, 4), `visibility` and `depth` (H, W)) as one
 /// multi-layer EXR with the channels `volume.R/G/B/A`, `visibility` and `depth`.
 #[pyfunction]
-#[pyo3(signature = (path, volume, visibility, depth, /, *, half=false))]
+#[pyo3(signature = (path, volume, visibility, depth, /, *, half=false, compression="zip"))]
 pub fn write_layers_exr(
     py: Python<'_>,
     path: PathBuf,
@@ -62,7 +64,9 @@ pub fn write_layers_exr(
     visibility: PyReadonlyArray2<'_, f32>,
     depth: PyReadonlyArray2<'_, f32>,
     half: bool,
+    compression: &str,
 ) -> PyResult<()> {
+    let compression: ExrCompression = compression.parse().map_err(to_py_err)?;
     let shape = volume.shape();
     let (h, w) = (shape[0], shape[1]);
     let layers = (|| {
@@ -93,20 +97,22 @@ pub fn write_layers_exr(
     })()
     .map_err(to_py_err)?;
     let precision = if half { Precision::F16 } else { Precision::F32 };
-    py.detach(|| write_layers(&path, &layers, precision))
+    py.detach(|| write_layers(&path, &layers, precision, compression))
         .map_err(to_py_err)
 }
 
 /// Writes named (H, W) float32 planes as one single-part EXR, e.g. a composited
 /// frame's `R`, `G`, `B`, `A`. Channel names are written as given, in the given order.
 #[pyfunction]
-#[pyo3(signature = (path, channels, /, *, half=false))]
+#[pyo3(signature = (path, channels, /, *, half=false, compression="zip"))]
 pub fn write_channels_exr(
     py: Python<'_>,
     path: PathBuf,
     channels: Vec<(String, PyReadonlyArray2<'_, f32>)>,
     half: bool,
+    compression: &str,
 ) -> PyResult<()> {
+    let compression: ExrCompression = compression.parse().map_err(to_py_err)?;
     let (h, w) = match channels.first() {
         Some((_, first)) => (first.shape()[0], first.shape()[1]),
         None => {
@@ -139,7 +145,7 @@ pub fn write_channels_exr(
     let precision = if half { Precision::F16 } else { Precision::F32 };
     py.detach(|| {
         let named: Vec<(&str, &[f32])> = planes.iter().map(|(n, v)| (*n, v.as_slice())).collect();
-        write_channels(&path, w as u32, h as u32, &named, precision)
+        write_channels(&path, w as u32, h as u32, &named, precision, compression)
     })
     .map_err(to_py_err)
 }

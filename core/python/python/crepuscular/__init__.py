@@ -28,11 +28,13 @@ from crepuscular import _convert, _core
 from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
 
 __all__ = [
+    "EXR_COMPRESSIONS",
     "SCENE_VERSION",
     "STYLE_VERSION",
     "CancelledError",
     "CrepuscularError",
     "DepthKind",
+    "ExrCompression",
     "ExrError",
     "InvalidInputError",
     "Layers",
@@ -72,6 +74,10 @@ StyleLike: TypeAlias = Mapping[str, Any] | str | os.PathLike[str]
 DepthKind: TypeAlias = Literal["planar", "ray_distance"]
 #: Called on the calling thread with the fraction done, in [0, 1], ending with 1.0.
 ProgressCallback: TypeAlias = Callable[[float], object]
+#: An EXR codec, by Blender's name (lower case; any case is accepted).
+ExrCompression: TypeAlias = Literal["zip", "zips", "piz", "rle", "none", "pxr24"]
+#: The EXR codecs `write_exr` takes, the default first.
+EXR_COMPRESSIONS: tuple[str, ...] = ("zip", "zips", "piz", "rle", "none", "pxr24")
 
 
 @dataclass(frozen=True, slots=True, eq=False, repr=False)
@@ -248,14 +254,27 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, npt.NDArray[np.float32]]
     return channels
 
 
-def write_exr(path: str | os.PathLike[str], layers: Layers, *, half: bool = False) -> None:
-    """Writes `layers` as one multi-layer EXR (channels volume.R/G/B/A, visibility, depth)."""
+def write_exr(
+    path: str | os.PathLike[str],
+    layers: Layers,
+    *,
+    half: bool = False,
+    compression: ExrCompression = "zip",
+) -> None:
+    """Writes `layers` as one multi-layer EXR (channels volume.R/G/B/A, visibility, depth).
+
+    `compression` is the EXR codec (Blender's names; see `EXR_COMPRESSIONS`): "zip", the
+    default, is compact and fast to read; "piz" writes faster and reads slower; "none"
+    writes fastest; "pxr24" is lossy (float channels rounded to 24 bits). An unknown name
+    raises `InvalidInputError`.
+    """
     _core.write_layers_exr(
         os.fspath(path),
         np.ascontiguousarray(layers.volume, dtype=np.float32),
         np.ascontiguousarray(layers.visibility, dtype=np.float32),
         np.ascontiguousarray(layers.depth, dtype=np.float32),
         half=half,
+        compression=compression,
     )
 
 
@@ -264,15 +283,18 @@ def write_exr_channels(
     channels: Mapping[str, npt.ArrayLike],
     *,
     half: bool = False,
+    compression: ExrCompression = "zip",
 ) -> None:
     """Writes named (height, width) planes as one EXR, in the mapping's order.
 
     For images that are not a layer set, such as a composited frame (`R`, `G`, `B`, `A`).
+    `compression` as in `write_exr`.
     """
     _core.write_channels_exr(
         os.fspath(path),
         [(name, np.ascontiguousarray(plane, dtype=np.float32)) for name, plane in channels.items()],
         half=half,
+        compression=compression,
     )
 
 

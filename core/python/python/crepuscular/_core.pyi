@@ -74,6 +74,7 @@ def write_layers_exr(
     /,
     *,
     half: bool = False,
+    compression: str = "zip",
 ) -> None: ...
 def write_channels_exr(
     path: str | os.PathLike[str],
@@ -81,6 +82,7 @@ def write_channels_exr(
     /,
     *,
     half: bool = False,
+    compression: str = "zip",
 ) -> None: ...
 def composite(volume: _Float32Array, beauty: _Float32Array, /) -> _Float32Array: ...
 def write_preview_png(

@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use clap::{Args, Parser, Subcommand};
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
-use crepuscular::exr_file::{write_layers, Precision};
+use crepuscular::exr_file::{write_layers, ExrCompression, Precision};
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
 use crepuscular::scene::{ExactRayEnds, Method, Rectification, Scene};
 use crepuscular::{render_scene, Backend, Error, Layers, RenderControl, Result, Style};
@@ -167,6 +167,10 @@ struct RenderArgs {
     /// Write half floats instead of full floats.
     #[arg(long)]
     half: bool,
+    /// The EXR codec: zip (default), zips, piz, rle, none, or pxr24 (lossy: f32 rounded
+    /// to 24 bits)
+    #[arg(long, default_value_t = ExrCompression::Zip)]
+    exr_compression: ExrCompression,
     #[command(flatten)]
     overrides: Overrides,
 }
@@ -275,7 +279,12 @@ fn run_render(args: &RenderArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let layers = render_with_progress(&scene, &args.scene)?;
     let elapsed = started.elapsed();
-    write_layers(&args.out, &layers, precision(args.half))?;
+    write_layers(
+        &args.out,
+        &layers,
+        precision(args.half),
+        args.exr_compression,
+    )?;
     if let Some(png) = &args.png {
         write_preview(png, &layers)?;
     }
@@ -303,7 +312,7 @@ fn run_demo(args: &DemoArgs) -> Result<()> {
         let elapsed = started.elapsed();
         let exr = args.out_dir.join(format!("{name}.exr"));
         let png = args.out_dir.join(format!("{name}.png"));
-        write_layers(&exr, &layers, Precision::F32)?;
+        write_layers(&exr, &layers, Precision::F32, ExrCompression::Zip)?;
         write_preview(&png, &layers)?;
         rows.push(bench::DemoRow {
             scene: name,
