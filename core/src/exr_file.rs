@@ -77,7 +77,7 @@ impl ExrCompression {
         Self::Pxr24,
     ];
 
-    /// The codec's name, as the CLI, Python and the scene's output settings spell it.
+    /// The codec's name, as the CLI and Python spell it: Blender's, in lower case.
     pub fn name(self) -> &'static str {
         match self {
             Self::None => "none",
