@@ -125,6 +125,30 @@ def test_exr_compression_applies_to_layers_and_composites(stage_path: Path, tmp_
     assert "invalid choice: 'dwaa'" in err, err
 
 
+def test_hole_creation_that_reaches_no_mesh_warns(stage_path: Path, tmp_path: Path) -> None:
+    stage = Usd.Stage.Open(str(stage_path))
+    light = stage.GetPrimAtPath("/World/Sun")
+    assert light.GetAttribute("crepuscular:holes:enable").Set(True)
+    targets = light.CreateRelationship("crepuscular:holes:objects")
+    cases = [
+        ([], "crepuscular:holes:objects names no prim: no holes are made"),
+        (
+            ["/World/Nowhere"],
+            "crepuscular:holes:objects (/World/Nowhere) holds no rendered mesh: no holes are made",
+        ),
+        (["/World/occluder"], None),
+    ]
+    for paths, warning in cases:
+        assert targets.SetTargets(paths)
+        assert stage.GetRootLayer().Save()
+        status, err = run(*render_args(stage_path, tmp_path / "out", "-f", "1"))
+        assert status == 0, err
+        if warning is None:
+            assert "holes" not in err, err
+        else:
+            assert f"crepuscular-usd: warning: hole creation is on, but {warning}" in err, err
+
+
 def test_beauty_composite_uses_the_beauty_depth(stage_path: Path, tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     height, width = 36, 64

@@ -28,6 +28,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom
 
 import crepuscular
 from crepuscular_usd import __version__
+from crepuscular_usd.attributes import HOLES_OBJECTS
 from crepuscular_usd.frames import FrameSpecError, add_cmdline_args, validate_cmdline_args
 from crepuscular_usd.geometry import MeshError
 from crepuscular_usd.output import OutputLayerError, RenderRecord, write_output_layer
@@ -298,6 +299,15 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
                     count = sum(skipped.values()) + len(invalid)
                     _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
+                holes = frame.style.get("holes")
+                if holes is not None and not holes["objects"]:
+                    roots = ", ".join(str(p) for p in frame.light_settings.holes_roots)
+                    _warn(
+                        err,
+                        f"hole creation is on, but {HOLES_OBJECTS} "
+                        + (f"({roots}) holds no rendered mesh" if roots else "names no prim")
+                        + ": no holes are made",
+                    )
             if len(frame.geometry.triangles) == 0:
                 raise CommandError(
                     f"{label}: the stage has no visible mesh triangles to cast shadows"
