@@ -539,6 +539,11 @@ def frame_inputs(
         hole_objects=geometry.hole_ids,
         name=f"bpy.data.lights['{evaluated.data.original.name}']",
     )
+    if "holes" in style and not style["holes"]["objects"]:
+        notes.append(
+            f"hole creation is on for '{sun.name}', but no rendered object has Takes Holes "
+            "enabled: no holes are made"
+        )
     kwargs = {
         "positions": geometry.positions,
         "triangles": geometry.triangles,

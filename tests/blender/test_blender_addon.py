@@ -731,6 +731,19 @@ def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> Non
     assert not os.path.exists(path)
 
 
+def test_hole_creation_without_objects_that_take_holes_says_so(addon: ModuleType) -> None:
+    scene = _basic_scene()
+    scene.objects["Sun"].data.crepuscular.use_holes = True
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    (note,) = [n for n in addon.export.frame_inputs(scene, depsgraph).notes if "holes" in n]
+    assert note.endswith("but no rendered object has Takes Holes enabled: no holes are made")
+    scene.objects["Roof"].crepuscular.takes_holes = True
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    inputs = addon.export.frame_inputs(scene, depsgraph)
+    assert not [n for n in inputs.notes if "holes" in n]
+    assert inputs.kwargs["style"]["holes"]["objects"]
+
+
 def test_layer_files_take_the_scenes_exr_codec(addon: ModuleType, tmp_path: Path) -> None:
     scene = _basic_scene()
     settings = scene.render.image_settings
