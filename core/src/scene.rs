@@ -539,6 +539,23 @@ impl Scene {
         Ok(scene)
     }
 
+    /// The ids in `style.holes.objects` that no mesh of the scene has, sorted: hole
+    /// creation makes no holes for them (a typo, or a preset written for another scene).
+    pub fn hole_objects_without_mesh(&self) -> Vec<u32> {
+        let Some(holes) = &self.style.holes else {
+            return Vec::new();
+        };
+        let mut missing: Vec<u32> = holes
+            .objects
+            .iter()
+            .copied()
+            .filter(|&id| !self.meshes.iter().any(|mesh| mesh.object_id == id))
+            .collect();
+        missing.sort_unstable();
+        missing.dedup();
+        missing
+    }
+
     pub fn triangle_count(&self) -> usize {
         self.meshes.iter().map(|mesh| mesh.triangles.len()).sum()
     }

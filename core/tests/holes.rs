@@ -515,3 +515,22 @@ fn settings_read_from_json_with_defaults_and_reject_unknown_keys() {
     let error = parse_json_at::<HolesDesc>("style.holes", r#"{"treshold": 0.3}"#).unwrap_err();
     assert!(error.to_string().contains("treshold"), "{error}");
 }
+
+/// A scene names the hole objects that none of its meshes is: a typo, or a preset written
+/// for another scene; they are listed once each, sorted.
+#[test]
+fn hole_objects_without_a_mesh_are_listed() {
+    let mut scene = crepuscular::builtin_scene("tree").unwrap();
+    let ids: Vec<u32> = scene.meshes.iter().map(|mesh| mesh.object_id).collect();
+    assert!(
+        scene.hole_objects_without_mesh().is_empty(),
+        "no holes style"
+    );
+    scene.style.holes = Some(HolesDesc {
+        objects: vec![99, ids[0], 42, 99],
+        ..HolesDesc::default()
+    });
+    assert_eq!(scene.hole_objects_without_mesh(), [42, 99]);
+    scene.style.holes.as_mut().unwrap().objects = ids;
+    assert!(scene.hole_objects_without_mesh().is_empty());
+}
