@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -142,3 +143,22 @@ def test_a_presets_images_are_found_beside_it_from_any_directory(
     # As text, a relative path is the working directory's, and a miss names the file.
     with pytest.raises(crepuscular.CrepuscularError, match=r"ramp\.exr"):
         crepuscular.bake_tf(preset.read_text(encoding="utf-8"))
+
+
+def test_hole_objects_that_no_mesh_has_warn() -> None:
+    preset = next(path for path in PRESETS if path.stem == "holes-in-tree")
+    (chosen,) = crepuscular.load_style(preset)["holes"]["objects"]
+
+    def small(name: str) -> dict[str, Any]:
+        scene = crepuscular.builtin_scene(name)
+        scene["camera"]["width"], scene["camera"]["height"] = 48, 27
+        scene["render"]["shadow_map_size"] = 128
+        return scene
+
+    torus = small("torus")
+    assert chosen not in {mesh["object_id"] for mesh in torus["meshes"]}
+    with pytest.warns(UserWarning, match=rf"no mesh has \({chosen}\): no holes are made"):
+        crepuscular.render(torus, style=preset)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        crepuscular.render(small("tree"), style=preset)

@@ -53,7 +53,7 @@ fn render_json<'py>(
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref()).map_err(to_py_err)?;
-    let layers = run_detached(py, progress.as_ref(), |control| {
+    let (layers, missing_hole_objects) = run_detached(py, progress.as_ref(), |control| {
         let mut scene = Scene::from_json(scene_json)?;
         if let Some(base) = &base_dir {
             scene.style.rebase_paths(base);
@@ -69,8 +69,22 @@ fn render_json<'py>(
             settings: &scene.render,
             style: &scene.style,
         };
-        parts.render(geometry.view(), depth, kind, control)
+        let layers = parts.render(geometry.view(), depth, kind, control)?;
+        Ok((layers, scene.hole_objects_without_mesh()))
     })?;
+    if !missing_hole_objects.is_empty() {
+        let ids: Vec<String> = missing_hole_objects.iter().map(u32::to_string).collect();
+        let message = format!(
+            "style.holes.objects names object ids that no mesh has ({}): no holes are made \
+             for them",
+            ids.join(", ")
+        );
+        let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
+        // The message is built from digits and ASCII text, so it holds no NUL.
+        if let Ok(message) = std::ffi::CString::new(message) {
+            PyErr::warn(py, category.as_any(), &message, 2)?;
+        }
+    }
     layers_to_py(py, layers)
 }
 
