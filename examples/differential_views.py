@@ -55,7 +55,7 @@ STYLES: list[dict | None] = [
             "seed": 3,
             "speed": 0.0,
             "warp": 0.3,
-            "objects": [2, 3],
+            "objects": [],
         },
     },
 ]
@@ -271,6 +271,10 @@ def random_case(
     style = rng.choice(STYLES)
     if style is not None:
         scene["style"] = copy.deepcopy(style)
+        if "holes" in style:
+            # Holes in every object but the first (the ground), by the scene's own ids.
+            ids = sorted({mesh["object_id"] for mesh in scene["meshes"]})
+            scene["style"]["holes"]["objects"] = ids[1:] or ids
     return name, scene
 
 
