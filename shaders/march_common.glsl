@@ -32,7 +32,7 @@ layout(std430, binding = 0) readonly buffer Params {
     uint stride;
     uint supersampling;
     uint map_size;
-    uint unused;
+    uint dark_walks; // walks still dark at e^−10 go on (reference.rs: DARK_WALK_SHARE)
 } p;
 
 layout(std430, binding = 1) readonly buffer ShadowDepth { float shadow_depth[]; };
@@ -315,12 +315,19 @@ float lit_weight(float t0, float t1, uint mode, float origin) {
     return t1 - t0;
 }
 
+// In a nearly dark frame, a walk that has seen less than this share of its unshadowed
+// light by `enough` goes on to `farthest` (reference.rs: DARK_WALK_SHARE, WalkEnd).
+const float DARK_WALK_SHARE = 0.01;
+
 // Walks the shadow map's texels along the ray over [t_start, t_end] (reference.rs,
 // Marcher::lit_spans), each crossing's lit part found where the ray's light depth meets
-// the texel's occluder, and sums the lit parts' `mode` weights; stops past `enough`.
-// Lit parts of consecutive texels are joined before they are weighed, as on the CPU:
-// each weight takes an exponential or two. Off the map counts as lit. Needs begin_ray.
-float walk_lit(float t_start, float t_end, float enough, uint mode, float origin) {
+// the texel's occluder, and sums the lit parts' `mode` weights; stops past `enough`, or
+// while what it has weighed is under DARK_WALK_SHARE of the unshadowed weight, past
+// `farthest`. Lit parts of consecutive texels are joined before they are weighed, as on
+// the CPU: each weight takes an exponential or two. Off the map counts as lit. Needs
+// begin_ray.
+float walk_lit(float t_start, float t_end, float enough, float farthest, uint mode,
+               float origin) {
     vec3 start = texel_origin + texel_step * t_start;
     vec3 end = texel_origin + texel_step * t_end;
     ivec2 cell = ivec2(floor(start.xy));
@@ -375,7 +382,9 @@ float walk_lit(float t_start, float t_end, float enough, uint mode, float origin
                 pending_to = lit_to;
             }
         }
-        if (leave >= t_end || leave > enough) {
+        if (leave >= t_end || leave > farthest
+            || (leave > enough
+                && !(total < DARK_WALK_SHARE * lit_weight(origin, leave, mode, origin)))) {
             break;
         }
         if (next.y < next.x) {
@@ -399,10 +408,20 @@ float walk_enough(float t) {
     return p.extinction > 0.0 ? t + 10.0 / p.extinction : BIG;
 }
 
+// Where a walk from `t` stops in any case: at `walk_enough`, or in a nearly dark frame
+// at e^−20 (reference.rs: DARK_WALK_DEPTH, WalkEnd::at).
+float walk_farthest(float t) {
+    if (p.dark_walks == 0u) {
+        return walk_enough(t);
+    }
+    return p.extinction > 0.0 ? t + 20.0 / p.extinction : BIG;
+}
+
 // Exact single scattering outside any box (reference.rs, Marcher::walk_texels).
 vec3 walk_texels(float t_start, float t_end) {
     float sigma = p.extinction;
-    float scattering = walk_lit(t_start, t_end, walk_enough(t_start), WALK_UNBOUNDED, t_start);
+    float scattering = walk_lit(t_start, t_end, walk_enough(t_start), walk_farthest(t_start),
+                                WALK_UNBOUNDED, t_start);
     float unshadowed = integral_exp(sigma, t_end - t_start);
     float alpha = -expm1_accurate(-sigma * (t_end - t_start));
     return vec3(scattering, alpha, clamp(scattering / unshadowed, 0.0, 1.0));
@@ -413,17 +432,17 @@ vec3 walk_texels(float t_start, float t_end) {
 vec3 walk_box(float t_start, float t_end) {
     float a, b;
     if (!box_segment(t_start, t_end, a, b)) {
-        float lit = walk_lit(t_start, t_end, BIG, WALK_LENGTH, t_start);
+        float lit = walk_lit(t_start, t_end, BIG, BIG, WALK_LENGTH, t_start);
         return vec3(0.0, 0.0, clamp(lit / (t_end - t_start), 0.0, 1.0));
     }
     float sigma = p.extinction;
-    float scattering = walk_lit(a, b, walk_enough(a), WALK_BOX, a);
+    float scattering = walk_lit(a, b, walk_enough(a), walk_farthest(a), WALK_BOX, a);
     float unshadowed = box_integrate(a, b, a, sigma);
     float visibility;
     if (unshadowed > 0.0) {
         visibility = clamp(scattering / unshadowed, 0.0, 1.0);
     } else {
-        visibility = clamp(walk_lit(t_start, t_end, BIG, WALK_LENGTH, t_start) / (t_end - t_start), 0.0, 1.0);
+        visibility = clamp(walk_lit(t_start, t_end, BIG, BIG, WALK_LENGTH, t_start) / (t_end - t_start), 0.0, 1.0);
     }
     return vec3(scattering, -expm1_accurate(-sigma * (b - a)), visibility);
 }

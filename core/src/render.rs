@@ -261,7 +261,10 @@ pub(crate) fn scatter_timed(
     };
     let surfaces = SurfaceDistances::new(&camera, frame);
     times.camera_depth = stopwatch.lap();
-    let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps);
+    let dark_frame = frame.settings.method == Method::Prefiltered
+        && frame_is_dark(frame, &camera, &shadow, &surfaces);
+    let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps)
+        .with_dark_walks(dark_frame);
     let tint = frame.medium.albedo.as_dvec3()
         * frame.medium.extinction as f64
         * frame.sun.irradiance().as_dvec3();
@@ -370,7 +373,7 @@ pub(crate) fn scatter_timed(
                 &map,
                 &camera,
                 &ahead,
-                &prefiltered_desc(frame, &camera, &shadow, &surfaces),
+                &prefiltered_desc(frame, dark_frame),
                 frame.sun,
                 frame.medium,
                 Some(&reaches),
@@ -416,14 +419,9 @@ pub(crate) fn scatter_timed(
 
 /// The prefiltered method's description for `frame`, with whether the frame is nearly
 /// dark ([`frame_is_dark`]): the CPU and GPU frames plan alike.
-pub(crate) fn prefiltered_desc(
-    frame: &Frame,
-    camera: &CameraModel,
-    shadow: &ShadowMap,
-    surfaces: &SurfaceDistances,
-) -> PrefilteredDesc {
+pub(crate) fn prefiltered_desc(frame: &Frame, dark_frame: bool) -> PrefilteredDesc {
     PrefilteredDesc {
-        dark_frame: frame_is_dark(frame, camera, shadow, surfaces),
+        dark_frame,
         ..PrefilteredDesc::from_settings(frame.settings)
     }
 }
@@ -437,7 +435,7 @@ pub(crate) fn prefiltered_desc(
 /// off the reference, 4.6% so. In the built-in scenes' views dark rays are a few among lit
 /// ones, and the probe finds no dark frame. Each ray is walked in lengthening pieces, and
 /// stops once it has seen enough light: a lit frame's probe ends near the camera.
-fn frame_is_dark(
+pub(crate) fn frame_is_dark(
     frame: &Frame,
     camera: &CameraModel,
     shadow: &ShadowMap,

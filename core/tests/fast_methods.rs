@@ -1106,3 +1106,23 @@ fn prefiltered_error_holds_with_more_pixels_near_the_sun() {
     }
     assert!(failures.is_empty(), "{failures:?}");
 }
+
+/// A nearly black frame: `plane` in fog of 0.6 /m under a dilated silhouette (a fuzzed
+/// view, mean radiance 1.5·10⁻⁵, visibility 6·10⁻⁵). Its rays see less light before an
+/// optical depth of 10, where exact walks stop, than the e^−10 after it; prefiltering,
+/// which walks such dark rays, read 14% dark. In a frame the probe finds nearly dark, a
+/// walk that is still dark there goes on to e^−20.
+#[test]
+fn nearly_black_rays_keep_the_light_from_far_along() {
+    let mut scene = Scene::from_json(include_str!("data/nearly_black_plane.json")).unwrap();
+    scene.camera.width = 192;
+    scene.camera.height = 108;
+    let reference = render_with(&scene, Method::Reference, 4096);
+    let (relative, mean) = error(&render_with(&scene, Method::Prefiltered, 4096), &reference);
+    println!(
+        "prefiltered: {:.2}% (mean radiance {mean:.2e})",
+        relative * 100.0
+    );
+    assert!(mean < 1e-4, "the view is nearly black: {mean}");
+    assert!(relative < 0.03, "prefiltered: {relative}");
+}

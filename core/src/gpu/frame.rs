@@ -33,7 +33,8 @@ use crate::layers::Layers;
 use crate::prefiltered::{CpuPrefixSums, PrefilteredPlan};
 use crate::reference::Marcher;
 use crate::render::{
-    camera_raster, prefiltered_desc, scatter_timed, Frame, SampleRays, StageTimes, SurfaceDistances,
+    camera_raster, frame_is_dark, prefiltered_desc, scatter_timed, Frame, SampleRays, StageTimes,
+    SurfaceDistances,
 };
 use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
@@ -197,6 +198,8 @@ fn gpu_frame(
     };
     times.camera_depth = stopwatch.lap();
     control.check()?;
+    let dark_frame = frame.settings.method == Method::Prefiltered
+        && frame_is_dark(frame, camera, &shadow, &surfaces);
     let inputs = MarchInputs {
         camera,
         shadow: &shadow,
@@ -205,6 +208,7 @@ fn gpu_frame(
         settings: frame.settings,
         surfaces: &surfaces.distances,
         supersampling: surfaces.supersampling,
+        dark_walks: dark_frame,
     };
     let map = match frame.settings.method {
         Method::Prefiltered => {
@@ -248,7 +252,7 @@ fn gpu_frame(
                 map,
                 camera,
                 &ahead,
-                &prefiltered_desc(frame, camera, &shadow, &surfaces),
+                &prefiltered_desc(frame, dark_frame),
                 frame.sun,
                 frame.medium,
                 Some(&reaches),

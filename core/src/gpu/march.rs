@@ -36,6 +36,8 @@ pub struct MarchInputs<'a> {
     /// `supersampling` samples per pixel along each axis.
     pub surfaces: &'a [f32],
     pub supersampling: u32,
+    /// Whether walks still dark at e^−10 go on ([`crate::reference::DARK_WALK_SHARE`]).
+    pub dark_walks: bool,
 }
 
 fn columns(m: &DMat4) -> [f32; 16] {
@@ -85,7 +87,7 @@ pub fn march_params(inputs: &MarchInputs) -> Vec<u8> {
         .u32(stride)
         .u32(inputs.supersampling)
         .u32(inputs.shadow.size)
-        .u32(0);
+        .u32(inputs.dark_walks as u32);
     p.finish()
 }
 
@@ -164,6 +166,7 @@ mod tests {
             settings: &settings,
             surfaces: &[],
             supersampling: 1,
+            dark_walks: false,
         };
         let bytes = march_params(&inputs);
         assert_eq!(bytes.len(), PARAMS_BYTES);
