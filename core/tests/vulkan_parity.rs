@@ -933,6 +933,44 @@ fn prefiltered_frames_match_the_cpu_on_the_builtin_scenes() {
     }
 }
 
+/// A nearly black frame (`plane` in fog of 0.6 /m under a dilated silhouette; see
+/// `fast_methods::nearly_black_rays_keep_the_light_from_far_along`): the probe finds it
+/// dark on the CPU, and the GPU's walks go on past e^−10 as the CPU's do. Without that,
+/// the GPU frame read 13–14% dark against the reference.
+#[test]
+fn a_nearly_dark_frame_walks_on_as_on_the_cpu() {
+    let Some(device) = device("the nearly dark frame's parity test") else {
+        return;
+    };
+    let mut scene = Scene::from_json(include_str!("data/nearly_black_plane.json")).unwrap();
+    scene.camera.width = 192;
+    scene.camera.height = 108;
+    scene.render.adaptive_tolerance = 0.0;
+    let (gpu, cpu, _) = render_both(&device, &scene);
+    scene.render.method = Method::Reference;
+    scene.render.steps = 4096;
+    let geometry = FlatGeometry::from_scene(&scene);
+    let frame = Frame::of_scene(&scene, &geometry);
+    let (reference, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
+    let off = |layers: &Layers| {
+        let (mut diff, mut total) = (0.0f64, 0.0f64);
+        for (a, r) in layers.volume.chunks(4).zip(reference.volume.chunks(4)) {
+            for c in 0..3 {
+                diff += (a[c] as f64 - r[c] as f64).abs();
+                total += r[c] as f64;
+            }
+        }
+        diff / total
+    };
+    let (gpu_off, cpu_off) = (off(&gpu), off(&cpu));
+    println!("nearly dark frame against the reference: GPU {gpu_off:.4}, CPU {cpu_off:.4}");
+    assert!(
+        gpu_off < 0.03 && cpu_off < 0.03,
+        "GPU {gpu_off}, CPU {cpu_off}"
+    );
+    check_layers("nearly dark frame", &gpu, &cpu, 0.05, 0.05);
+}
+
 /// Prefiltered evaluation across layouts and storage: a `box` medium, forced epipolar and
 /// projective rectification, f32 storage at M = 16, an orthographic camera (parallel
 /// slices), and 2×2 supersampling. Bounds as for the march.
