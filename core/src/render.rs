@@ -261,8 +261,7 @@ pub(crate) fn scatter_timed(
     };
     let surfaces = SurfaceDistances::new(&camera, frame);
     times.camera_depth = stopwatch.lap();
-    let dark_frame = frame.settings.method == Method::Prefiltered
-        && frame_is_dark(frame, &camera, &shadow, &surfaces);
+    let dark_frame = frame_is_dark(frame, &camera, &shadow, &surfaces);
     let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps)
         .with_dark_walks(dark_frame);
     let tint = frame.medium.albedo.as_dvec3()
@@ -426,9 +425,9 @@ pub(crate) fn prefiltered_desc(frame: &Frame, dark_frame: bool) -> PrefilteredDe
     }
 }
 
-/// Whether a frame in open fog under light from above is nearly dark: nine in ten or more
-/// of a sparse grid of its rays, walked exactly, see less than [`DARK_LOOKUP_VISIBILITY`]
-/// of the sun. Prefiltering's residue, about 0.002–0.01 of visibility where a ray crosses
+/// Whether a prefiltered frame in open fog under light from above is nearly dark: nine in
+/// ten or more of a sparse grid of its rays, walked exactly, see less than
+/// [`DARK_LOOKUP_VISIBILITY`] of the sun. Prefiltering's residue, about 0.002–0.01 of visibility where a ray crosses
 /// shadows, is then as large as the frame's light, and its dark lookups are walked instead
 /// ([`crate::prefiltered::dark_lookup_limit`], which already walks them in a box and under
 /// light from below): inside `colonnade` with light through a few gaps, a frame read 18.7%
@@ -445,7 +444,10 @@ pub(crate) fn frame_is_dark(
     const DOWN: u32 = 9;
     const PIECES: i32 = 8;
     let medium = frame.medium;
-    if !matches!(medium.extent, Extent::Unbounded) || frame.sun.direction.z > 0.0 {
+    if frame.settings.method != Method::Prefiltered
+        || !matches!(medium.extent, Extent::Unbounded)
+        || frame.sun.direction.z > 0.0
+    {
         return false;
     }
     let marcher = Marcher::new(shadow, frame.sun, medium, frame.settings.steps);

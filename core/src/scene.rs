@@ -556,6 +556,19 @@ impl Scene {
         missing
     }
 
+    /// The warning for [`Scene::hole_objects_without_mesh`], where there are any.
+    pub fn hole_objects_warning(&self) -> Option<String> {
+        let missing = self.hole_objects_without_mesh();
+        (!missing.is_empty()).then(|| {
+            let ids: Vec<String> = missing.iter().map(u32::to_string).collect();
+            format!(
+                "style.holes.objects names object ids that no mesh has ({}): no holes are \
+                 made for them",
+                ids.join(", ")
+            )
+        })
+    }
+
     pub fn triangle_count(&self) -> usize {
         self.meshes.iter().map(|mesh| mesh.triangles.len()).sum()
     }

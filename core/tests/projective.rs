@@ -2,6 +2,9 @@
 //! rectified map against the reference, where the view allows one; the error where it
 //! does not; and what `auto` picks on the built-in scenes.
 
+mod common;
+
+use common::radiance_error;
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{EpipolarMap, RectifyDesc};
 use crepuscular::render::FlatGeometry;
@@ -59,18 +62,6 @@ fn render_with(scene: &Scene, method: Method, rectification: Rectification) -> L
     render_scene(&scene, &RenderControl::new()).expect("render succeeds")
 }
 
-/// Mean absolute error of volume RGB over the mean reference radiance.
-fn error(fast: &Layers, reference: &Layers) -> f64 {
-    let (mut diff, mut total) = (0.0f64, 0.0f64);
-    for (f, r) in fast.volume.chunks(4).zip(reference.volume.chunks(4)) {
-        for c in 0..3 {
-            diff += (f[c] as f64 - r[c] as f64).abs();
-            total += r[c] as f64;
-        }
-    }
-    diff / total
-}
-
 /// The bounds the epipolar layout is held to (tests/fast_methods.rs): min-max 1%,
 /// prefiltering at M = 32 2%, twice those on `plane`'s slits.
 fn bound(scene: &str, method: Method) -> f64 {
@@ -118,11 +109,11 @@ fn fast_methods_on_the_projective_map_match_the_reference() {
             );
             for method in [Method::MinMax, Method::Prefiltered] {
                 assert!(rectified(&scene, method, Rectification::Projective).is_projective());
-                let epipolar = error(
+                let epipolar = radiance_error(
                     &render_with(&scene, method, Rectification::Epipolar),
                     &reference,
                 );
-                let projective = error(
+                let projective = radiance_error(
                     &render_with(&scene, method, Rectification::Projective),
                     &reference,
                 );
@@ -199,7 +190,7 @@ fn occluder_operators_keep_the_epipolar_layout() {
     scene.style = serde_json::from_str(include_str!("../../examples/presets/holes-in-tree.json"))
         .expect("a valid preset");
     let reference = render_with(&scene, Method::Reference, Rectification::Epipolar);
-    let holes = error(&physical, &reference);
+    let holes = radiance_error(&physical, &reference);
     assert!(
         holes > 0.05,
         "the holes change the image by {holes:.3} only"
@@ -207,7 +198,7 @@ fn occluder_operators_keep_the_epipolar_layout() {
     // The projective map is rasterized from the geometry, which has no holes: `auto`
     // resamples the shadow map they were cut into.
     for method in [Method::MinMax, Method::Prefiltered] {
-        let fast = error(
+        let fast = radiance_error(
             &render_with(&scene, method, Rectification::Auto),
             &reference,
         );

@@ -11,7 +11,7 @@ mod common;
 
 use std::sync::Arc;
 
-use common::{camera_inside_a_fog_box, small_fog_box_far_off};
+use common::{camera_inside_a_fog_box, radiance_error, small_fog_box_far_off};
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
@@ -952,17 +952,10 @@ fn a_nearly_dark_frame_walks_on_as_on_the_cpu() {
     let geometry = FlatGeometry::from_scene(&scene);
     let frame = Frame::of_scene(&scene, &geometry);
     let (reference, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
-    let off = |layers: &Layers| {
-        let (mut diff, mut total) = (0.0f64, 0.0f64);
-        for (a, r) in layers.volume.chunks(4).zip(reference.volume.chunks(4)) {
-            for c in 0..3 {
-                diff += (a[c] as f64 - r[c] as f64).abs();
-                total += r[c] as f64;
-            }
-        }
-        diff / total
-    };
-    let (gpu_off, cpu_off) = (off(&gpu), off(&cpu));
+    let (gpu_off, cpu_off) = (
+        radiance_error(&gpu, &reference),
+        radiance_error(&cpu, &reference),
+    );
     println!("nearly dark frame against the reference: GPU {gpu_off:.4}, CPU {cpu_off:.4}");
     assert!(
         gpu_off < 0.03 && cpu_off < 0.03,

@@ -53,7 +53,7 @@ fn render_json<'py>(
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref()).map_err(to_py_err)?;
-    let (layers, missing_hole_objects) = run_detached(py, progress.as_ref(), |control| {
+    let (layers, hole_objects_warning) = run_detached(py, progress.as_ref(), |control| {
         let mut scene = Scene::from_json(scene_json)?;
         if let Some(base) = &base_dir {
             scene.style.rebase_paths(base);
@@ -70,18 +70,12 @@ fn render_json<'py>(
             style: &scene.style,
         };
         let layers = parts.render(geometry.view(), depth, kind, control)?;
-        Ok((layers, scene.hole_objects_without_mesh()))
+        Ok((layers, scene.hole_objects_warning()))
     })?;
-    if !missing_hole_objects.is_empty() {
-        let ids: Vec<String> = missing_hole_objects.iter().map(u32::to_string).collect();
-        let message = format!(
-            "style.holes.objects names object ids that no mesh has ({}): no holes are made \
-             for them",
-            ids.join(", ")
-        );
+    if let Some(warning) = hole_objects_warning {
         let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
         // The message is built from digits and ASCII text, so it holds no NUL.
-        if let Ok(message) = std::ffi::CString::new(message) {
+        if let Ok(message) = std::ffi::CString::new(warning) {
             PyErr::warn(py, category.as_any(), &message, 2)?;
         }
     }

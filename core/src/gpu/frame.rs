@@ -198,8 +198,7 @@ fn gpu_frame(
     };
     times.camera_depth = stopwatch.lap();
     control.check()?;
-    let dark_frame = frame.settings.method == Method::Prefiltered
-        && frame_is_dark(frame, camera, &shadow, &surfaces);
+    let dark_frame = frame_is_dark(frame, camera, &shadow, &surfaces);
     let inputs = MarchInputs {
         camera,
         shadow: &shadow,

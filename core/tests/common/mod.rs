@@ -4,7 +4,7 @@
 use crepuscular::scene::{
     Camera, Extent, Medium, Mesh, Method, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
 };
-use crepuscular::Style;
+use crepuscular::{Layers, Style};
 use glam::{Mat4, Vec3};
 
 /// An axis-aligned rectangle at height `z` covering [x0, x1] × [y0, y1].
@@ -69,6 +69,18 @@ pub fn settings(shadow_map_size: u32, steps: u32, max_distance: f32) -> RenderSe
 
 pub fn relative_error(got: f64, expected: f64) -> f64 {
     (got - expected).abs() / expected.abs().max(1e-30)
+}
+
+/// Mean absolute error of volume RGB over the mean reference radiance.
+pub fn radiance_error(fast: &Layers, reference: &Layers) -> f64 {
+    let (mut diff, mut total) = (0.0f64, 0.0f64);
+    for (f, r) in fast.volume.chunks(4).zip(reference.volume.chunks(4)) {
+        for c in 0..3 {
+            diff += (f[c] as f64 - r[c] as f64).abs();
+            total += r[c] as f64;
+        }
+    }
+    diff / total
 }
 
 /// `torus` (any size) turned on a box of fog 10 cm across (σ = 3 /m) that a shadow edge of

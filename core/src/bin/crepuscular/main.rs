@@ -276,14 +276,8 @@ fn write_preview(path: &Path, layers: &Layers) -> Result<()> {
 fn run_render(args: &RenderArgs) -> Result<()> {
     let mut scene = load_scene(&args.scene)?;
     args.overrides.apply(&mut scene)?;
-    let missing = scene.hole_objects_without_mesh();
-    if !missing.is_empty() {
-        let ids: Vec<String> = missing.iter().map(u32::to_string).collect();
-        eprintln!(
-            "crepuscular: warning: style.holes.objects names object ids that no mesh has ({}): \
-             no holes are made for them",
-            ids.join(", ")
-        );
+    if let Some(warning) = scene.hole_objects_warning() {
+        eprintln!("crepuscular: warning: {warning}");
     }
     let started = std::time::Instant::now();
     let layers = render_with_progress(&scene, &args.scene)?;
