@@ -10,6 +10,8 @@ import inspect
 import json
 import math
 import os
+import subprocess
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -221,6 +223,56 @@ def test_unknown_depth_kind(scene: dict[str, Any]) -> None:
 def test_progress_must_be_callable(scene: dict[str, Any]) -> None:
     with pytest.raises(TypeError, match="progress must be callable"):
         render(scene, progress=1.0)  # type: ignore[arg-type]
+
+
+OUT_OF_MEMORY_CHILD = """
+import json, resource, sys
+resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[1]), int(sys.argv[1])))
+import crepuscular
+scene = crepuscular.builtin_scene("torus")
+results = {}
+for name, (width, height, shadow_map_size) in {
+    "image": (16384, 16384, 256),
+    "shadow_map": (64, 36, 16384),
+}.items():
+    scene["camera"]["width"], scene["camera"]["height"] = width, height
+    scene["render"]["shadow_map_size"] = shadow_map_size
+    try:
+        crepuscular.render(scene)
+        results[name] = None
+    except crepuscular.InvalidInputError as error:
+        results[name] = [error.field, str(error)]
+scene["camera"]["width"], scene["camera"]["height"] = 64, 36
+scene["render"]["shadow_map_size"] = 256
+results["after"] = float(crepuscular.render(scene).volume[..., :3].mean())
+print(json.dumps(results))
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="address-space limits are Linux's")
+def test_a_frame_too_large_for_memory_names_the_settings_to_lower() -> None:
+    """Under a 2.5 GB address-space limit, a 16384² image (1 GiB of camera depth, then
+    4 GiB of layers) and a 16384² shadow map (2 GiB) each raise an error naming what to
+    lower, rather than aborting the interpreter, which then renders a small frame."""
+    limit = str(5 << 29)
+    child = subprocess.run(
+        [sys.executable, "-c", OUT_OF_MEMORY_CHILD, limit],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert child.returncode == 0, child.stderr
+    results = json.loads(child.stdout)
+    field, message = results["image"]
+    assert field == "camera", message
+    assert "GiB, more memory than could be allocated" in message
+    assert "lower camera.width and camera.height, or render.supersampling" in message
+    field, message = results["shadow_map"]
+    assert field == "render", message
+    assert "16384\u00d716384" in message
+    assert "render.shadow_map_size" in message
+    assert results["after"] > 0.0
 
 
 # --- exceptions --------------------------------------------------------------------------

@@ -26,7 +26,7 @@ fn covered_map() -> ShadowMap {
 
 fn tree_map() -> ShadowMap {
     let scene = builtin_scene("tree").expect("built-in scene");
-    ShadowMap::of_scene(&scene, &CameraModel::new(&scene.camera))
+    ShadowMap::of_scene(&scene, &CameraModel::new(&scene.camera)).unwrap()
 }
 
 fn holes(c: &mut Criterion) {

@@ -28,12 +28,12 @@ fn rasterization(c: &mut Criterion) {
         group.bench_with_input(
             BenchmarkId::new("shadow_map_1024", name),
             &geometry,
-            |b, g| b.iter(|| ShadowMap::of_scene_geometry(&scene, &camera, g)),
+            |b, g| b.iter(|| ShadowMap::of_scene_geometry(&scene, &camera, g).unwrap()),
         );
         let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
         let pixel_from_world = camera.pixel_from_world();
         group.bench_with_input(BenchmarkId::new("camera_1080p", name), &geometry, |b, g| {
-            b.iter(|| rasterize_depth(&g.view(), &pixel_from_world, &desc))
+            b.iter(|| rasterize_depth(&g.view(), &pixel_from_world, &desc).unwrap())
         });
     }
     group.finish();
@@ -47,7 +47,7 @@ fn with_shadow_map(name: &str, size: Option<(u32, u32)>) -> (Scene, CameraModel,
         scene.camera.height = height;
     }
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene(&scene, &camera);
+    let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
     (scene, camera, shadow)
 }
 
@@ -171,7 +171,9 @@ fn tree_camera_depth_1080p() -> (Scene, Vec<f32>) {
     let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
     let geometry = FlatGeometry::from_scene(&scene);
     let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
-    let depth = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc).depth;
+    let depth = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
+        .unwrap()
+        .depth;
     (scene, depth)
 }
 
@@ -198,7 +200,7 @@ fn upsampling(c: &mut Criterion) {
             }
         }
         group.bench_function(BenchmarkId::new("joint_bilateral", factor), |b| {
-            b.iter(|| joint_bilateral(&low, &depth, None, 1920, 1080, factor))
+            b.iter(|| joint_bilateral(&low, &depth, None, 1920, 1080, factor).unwrap())
         });
     }
     group.finish();
@@ -243,6 +245,7 @@ fn adaptive_shading(c: &mut Criterion) {
                     surface,
                     shade,
                 )
+                .unwrap()
             })
         });
     }

@@ -15,7 +15,7 @@ fn tree_map() -> (ShadowMap, Epipole) {
     let mut scene = builtin_scene("tree").expect("built-in scene");
     scene.render.shadow_map_size = 1024;
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene(&scene, &camera);
+    let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
     let epipole = Epipole::of_camera(&camera, &shadow.texel_from_world);
     (shadow, epipole)
 }

@@ -28,6 +28,7 @@ use rayon::prelude::*;
 
 use crate::camera::CameraModel;
 use crate::control::RenderControl;
+use crate::error::{Result, Sizing};
 use crate::layers::{Layers, Pixel};
 use crate::render::{layer_depth, Stopwatch, EDGE_DEPTH_SPREAD, SHADING_TILE as TILE};
 use crate::spare::Spare;
@@ -358,8 +359,8 @@ struct FinerGrid {
 /// has, so it reaches only into the bands beside.
 const _: () = assert!(MAX_ALONG / 2.0 < TILE as f64);
 
-static SPARE_EVEN_BANDS: Spare<Pixel> = Spare::new();
-static SPARE_ODD_BANDS: Spare<Pixel> = Spare::new();
+static SPARE_EVEN_BANDS: Spare<Pixel> = Spare::new(Sizing::Image);
+static SPARE_ODD_BANDS: Spare<Pixel> = Spare::new(Sizing::Image);
 
 /// Lets go of the finer grid's and the band edges' kept buffers ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -369,7 +370,7 @@ pub(crate) fn release_kept_buffers() {
 }
 
 impl FinerGrid {
-    fn new(width: usize, height: usize) -> Self {
+    fn new(width: usize, height: usize) -> Result<Self> {
         let band_len = TILE * width;
         let count = height.div_ceil(TILE);
         // Only the last band can be short, and it is the last of its parity.
@@ -379,14 +380,15 @@ impl FinerGrid {
                 .map(|band| TILE.min(height - band * TILE))
                 .sum::<usize>()
         };
-        Self {
+        let what = || format!("adaptive shading's grid of {width}×{height} points");
+        Ok(Self {
             width,
             band_len,
             parities: [
-                SPARE_EVEN_BANDS.take(rows_of(0) * width),
-                SPARE_ODD_BANDS.take(rows_of(1) * width),
+                SPARE_EVEN_BANDS.try_take(rows_of(0) * width, what)?,
+                SPARE_ODD_BANDS.try_take(rows_of(1) * width, what)?,
             ],
-        }
+        })
     }
 
     /// Row `j`, `None` past the last.
@@ -413,13 +415,15 @@ struct BandEdges {
     values: Vec<Pixel>,
 }
 
-static SPARE_BAND_EDGES: Spare<Pixel> = Spare::new();
+static SPARE_BAND_EDGES: Spare<Pixel> = Spare::new(Sizing::Image);
 
 impl BandEdges {
-    fn new(len: usize) -> Self {
-        Self {
-            values: SPARE_BAND_EDGES.take(len),
-        }
+    fn new(len: usize) -> Result<Self> {
+        Ok(Self {
+            values: SPARE_BAND_EDGES.try_take(len, || {
+                format!("adaptive shading's band edges ({len} pixels)")
+            })?,
+        })
     }
 
     /// Band `band`'s row of `width` centres.
@@ -949,14 +953,14 @@ pub fn shade_adaptively(
     control: &RenderControl,
     surface: impl Fn(usize, usize) -> Option<f64> + Sync,
     shade: impl Fn(&[(usize, usize)], &mut [Pixel]) + Sync,
-) -> (Layers, usize, AdaptivePasses) {
+) -> Result<(Layers, usize, AdaptivePasses)> {
     let mut stopwatch = Stopwatch::start();
     let lines = lines.as_ref();
     let grid_width = width.div_ceil(2);
     let grid_height = height.div_ceil(2);
     let lattices = Lattices::of_grid(grid_width, grid_height, lines);
     let shaded_count = AtomicUsize::new(0);
-    let mut grid = FinerGrid::new(grid_width, grid_height);
+    let mut grid = FinerGrid::new(grid_width, grid_height)?;
     // The lattices' points, shaded tile by tile for the locality of their rectified data.
     let band_len = grid.band_len;
     let [even, odd] = &mut grid.parities;
@@ -1180,7 +1184,7 @@ pub fn shade_adaptively(
     // completed once and bands can be completed in parallel.
     let band_count = height.div_ceil(TILE);
     let last_centre_row = |band: usize| (band + 1) * TILE / 2 - 1;
-    let mut edges = BandEdges::new(band_count * centre_width);
+    let mut edges = BandEdges::new(band_count * centre_width)?;
     edges
         .values
         .par_chunks_mut(centre_width.max(1))
@@ -1198,7 +1202,7 @@ pub fn shade_adaptively(
         });
     let edges = &edges;
     let between_shaded = AtomicUsize::new(0);
-    let mut layers = Layers::for_overwrite(width as u32, height as u32);
+    let mut layers = Layers::for_overwrite(width as u32, height as u32)?;
     layers.par_bands_mut(TILE).for_each(|mut band| {
         if control.is_cancelled() {
             return;
@@ -1335,11 +1339,11 @@ pub fn shade_adaptively(
         finer_grid,
         between: stopwatch.lap(),
     };
-    (
+    Ok((
         layers,
         shaded_count.into_inner() + between_shaded.into_inner(),
         passes,
-    )
+    ))
 }
 
 /// The half-spans, in pixels, of the pairs along the epipolar lines that a pixel between
@@ -1855,7 +1859,8 @@ mod tests {
                     *out = value(x, y);
                 }
             },
-        );
+        )
+        .unwrap();
         assert_eq!(control.progress(), (height as u64, height as u64));
         assert_eq!(shaded, calls.into_inner(), "the count of shaded pixels");
         (layers, shaded)

@@ -415,7 +415,8 @@ mod tests {
         let ring_texels = |scene: &Scene| {
             let camera = crate::camera::CameraModel::new(&scene.camera);
             let geometry = crate::render::FlatGeometry::from_scene(scene);
-            let map = crate::shadow_map::ShadowMap::of_scene_geometry(scene, &camera, &geometry);
+            let map =
+                crate::shadow_map::ShadowMap::of_scene_geometry(scene, &camera, &geometry).unwrap();
             map.ids.iter().map(|&id| id == 2).collect::<Vec<bool>>()
         };
         let (coarse, dense) = (ring_texels(&coarse), ring_texels(&dense));

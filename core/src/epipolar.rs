@@ -22,7 +22,7 @@ use glam::{DMat4, DVec2, DVec3};
 use rayon::prelude::*;
 
 use crate::camera::{CameraModel, Ray};
-use crate::error::Result;
+use crate::error::{Result, Sizing};
 use crate::projective::{choose, ProjectiveGrid};
 use crate::raster::{rasterize, RasterDesc};
 use crate::render::Geometry;
@@ -306,7 +306,7 @@ fn reciprocal_bounds(centre: f32, near: f32, far: f32) -> (f32, f32) {
 }
 
 // The last frame's rectified values, kept for the next (see `crate::spare`).
-static SPARE_VALUES: Spare<f32> = Spare::on_huge_pages();
+static SPARE_VALUES: Spare<f32> = Spare::on_huge_pages(Sizing::Rectified);
 
 /// Lets go of the kept rectified values ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -527,7 +527,7 @@ impl EpipolarMap {
             shadow.texel_size,
         )?;
         match grid {
-            Some(grid) => Ok(Some(Self::build_projective(&grid, shadow, geometry))),
+            Some(grid) => Ok(Some(Self::build_projective(&grid, shadow, geometry)?)),
             None => Self::build_with(camera, shadow, desc, resampler),
         }
     }
@@ -539,12 +539,12 @@ impl EpipolarMap {
         grid: &ProjectiveGrid,
         shadow: &ShadowMap,
         geometry: &Geometry,
-    ) -> Self {
+    ) -> Result<Self> {
         let frame = &grid.frame;
         let (samples, slices) = (grid.columns, grid.rows);
         // Nothing closer than the frustum's near X lands in a column; w stays positive.
         let desc = RasterDesc::projective(samples, slices, 0.5 * frame.near);
-        let target = rasterize(geometry, &grid.clip_from_world(), &desc);
+        let target = rasterize(geometry, &grid.clip_from_world(), &desc)?;
         let spacing = Spacing::Reciprocal {
             first: 1.0 / frame.near,
             step: grid.reciprocal_step(),
@@ -574,7 +574,7 @@ impl EpipolarMap {
             bound_factors: Vec::new(),
         };
         map.bound_factors = map.compute_bound_factors();
-        map
+        Ok(map)
     }
 
     /// Per sample, what turns K at its centre into K at its ends (see
@@ -1133,7 +1133,7 @@ pub(crate) mod test_support {
     ) -> (CameraModel, ShadowMap, EpipolarMap) {
         let camera = CameraModel::new(&scene.camera);
         let geometry = FlatGeometry::from_scene(scene);
-        let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry);
+        let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry).unwrap();
         let map = EpipolarMap::rectify(
             &camera,
             &shadow,
@@ -1344,7 +1344,7 @@ mod tests {
             shadow_bias: Some(BIAS as f32),
             ..RenderSettings::default()
         };
-        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &geometry.view());
+        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &geometry.view()).unwrap();
         let map = EpipolarMap::rectify(
             &camera,
             &shadow,

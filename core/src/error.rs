@@ -34,7 +34,7 @@ pub enum Error {
 
     /// The Vulkan backend failed; hosts fall back to the CPU backend.
     #[error("Vulkan backend: {0}")]
-    Gpu(#[from] crate::gpu::GpuError),
+    Gpu(crate::gpu::GpuError),
 
     /// A bug: a worker panicked. The panic was caught so that the host keeps running.
     #[error("internal error: {0}")]
@@ -42,6 +42,27 @@ pub enum Error {
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// Which settings size a frame's buffer: what [`Error::out_of_memory`] asks to lower.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Sizing {
+    /// The shadow map, the rectified map and what the methods build over them.
+    Rectified,
+    /// The image: the camera depth, the layers and adaptive shading's grids.
+    Image,
+}
+
+impl From<crate::gpu::GpuError> for Error {
+    /// The backend's error, except the host's own that it carried ([`GpuError::Host`]).
+    ///
+    /// [`GpuError::Host`]: crate::gpu::GpuError::Host
+    fn from(error: crate::gpu::GpuError) -> Self {
+        match error {
+            crate::gpu::GpuError::Host(error) => *error,
+            other => Error::Gpu(other),
+        }
+    }
+}
 
 impl Error {
     pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
@@ -51,15 +72,24 @@ impl Error {
         }
     }
 
-    /// A buffer the render settings size (`gib` of it) that could not be allocated: the
-    /// settings that size the rectified data are named, as the values to change.
-    pub fn out_of_memory(what: &str, gib: f64) -> Self {
+    /// A buffer (`gib` of it) that could not be allocated: the settings that size it are
+    /// named, as the values to change.
+    pub fn out_of_memory(what: &str, gib: f64, sizing: Sizing) -> Self {
+        let (field, lower) = match sizing {
+            Sizing::Rectified => (
+                "render",
+                "render.epipolar_slices or render.shadow_map_size (for the prefiltered method \
+                 also render.bases, or render.basis_storage 'snorm16')",
+            ),
+            Sizing::Image => (
+                "camera",
+                "camera.width and camera.height, or render.supersampling",
+            ),
+        };
         Error::invalid(
-            "render",
+            field,
             format!(
-                "{what} needs {gib:.1} GiB, more memory than could be allocated; lower \
-                 render.epipolar_slices or render.shadow_map_size (for the prefiltered \
-                 method also render.bases, or render.basis_storage 'snorm16')"
+                "{what} needs {gib:.1} GiB, more memory than could be allocated; lower {lower}"
             ),
         )
     }

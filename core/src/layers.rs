@@ -2,6 +2,7 @@
 
 use rayon::prelude::*;
 
+use crate::error::{Result, Sizing};
 use crate::spare::Spare;
 
 /// One pixel of every layer.
@@ -29,9 +30,9 @@ pub struct Layers {
 // Dropped layers' buffers, kept for the next frame's (see `crate::spare`): at 1920×1080 the
 // layers take 50 MB, and faulting in fresh pages for them took a third of adaptive
 // shading's last pass.
-static SPARE_VOLUME: Spare<f32> = Spare::with_slots(2);
-static SPARE_VISIBILITY: Spare<f32> = Spare::with_slots(2);
-static SPARE_DEPTH: Spare<f32> = Spare::with_slots(2);
+static SPARE_VOLUME: Spare<f32> = Spare::with_slots(2, Sizing::Image);
+static SPARE_VISIBILITY: Spare<f32> = Spare::with_slots(2, Sizing::Image);
+static SPARE_DEPTH: Spare<f32> = Spare::with_slots(2, Sizing::Image);
 
 /// Lets go of the layers' kept buffers ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -72,15 +73,16 @@ impl Layers {
 
     /// Layers whose values are whatever an earlier frame's were, for callers that set
     /// every pixel.
-    pub(crate) fn for_overwrite(width: u32, height: u32) -> Self {
+    pub(crate) fn for_overwrite(width: u32, height: u32) -> Result<Self> {
         let pixels = width as usize * height as usize;
-        Self {
+        let what = |layer: &'static str| move || format!("the {layer} layer ({width}×{height})");
+        Ok(Self {
             width,
             height,
-            volume: SPARE_VOLUME.take(pixels * 4),
-            visibility: SPARE_VISIBILITY.take(pixels),
-            depth: SPARE_DEPTH.take(pixels),
-        }
+            volume: SPARE_VOLUME.try_take(pixels * 4, what("volume"))?,
+            visibility: SPARE_VISIBILITY.try_take(pixels, what("visibility"))?,
+            depth: SPARE_DEPTH.try_take(pixels, what("depth"))?,
+        })
     }
 
     pub fn new(width: u32, height: u32) -> Self {

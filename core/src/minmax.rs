@@ -12,7 +12,7 @@ use rayon::prelude::*;
 
 use crate::camera::Ray;
 use crate::epipolar::{EpipolarMap, RaySlice};
-use crate::error::Result;
+use crate::error::{Result, Sizing};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{Medium, Sun};
 use crate::spans::JoinedSpans;
@@ -30,7 +30,7 @@ pub struct MinMaxMipmap {
 }
 
 // The last frame's pyramids, kept for the next (see `crate::spare`).
-static SPARE_NODES: Spare<[f32; 2]> = Spare::on_huge_pages();
+static SPARE_NODES: Spare<[f32; 2]> = Spare::on_huge_pages(Sizing::Rectified);
 
 /// Lets go of the kept pyramids ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -344,7 +344,7 @@ mod tests {
             triangles: mesh.triangles,
             origin: glam::DVec3::ZERO,
         };
-        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view());
+        let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view()).unwrap();
         let map = EpipolarMap::rectify(
             &camera,
             &shadow,

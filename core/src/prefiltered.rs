@@ -39,7 +39,7 @@ use rayon::prelude::*;
 use crate::basis_kernels::{padded, BandRead, BasisValue, Kernels};
 use crate::camera::{CameraModel, Ray};
 use crate::epipolar::{EpipolarMap, RaySlice};
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, Sizing};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{BasisStorage, ExactRayEnds, Extent, Medium, RenderSettings, Sun};
 use crate::spare::Spare;
@@ -550,13 +550,13 @@ impl Tables {
 
 // The last frame's filtered basis and its plan's arrays, kept for the next (see
 // `crate::spare`): the plan's page faults took 15% of tree's preparation.
-static SPARE_F32_BASIS: Spare<f32> = Spare::on_huge_pages();
-static SPARE_SNORM16_BASIS: Spare<i16> = Spare::on_huge_pages();
-static SPARE_ENTRIES: Spare<u32> = Spare::new();
-static SPARE_SAMPLE_WEIGHTS: Spare<f32> = Spare::new();
-static SPARE_SCALES: Spare<f32> = Spare::new();
-static SPARE_ROW_WEIGHTS: Spare<f32> = Spare::on_huge_pages();
-static SPARE_KEYED_RAYS: Spare<(u64, f64)> = Spare::new();
+static SPARE_F32_BASIS: Spare<f32> = Spare::on_huge_pages(Sizing::Rectified);
+static SPARE_SNORM16_BASIS: Spare<i16> = Spare::on_huge_pages(Sizing::Rectified);
+static SPARE_ENTRIES: Spare<u32> = Spare::new(Sizing::Rectified);
+static SPARE_SAMPLE_WEIGHTS: Spare<f32> = Spare::new(Sizing::Rectified);
+static SPARE_SCALES: Spare<f32> = Spare::new(Sizing::Rectified);
+static SPARE_ROW_WEIGHTS: Spare<f32> = Spare::on_huge_pages(Sizing::Rectified);
+static SPARE_KEYED_RAYS: Spare<(u64, f64)> = Spare::new(Sizing::Image);
 
 /// Lets go of the kept filtered bases and plans ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -946,7 +946,7 @@ impl<'a> PrefilteredPlan<'a> {
             box_medium.as_ref(),
             sample_reaches.as_deref(),
             bands_per_octave,
-        );
+        )?;
         let (slice_bands, bands) = plan_bands(map, &frames, &warps, reach, row_reaches);
         let total_rows = bands.last().map_or(0, |b| b.first_row + b.rows);
         // `plan_slices` writes every value, so kept buffers' old values do not matter.
@@ -2307,7 +2307,7 @@ fn slice_frames(
     box_medium: Option<&BoxMedium>,
     sample_reaches: Option<&[usize]>,
     bands_per_octave: u32,
-) -> (Vec<SliceFrame>, Vec<Vec<Warp>>) {
+) -> Result<(Vec<SliceFrame>, Vec<Vec<Warp>>)> {
     // 128 took a third longer (colonnade's frames 15 → 11 ms, tree's 6.4 → 4.8 at 1080p)
     // for errors against the reference 0–0.04 points lower on twelve 1080p views; 32 cost
     // plane's default view another 0.12 points.
@@ -2368,7 +2368,7 @@ fn slice_frames(
         .collect();
     let rows: Vec<SampledRays> = std::iter::once(border).chain(interior).collect();
     let slices = map.slices as usize;
-    let mut by_slice = RaysBySlice::of(&rows, slices);
+    let mut by_slice = RaysBySlice::of(&rows, slices)?;
     let sampled_frames: Vec<Option<(SliceFrame, Vec<Warp>)>> = by_slice
         .slices_mut()
         .into_par_iter()
@@ -2416,7 +2416,7 @@ fn slice_frames(
             None => vec![frame.warp; frame.band_count()],
         })
         .collect();
-    (frames, warps)
+    Ok((frames, warps))
 }
 
 /// A ray of the image's border: its slice coordinate, the two slices it lies between, and
@@ -2564,7 +2564,7 @@ impl RaysBySlice {
     /// few enough that their per-slice tallies stay small.
     const GROUPS: usize = 32;
 
-    fn of(rows: &[SampledRays], slices: usize) -> Self {
+    fn of(rows: &[SampledRays], slices: usize) -> Result<Self> {
         let groups: Vec<&[SampledRays]> = rows
             .chunks(rows.len().div_ceil(Self::GROUPS).max(1))
             .collect();
@@ -2584,7 +2584,9 @@ impl RaysBySlice {
             .collect();
         let total: usize = tallies.iter().flat_map(|(counts, _)| counts).sum();
         // Every place is written below, so a kept buffer's old values do not matter.
-        let mut keyed = SPARE_KEYED_RAYS.take(total);
+        let mut keyed = SPARE_KEYED_RAYS.try_take(total, || {
+            format!("the plan's sampled rays ({total} in {slices} slices)")
+        })?;
         // Each group's place in each slice, slice by slice.
         let mut offsets = Vec::with_capacity(slices + 1);
         let mut places: Vec<Vec<&mut [(u64, f64)]>> =
@@ -2615,11 +2617,11 @@ impl RaysBySlice {
                     }
                 }
             });
-        Self {
+        Ok(Self {
             offsets,
             keyed,
             extremes: tallies.into_iter().map(|(_, extremes)| extremes).collect(),
-        }
+        })
     }
 
     /// Each slice's rays, as [`frame_of`] takes them, in place.
@@ -3244,7 +3246,7 @@ mod tests {
                         .collect()
                 })
                 .collect();
-            let mut grouped = RaysBySlice::of(&rows, slices);
+            let mut grouped = RaysBySlice::of(&rows, slices).unwrap();
             let grouped = grouped.slices_mut();
             for slice in 0..slices {
                 let mut expected = RayExtremes::NONE;

@@ -11,7 +11,7 @@ use std::cmp::Ordering;
 use glam::{DMat4, DVec4};
 use rayon::prelude::*;
 
-use crate::error::Result;
+use crate::error::{Result, Sizing};
 use crate::render::Geometry;
 use crate::spare::Spare;
 use crate::total_order::total_order_bits_f32;
@@ -23,11 +23,11 @@ use runs::{DepthTest, Run, RunDepth, RunKernels};
 // Camera depth targets kept from one frame for the next (see `crate::spare`); their
 // holders hand them back with `keep_camera_depth`. Faulting in a fresh 8 MB target each
 // 1080p frame took about 0.5 ms of plane's 9.5 ms camera depth.
-static SPARE_CAMERA_DEPTH: Spare<f32> = Spare::new();
+static SPARE_CAMERA_DEPTH: Spare<f32> = Spare::new(Sizing::Image);
 // The same for shadow maps' depth and id targets (`keep_map_targets`): fresh pages for
 // a 1024² map's two 4 MB targets took about 1 ms of plane's 3.5–4 ms shadow-map stage.
-static SPARE_MAP_DEPTH: Spare<f32> = Spare::new();
-static SPARE_MAP_IDS: Spare<u32> = Spare::new();
+static SPARE_MAP_DEPTH: Spare<f32> = Spare::new(Sizing::Rectified);
+static SPARE_MAP_IDS: Spare<u32> = Spare::new(Sizing::Rectified);
 
 /// Keeps a buffer that [`rasterize_depth`] returned, for a later frame's.
 pub(crate) fn keep_camera_depth(buffer: Vec<f32>) {
@@ -147,7 +147,7 @@ impl Rasterizer for CpuRasterizer {
         pixel_from_world: &DMat4,
         desc: &RasterDesc,
     ) -> Result<DepthTarget> {
-        Ok(rasterize(geometry, pixel_from_world, desc))
+        rasterize(geometry, pixel_from_world, desc)
     }
 }
 
@@ -168,7 +168,11 @@ struct ScreenTriangle {
 
 /// Rasterizes world-space triangles through `pixel_from_world`, which maps a point to
 /// (pixel x · w, pixel y · w, depth, w).
-pub fn rasterize(geometry: &Geometry, pixel_from_world: &DMat4, desc: &RasterDesc) -> DepthTarget {
+pub fn rasterize(
+    geometry: &Geometry,
+    pixel_from_world: &DMat4,
+    desc: &RasterDesc,
+) -> Result<DepthTarget> {
     rasterize_targets(geometry, pixel_from_world, desc, true)
 }
 
@@ -178,7 +182,7 @@ pub fn rasterize_depth(
     geometry: &Geometry,
     pixel_from_world: &DMat4,
     desc: &RasterDesc,
-) -> DepthTarget {
+) -> Result<DepthTarget> {
     rasterize_targets(geometry, pixel_from_world, desc, false)
 }
 
@@ -188,7 +192,7 @@ fn rasterize_targets(
     pixel_from_world: &DMat4,
     desc: &RasterDesc,
     with_ids: bool,
-) -> DepthTarget {
+) -> Result<DepthTarget> {
     let triangles = setup_triangles(geometry, pixel_from_world, desc);
     let tiles_x = desc.width.div_ceil(TILE);
     let tiles_y = desc.height.div_ceil(TILE);
@@ -200,10 +204,20 @@ fn rasterize_targets(
     let width = desc.width as usize;
     let samples = width * desc.height as usize;
     // Both filled band by band below, in parallel.
+    let what = |target: &'static str| {
+        let (width, height) = (desc.width, desc.height);
+        move || format!("the {target} ({width}×{height})")
+    };
     let (mut depth, mut ids) = if with_ids {
-        (SPARE_MAP_DEPTH.take(samples), SPARE_MAP_IDS.take(samples))
+        (
+            SPARE_MAP_DEPTH.try_take(samples, what("light's depth map"))?,
+            SPARE_MAP_IDS.try_take(samples, what("light's object-id map"))?,
+        )
     } else {
-        (SPARE_CAMERA_DEPTH.take(samples), Vec::new())
+        (
+            SPARE_CAMERA_DEPTH.try_take(samples, what("camera depth"))?,
+            Vec::new(),
+        )
     };
     // Each band of half a tile's rows filled in place, its tiles in turn: tiles of their
     // own took fresh memory each frame and were then copied (page faults, zeroing and the
@@ -235,12 +249,12 @@ fn rasterize_targets(
                 fill_tile(&triangles, bin, rect, desc, width, depth_band, ids);
             }
         });
-    DepthTarget {
+    Ok(DepthTarget {
         width: desc.width,
         height: desc.height,
         depth,
         ids,
-    }
+    })
 }
 
 /// [x0, y0, x1, y1) of a tile, clamped to the target.
@@ -887,7 +901,8 @@ mod tests {
             &geometry,
             &identity_projection(),
             &RasterDesc::orthographic(128, 100),
-        );
+        )
+        .unwrap();
         for y in 0..100 {
             for x in 0..128 {
                 let i = y * 128 + x;
@@ -921,8 +936,8 @@ mod tests {
         };
         let desc = RasterDesc::orthographic(157, 101);
         (
-            rasterize(&geometry, &identity_projection(), &desc),
-            rasterize_depth(&geometry, &identity_projection(), &desc),
+            rasterize(&geometry, &identity_projection(), &desc).unwrap(),
+            rasterize_depth(&geometry, &identity_projection(), &desc).unwrap(),
         )
     }
 
@@ -988,7 +1003,8 @@ mod tests {
             },
             &identity_projection(),
             &desc,
-        );
+        )
+        .unwrap();
         let mut depth = vec![f32::INFINITY; full.depth.len()];
         let mut composed_ids = vec![NO_OBJECT; full.depth.len()];
         for (triangle, id) in triangles.iter().zip(&ids) {
@@ -1001,7 +1017,8 @@ mod tests {
                 },
                 &identity_projection(),
                 &desc,
-            );
+            )
+            .unwrap();
             for (i, &z) in alone.depth.iter().enumerate() {
                 if z < depth[i] {
                     depth[i] = z;
@@ -1121,7 +1138,8 @@ mod tests {
             &geometry,
             &identity_projection(),
             &RasterDesc::orthographic(64, 64),
-        );
+        )
+        .unwrap();
         assert_eq!(target.ids[0], 2);
         assert_eq!(target.depth[0], 2.0);
     }
@@ -1150,7 +1168,8 @@ mod tests {
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
         };
-        let target = rasterize(&geometry, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0));
+        let target =
+            rasterize(&geometry, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0)).unwrap();
         for y in 33..64 {
             for x in 0..64 {
                 let i = y * 64 + x;

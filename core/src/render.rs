@@ -249,7 +249,7 @@ pub(crate) fn scatter_timed(
         frame.medium,
         frame.settings,
         &frame.geometry,
-    ));
+    )?);
     control.check()?;
     times.shadow_map = stopwatch.lap();
     let shadow = if frame.style.manipulates_occluders() {
@@ -259,7 +259,7 @@ pub(crate) fn scatter_timed(
     } else {
         shadow
     };
-    let surfaces = SurfaceDistances::new(&camera, frame);
+    let surfaces = SurfaceDistances::new(&camera, frame)?;
     times.camera_depth = stopwatch.lap();
     let dark_frame = frame_is_dark(frame, &camera, &shadow, &surfaces);
     let marcher = Marcher::new(&shadow, frame.sun, frame.medium, frame.settings.steps)
@@ -544,11 +544,11 @@ impl Drop for SurfaceDistances {
 }
 
 impl SurfaceDistances {
-    pub(crate) fn new(camera: &CameraModel, frame: &Frame) -> Self {
-        match frame.camera_depth {
+    pub(crate) fn new(camera: &CameraModel, frame: &Frame) -> Result<Self> {
+        Ok(match frame.camera_depth {
             Some(given) => Self::from_given(camera, given),
-            None => Self::rasterized(camera, frame),
-        }
+            None => Self::rasterized(camera, frame)?,
+        })
     }
 
     /// [`SurfaceDistances::new`] with a rasterized camera depth from `rasterizer`.
@@ -568,11 +568,11 @@ impl SurfaceDistances {
         })
     }
 
-    fn rasterized(camera: &CameraModel, frame: &Frame) -> Self {
+    fn rasterized(camera: &CameraModel, frame: &Frame) -> Result<Self> {
         let ss = frame.settings.supersampling;
         let (pixel_from_world, desc) = camera_raster(camera, ss);
-        let planar = rasterize_depth(&frame.geometry, &pixel_from_world, &desc).depth;
-        Self::from_planar(camera, ss, planar)
+        let planar = rasterize_depth(&frame.geometry, &pixel_from_world, &desc)?.depth;
+        Ok(Self::from_planar(camera, ss, planar))
     }
 
     /// Ray distances from a planar depth of `ss`² samples per pixel, converted in place.
@@ -861,9 +861,9 @@ pub(crate) fn shade_pixels(
                 }
             },
             shade_batch,
-        )
+        )?
     } else {
-        let mut layers = Layers::for_overwrite(width as u32, height as u32);
+        let mut layers = Layers::for_overwrite(width as u32, height as u32)?;
         layers.par_bands_mut(SHADING_TILE).for_each(|mut band| {
             if control.is_cancelled() {
                 return;
@@ -885,7 +885,7 @@ pub(crate) fn shade_pixels(
     if stride == 1 {
         return Ok(layers);
     }
-    let mut upsampled = Layers::for_overwrite(camera.width, camera.height);
+    let mut upsampled = Layers::for_overwrite(camera.width, camera.height)?;
     upsampled
         .depth
         .par_iter_mut()
@@ -1102,8 +1102,9 @@ mod tests {
             frame.medium,
             frame.settings,
             &frame.geometry,
-        );
-        let surfaces = SurfaceDistances::new(&camera, &frame);
+        )
+        .unwrap();
+        let surfaces = SurfaceDistances::new(&camera, &frame).unwrap();
         frame_is_dark(&frame, &camera, &shadow, &surfaces)
     }
 

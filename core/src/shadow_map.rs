@@ -29,7 +29,7 @@ pub struct ShadowMap {
 
 impl ShadowMap {
     /// The map of a whole scene description: its meshes, sun, medium and settings.
-    pub fn of_scene(scene: &crate::scene::Scene, camera: &CameraModel) -> Self {
+    pub fn of_scene(scene: &crate::scene::Scene, camera: &CameraModel) -> Result<Self> {
         Self::of_scene_geometry(
             scene,
             camera,
@@ -42,7 +42,7 @@ impl ShadowMap {
         scene: &crate::scene::Scene,
         camera: &CameraModel,
         geometry: &crate::render::FlatGeometry,
-    ) -> Self {
+    ) -> Result<Self> {
         Self::build(
             camera,
             &scene.sun,
@@ -58,15 +58,15 @@ impl ShadowMap {
         medium: &Medium,
         settings: &RenderSettings,
         geometry: &Geometry,
-    ) -> Self {
+    ) -> Result<Self> {
         let size = settings.shadow_map_size;
         let texel_from_world = fit(camera, sun, medium, settings.max_distance as f64, size);
         let target = rasterize(
             geometry,
             &texel_from_world,
             &RasterDesc::orthographic(size, size),
-        );
-        Self::from_target(settings, texel_from_world, target)
+        )?;
+        Ok(Self::from_target(settings, texel_from_world, target))
     }
 
     /// [`ShadowMap::build`] with the rasterization done by `rasterizer`, which must write

@@ -280,7 +280,7 @@ mod tests {
     ) {
         let geometry = FlatGeometry::from_scene(scene);
         let camera = CameraModel::new(&scene.camera);
-        let surfaces = SurfaceDistances::new(&camera, &Frame::of_scene(scene, &geometry));
+        let surfaces = SurfaceDistances::new(&camera, &Frame::of_scene(scene, &geometry)).unwrap();
         let (_, shadow, map) = rectified(
             scene,
             scene.render.rectification,

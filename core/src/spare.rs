@@ -5,7 +5,7 @@
 
 use std::sync::Mutex;
 
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, Sizing};
 
 /// A few buffers of `T` kept for reuse: the most recently handed back.
 pub(crate) struct Spare<T> {
@@ -14,18 +14,20 @@ pub(crate) struct Spare<T> {
     slots: usize,
     /// Whether fresh buffers ask for transparent huge pages.
     huge_pages: bool,
+    /// The settings that size the buffers, for the error when one cannot be allocated.
+    sizing: Sizing,
 }
 
 impl<T: Copy + Default> Spare<T> {
     /// One buffer kept: for what a frame needs once.
-    pub(crate) const fn new() -> Self {
-        Self::with_slots(1)
+    pub(crate) const fn new(sizing: Sizing) -> Self {
+        Self::with_slots(1, sizing)
     }
 
     /// `slots` buffers kept: a downsampled frame needs its layers in two sizes at once
     /// (the reduced ones, then the upsampled ones).
-    pub(crate) const fn with_slots(slots: usize) -> Self {
-        Self::kept_in(slots, false)
+    pub(crate) const fn with_slots(slots: usize, sizing: Sizing) -> Self {
+        Self::kept_in(slots, false, sizing)
     }
 
     /// One buffer kept, on transparent huge pages where the kernel grants them: for what
@@ -35,15 +37,16 @@ impl<T: Copy + Default> Spare<T> {
     /// faulting huge pages in stalls a fresh process's first frame more often: with every
     /// buffer on them, 6 of 16 first frames of `tree` took 400–650 ms against 2 of 16
     /// without (most take 250–350 ms).
-    pub(crate) const fn on_huge_pages() -> Self {
-        Self::kept_in(1, true)
+    pub(crate) const fn on_huge_pages(sizing: Sizing) -> Self {
+        Self::kept_in(1, true, sizing)
     }
 
-    const fn kept_in(slots: usize, huge_pages: bool) -> Self {
+    const fn kept_in(slots: usize, huge_pages: bool, sizing: Sizing) -> Self {
         Self {
             kept: Mutex::new(Vec::new()),
             slots,
             huge_pages,
+            sizing,
         }
     }
 
@@ -52,26 +55,12 @@ impl<T: Copy + Default> Spare<T> {
     /// released by later [`Spare::keep`]s), and then its values are whatever they were:
     /// callers overwrite every one.
     ///
-    /// Where a fresh one cannot be allocated, it panics rather than aborting as a failed
-    /// allocation does: hosts catch panics at their boundary (the Python module raises
-    /// them as errors), so Blender keeps running. Buffers the settings size use
-    /// [`Spare::try_take`], whose error says which settings to lower.
-    pub(crate) fn take(&self, len: usize) -> Vec<T> {
-        self.obtained(len).unwrap_or_else(|| {
-            panic!(
-                "out of memory: a buffer of {:.1} GiB could not be allocated",
-                gib::<T>(len)
-            )
-        })
-    }
-
-    /// [`Spare::take`] for buffers whose size the scene's settings decide: where a fresh
-    /// one cannot be allocated (after letting go of the kept ones), an error that names
-    /// `what` and its size, rather than the abort an allocation failure is in Rust: a
-    /// host such as Blender would lose its unsaved work.
+    /// Where a fresh one cannot be allocated (after letting go of the kept ones), an error
+    /// that names `what`, its size and the settings to lower, rather than the abort an
+    /// allocation failure is in Rust: a host such as Blender would lose its unsaved work.
     pub(crate) fn try_take(&self, len: usize, what: impl FnOnce() -> String) -> Result<Vec<T>> {
         self.obtained(len)
-            .ok_or_else(|| Error::out_of_memory(&what(), gib::<T>(len)))
+            .ok_or_else(|| Error::out_of_memory(&what(), gib::<T>(len), self.sizing))
     }
 
     /// `len` values in a kept buffer that fits, else in a fresh one, letting go of the
@@ -117,7 +106,7 @@ impl<T: Copy + Default> Spare<T> {
         }
     }
 
-    /// Keeps `buffer` for a later [`Spare::take`], letting go of the least recently kept
+    /// Keeps `buffer` for a later [`Spare::try_take`], letting go of the least recently kept
     /// one beyond the slots: a large frame's memory is released as soon as as many smaller
     /// buffers have been kept.
     pub(crate) fn keep(&self, buffer: Vec<T>) {
@@ -184,40 +173,45 @@ mod tests {
             .collect()
     }
 
+    /// A buffer of `len` from `spare`, which tests always get.
+    fn take<T: Copy + Default>(spare: &Spare<T>, len: usize) -> Vec<T> {
+        spare.try_take(len, String::new).unwrap()
+    }
+
     #[test]
     fn kept_buffers_are_reused_when_they_fit_and_released_two_frames_later() {
-        let spare = Spare::<u16>::with_slots(2);
-        let first = spare.take(1000);
+        let spare = Spare::<u16>::with_slots(2, Sizing::Image);
+        let first = take(&spare, 1000);
         assert_eq!(first.len(), 1000);
         let address = first.as_ptr();
         spare.keep(first);
-        let again = spare.take(800);
+        let again = take(&spare, 800);
         assert_eq!((again.len(), again.as_ptr()), (800, address));
         spare.keep(again);
         // Far smaller: a fresh buffer; the large one stays kept for a while.
-        let small = spare.take(100);
+        let small = take(&spare, 100);
         assert_eq!(small.len(), 100);
         assert!(small.capacity() < 1000);
         let small_address = small.as_ptr();
         spare.keep(small);
         // Two sizes in one frame, as downsampling takes them: each finds its own.
-        let (large, small) = (spare.take(900), spare.take(90));
+        let (large, small) = (take(&spare, 900), take(&spare, 90));
         assert_eq!((large.as_ptr(), small.as_ptr()), (address, small_address));
         spare.keep(small);
         spare.keep(large);
         // Two newer keeps release the large one.
-        spare.keep(spare.take(50));
-        spare.keep(spare.take(40));
+        spare.keep(take(&spare, 50));
+        spare.keep(take(&spare, 40));
         let capacities = kept_capacities(&spare);
         assert!(
             capacities.iter().all(|&capacity| capacity < 900),
             "{capacities:?}"
         );
         // Larger than anything kept: fresh, zeroed.
-        let large = spare.take(5000);
+        let large = take(&spare, 5000);
         assert!(large.len() == 5000 && large.iter().all(|&v| v == 0));
         // One slot: the next buffer kept replaces the last.
-        let single = Spare::<u16>::new();
+        let single = Spare::<u16>::new(Sizing::Image);
         single.keep(vec![0; 1000]);
         single.keep(vec![0; 10]);
         let capacities = kept_capacities(&single);
@@ -227,11 +221,11 @@ mod tests {
     }
 
     /// A buffer the allocator cannot give (4 PiB, more than any address space maps) is an
-    /// error naming it and its size, not an abort; the kept buffers are let go first, and
-    /// taking smaller buffers goes on working.
+    /// error naming it, its size and the settings that size it, not an abort; the kept
+    /// buffers are let go first, and taking smaller buffers goes on working.
     #[test]
     fn a_buffer_too_large_to_allocate_is_an_error_naming_it() {
-        let spare = Spare::<f32>::new();
+        let spare = Spare::<f32>::new(Sizing::Rectified);
         spare.keep(vec![0.0; 1000]);
         let len = 1usize << 50;
         let error = spare
@@ -250,11 +244,16 @@ mod tests {
         spare.keep(small);
         assert_eq!(kept_capacities(&spare), [800]);
         assert_eq!(spare.try_take(700, String::new).unwrap().len(), 700);
-        // `take` panics, which hosts catch, rather than aborting.
-        let panic = std::panic::catch_unwind(|| spare.take(len)).expect_err("a panic");
-        let message = panic.downcast_ref::<String>().expect("a formatted message");
+        // An image-sized buffer names the image's settings.
+        let image = Spare::<f32>::new(Sizing::Image);
+        let error = image
+            .try_take(len, || "the layers".to_string())
+            .expect_err("4 PiB cannot be allocated");
+        let message = error.to_string();
         assert!(
-            message.contains("4194304.0 GiB could not be allocated"),
+            matches!(&error, Error::InvalidInput { field, .. } if field == "camera")
+                && message.contains("the layers needs 4194304.0 GiB")
+                && message.contains("camera.width and camera.height, or render.supersampling"),
             "{message}"
         );
     }
@@ -285,8 +284,8 @@ mod tests {
             eprintln!("skipped: this kernel has no transparent huge pages");
             return;
         }
-        let spare = Spare::<u32>::on_huge_pages();
-        let buffer = spare.take(3 * HUGE_PAGE / 4);
+        let spare = Spare::<u32>::on_huge_pages(Sizing::Rectified);
+        let buffer = take(&spare, 3 * HUGE_PAGE / 4);
         let start = buffer.as_ptr() as usize;
         let inner = start.next_multiple_of(HUGE_PAGE);
         assert!(inner + HUGE_PAGE <= start + 3 * HUGE_PAGE);

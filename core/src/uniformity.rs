@@ -12,7 +12,7 @@
 use rayon::prelude::*;
 
 use crate::epipolar::EpipolarMap;
-use crate::error::Result;
+use crate::error::{Result, Sizing};
 use crate::spare::Spare;
 
 /// Samples per block: one cache line of rectified values.
@@ -29,7 +29,7 @@ pub struct UniformityTable {
 }
 
 // The last frame's table, kept for the next (see `crate::spare`).
-static SPARE_RUNS: Spare<[f32; 2]> = Spare::on_huge_pages();
+static SPARE_RUNS: Spare<[f32; 2]> = Spare::on_huge_pages(Sizing::Rectified);
 
 /// Lets go of the kept tables ([`crate::release_kept_buffers`]).
 pub(crate) fn release_kept_buffers() {
@@ -253,7 +253,9 @@ mod tests {
             // Each slice built to a random reach, half of them, and queried before it, in
             // a kept buffer (`Spare`) of NaN, which no stretch reads as uniform.
             let (blocks, levels) = table_shape(samples);
-            let mut poisoned = SPARE_RUNS.take(map.slices as usize * blocks * levels);
+            let mut poisoned = SPARE_RUNS
+                .try_take(map.slices as usize * blocks * levels, String::new)
+                .unwrap();
             poisoned.fill([f32::NAN; 2]);
             SPARE_RUNS.keep(poisoned);
             let reaches: Vec<usize> = (0..map.slices)

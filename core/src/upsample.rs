@@ -15,6 +15,7 @@
 use rayon::prelude::*;
 
 use crate::basis_kernels::Kernels;
+use crate::error::Result;
 use crate::layers::Layers;
 
 /// Relative depth difference at which a sample's weight falls to e⁻¹.
@@ -381,10 +382,10 @@ pub fn joint_bilateral(
     width: u32,
     height: u32,
     factor: u32,
-) -> Layers {
-    let mut out = Layers::for_overwrite(width, height);
+) -> Result<Layers> {
+    let mut out = Layers::for_overwrite(width, height)?;
     out.depth.copy_from_slice(depth);
-    joint_bilateral_into(low, out, opacity, factor)
+    Ok(joint_bilateral_into(low, out, opacity, factor))
 }
 
 /// [`upsample_row`] compiled for AVX2, whose weights take eight pixels a step rather than
@@ -500,7 +501,7 @@ mod tests {
                 low.depth[k] = depth[(y * width + x) as usize];
             }
         }
-        let up = joint_bilateral(&low, &depth, None, width, height, factor);
+        let up = joint_bilateral(&low, &depth, None, width, height, factor).unwrap();
         for y in 0..height {
             for x in 0..width {
                 let (rgba, seen) = value(x);
@@ -638,8 +639,8 @@ mod tests {
                 assert_eq!(guide[(y * width + x) as usize], expected, "({x}, {y})");
             }
         }
-        let guided = joint_bilateral(&low, &depth, Some(&guide), width, height, factor);
-        let depth_only = joint_bilateral(&low, &depth, None, width, height, factor);
+        let guided = joint_bilateral(&low, &depth, Some(&guide), width, height, factor).unwrap();
+        let depth_only = joint_bilateral(&low, &depth, None, width, height, factor).unwrap();
         for x in 10..=13 {
             let (rgba, seen) = box_silhouette(x);
             let got = guided.volume_rgba(x, 5);
@@ -672,7 +673,7 @@ mod tests {
         kept.visibility.fill(f32::NAN);
         kept.depth.copy_from_slice(&depth);
         let into = joint_bilateral_into(&low, kept, None, factor);
-        let fresh = joint_bilateral(&low, &depth, None, width, height, factor);
+        let fresh = joint_bilateral(&low, &depth, None, width, height, factor).unwrap();
         assert!(into
             .volume
             .iter()
@@ -712,7 +713,7 @@ mod tests {
                 low.depth[k] = 10.0;
             }
         }
-        let up = joint_bilateral(&low, &depth, None, width, height, factor);
+        let up = joint_bilateral(&low, &depth, None, width, height, factor).unwrap();
         // Between the samples at pixels 1 and 3 a linear ramp is reproduced, up to the
         // small spatial-weight floor.
         let at = |x: u32| up.visibility[(3 * width + x) as usize];

@@ -883,7 +883,7 @@ fn depth_aware_upsampling_beats_bilinear_at_edges() {
         let full = render_with(&scene, Method::MinMax, 1024);
         let factor = 4;
         let low = samples_of(&full, factor);
-        let joint = joint_bilateral(&low, &full.depth, None, WIDTH, HEIGHT, factor);
+        let joint = joint_bilateral(&low, &full.depth, None, WIDTH, HEIGHT, factor).unwrap();
         let joint_error = mean_abs_difference(&joint.volume, &full.volume);
         let bilinear_error =
             mean_abs_difference(&bilinear(&low, WIDTH, HEIGHT, factor), &full.volume);
@@ -922,8 +922,9 @@ fn an_opacity_guide_keeps_a_fog_box_silhouette_sharp() {
     for factor in [2, 4] {
         let low = samples_of(&full, factor);
         let guide = opacity_guide(&low, width, height, factor, exact).expect("a silhouette");
-        let guided = joint_bilateral(&low, &full.depth, Some(&guide), width, height, factor);
-        let depth_only = joint_bilateral(&low, &full.depth, None, width, height, factor);
+        let guided =
+            joint_bilateral(&low, &full.depth, Some(&guide), width, height, factor).unwrap();
+        let depth_only = joint_bilateral(&low, &full.depth, None, width, height, factor).unwrap();
         let (guided_error, _) = error(&guided, &full);
         let (depth_only_error, _) = error(&depth_only, &full);
         let exact_pixels = guide.iter().filter(|&&o| o >= 0.0).count();

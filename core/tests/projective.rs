@@ -77,7 +77,7 @@ fn bound(scene: &str, method: Method) -> f64 {
 fn rectified(scene: &Scene, method: Method, rectification: Rectification) -> EpipolarMap {
     let camera = CameraModel::new(&scene.camera);
     let geometry = FlatGeometry::from_scene(scene);
-    let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry);
+    let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry).unwrap();
     let desc = match method {
         Method::MinMax => RectifyDesc::min_max(scene.render.epipolar_slices),
         _ => RectifyDesc::prefiltered(scene.render.epipolar_slices),

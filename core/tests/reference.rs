@@ -261,7 +261,7 @@ fn the_texel_walk_is_the_limit_of_the_march() {
             scene.medium.extent = extent;
             let camera = CameraModel::new(&scene.camera);
             let geometry = FlatGeometry::from_scene(&scene);
-            let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
+            let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &geometry).unwrap();
             let marcher = Marcher::new(&shadow, &scene.sun, &scene.medium, 1 << 16);
             let (mut worst, mut worst_scattering, mut partly_lit) = (0.0f64, 0.0f64, 0);
             for pixel in (0..160 * 90).step_by(97) {
@@ -311,7 +311,8 @@ fn the_shadow_map_covers_the_camera() {
     scene.medium.extinction = 0.6;
     scene.render.max_distance = 12.0;
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &FlatGeometry::from_scene(&scene));
+    let shadow =
+        ShadowMap::of_scene_geometry(&scene, &camera, &FlatGeometry::from_scene(&scene)).unwrap();
     let texel = shadow.texel_from_world.transform_point3(eye.as_dvec3());
     let size = shadow.size as f64;
     assert!(

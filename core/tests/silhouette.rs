@@ -395,7 +395,7 @@ fn a_camera_projects_to_its_position_or_its_view_direction() {
     let mut scene = builtin_scene("torus").unwrap();
     scene.render.shadow_map_size = 64;
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene(&scene, &camera);
+    let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
     let map = shadow.texel_from_world;
     match Epipole::of_camera(&camera, &map) {
         Epipole::Point(p) => {

@@ -50,7 +50,7 @@ fn presets() -> std::path::PathBuf {
 fn closing_fills_the_torus_hole_only_when_wide_enough() {
     let scene = scene("torus", Method::Prefiltered);
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene(&scene, &camera);
+    let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
     let centre = shadow
         .texel_from_world
         .transform_point3(DVec3::new(0.0, 0.0, 5.0));

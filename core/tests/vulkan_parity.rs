@@ -275,7 +275,7 @@ fn morphology_equals_the_cpu_exactly() {
     for name in BUILTIN_SCENES {
         let scene = small(name);
         let camera = CameraModel::new(&scene.camera);
-        let shadow = ShadowMap::of_scene(&scene, &camera);
+        let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
         for (op, shape, radius) in [
             (MorphologyOp::Close, KernelShape::Disk, 4.5),
             (MorphologyOp::Open, KernelShape::Disk, 2.0),
@@ -342,7 +342,7 @@ fn silhouettes_equal_the_cpu_exactly() {
             ("orthographic", orthographic(&pinhole)),
         ] {
             let camera = CameraModel::new(&scene.camera);
-            let shadow = ShadowMap::of_scene(&scene, &camera);
+            let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
             let epipole = Epipole::of_camera(&camera, &shadow.texel_from_world);
             for desc in [
                 SilhouetteDesc::dilate(3.0),
@@ -387,7 +387,7 @@ fn hole_creation_equals_the_cpu_exactly() {
     for name in BUILTIN_SCENES {
         let scene = small(name);
         let camera = CameraModel::new(&scene.camera);
-        let shadow = ShadowMap::of_scene(&scene, &camera);
+        let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
         let mut all: Vec<u32> = shadow
             .ids
             .iter()
@@ -791,7 +791,7 @@ fn a_basis_past_the_storage_range_falls_back_to_the_cpu() {
 fn prefix_plan(scene: &Scene) -> PrefixPlan {
     let camera = CameraModel::new(&scene.camera);
     let geometry = FlatGeometry::from_scene(scene);
-    let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry);
+    let shadow = ShadowMap::of_scene_geometry(scene, &camera, &geometry).unwrap();
     let light_travel = scene.sun.direction.as_dvec3().normalize();
     let map = EpipolarMap::rectify(
         &camera,
@@ -1088,7 +1088,8 @@ fn upsampling_matches_the_cpu() {
         for factor in [2, 4] {
             let low = upsample::samples_of(&full, factor);
             let cpu =
-                upsample::joint_bilateral(&low, &full.depth, None, full.width, full.height, factor);
+                upsample::joint_bilateral(&low, &full.depth, None, full.width, full.height, factor)
+                    .unwrap();
             let (gpu, _) = gpu::upsample::joint_bilateral(
                 &device,
                 &low,
@@ -1115,7 +1116,8 @@ fn upsampling_matches_the_cpu() {
             .expect("samples whose opacities spread");
             assert!(guide.iter().any(|&o| o >= 0.0), "{name}: nothing guided");
             let cpu =
-                upsample::joint_bilateral(&low, &full.depth, Some(&guide), width, height, factor);
+                upsample::joint_bilateral(&low, &full.depth, Some(&guide), width, height, factor)
+                    .unwrap();
             let (gpu, _) = gpu::upsample::joint_bilateral(
                 &device,
                 &low,
@@ -1188,7 +1190,7 @@ fn rectification_matches_the_cpu() {
     for name in BUILTIN_SCENES {
         let scene = small(name);
         let camera = CameraModel::new(&scene.camera);
-        let shadow = ShadowMap::of_scene(&scene, &camera);
+        let shadow = ShadowMap::of_scene(&scene, &camera).unwrap();
         for desc in [RectifyDesc::prefiltered(0), RectifyDesc::min_max(0)] {
             let cpu = EpipolarMap::build(&camera, &shadow, &desc)
                 .expect("memory for the map")
@@ -1255,10 +1257,13 @@ fn cpu_targets(
                 glam::DVec4::Z,
                 glam::DVec4::new(dx * EDGE_SHIFT, dy * EDGE_SHIFT, 0.0, 1.0),
             );
-            rasterize(geometry, &(shift * *pixel_from_world), desc)
+            rasterize(geometry, &(shift * *pixel_from_world), desc).unwrap()
         })
         .collect();
-    (rasterize(geometry, pixel_from_world, desc), shifted)
+    (
+        rasterize(geometry, pixel_from_world, desc).unwrap(),
+        shifted,
+    )
 }
 
 /// Compares targets sample by sample. A sample is on an edge when moving the geometry by
@@ -1364,7 +1369,7 @@ fn shadow_maps_match_the_cpu_rasterizer() {
         let scene = builtin_scene(name).unwrap();
         let camera = CameraModel::new(&scene.camera);
         let geometry = FlatGeometry::from_scene(&scene);
-        let cpu = ShadowMap::of_scene_geometry(&scene, &camera, &geometry);
+        let cpu = ShadowMap::of_scene_geometry(&scene, &camera, &geometry).unwrap();
         let gpu = ShadowMap::build_with(
             &camera,
             &scene.sun,

@@ -40,6 +40,12 @@ pub enum GpuError {
     /// The request exceeds what the device or this backend supports.
     #[error("unsupported: {0}")]
     Unsupported(String),
+
+    /// The host failed, not the GPU: memory for the frame's results could not be
+    /// allocated. It reaches the caller as the core's own error, without a fallback to the
+    /// CPU backend, which would need the same memory.
+    #[error("{0}")]
+    Host(Box<crate::error::Error>),
 }
 
 impl From<vk::Result> for GpuError {
@@ -52,6 +58,11 @@ impl From<vk::Result> for GpuError {
 }
 
 impl GpuError {
+    /// The host's `error`, carried through the backend ([`GpuError::Host`]).
+    pub fn host(error: crate::error::Error) -> Self {
+        GpuError::Host(Box::new(error))
+    }
+
     /// Names the stage that was running; a lost device becomes [`GpuError::DeviceLost`].
     pub fn in_stage(self, stage: &str) -> Self {
         match self {
@@ -108,6 +119,28 @@ mod tests {
                 call: "vkAllocateMemory",
                 ..
             }
+        ));
+    }
+
+    /// The host's own error leaves the backend as itself, so that it is not taken for a
+    /// GPU failure and rendered again on the CPU; the backend's own become `Error::Gpu`.
+    #[test]
+    fn the_hosts_error_leaves_the_backend_as_itself() {
+        use crate::error::Error;
+        let host = Error::invalid("camera", "the volume layer needs 4.0 GiB");
+        match Error::from(GpuError::host(host).in_stage("upsampling")) {
+            Error::InvalidInput { field, reason } => {
+                assert_eq!(
+                    (field.as_str(), reason.as_str()),
+                    ("camera", "the volume layer needs 4.0 GiB")
+                );
+            }
+            other => panic!("expected the host's error, got {other:?}"),
+        }
+        let unsupported = GpuError::Unsupported("a test".into());
+        assert!(matches!(
+            Error::from(unsupported),
+            Error::Gpu(GpuError::Unsupported(_))
         ));
     }
 }

@@ -176,7 +176,7 @@ fn gpu_frame(
             frame.medium,
             frame.settings,
             &frame.geometry,
-        )
+        )?
     };
     control.check()?;
     times.shadow_map = stopwatch.lap();
@@ -194,7 +194,7 @@ fn gpu_frame(
         surfaces
     } else {
         gpu.cpu_stages.push("camera depth");
-        SurfaceDistances::new(camera, frame)
+        SurfaceDistances::new(camera, frame)?
     };
     times.camera_depth = stopwatch.lap();
     control.check()?;

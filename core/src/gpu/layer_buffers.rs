@@ -3,7 +3,7 @@
 
 use super::buffer::Buffer;
 use super::command::{Completed, Readback, Recorder};
-use super::error::GpuResult;
+use super::error::{GpuError, GpuResult};
 use crate::layers::Layers;
 
 /// Device buffers for `volume` (RGBA f32), `visibility` and `depth` (f32) of one image.
@@ -51,7 +51,7 @@ impl LayerBuffers {
 impl LayerReadback {
     /// The layers, in memory kept from an earlier frame's.
     pub fn read(self, done: &Completed) -> GpuResult<Layers> {
-        let mut layers = Layers::for_overwrite(self.width, self.height);
+        let mut layers = Layers::for_overwrite(self.width, self.height).map_err(GpuError::host)?;
         done.read_into(self.volume, &mut layers.volume)?;
         done.read_into(self.visibility, &mut layers.visibility)?;
         done.read_into(self.depth, &mut layers.depth)?;

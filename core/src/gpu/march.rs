@@ -157,7 +157,8 @@ mod tests {
             &scene.medium,
             &settings,
             &geometry.view(),
-        );
+        )
+        .unwrap();
         let inputs = MarchInputs {
             camera: &camera,
             shadow: &shadow,

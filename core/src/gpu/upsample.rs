@@ -91,7 +91,7 @@ pub fn joint_bilateral(
         let volume_back = rec.download(&volume, "volume read-back")?;
         let visibility_back = rec.download(&visibility, "visibility read-back")?;
         let done = rec.submit_and_wait()?;
-        let mut layers = Layers::for_overwrite(width, height);
+        let mut layers = Layers::for_overwrite(width, height).map_err(GpuError::host)?;
         done.read_into(volume_back, &mut layers.volume)?;
         done.read_into(visibility_back, &mut layers.visibility)?;
         layers.depth.copy_from_slice(depth);

@@ -53,7 +53,7 @@ fn time_prepared(
 /// Times every operator on `scene`, whose camera and shadow-map size are already set.
 pub fn rows(name: &str, scene: &Scene, runs: usize) -> Result<Vec<StyleRow>> {
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene(scene, &camera);
+    let shadow = ShadowMap::of_scene(scene, &camera)?;
     let size = shadow.size;
     let row = |operator, detail: String, budget_ms, sorted_ms| StyleRow {
         scene: name.to_owned(),
