@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import struct
+import typing
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,8 @@ def test_every_exr_codec_is_written_and_read_back(tmp_path: Path) -> None:
     assert crepuscular.EXR_COMPRESSIONS[0] == "zip"
     codes = {"none": 0, "rle": 1, "zips": 2, "zip": 3, "piz": 4, "pxr24": 5}
     assert sorted(crepuscular.EXR_COMPRESSIONS) == sorted(codes)
+    # The type's literals, spelled out for type checkers, are the core's names.
+    assert sorted(typing.get_args(crepuscular.ExrCompression)) == sorted(codes)
     default = tmp_path / "default.exr"
     crepuscular.write_exr(default, layers)
     assert exr_codec(default) == codes["zip"]

@@ -11,6 +11,7 @@ mod errors;
 mod files;
 mod run;
 
+use crepuscular::exr_file::ExrCompression;
 use crepuscular::render::FlatGeometry;
 use crepuscular::scene::{parse_json_at, Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
 use crepuscular::style::STYLE_VERSION;
@@ -271,6 +272,16 @@ fn depth_input<'a>(
 fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add("__version__", env!("CARGO_PKG_VERSION"))?;
     module.add("SCENE_VERSION", SCENE_VERSION)?;
+    // The EXR codecs by name, the default first, as `write_exr` documents them.
+    let default = ExrCompression::default();
+    let others = ExrCompression::ALL
+        .into_iter()
+        .filter(|&codec| codec != default);
+    let codecs: Vec<&str> = std::iter::once(default)
+        .chain(others)
+        .map(ExrCompression::name)
+        .collect();
+    module.add("EXR_COMPRESSIONS", PyTuple::new(module.py(), codecs)?)?;
     errors::register(module)?;
     module.add_function(wrap_pyfunction!(release_kept_buffers, module)?)?;
     module.add_function(wrap_pyfunction!(render_json, module)?)?;

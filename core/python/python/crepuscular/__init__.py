@@ -77,7 +77,7 @@ ProgressCallback: TypeAlias = Callable[[float], object]
 #: An EXR codec, by Blender's name (lower case; any case is accepted).
 ExrCompression: TypeAlias = Literal["zip", "zips", "piz", "rle", "none", "pxr24"]
 #: The EXR codecs `write_exr` takes, the default first.
-EXR_COMPRESSIONS: tuple[str, ...] = ("zip", "zips", "piz", "rle", "none", "pxr24")
+EXR_COMPRESSIONS: tuple[str, ...] = _core.EXR_COMPRESSIONS
 
 
 @dataclass(frozen=True, slots=True, eq=False, repr=False)

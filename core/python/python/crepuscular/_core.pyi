@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 __version__: Final[str]
 SCENE_VERSION: Final[int]
+EXR_COMPRESSIONS: Final[tuple[str, ...]]
 STYLE_VERSION: Final[int]
 
 _Float32Array: TypeAlias = npt.NDArray[np.float32]
