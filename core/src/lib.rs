@@ -64,4 +64,5 @@ pub fn release_kept_buffers() {
     minmax::release_kept_buffers();
     prefiltered::release_kept_buffers();
     raster::release_kept_buffers();
+    upsample::release_kept_buffers();
 }

@@ -25,7 +25,9 @@ use crate::scene::{
 use crate::shadow_map::ShadowMap;
 use crate::slice_reach::{slice_reaches, FarthestPerBlock};
 use crate::style::Style;
-use crate::upsample::{joint_bilateral_into, opacity_guide, reduced_size, sample_pixel};
+use crate::upsample::{
+    joint_bilateral_into, keep_opacity_guide, opacity_guide, reduced_size, sample_pixel,
+};
 
 /// Triangles, borrowed so that hosts can pass their buffers without copies.
 #[derive(Clone, Copy, Debug)]
@@ -898,13 +900,13 @@ pub(crate) fn shade_pixels(
                 rays.opacity(marcher, x as usize, y as usize)
             })
         })
+        .transpose()?
         .flatten();
-    Ok(joint_bilateral_into(
-        &layers,
-        upsampled,
-        opacity.as_deref(),
-        stride,
-    ))
+    let upsampled = joint_bilateral_into(&layers, upsampled, opacity.as_deref(), stride);
+    if let Some(guide) = opacity {
+        keep_opacity_guide(guide);
+    }
+    Ok(upsampled)
 }
 
 /// The rays of a frame's depth samples, as shading casts them: one per pixel, or with

@@ -15,8 +15,9 @@
 use rayon::prelude::*;
 
 use crate::basis_kernels::Kernels;
-use crate::error::Result;
+use crate::error::{Result, Sizing};
 use crate::layers::Layers;
+use crate::spare::Spare;
 
 /// Relative depth difference at which a sample's weight falls to e⁻¹.
 pub const DEPTH_TOLERANCE: f32 = 0.05;
@@ -28,6 +29,19 @@ pub const OPACITY_SPREAD: f32 = 0.25;
 /// An [`opacity_guide`]'s value for a pixel whose samples' opacities agree: it blends them
 /// as everywhere else.
 pub const BLENDED: f32 = -1.0;
+
+/// The last frame's [`opacity_guide`], for the next box frame's ([`keep_opacity_guide`]).
+static SPARE_OPACITY_GUIDE: Spare<f32> = Spare::new(Sizing::Image);
+
+/// Keeps an [`opacity_guide`] done with for a later frame's.
+pub fn keep_opacity_guide(guide: Vec<f32>) {
+    SPARE_OPACITY_GUIDE.keep(guide);
+}
+
+/// Lets go of the kept opacity guide ([`crate::release_kept_buffers`]).
+pub(crate) fn release_kept_buffers() {
+    SPARE_OPACITY_GUIDE.clear();
+}
 
 /// The full-resolution pixel that low-resolution sample `index` stands for.
 pub fn sample_pixel(index: u32, factor: u32, full: u32) -> u32 {
@@ -325,17 +339,19 @@ fn blend_through_opacity(
 /// medium along its ray) where the opacities of the four samples around it spread by more
 /// than [`OPACITY_SPREAD`] of the largest, and [`BLENDED`] elsewhere: the guide
 /// [`joint_bilateral_into`] takes in bounded media, where opacity jumps at the medium's
-/// silhouette. Only those pixels pay for a ray; `None` where no samples spread.
+/// silhouette. Only those pixels pay for a ray; `None` where no samples spread. The
+/// guide is full-size (a 16384² frame's is 1 GiB): an error names the image's settings
+/// where it cannot be allocated, and [`keep_opacity_guide`] keeps it for the next frame.
 pub fn opacity_guide(
     low: &Layers,
     width: u32,
     height: u32,
     factor: u32,
     exact: impl Fn(u32, u32) -> f32 + Sync,
-) -> Option<Vec<f32>> {
+) -> Result<Option<Vec<f32>>> {
     let (lw, lh) = (low.width as usize, low.height as usize);
     if lw == 0 || lh == 0 {
-        return None;
+        return Ok(None);
     }
     let alpha = |index: usize| low.volume[index * 4 + 3];
     // Per cell between sample rows j, j + 1 and columns i, i + 1 (the last with itself):
@@ -353,23 +369,27 @@ pub fn opacity_guide(
         })
         .collect();
     if !spread.contains(&true) {
-        return None;
+        return Ok(None);
     }
     let columns = Columns::of(width, factor, lw);
     let w = (width as usize).max(1);
-    let mut guide = vec![BLENDED; width as usize * height as usize];
+    let mut guide = SPARE_OPACITY_GUIDE.try_take(width as usize * height as usize, || {
+        format!("upsampling's opacity guide ({width}×{height})")
+    })?;
     guide.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let cells = &spread[Between::of(y as u32, factor, lh).lower * lw..][..lw];
         if !cells.contains(&true) {
+            row.fill(BLENDED);
             return;
         }
         for (x, out) in row.iter_mut().enumerate() {
-            if cells[columns.lower[x]] {
-                *out = exact(x as u32, y as u32);
-            }
+            *out = match cells[columns.lower[x]] {
+                true => exact(x as u32, y as u32),
+                false => BLENDED,
+            };
         }
     });
-    Some(guide)
+    Ok(Some(guide))
 }
 
 /// Upsamples `low` (whose `depth` holds each sample's depth) to `width` × `height`,
@@ -558,6 +578,7 @@ mod tests {
                 opacity_guide(&low, width, height, factor, |x, y| {
                     ((x + y) % 3) as f32 / 3.0
                 })
+                .unwrap()
                 .expect("samples that spread")
             });
             let columns = Columns::of(width, factor, lw as usize);
@@ -625,7 +646,10 @@ mod tests {
             low.visibility[k] = seen;
             low.depth[k] = 50.0;
         }
+        // In a kept buffer of NaN: every pixel is written, guided or not.
+        keep_opacity_guide(vec![f32::NAN; (width * height) as usize]);
         let guide = opacity_guide(&low, width, height, factor, |x, _| box_silhouette(x).0[3])
+            .unwrap()
             .expect("samples that spread");
         // Only the columns that blend the samples either side of the edge (10 and 14) take
         // their exact opacity.

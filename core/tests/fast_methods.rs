@@ -921,7 +921,9 @@ fn an_opacity_guide_keeps_a_fog_box_silhouette_sharp() {
     let exact = |x: u32, y: u32| full.volume[((y * width + x) * 4 + 3) as usize];
     for factor in [2, 4] {
         let low = samples_of(&full, factor);
-        let guide = opacity_guide(&low, width, height, factor, exact).expect("a silhouette");
+        let guide = opacity_guide(&low, width, height, factor, exact)
+            .unwrap()
+            .expect("a silhouette");
         let guided =
             joint_bilateral(&low, &full.depth, Some(&guide), width, height, factor).unwrap();
         let depth_only = joint_bilateral(&low, &full.depth, None, width, height, factor).unwrap();

@@ -1113,6 +1113,7 @@ fn upsampling_matches_the_cpu() {
             let guide = upsample::opacity_guide(&low, width, height, factor, |x, y| {
                 full.volume[((y * width + x) * 4 + 3) as usize]
             })
+            .unwrap()
             .expect("samples whose opacities spread");
             assert!(guide.iter().any(|&o| o >= 0.0), "{name}: nothing guided");
             let cpu =

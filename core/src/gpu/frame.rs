@@ -40,7 +40,7 @@ use crate::scene::Method;
 use crate::shadow_map::ShadowMap;
 use crate::slice_reach::slice_reaches;
 use crate::style::{OccluderOperator, Style};
-use crate::upsample::{opacity_guide, reduced_size};
+use crate::upsample::{keep_opacity_guide, opacity_guide, reduced_size};
 
 /// GPU timestamps of the stages that ran on the GPU, in milliseconds, and the names of
 /// the stages that ran on the CPU.
@@ -308,6 +308,7 @@ fn gpu_frame(
                     rays.opacity(&marcher, x as usize, y as usize)
                 })
             })
+            .transpose()?
             .flatten();
         let (layers, ms) = super::upsample::joint_bilateral(
             device,
@@ -318,6 +319,9 @@ fn gpu_frame(
             camera.height,
             stride,
         )?;
+        if let Some(guide) = opacity {
+            keep_opacity_guide(guide);
+        }
         gpu.upsampling = ms;
         layers
     } else {
