@@ -255,8 +255,12 @@ def test_a_frame_too_large_for_memory_names_the_settings_to_lower() -> None:
     4 GiB of layers) and a 16384² shadow map (2 GiB) each raise an error naming what to
     lower, rather than aborting the interpreter, which then renders a small frame."""
     limit = str(5 << 29)
+    # Each thread's malloc arena reserves address space too: few threads and arenas keep the
+    # limit about the frame's buffers on a machine of many cores.
+    env = {**os.environ, "RAYON_NUM_THREADS": "2", "MALLOC_ARENA_MAX": "2"}
     child = subprocess.run(
         [sys.executable, "-c", OUT_OF_MEMORY_CHILD, limit],
+        env=env,
         capture_output=True,
         text=True,
         timeout=300,
