@@ -2489,8 +2489,9 @@ const EVERY_PIXEL_RADIUS: f64 = 64.0;
 /// The columns of pixel row `y` (of `w`) that [`slice_frames`] samples: those on the grid
 /// of `stride`, and within `dense_radius` of an epipole (both axes) every one up to
 /// [`EVERY_PIXEL_RADIUS`], the even ones of even rows to half of `dense_radius` and every
-/// fourth of every fourth row beyond, except those within `block` of one. Visits the grid and each epipole's dense square (with a pixel's margin)
-/// rather than the whole row; the exact test decides.
+/// fourth of every fourth row beyond, except those within `block` of one. Visits the grid
+/// and each epipole's dense square (with a pixel's margin) rather than the whole row; the
+/// exact test decides.
 fn sampled_columns(
     y: u32,
     w: u32,
@@ -2534,12 +2535,14 @@ fn sampled_columns(
         .flat_map(|&(lo, hi)| lo..hi)
         .chain(grid)
         .filter(|&x| {
+            // The parities first: most pixels of a dense square then test two radii, not
+            // four.
             let px = x as f64 + 0.5;
             let on_grid = on_grid_row && x % stride == 0;
-            let every = within(px, EVERY_PIXEL_RADIUS.min(dense_radius));
-            let even = within(px, dense_radius / 2.0) && x % 2 == 0 && y.is_multiple_of(2);
-            let fourth = within(px, dense_radius) && x % 4 == 0 && y.is_multiple_of(4);
-            (on_grid || every || even || fourth) && !within(px, block)
+            let fourth = || x % 4 == 0 && y.is_multiple_of(4) && within(px, dense_radius);
+            let even = || x % 2 == 0 && y.is_multiple_of(2) && within(px, dense_radius / 2.0);
+            let every = || within(px, EVERY_PIXEL_RADIUS.min(dense_radius));
+            (on_grid || fourth() || even() || every()) && !within(px, block)
         })
         .collect()
 }
