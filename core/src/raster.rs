@@ -126,7 +126,8 @@ pub struct DepthTarget {
     pub ids: Vec<u32>,
 }
 
-/// Fills depth targets: [`rasterize`] on the CPU, or a GPU's graphics pipeline.
+/// Fills depth targets on a GPU's graphics pipeline, to [`rasterize`]'s contract (the CPU
+/// paths call [`rasterize`] itself).
 pub trait Rasterizer {
     /// [`rasterize`]'s contract: world triangles through `pixel_from_world` into `desc`.
     fn rasterize(
@@ -135,20 +136,6 @@ pub trait Rasterizer {
         pixel_from_world: &DMat4,
         desc: &RasterDesc,
     ) -> Result<DepthTarget>;
-}
-
-/// The CPU backend's rasterizer.
-pub struct CpuRasterizer;
-
-impl Rasterizer for CpuRasterizer {
-    fn rasterize(
-        &self,
-        geometry: &Geometry,
-        pixel_from_world: &DMat4,
-        desc: &RasterDesc,
-    ) -> Result<DepthTarget> {
-        rasterize(geometry, pixel_from_world, desc)
-    }
 }
 
 /// A triangle after clipping and snapping, ready for edge-function traversal.
