@@ -923,14 +923,18 @@ impl BandView<'_> {
     }
 }
 
-/// Where [`shade_adaptively`]'s time went, in seconds: its first pass (the lattice
-/// points, shaded), its second (the rest of the finer grid, interpolated along the
-/// epipolar lines or shaded) and its last (the pixels between the finer grid's points).
+/// Where [`shade_adaptively`]'s time went, in seconds, and how many points each pass
+/// shaded: its first pass (the lattice points, all shaded), its second (the rest of the
+/// finer grid, interpolated along the epipolar lines or shaded) and its last (the pixels
+/// between the finer grid's points, the centres of its squares first).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct AdaptivePasses {
     pub lattice: f64,
     pub finer_grid: f64,
     pub between: f64,
+    pub lattice_shaded: usize,
+    pub finer_grid_shaded: usize,
+    pub between_shaded: usize,
 }
 
 /// Shades a `width` × `height` image adaptively. `shade(pixels, out)` gives the layers of
@@ -1004,6 +1008,7 @@ pub fn shade_adaptively(
             |(a, n), (b, m)| (std::array::from_fn(|k| a[k] + b[k]), n + m),
         );
     let lattice = stopwatch.lap();
+    let lattice_shaded = shaded_count.load(Ordering::Relaxed);
     let floor = sums.map(|sum| (DARK_SHARE * sum / points.max(1) as f64) as f32);
     let interpolation = Interpolation {
         agreement: Agreement {
@@ -1118,6 +1123,7 @@ pub fn shade_adaptively(
             });
     }
     let finer_grid = stopwatch.lap();
+    let finer_grid_shaded = shaded_count.load(Ordering::Relaxed) - lattice_shaded;
     // The centres of the finer grid's squares, pixels (2i + 1, 2j + 1): the mean of the
     // four corners where they agree, else of the diagonal pair along the epipolar line
     // through the centre; shaded where neither agrees or a corner is missing (on the last
@@ -1334,14 +1340,21 @@ pub fn shade_adaptively(
         // The finer grid's rows were counted as they were completed.
         control.advance((rows / 2) as u64);
     });
+    // The band edges' centres, completed between the finer grid and the last pass, count
+    // with the last pass.
+    let between_shaded = shaded_count.into_inner() - lattice_shaded - finer_grid_shaded
+        + between_shaded.into_inner();
     let passes = AdaptivePasses {
         lattice,
         finer_grid,
         between: stopwatch.lap(),
+        lattice_shaded,
+        finer_grid_shaded,
+        between_shaded,
     };
     Ok((
         layers,
-        shaded_count.into_inner() + between_shaded.into_inner(),
+        lattice_shaded + finer_grid_shaded + between_shaded,
         passes,
     ))
 }

@@ -305,7 +305,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 scattering_ms,
             };
             eprintln!(
-                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}{}, shading {:.1}{}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB; shaded {:.1}% of {} pixels)",
+                "{name} {} {}: scattering median {:.1} ms (rectify {:.1}, prepare {:.1}{}, shading {:.1}{}; shadow map {:.1}, camera depth {:.1}; rectified map {:.1} MiB, method structure {:.1} MiB; shaded {:.1}% of {} pixels{})",
                 row.label,
                 row.detail,
                 median(&row.scattering_ms),
@@ -320,6 +320,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 stage.structure_bytes as f64 / (1 << 20) as f64,
                 100.0 * stage.shaded_pixels as f64 / stage.pixels.max(1) as f64,
                 stage.pixels,
+                walked_share(&stage),
             );
             rows.push(row);
         }
@@ -360,10 +361,25 @@ fn shading_split(stage: &StageTimes) -> String {
         return String::new();
     }
     format!(
-        " [lattice {:.1}, finer grid {:.1}, between {:.1}]",
+        " [lattice {:.1} ({} shaded), finer grid {:.1} ({}), between {:.1} ({})]",
         passes.lattice * 1e3,
+        passes.lattice_shaded,
         passes.finer_grid * 1e3,
-        passes.between * 1e3
+        passes.finer_grid_shaded,
+        passes.between * 1e3,
+        passes.between_shaded,
+    )
+}
+
+/// Of the rays a fast method was asked for, the share it declined and the exact walk
+/// computed, where it counted them.
+fn walked_share(stage: &StageTimes) -> String {
+    if stage.fast_rays == 0 {
+        return String::new();
+    }
+    format!(
+        ", {:.1}% of their rays walked exactly",
+        100.0 * stage.walked_rays as f64 / stage.fast_rays as f64
     )
 }
 
