@@ -170,8 +170,9 @@ pub struct StageTimes {
     pub shaded_pixels: usize,
     /// Rays of the shaded pixels that a fast method was asked for, and of those, how many
     /// it declined (too short for its lookups, along the light, too imprecise, or near an
-    /// on-screen epipole) and the exact walk computed instead; 0 for the reference and on
-    /// the Vulkan backend.
+    /// on-screen epipole) and the exact walk computed instead; 0 for the reference, for a
+    /// view straight along the light (which the reference renders), and on the Vulkan
+    /// backend.
     pub fast_rays: usize,
     pub walked_rays: usize,
 }
