@@ -1340,23 +1340,17 @@ pub fn shade_adaptively(
         // The finer grid's rows were counted as they were completed.
         control.advance((rows / 2) as u64);
     });
-    // The band edges' centres, completed between the finer grid and the last pass, count
-    // with the last pass.
-    let between_shaded = shaded_count.into_inner() - lattice_shaded - finer_grid_shaded
-        + between_shaded.into_inner();
+    let shaded = shaded_count.into_inner() + between_shaded.into_inner();
     let passes = AdaptivePasses {
         lattice,
         finer_grid,
         between: stopwatch.lap(),
         lattice_shaded,
         finer_grid_shaded,
-        between_shaded,
+        // With the band edges' centres, completed between the finer grid and this pass.
+        between_shaded: shaded - lattice_shaded - finer_grid_shaded,
     };
-    Ok((
-        layers,
-        lattice_shaded + finer_grid_shaded + between_shaded,
-        passes,
-    ))
+    Ok((layers, shaded, passes))
 }
 
 /// The half-spans, in pixels, of the pairs along the epipolar lines that a pixel between
