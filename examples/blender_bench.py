@@ -28,7 +28,6 @@ os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="crepuscular-benc
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
-from mathutils import Matrix  # noqa: E402
 
 import crepuscular  # noqa: E402
 
@@ -42,20 +41,13 @@ def build_tree_scene(width: int, height: int) -> bpy.types.Scene:
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     for mesh_desc in source["meshes"]:
-        positions = np.asarray(mesh_desc["positions"], dtype=np.float32)
-        triangles = np.asarray(mesh_desc["triangles"], dtype=np.int32)
-        mesh = bpy.data.meshes.new(mesh_desc.get("name") or "mesh")
-        mesh.vertices.add(len(positions))
-        mesh.vertices.foreach_set("co", positions.ravel())
-        mesh.loops.add(triangles.size)
-        mesh.loops.foreach_set("vertex_index", triangles.ravel())
-        mesh.polygons.add(len(triangles))
-        mesh.polygons.foreach_set("loop_start", np.arange(0, triangles.size, 3, dtype=np.int32))
-        mesh.update()
-        obj = bpy.data.objects.new(mesh.name, mesh)
-        matrix = np.asarray(mesh_desc["world_from_object"], dtype=float).reshape(4, 4).T
-        obj.matrix_world = Matrix(matrix.tolist())
-        scene.collection.objects.link(obj)
+        blender_scenes.add_mesh(
+            scene,
+            mesh_desc.get("name") or "mesh",
+            mesh_desc["positions"],
+            mesh_desc["triangles"],
+            world_from_object=np.asarray(mesh_desc["world_from_object"], float).reshape(4, 4).T,
+        )
     cam = source["camera"]
     camera = blender_scenes.add_camera(
         scene,

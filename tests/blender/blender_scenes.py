@@ -192,6 +192,39 @@ def add_quad(scene: Any, name: str, vertices: Any, material: Any = None) -> Any:
     return obj
 
 
+def add_mesh(
+    scene: Any,
+    name: str,
+    positions: Any,
+    triangles: Any,
+    *,
+    world_from_object: Any = None,
+    material: Any = None,
+) -> Any:
+    """A triangle mesh object from (N, 3) positions and (M, 3) vertex indices, filled with
+    `foreach_set` (no per-vertex Python loops)."""
+    import bpy
+    from mathutils import Matrix
+
+    positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+    triangles = np.asarray(triangles, dtype=np.int32).reshape(-1, 3)
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(positions))
+    mesh.vertices.foreach_set("co", positions.ravel())
+    mesh.loops.add(triangles.size)
+    mesh.loops.foreach_set("vertex_index", triangles.ravel())
+    mesh.polygons.add(len(triangles))
+    mesh.polygons.foreach_set("loop_start", np.arange(0, triangles.size, 3, dtype=np.int32))
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    if world_from_object is not None:
+        obj.matrix_world = Matrix(np.asarray(world_from_object).tolist())
+    if material is not None:
+        obj.data.materials.append(material)
+    scene.collection.objects.link(obj)
+    return obj
+
+
 def setup_cycles(scene: Any, *, width: int, height: int, samples: int) -> None:
     import bpy
 

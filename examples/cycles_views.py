@@ -1,0 +1,246 @@
+"""Our layers against Cycles on random fog-box scenes: a search for differences from an
+independent renderer.
+
+Each case builds a scene in Blender through the installed extension: random meshes (those
+of `differential_views.py --geometry random`), black under a black world; a box of fog, a
+Volume Scatter or a Principled Volume with an absorption colour, at random density and
+anisotropy; a sun with a random colour, temperature or exposure; and a camera outside the
+box or inside it, sometimes orthographic, with lens shift or a sensor fit, sometimes
+looking past the box towards the sun. Cycles renders it twice, with two seeds and no
+bounces, so that its image is the single-scattered light alone; the extension renders our
+layers with `reference`, `minmax` and the default method. Printed per case: Cycles' mean
+and its noise (half the two renders' difference), then per method its mean over Cycles'
+and its error, the mean absolute difference of 4x4-pixel block means over Cycles' mean
+(blocks, so that Cycles' noise stays well under it).
+
+    .venv/bin/python examples/cycles_views.py --seed 3 --cases 30
+
+The extension is built from the wheel in `dist/` (after `make demo` or `make test`) and
+installed into a temporary Blender user folder, as the tests install it. Fog is
+grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, which
+crepuscular takes as its luminance (the extension says so), and the cases then measure
+that approximation. Views that see no fog print as black. A sun's disc is left at 0°:
+crepuscular's shafts have hard edges.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import random
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="crepuscular-cycles-views-")
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+
+import crepuscular  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "tests" / "blender"))
+import blender_scenes  # noqa: E402
+from differential_views import random_geometry  # noqa: E402
+
+METHODS = ("reference", "minmax", "default")
+
+
+def random_fog(rng: random.Random, tinted: bool) -> tuple[bpy.types.Material, str]:
+    """A Volume Scatter or Principled Volume of random density, anisotropy and colour."""
+    grey = rng.uniform(0.3, 1.0)
+    colour = (grey, grey, grey, 1.0)
+    if tinted:
+        colour = (rng.uniform(0.4, 1.0), rng.uniform(0.4, 1.0), rng.uniform(0.4, 1.0), 1.0)
+    density = math.exp(rng.uniform(math.log(0.03), math.log(0.6)))
+    anisotropy = rng.uniform(-0.3, 0.8)
+    inputs = {"Color": colour, "Density": density, "Anisotropy": anisotropy}
+    kind = "scatter"
+    if rng.random() < 0.4:
+        kind = "principled"
+        absorption = rng.uniform(0.0, 1.0)
+        inputs["Absorption Color"] = (absorption, absorption, absorption, 1.0)
+    label = f"{kind} density {density:.3f} g {anisotropy:+.2f}"
+    return blender_scenes.volume_material(kind, **inputs), label
+
+
+def build_case(
+    rng: random.Random, width: int, height: int, samples: int, tinted: bool
+) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
+    """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
+    blender_scenes.reset()
+    scene = bpy.context.scene
+    blender_scenes.setup_cycles(scene, width=width, height=height, samples=samples)
+    # The layers are written unfiltered; a filter this narrow is none.
+    scene.cycles.filter_width = 0.01
+    around = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), 0.0])
+    black = blender_scenes.black_material(0.0)
+    for mesh in random_geometry(rng, around):
+        blender_scenes.add_mesh(
+            scene, mesh["name"], mesh["positions"], mesh["triangles"], material=black
+        )
+    centre = around + np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(1.5, 4)])
+    half = np.array([rng.uniform(2, 8), rng.uniform(2, 8), rng.uniform(1.5, 5)])
+    yaw = rng.uniform(0, math.pi)
+    cos, sin = math.cos(yaw), math.sin(yaw)
+    world_from_cube = np.eye(4)
+    world_from_cube[:3, :3] = np.array([[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]) @ np.diag(half)
+    world_from_cube[:3, 3] = centre
+    material, fog_label = random_fog(rng, tinted)
+    blender_scenes.add_fog_box(scene, world_from_cube, material)
+
+    elevation, azimuth = math.radians(rng.uniform(10, 85)), rng.uniform(0, 2 * math.pi)
+    travel = -np.array(
+        [
+            math.cos(elevation) * math.cos(azimuth),
+            math.cos(elevation) * math.sin(azimuth),
+            math.sin(elevation),
+        ]
+    )
+    sun = blender_scenes.add_sun(scene, travel, strength=3.0, enabled=False)
+    labels = [fog_label, f"sun {math.degrees(elevation):.0f}°"]
+    if rng.random() < 0.4:
+        sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
+        labels.append("coloured")
+    if rng.random() < 0.2:
+        sun.data.use_temperature, sun.data.temperature = True, rng.uniform(3000, 9000)
+        sun.data.exposure = rng.uniform(-1, 1)
+        labels.append("temperature")
+    settings = sun.data.crepuscular
+    settings.method, settings.steps, settings.shadow_map_size = "reference", 2048, 2048
+    settings.edge_samples, settings.max_distance = 1, 200.0
+
+    inside = rng.random() < 0.15
+    if inside:
+        eye = centre + half * np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), -0.2])
+        eye[2] = max(eye[2], 0.5)
+        heading = rng.uniform(0, 2 * math.pi)
+        target = eye + np.array([math.cos(heading), math.sin(heading), rng.uniform(-0.2, 0.6)])
+        labels.append("inside")
+    elif rng.random() < 0.25:
+        # Past the box towards the sun: the epipole on screen, or close to it.
+        towards = np.array([travel[0], travel[1], 0.0]) / math.hypot(travel[0], travel[1])
+        eye = centre + rng.uniform(1.5, 3.0) * np.linalg.norm(half) * towards
+        eye[2] = rng.uniform(0.3, 2.0)
+        target = centre + np.array([0.0, 0.0, rng.uniform(0.0, 3.0)])
+        labels.append("sunward")
+    else:
+        distance = rng.uniform(1.2, 3.0) * np.linalg.norm(half)
+        heading, pitch = rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(-5, 45))
+        eye = centre + distance * np.array(
+            [
+                math.cos(pitch) * math.cos(heading),
+                math.cos(pitch) * math.sin(heading),
+                math.sin(pitch),
+            ]
+        )
+        eye[2] = max(eye[2], 0.3)
+        target = centre + np.array([rng.gauss(0, 1), rng.gauss(0, 1), rng.gauss(0, 0.5)])
+    camera = blender_scenes.add_camera(
+        scene, blender_scenes.look_at(eye, target), lens=rng.uniform(20, 70)
+    )
+    camera.data.clip_end = 200.0
+    if rng.random() < 0.3:
+        camera.data.shift_x, camera.data.shift_y = rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)
+        labels.append("shift")
+    if rng.random() < 0.3:
+        camera.data.sensor_fit = rng.choice(["VERTICAL", "HORIZONTAL"])
+        labels.append(f"fit {camera.data.sensor_fit.lower()}")
+    if rng.random() < 0.2:
+        camera.data.type = "ORTHO"
+        camera.data.ortho_scale = rng.uniform(1.0, 2.5) * 2 * float(np.max(half))
+        labels.append("orthographic")
+    return scene, sun, " ".join(labels)
+
+
+def rgb(path: Path, prefix: str = "") -> np.ndarray:
+    channels = crepuscular.read_exr(path)
+    return np.stack([channels[f"{prefix}{c}"] for c in "RGB"], axis=-1).astype(np.float64)
+
+
+def block_means(image: np.ndarray, side: int = 4) -> np.ndarray:
+    height, width = image.shape[0] // side * side, image.shape[1] // side * side
+    blocks = image[:height, :width].reshape(height // side, side, width // side, side, -1)
+    return blocks.mean(axis=(1, 3))
+
+
+def render_case(scene: bpy.types.Scene, sun: bpy.types.Object, out: Path) -> dict[str, Path]:
+    """Cycles twice (seeds 1 and 2), then the layers of each of `METHODS`."""
+    paths = {}
+    for seed in (1, 2):
+        scene.cycles.seed = seed
+        paths[f"cycles {seed}"] = out / f"cycles_{seed}.exr"
+        scene.render.filepath = str(paths[f"cycles {seed}"])
+        bpy.ops.render.render(write_still=True)
+    settings = sun.data.crepuscular
+    settings.enabled = True
+    default = settings.bl_rna.properties["method"].default
+    for method in METHODS:
+        settings.method = default if method == "default" else method
+        paths[method] = out / f"{method}.exr"
+        result = bpy.ops.crepuscular.render_layers(filepath=str(paths[method]))
+        if result != {"FINISHED"}:
+            raise RuntimeError(f"render_layers with '{settings.method}' returned {result}")
+    return paths
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--cases", type=int, default=20)
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--height", type=int, default=90)
+    parser.add_argument("--samples", type=int, default=512, help="Cycles samples per pixel")
+    parser.add_argument("--flag", type=float, default=2.0, help="percent error to flag")
+    parser.add_argument("--tinted", action="store_true", help="coloured fog (see above)")
+    parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
+    args = parser.parse_args()
+    blender_scenes.install_addon()
+    out_root = args.out or Path(tempfile.mkdtemp(prefix="crepuscular-cycles-views-out-"))
+    flagged = black = 0
+    for case in range(args.cases):
+        # One generator per case, so that any case can be drawn again alone.
+        rng = random.Random(f"{args.seed} {case}")
+        scene, sun, summary = build_case(rng, args.width, args.height, args.samples, args.tinted)
+        out = out_root / f"case_{args.seed}_{case}"
+        out.mkdir(parents=True, exist_ok=True)
+        started = time.perf_counter()
+        try:
+            paths = render_case(scene, sun, out)
+        except RuntimeError as error:
+            print(f"{case:3} {summary} | error: {error}", flush=True)
+            continue
+        seconds = time.perf_counter() - started
+        first, second = rgb(paths["cycles 1"]), rgb(paths["cycles 2"])
+        cycles = 0.5 * (first + second)
+        mean = cycles.mean()
+        if mean <= 0:
+            black += 1
+            print(f"{case:3} {summary} | black: the view sees no lit fog", flush=True)
+            continue
+        noise = 50 * np.abs(block_means(first) - block_means(second)).mean() / mean
+        columns = [f"Cycles mean {mean:.3g} noise {noise:.2f}%"]
+        worst = 0.0
+        for method in METHODS:
+            ours = rgb(paths[method], "volume.")
+            error = 100 * np.abs(block_means(ours) - block_means(cycles)).mean() / mean
+            worst = max(worst, error)
+            columns.append(f"{method} mean {ours.mean() / mean:.3f} error {error:5.2f}%")
+        flag = worst > args.flag
+        flagged += flag
+        print(
+            f"{case:3} {summary} | {' | '.join(columns)} ({seconds:.0f} s)"
+            + ("  <<<" if flag else ""),
+            flush=True,
+        )
+    print(f"{flagged} of {args.cases - black} cases above {args.flag}% ({black} black)")
+    if args.out is None:
+        print(f"renders in {out_root}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
