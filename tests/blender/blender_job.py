@@ -6,6 +6,7 @@ is built and exported through it."""
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -83,6 +84,66 @@ def job_fidelity(spec: dict[str, Any], out: Path) -> None:
     fog = scene.crepuscular.fog_object
     assert fog.visible_camera, "the fog object was not restored"
     assert fog.visible_shadow, "the fog object was not restored"
+
+
+def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The mappings the fidelity scene leaves at their plainest, against Cycles: a
+    Principled Volume with an absorption colour, a sun with colour, temperature, exposure
+    and a disc, and two cameras, orthographic with lens shift and a vertical sensor fit,
+    and a pinhole inside the box. Black surfaces and world, no bounces; each view is
+    rendered by Cycles, then as our reference and default-method layers."""
+    scene = bpy.context.scene
+    blender_scenes.setup_cycles(
+        scene, width=spec["width"], height=spec["height"], samples=spec["samples"]
+    )
+    scene.cycles.filter_width = 0.01
+    sun = blender_scenes.add_sun(scene, (-0.4, 0.3, -1.0), strength=2.0, enabled=False)
+    light = sun.data
+    light.color, light.exposure, light.angle = (1.0, 0.85, 0.7), 0.5, math.radians(3.0)
+    light.use_temperature, light.temperature = True, 5000.0
+    settings = light.crepuscular
+    settings.method, settings.steps, settings.shadow_map_size = "reference", 2048, 2048
+    settings.edge_samples, settings.max_distance = 1, 80.0
+    fog = np.diag([5.0, 4.0, 3.0, 1.0])
+    fog[:3, :3] = np.array(Matrix.Rotation(0.3, 3, "Z")) @ fog[:3, :3]
+    fog[:3, 3] = [0.0, 0.0, 3.0]
+    material = blender_scenes.volume_material(
+        "principled",
+        Color=(0.7, 0.7, 0.7, 1.0),
+        Density=0.3,
+        Anisotropy=0.45,
+        **{"Absorption Color": (0.3, 0.3, 0.3, 1.0)},
+    )
+    blender_scenes.add_fog_box(scene, fog, material)
+    black = blender_scenes.black_material(0.0)
+    blender_scenes.add_quad(
+        scene, "ground", [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)], black
+    )
+    for index, x in enumerate((-4.0, -1.5, 1.0, 3.5)):
+        slat = [(x, -5, 7), (x + 1.4, -5, 7), (x + 1.4, 5, 7), (x, 5, 7)]
+        blender_scenes.add_quad(scene, f"slat_{index}", slat, black)
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(1.5, -1.0, 2.5), scale=(0.5, 0.5, 5.0))
+    bpy.context.active_object.data.materials.append(black)
+    views = {
+        "orthographic": blender_scenes.look_at((-14, -12, 9), (0, 0, 2.5)),
+        "inside": blender_scenes.look_at((-3.5, -2.0, 1.2), (3, 2, 3.5)),
+    }
+    for name, matrix in views.items():
+        camera = blender_scenes.add_camera(scene, matrix, lens=24.0)
+        if name == "orthographic":
+            camera.data.type, camera.data.ortho_scale = "ORTHO", 11.0
+            camera.data.sensor_fit = "VERTICAL"
+            camera.data.shift_x, camera.data.shift_y = 0.1, -0.05
+        else:
+            camera.data.shift_y = 0.08
+        light.crepuscular.enabled = False
+        _render(scene, out / f"cycles_{name}.exr")
+        light.crepuscular.enabled = True
+        for method in ("reference", settings.bl_rna.properties["method"].default):
+            settings.method = method
+            path = str(out / f"{name}_{method}.exr")
+            assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
+        settings.method = "reference"
 
 
 def shaft_scene(spec: dict[str, Any]) -> Any:
@@ -290,6 +351,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
 
 JOBS = {
     "fidelity": job_fidelity,
+    "mapped_fidelity": job_mapped_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,
