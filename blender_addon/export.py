@@ -18,6 +18,8 @@ from typing import Any
 import bpy
 import numpy as np
 
+import crepuscular
+
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
 GEOMETRY_TYPES = {"MESH", "META"}
@@ -539,6 +541,11 @@ def frame_inputs(
         hole_objects=geometry.hole_ids,
         name=f"bpy.data.lights['{evaluated.data.original.name}']",
     )
+    if evaluated.data.angle > crepuscular.SUN_DISC_AS_POINT:
+        notes.append(
+            f"the {math.degrees(evaluated.data.angle):.1f}° disc of '{sun.name}' is not used: "
+            "shafts keep hard edges where Cycles softens its shadows"
+        )
     if "holes" in style and not style["holes"]["objects"]:
         notes.append(
             f"hole creation is on for '{sun.name}', but no rendered object has Takes Holes "

@@ -149,6 +149,19 @@ def test_hole_creation_that_reaches_no_mesh_warns(stage_path: Path, tmp_path: Pa
             assert f"crepuscular-usd: warning: hole creation is on, but {warning}" in err, err
 
 
+def test_a_sun_disc_wider_than_the_sun_s_warns(stage_path: Path, tmp_path: Path) -> None:
+    status, err = run(*render_args(stage_path, tmp_path / "out", "-f", "1"))
+    assert status == 0, err
+    assert "disc" not in err, err
+    stage = Usd.Stage.Open(str(stage_path))
+    assert UsdLux.DistantLight(stage.GetPrimAtPath("/World/Sun")).GetAngleAttr().Set(4.0)
+    assert stage.GetRootLayer().Save()
+    status, err = run(*render_args(stage_path, tmp_path / "out", "-f", "1"))
+    assert status == 0, err
+    warning = "crepuscular-usd: warning: the 4.0° disc of /World/Sun is not used"
+    assert warning in err, err
+
+
 def test_beauty_composite_uses_the_beauty_depth(stage_path: Path, tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     height, width = 36, 64

@@ -5,6 +5,7 @@ operator, bad input, and the viewport preview's update logic."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -742,6 +743,18 @@ def test_hole_creation_without_objects_that_take_holes_says_so(addon: ModuleType
     inputs = addon.export.frame_inputs(scene, depsgraph)
     assert not [n for n in inputs.notes if "holes" in n]
     assert inputs.kwargs["style"]["holes"]["objects"]
+
+
+def test_a_sun_disc_wider_than_the_sun_s_says_it_is_not_used(addon: ModuleType) -> None:
+    scene = _basic_scene()
+    sun = scene.objects["Sun"]
+    sun.data.angle = bpy.types.SunLight.bl_rna.properties["angle"].default
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert not [n for n in addon.export.frame_inputs(scene, depsgraph).notes if "disc" in n]
+    sun.data.angle = math.radians(4.0)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    (note,) = [n for n in addon.export.frame_inputs(scene, depsgraph).notes if "disc" in n]
+    assert note.startswith("the 4.0° disc of 'Sun' is not used")
 
 
 def test_layer_files_take_the_scenes_exr_codec(addon: ModuleType, tmp_path: Path) -> None:

@@ -14,6 +14,7 @@ fails. Every error is one line on stderr that names what is wrong.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -299,6 +300,13 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
                     count = sum(skipped.values()) + len(invalid)
                     _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
+                disc = frame.sun["angular_diameter"]
+                if disc > crepuscular.SUN_DISC_AS_POINT:
+                    _warn(
+                        err,
+                        f"the {math.degrees(disc):.1f}° disc of {reader.light_prim.GetPath()} "
+                        "is not used: shafts keep hard edges",
+                    )
                 holes = frame.style.get("holes")
                 if holes is not None and not holes["objects"]:
                     roots = ", ".join(str(p) for p in frame.light_settings.holes_roots)

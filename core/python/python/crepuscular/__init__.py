@@ -16,6 +16,7 @@ them in place.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ __all__ = [
     "EXR_COMPRESSIONS",
     "SCENE_VERSION",
     "STYLE_VERSION",
+    "SUN_DISC_AS_POINT",
     "CancelledError",
     "CrepuscularError",
     "DepthKind",
@@ -64,6 +66,11 @@ SCENE_VERSION: int = _core.SCENE_VERSION
 
 #: The style-preset version this build reads and writes.
 STYLE_VERSION: int = _core.STYLE_VERSION
+
+#: The widest sun disc (angular diameter, radians) that hosts pass without a note: a little
+#: over the real sun's 0.53°. `sun.angular_diameter` is not used yet: shafts keep hard
+#: edges, where a path tracer's shadows soften under a wider disc.
+SUN_DISC_AS_POINT: float = math.radians(0.6)
 
 #: A scene description: a mapping, JSON text (starting with "{") or a path to a .json file.
 SceneLike: TypeAlias = Mapping[str, Any] | str | os.PathLike[str]
