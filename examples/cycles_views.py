@@ -11,7 +11,9 @@ bounces, so that its image is the single-scattered light alone; the extension re
 layers with `reference`, `minmax` and the default method. Printed per case: Cycles' mean
 and its noise (half the two renders' difference), then per method its mean over Cycles'
 and its error, the mean absolute difference of 4x4-pixel block means over Cycles' mean
-(blocks, so that Cycles' noise stays well under it).
+(blocks, so that Cycles' noise stays well under it). Each case's folder keeps the renders
+and the reference's inputs as `scene.json`, for `crepuscular render --scene` without
+Blender.
 
     .venv/bin/python examples/cycles_views.py --seed 3 --cases 30
 
@@ -26,6 +28,7 @@ crepuscular's shafts have hard edges.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import random
@@ -167,8 +170,41 @@ def block_means(image: np.ndarray, side: int = 4) -> np.ndarray:
     return blocks.mean(axis=(1, 3))
 
 
+def scene_description(inputs: dict) -> dict:
+    """The extension's frame inputs (`export.frame_inputs(...).kwargs`) as a scene
+    description for `crepuscular render --scene`: a mesh per object id, placed at the
+    inputs' origin."""
+    world_from_object = np.eye(4)
+    world_from_object[:3, 3] = inputs["origin"]
+    meshes = []
+    for object_id in np.unique(inputs["object_ids"]):
+        rows = inputs["triangles"][inputs["object_ids"] == object_id]
+        used, triangles = np.unique(rows, return_inverse=True)
+        meshes.append(
+            {
+                "name": f"object {object_id}",
+                "object_id": int(object_id),
+                "world_from_object": world_from_object.T.flatten().tolist(),
+                "positions": inputs["positions"][used].tolist(),
+                "triangles": triangles.reshape(-1, 3).tolist(),
+            }
+        )
+    description = {
+        "version": crepuscular.SCENE_VERSION,
+        "camera": inputs["camera"],
+        "sun": inputs["sun"],
+        "medium": inputs["medium"],
+        "render": inputs["settings"],
+        "meshes": meshes,
+    }
+    if inputs["style"]:
+        description["style"] = inputs["style"]
+    return description
+
+
 def render_case(scene: bpy.types.Scene, sun: bpy.types.Object, out: Path) -> dict[str, Path]:
-    """Cycles twice (seeds 1 and 2), then the layers of each of `METHODS`."""
+    """Cycles twice (seeds 1 and 2), then the layers of each of `METHODS`, and the
+    reference's inputs as `scene.json`."""
     paths = {}
     for seed in (1, 2):
         scene.cycles.seed = seed
@@ -184,6 +220,11 @@ def render_case(scene: bpy.types.Scene, sun: bpy.types.Object, out: Path) -> dic
         result = bpy.ops.crepuscular.render_layers(filepath=str(paths[method]))
         if result != {"FINISHED"}:
             raise RuntimeError(f"render_layers with '{settings.method}' returned {result}")
+    settings.method = "reference"
+    export = sys.modules[blender_scenes.ADDON_MODULE].export
+    inputs = export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).kwargs
+    paths["scene"] = out / "scene.json"
+    paths["scene"].write_text(json.dumps(scene_description(inputs)))
     return paths
 
 
@@ -237,8 +278,7 @@ def main() -> int:
             flush=True,
         )
     print(f"{flagged} of {args.cases - black} cases above {args.flag}% ({black} black)")
-    if args.out is None:
-        print(f"renders in {out_root}")
+    print(f"renders and each case's scene.json (for `crepuscular render --scene`) in {out_root}")
     return 0
 
 
