@@ -541,9 +541,11 @@ def frame_inputs(
         hole_objects=geometry.hole_ids,
         name=f"bpy.data.lights['{evaluated.data.original.name}']",
     )
-    if evaluated.data.angle > crepuscular.SUN_DISC_AS_POINT:
+    sun_desc = sun_dict(evaluated)
+    disc = sun_desc["angular_diameter"]
+    if disc > crepuscular.SUN_DISC_AS_POINT:
         notes.append(
-            f"the {math.degrees(evaluated.data.angle):.1f}° disc of '{sun.name}' is not used: "
+            f"the {math.degrees(disc):.1f}° disc of '{sun.name}' is not used: "
             "shafts keep hard edges where Cycles softens its shadows"
         )
     if "holes" in style and not style["holes"]["objects"]:
@@ -556,7 +558,7 @@ def frame_inputs(
         "triangles": geometry.triangles,
         "object_ids": geometry.object_ids,
         "camera": camera,
-        "sun": sun_dict(evaluated),
+        "sun": sun_desc,
         "medium": medium,
         "settings": settings_dict(settings, preview=preview),
         "style": style,
