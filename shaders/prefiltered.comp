@@ -26,6 +26,10 @@ const float LOOKUP_DEPTH = 1.0;
 const float ALONG_THE_LIGHT_SIN = 0.15;
 // core/src/prefiltered.rs: EXACT_END_WIDTH, MAX_EXACT_END_SAMPLES, SAMPLES_PER_ROW.
 const float EXACT_END_WIDTH = 0.35;
+// core/src/prefiltered.rs: BLUR_WIDTH (EXACT_END_WIDTH / 16) in coefficient-table rows, and
+// BLURRED_SHARE_LIMIT.
+const uint BLUR_ROWS = 179u;
+const float BLURRED_SHARE_LIMIT = 0.1;
 const uint MAX_EXACT_END_SAMPLES = 64u;
 const float SAMPLES_PER_ROW = 2.0;
 
@@ -332,9 +336,13 @@ const uint AVERAGE_OFF_THE_MAP = 1u;  // taken as lit
 const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
 
 // The weighted average visibility between boundary positions x0 < x1 from the filtered
-// basis alone (Prefiltered::look_up).
-uint look_up(vec4 located, float key, float x0, float x1, out float visibility) {
+// basis alone (Prefiltered::look_up); with `measure_blur`, also the share of its weight
+// within BLUR_ROWS of the ray's key: how much the visibility changes from the coefficients
+// that far below to those as far above (Tables::blur).
+uint look_up(vec4 located, float key, float x0, float x1, bool measure_blur,
+             out float visibility, out float blurred) {
     visibility = 0.0;
+    blurred = 0.0;
     float log2_rate = log2(located.z);
     uint lower_slice, upper_slice;
     float slice_fraction;
@@ -401,7 +409,13 @@ uint look_up(vec4 located, float key, float x0, float x1, out float visibility) 
             }
             shares += share * band_share;
             float z = warp(band_index, key);
-            dot_ += blend_dot(rows, factors, uint(z * TABLE_STEPS + 0.5));
+            uint entry = uint(z * TABLE_STEPS + 0.5);
+            dot_ += blend_dot(rows, factors, entry);
+            if (measure_blur) {
+                uint above = min(entry + BLUR_ROWS, uint(TABLE_STEPS));
+                uint below = entry > BLUR_ROWS ? entry - BLUR_ROWS : 0u;
+                blurred += blend_dot(rows, factors, above) - blend_dot(rows, factors, below);
+            }
         }
         visibility += clamp(0.5 * shares + dot_, 0.0, shares);
     }
@@ -410,13 +424,15 @@ uint look_up(vec4 located, float key, float x0, float x1, out float visibility) 
 
 // Weighted average visibility between boundary positions x0 < x1: exact where the ray is
 // lit or shadowed all along, else looked up, and marched where the lookup reads darker
-// than the series resolves (Prefiltered::average).
+// than the series resolves or is decided by its blur (Prefiltered::average).
 uint average(vec4 located, float key, float x0, float x1, out float visibility) {
     if (uniform_visibility(located, x0, x1, visibility)) {
         return AVERAGE_VISIBILITY;
     }
-    uint outcome = look_up(located, key, x0, x1, visibility);
-    if (outcome == AVERAGE_VISIBILITY && visibility < q.dark_lookup_limit) {
+    float blurred;
+    uint outcome = look_up(located, key, x0, x1, true, visibility, blurred);
+    if (outcome == AVERAGE_VISIBILITY
+        && (blurred > BLURRED_SHARE_LIMIT || visibility < q.dark_lookup_limit)) {
         return AVERAGE_IMPRECISE;
     }
     return outcome;
@@ -661,8 +677,18 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     // A ray lit or shadowed all along is exact; pieces are not tested one by one
     // (Prefiltered::average_pieces).
     float whole;
-    bool uniform_ = uniform_visibility(located, sample_coordinate(located.y + located.z * from),
-                                       sample_coordinate(located.y + located.z * last_end), whole);
+    float x_from = sample_coordinate(located.y + located.z * from);
+    float x_last = sample_coordinate(located.y + located.z * last_end);
+    bool uniform_ = uniform_visibility(located, x_from, x_last, whole);
+    // A stretch decided by its blur is marched, as a whole (Prefiltered::average_pieces).
+    if (!uniform_) {
+        float unused, blurred;
+        if (look_up(located, key, x_from, x_last, true, unused, blurred) == AVERAGE_VISIBILITY
+            && blurred > BLURRED_SHARE_LIMIT) {
+            ok = false;
+            return vec3(0.0);
+        }
+    }
     float scattering = 0.0;
     float unshadowed = 0.0;
     // The looked-up pieces' light; `scattering` is what of it they let through until the
@@ -680,7 +706,9 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         float x0 = sample_coordinate(located.y + located.z * (k == 0u ? from : t0));
         float x1 = sample_coordinate(located.y + located.z * until);
         float v = whole;
-        uint outcome = uniform_ ? AVERAGE_VISIBILITY : look_up(located, key, x0, x1, v);
+        float unused;
+        uint outcome = uniform_ ? AVERAGE_VISIBILITY
+                                : look_up(located, key, x0, x1, false, v, unused);
         if (outcome == AVERAGE_IMPRECISE) {
             ok = false;
             return vec3(0.0);

@@ -11,7 +11,9 @@ mod common;
 
 use std::sync::Arc;
 
-use common::{camera_inside_a_fog_box, radiance_error, small_fog_box_far_off};
+use common::{
+    camera_inside_a_fog_box, dilated_roof_in_a_thin_box, radiance_error, small_fog_box_far_off,
+};
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
@@ -962,6 +964,36 @@ fn a_nearly_dark_frame_walks_on_as_on_the_cpu() {
         "GPU {gpu_off}, CPU {cpu_off}"
     );
     check_layers("nearly dark frame", &gpu, &cpu, 0.05, 0.05);
+}
+
+/// `plane`'s roof dilated along the view rays in a thin fog box
+/// (`common::dilated_roof_in_a_thin_box`): rays passing just by a slat are decided by the
+/// series' blur all along its extrusion, and the GPU declines and walks them as the CPU
+/// does. Without that, its frame read 8% dark against the reference.
+#[test]
+fn rays_decided_by_the_blur_are_walked_as_on_the_cpu() {
+    let Some(device) = device("the blurred lookups' parity test") else {
+        return;
+    };
+    let mut scene = builtin_scene("plane").unwrap();
+    (scene.camera.width, scene.camera.height) = (384, 216);
+    dilated_roof_in_a_thin_box(&mut scene);
+    let (gpu, cpu, _) = render_both(&device, &scene);
+    scene.render.method = Method::Reference;
+    scene.render.steps = 4096;
+    let geometry = FlatGeometry::from_scene(&scene);
+    let frame = Frame::of_scene(&scene, &geometry);
+    let (reference, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
+    let (gpu_off, cpu_off) = (
+        radiance_error(&gpu, &reference),
+        radiance_error(&cpu, &reference),
+    );
+    println!("blurred lookups against the reference: GPU {gpu_off:.4}, CPU {cpu_off:.4}");
+    assert!(
+        gpu_off < 0.01 && cpu_off < 0.01,
+        "GPU {gpu_off}, CPU {cpu_off}"
+    );
+    check_layers("blurred lookups", &gpu, &cpu, 0.05, 0.05);
 }
 
 /// Prefiltered evaluation across layouts and storage: a `box` medium, forced epipolar and

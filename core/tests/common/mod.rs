@@ -2,8 +2,11 @@
 #![allow(dead_code)]
 
 use crepuscular::scene::{
-    Camera, Extent, Medium, Mesh, Method, PhaseModel, RenderSettings, Scene, Sun, SCENE_VERSION,
+    Camera, Extent, Medium, Mesh, Method, PhaseModel, Projection, RenderSettings, Scene, Sun,
+    SCENE_VERSION,
 };
+use crepuscular::silhouette::SilhouetteOp;
+use crepuscular::style::Silhouette;
 use crepuscular::{Layers, Style};
 use glam::{Mat4, Vec3};
 
@@ -110,5 +113,48 @@ pub fn camera_inside_a_fog_box(plane: &mut Scene) {
     plane.medium.extent = Extent::Box {
         world_from_cube: Mat4::from_translation(Vec3::new(0.0, 5.0, 2.5))
             * Mat4::from_scale(Vec3::new(10.0, 25.0, 2.5)),
+    };
+}
+
+/// `plane` (any size) under its roof, the slots narrowed by a silhouette dilation of 0.3,
+/// in a box of thin fog (0.01 /m) seen through an orthographic camera looking up at it
+/// (fuzzed): the dilation extrudes the slats along the view rays, so rays passing just by
+/// one stay within a texel's depth of its extrusion for the rest of their way through the
+/// box.
+pub fn dilated_roof_in_a_thin_box(plane: &mut Scene) {
+    plane.camera.world_from_camera = Mat4::from_cols_array(&[
+        0.465_467_8,
+        -0.885_064_8,
+        0.0,
+        0.0,
+        -0.644_266_4,
+        -0.338_828_6,
+        0.685_650_04,
+        0.0,
+        -0.606_844_7,
+        -0.319_148,
+        -0.727_931_3,
+        0.0,
+        0.296_318_14,
+        0.866_831_6,
+        6.698_793_6,
+        1.0,
+    ]);
+    plane.camera.projection = Projection::orthographic(14.520_387);
+    plane.sun.direction = Vec3::new(-0.290_757_3, -0.571_725_3, -0.767_196_4);
+    plane.medium.extinction = 0.01;
+    plane.medium.anisotropy = -0.201_797_83;
+    plane.medium.extent = Extent::Box {
+        world_from_cube: Mat4::from_translation(Vec3::new(4.383_855, 0.348_009, 1.903_674))
+            * Mat4::from_scale(Vec3::new(3.412_813, 10.885_553, 4.293_938)),
+    };
+    plane.render.max_distance = 30.0;
+    plane.style = Style {
+        silhouette: Some(Silhouette {
+            operation: SilhouetteOp::Dilate,
+            length: 0.3,
+            ..Silhouette::default()
+        }),
+        ..Style::default()
     };
 }
