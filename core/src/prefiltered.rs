@@ -2947,22 +2947,33 @@ mod tests {
         }
     }
 
+    /// The row at `z_ray` of the table `of` picks, for `frequencies`, dotted with the basis
+    /// row at `z_texel`, as a lookup's kernel dots them.
+    fn table_dot(
+        frequencies: usize,
+        of: impl Fn(&Tables) -> &Vec<f32>,
+        z_ray: f64,
+        z_texel: f64,
+    ) -> f64 {
+        let tables = Tables::get(frequencies);
+        let row = padded(2 * frequencies);
+        let at = |table: &[f32], z: f64| table[Tables::index(z) * row..][..row].to_vec();
+        let (ray, texel) = (at(of(tables), z_ray), at(&tables.basis, z_texel));
+        let read = BandRead {
+            rows: [(0, 1.0); 4],
+            count: 1,
+            coefficients: &ray,
+        };
+        Kernels::Portable.blend_dots(&texel, &[read]) as f64
+    }
+
     /// ½ + coefficients(z_ray) · basis(z_texel) is a step: 1 where the ray's key exceeds
     /// the texel's, 0 below, ½ at the jump, within the ringing of a truncated series.
     #[test]
     fn the_tables_reconstruct_the_visibility_step() {
         let frequencies = 32;
-        let tables = Tables::new(frequencies);
-        let row = padded(2 * frequencies);
         let visibility = |z_ray: f64, z_texel: f64| {
-            let at = |table: &[f32], z: f64| table[Tables::index(z) * row..][..row].to_vec();
-            let (c, b) = (at(&tables.coefficients, z_ray), at(&tables.basis, z_texel));
-            let read = BandRead {
-                rows: [(0, 1.0); 4],
-                count: 1,
-                coefficients: &c,
-            };
-            0.5 + Kernels::Portable.blend_dots(&b, &[read]) as f64
+            0.5 + table_dot(frequencies, |tables| &tables.coefficients, z_ray, z_texel)
         };
         for &(z_ray, z_texel, expected) in &[
             (0.6, 0.3, 1.0),
@@ -2986,16 +2997,7 @@ mod tests {
     #[test]
     fn the_blur_table_finds_texels_about_the_ray_s_key() {
         let blurred = |frequencies: usize, z_ray: f64, z_texel: f64| {
-            let tables = Tables::get(frequencies);
-            let row = padded(2 * frequencies);
-            let at = |table: &[f32], z: f64| table[Tables::index(z) * row..][..row].to_vec();
-            let (blur, basis) = (at(&tables.blur, z_ray), at(&tables.basis, z_texel));
-            let read = BandRead {
-                rows: [(0, 1.0); 4],
-                count: 1,
-                coefficients: &blur,
-            };
-            Kernels::Portable.blend_dots(&basis, &[read]) as f64
+            table_dot(frequencies, |tables| &tables.blur, z_ray, z_texel)
         };
         for z in [0.2, 0.5, 0.8] {
             let at_key = blurred(16, z, z);

@@ -948,7 +948,18 @@ fn a_nearly_dark_frame_walks_on_as_on_the_cpu() {
     scene.camera.width = 192;
     scene.camera.height = 108;
     scene.render.adaptive_tolerance = 0.0;
-    let (gpu, cpu, _) = render_both(&device, &scene);
+    check_both_against_the_reference(&device, scene, "nearly dark frame", 0.03);
+}
+
+/// `scene` on the GPU and the CPU, each within `bound` of the reference at 4096 steps
+/// ([`radiance_error`]) and both within the usual bounds of each other.
+fn check_both_against_the_reference(
+    device: &Arc<Device>,
+    mut scene: Scene,
+    label: &str,
+    bound: f64,
+) {
+    let (gpu, cpu, _) = render_both(device, &scene);
     scene.render.method = Method::Reference;
     scene.render.steps = 4096;
     let geometry = FlatGeometry::from_scene(&scene);
@@ -958,12 +969,12 @@ fn a_nearly_dark_frame_walks_on_as_on_the_cpu() {
         radiance_error(&gpu, &reference),
         radiance_error(&cpu, &reference),
     );
-    println!("nearly dark frame against the reference: GPU {gpu_off:.4}, CPU {cpu_off:.4}");
+    println!("{label} against the reference: GPU {gpu_off:.4}, CPU {cpu_off:.4}");
     assert!(
-        gpu_off < 0.03 && cpu_off < 0.03,
-        "GPU {gpu_off}, CPU {cpu_off}"
+        gpu_off < bound && cpu_off < bound,
+        "{label}: GPU {gpu_off}, CPU {cpu_off}"
     );
-    check_layers("nearly dark frame", &gpu, &cpu, 0.05, 0.05);
+    check_layers(label, &gpu, &cpu, 0.05, 0.05);
 }
 
 /// `plane`'s roof dilated along the view rays in a thin fog box
@@ -978,22 +989,7 @@ fn rays_decided_by_the_blur_are_walked_as_on_the_cpu() {
     let mut scene = builtin_scene("plane").unwrap();
     (scene.camera.width, scene.camera.height) = (384, 216);
     dilated_roof_in_a_thin_box(&mut scene);
-    let (gpu, cpu, _) = render_both(&device, &scene);
-    scene.render.method = Method::Reference;
-    scene.render.steps = 4096;
-    let geometry = FlatGeometry::from_scene(&scene);
-    let frame = Frame::of_scene(&scene, &geometry);
-    let (reference, _) = render_timed_cpu(&frame, &RenderControl::new()).unwrap();
-    let (gpu_off, cpu_off) = (
-        radiance_error(&gpu, &reference),
-        radiance_error(&cpu, &reference),
-    );
-    println!("blurred lookups against the reference: GPU {gpu_off:.4}, CPU {cpu_off:.4}");
-    assert!(
-        gpu_off < 0.01 && cpu_off < 0.01,
-        "GPU {gpu_off}, CPU {cpu_off}"
-    );
-    check_layers("blurred lookups", &gpu, &cpu, 0.05, 0.05);
+    check_both_against_the_reference(&device, scene, "blurred lookups", 0.01);
 }
 
 /// Prefiltered evaluation across layouts and storage: a `box` medium, forced epipolar and
