@@ -134,6 +134,24 @@ impl Kernels {
         }
     }
 
+    /// [`Kernels::blend_dots`] of `reads`, and of the same reads with `others[i]` in place of
+    /// read i's coefficients (one per read), each read's rows blended once for both: the
+    /// first bit for bit what `blend_dots` gives.
+    #[inline]
+    pub fn blend_dots_twice<T: BasisValue>(
+        self,
+        stored: &[T],
+        reads: &[BandRead<'_>],
+        others: &[&[f32]],
+    ) -> [f32; 2] {
+        match self {
+            Kernels::Portable => blend_dots_twice(stored, reads, others),
+            // SAFETY: as in `blend_dots`.
+            #[cfg(target_arch = "x86_64")]
+            Kernels::Avx2Fma => unsafe { blend_dots_twice_avx2(stored, reads, others) },
+        }
+    }
+
     /// For each of `boundaries` (a row and the factors of it and the next), those two
     /// rows blended and dotted with `coefficients`, into `out` (as many as both hold):
     /// bit for bit [`Kernels::blend_dots`] of each as a read of its own, in one call for
@@ -255,6 +273,29 @@ fn blend_dots_fixed<T: BasisValue, const STRIDE: usize>(
     total.iter().sum()
 }
 
+/// [`Kernels::blend_dots_twice`] as two calls of [`blend_dots`]: the second read by read,
+/// as no kernel holds two reads' other rows at once.
+fn blend_dots_twice<T: BasisValue>(
+    stored: &[T],
+    reads: &[BandRead<'_>],
+    others: &[&[f32]],
+) -> [f32; 2] {
+    let second = reads
+        .iter()
+        .zip(others)
+        .map(|(read, &coefficients)| {
+            blend_dots(
+                stored,
+                &[BandRead {
+                    coefficients,
+                    ..*read
+                }],
+            )
+        })
+        .sum();
+    [blend_dots(stored, reads), second]
+}
+
 #[inline(always)]
 fn blend_dots_any<T: BasisValue>(stored: &[T], reads: &[BandRead<'_>]) -> f32 {
     let mut total = [0.0f32; LANES];
@@ -299,6 +340,76 @@ unsafe fn blend_dots_avx2<T: BasisValue>(stored: &[T], reads: &[BandRead<'_>]) -
         64 => blend_dots_fixed_avx2::<T, 64, 8>(stored, reads),
         _ => blend_dots_any(stored, reads),
     }
+}
+
+/// [`Kernels::blend_dots_twice`] in AVX2 + FMA, dispatched on the stride as
+/// [`blend_dots_avx2`] is.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn blend_dots_twice_avx2<T: BasisValue>(
+    stored: &[T],
+    reads: &[BandRead<'_>],
+    others: &[&[f32]],
+) -> [f32; 2] {
+    match reads.first().map_or(0, |read| read.coefficients.len()) {
+        8 => blend_dots_twice_fixed_avx2::<T, 8, 1>(stored, reads, others),
+        16 => blend_dots_twice_fixed_avx2::<T, 16, 2>(stored, reads, others),
+        24 => blend_dots_twice_fixed_avx2::<T, 24, 3>(stored, reads, others),
+        32 => blend_dots_twice_fixed_avx2::<T, 32, 4>(stored, reads, others),
+        40 => blend_dots_twice_fixed_avx2::<T, 40, 5>(stored, reads, others),
+        48 => blend_dots_twice_fixed_avx2::<T, 48, 6>(stored, reads, others),
+        56 => blend_dots_twice_fixed_avx2::<T, 56, 7>(stored, reads, others),
+        64 => blend_dots_twice_fixed_avx2::<T, 64, 8>(stored, reads, others),
+        _ => blend_dots_twice(stored, reads, others),
+    }
+}
+
+/// [`blend_dots_twice_avx2`] with `STRIDE` = 8·`VECTORS` values per row: each read's rows
+/// blended once, as [`blend_dots_fixed_avx2`] blends them, and dotted into two sets of
+/// accumulators, the first operation for operation as there.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn blend_dots_twice_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTORS: usize>(
+    stored: &[T],
+    reads: &[BandRead<'_>],
+    others: &[&[f32]],
+) -> [f32; 2] {
+    use std::arch::x86_64::*;
+    const { assert!(STRIDE == VECTORS * LANES) };
+    let mut totals = [[_mm256_setzero_ps(); VECTORS]; 2];
+    if others.len() < reads.len() {
+        return blend_dots_twice(stored, reads, others);
+    }
+    for (read, &other) in reads.iter().zip(others) {
+        let (Ok(first), Ok(second)) = (
+            <&[f32; STRIDE]>::try_from(read.coefficients),
+            <&[f32; STRIDE]>::try_from(other),
+        ) else {
+            return blend_dots_twice(stored, reads, others);
+        };
+        let Some(blended) = blended_avx2::<T, STRIDE, VECTORS>(stored, read) else {
+            return blend_dots_twice(stored, reads, others);
+        };
+        for (totals, coefficients) in totals.iter_mut().zip([first, second]) {
+            for ((total, blended), coefficients) in totals
+                .iter_mut()
+                .zip(blended)
+                .zip(coefficients.chunks_exact(LANES))
+            {
+                // The chunk holds exactly LANES values, all that the unaligned load reads.
+                let coefficients = _mm256_loadu_ps(coefficients.as_ptr());
+                *total = _mm256_fmadd_ps(blended, coefficients, *total);
+            }
+        }
+    }
+    totals.map(|totals| {
+        let mut sum = _mm256_setzero_ps();
+        for total in totals {
+            sum = _mm256_add_ps(sum, total);
+        }
+        horizontal_sum(sum)
+    })
 }
 
 /// [`Kernels::boundary_dots`] in AVX2 + FMA, dispatched on the stride as
@@ -405,17 +516,9 @@ unsafe fn blend_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTOR
         let Ok(coefficients) = <&[f32; STRIDE]>::try_from(read.coefficients) else {
             return blend_dots_any(stored, reads);
         };
-        let mut blended = [_mm256_setzero_ps(); VECTORS];
-        for &(index, factor) in &read.rows[..read.count] {
-            let Some(values) = stored[index as usize * STRIDE..].first_chunk::<STRIDE>() else {
-                return blend_dots_any(stored, reads);
-            };
-            let factor = _mm256_set1_ps(factor * T::SCALE);
-            for (blended, lanes) in blended.iter_mut().zip(values.chunks_exact(LANES)) {
-                let lanes = T::load_lanes(lanes.try_into().unwrap_or(&[T::default(); LANES]));
-                *blended = _mm256_fmadd_ps(factor, lanes, *blended);
-            }
-        }
+        let Some(blended) = blended_avx2::<T, STRIDE, VECTORS>(stored, read) else {
+            return blend_dots_any(stored, reads);
+        };
         for ((total, blended), coefficients) in totals
             .iter_mut()
             .zip(blended)
@@ -431,6 +534,28 @@ unsafe fn blend_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTOR
         sum = _mm256_add_ps(sum, total);
     }
     horizontal_sum(sum)
+}
+
+/// `read`'s rows of `stored` blended by their factors, in `VECTORS` registers; `None`
+/// where a row lies past the end of `stored`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn blended_avx2<T: BasisValue, const STRIDE: usize, const VECTORS: usize>(
+    stored: &[T],
+    read: &BandRead<'_>,
+) -> Option<[std::arch::x86_64::__m256; VECTORS]> {
+    use std::arch::x86_64::*;
+    let mut blended = [_mm256_setzero_ps(); VECTORS];
+    for &(index, factor) in &read.rows[..read.count] {
+        let values = stored[index as usize * STRIDE..].first_chunk::<STRIDE>()?;
+        let factor = _mm256_set1_ps(factor * T::SCALE);
+        for (blended, lanes) in blended.iter_mut().zip(values.chunks_exact(LANES)) {
+            let lanes = T::load_lanes(lanes.try_into().unwrap_or(&[T::default(); LANES]));
+            *blended = _mm256_fmadd_ps(factor, lanes, *blended);
+        }
+    }
+    Some(blended)
 }
 
 /// The sum of `sum`'s eight lanes, halves first: the one order both dot kernels use, so
@@ -764,6 +889,72 @@ mod tests {
                 blend_dots_any(&stored, &reads).to_bits(),
                 "stride {stride}"
             );
+        }
+    }
+
+    #[test]
+    fn dotting_twice_gives_each_dot_of_its_own() {
+        // Every padded stride of M = 4…64, and one (20) that no fixed kernel takes.
+        let strides = (4..=64).step_by(6).map(padded).chain([20]);
+        for stride in strides {
+            let rows = 6;
+            let stored: Vec<f32> = (0..rows * stride)
+                .map(|i| ((i * 41 % 29) as f32 - 14.0) / 14.0)
+                .collect();
+            let snorm: Vec<i16> = stored.iter().map(|&v| i16::store(v)).collect();
+            let row = |phase: f32| -> Vec<f32> {
+                (0..stride)
+                    .map(|k| (k as f32 * 0.6 + phase).sin())
+                    .collect()
+            };
+            let (first, second, third, fourth) = (row(0.0), row(0.4), row(1.1), row(2.3));
+            let reads = [
+                BandRead {
+                    rows: [(4, 0.5), (1, -1.25), (0, 0.0), (0, 0.0)],
+                    count: 2,
+                    coefficients: &first,
+                },
+                BandRead {
+                    rows: [(2, 0.75), (3, 2.0), (5, -0.5), (1, 0.25)],
+                    count: 4,
+                    coefficients: &second,
+                },
+            ];
+            let others = [&third[..], &fourth[..]];
+            for kernels in all_kernels() {
+                for (stored, snorm) in [(Some(&stored), None), (None, Some(&snorm))] {
+                    let dots = |reads: &[BandRead<'_>]| match (stored, snorm) {
+                        (Some(stored), _) => kernels.blend_dots(stored, reads),
+                        (_, Some(snorm)) => kernels.blend_dots(snorm, reads),
+                        _ => unreachable!(),
+                    };
+                    let [dot, other] = match (stored, snorm) {
+                        (Some(stored), _) => kernels.blend_dots_twice(stored, &reads, &others),
+                        (_, Some(snorm)) => kernels.blend_dots_twice(snorm, &reads, &others),
+                        _ => unreachable!(),
+                    };
+                    // The first as `blend_dots` gives it, bit for bit.
+                    assert_eq!(
+                        dot.to_bits(),
+                        dots(&reads).to_bits(),
+                        "{kernels:?} {stride}"
+                    );
+                    let alone: f32 = reads
+                        .iter()
+                        .zip(others)
+                        .map(|(read, coefficients)| {
+                            dots(&[BandRead {
+                                coefficients,
+                                ..*read
+                            }])
+                        })
+                        .sum();
+                    assert!(
+                        (other - alone).abs() <= 1e-5 * alone.abs().max(1.0),
+                        "{kernels:?}, stride {stride}: {other} against {alone}"
+                    );
+                }
+            }
         }
     }
 
