@@ -338,7 +338,9 @@ const uint AVERAGE_IMPRECISE = 2u;    // the ray is marched instead
 // The weighted average visibility between boundary positions x0 < x1 from the filtered
 // basis alone (Prefiltered::look_up); with `measure_blur`, also the share of its weight
 // within BLUR_ROWS of the ray's key: how much the visibility changes from the coefficients
-// that far below to those as far above (Tables::blur).
+// that far below to those as far above. (The CPU finds that difference from the ray's own
+// coefficient row, Tables::blur_of; the table's rows give the same but for rounding, and
+// within BLUR_ROWS of the table's ends, where they are clamped.)
 uint look_up(vec4 located, float key, float x0, float x1, bool measure_blur,
              out float visibility, out float blurred) {
     visibility = 0.0;
