@@ -1313,7 +1313,7 @@ impl<'a> Prefiltered<'a> {
         let scale: [f64; LANES_PER_RAY] = std::array::from_fn(|lane| parts[lane] / dw[lane]);
         let mut visibility = 0.0;
         // The share of the stretch's weight whose samples lie about the ray's key, within
-        // the window of the blur table.
+        // the window of [`Tables::blur_of`].
         let mut blurred = 0.0;
         for (s, (_, share)) in slices.into_iter().enumerate() {
             if share == 0.0 {
@@ -3015,11 +3015,11 @@ mod tests {
         assert!(visibility(0.5, 0.5 + 1.5 / frequencies as f64) < 0.1);
     }
 
-    /// The blur table, dotted with a texel's basis row, reads about 1 for a texel at the
+    /// A ray's blur row, dotted with a texel's basis row, reads about 1 for a texel at the
     /// ray's own warped key and about 0 for one a few windows away, at the default M; with
     /// fewer bases the step is wider than the window and reads less.
     #[test]
-    fn the_blur_table_finds_texels_about_the_ray_s_key() {
+    fn the_blur_row_finds_texels_about_the_ray_s_key() {
         let blurred = |frequencies: usize, z_ray: f64, z_texel: f64| {
             let blur = |tables: &Tables, coefficients: &[f32]| {
                 let mut row = vec![0.0; coefficients.len()];
