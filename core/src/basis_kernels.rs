@@ -392,24 +392,10 @@ unsafe fn blend_dots_twice_fixed_avx2<T: BasisValue, const STRIDE: usize, const 
             return blend_dots_twice(stored, reads, others);
         };
         for (totals, coefficients) in totals.iter_mut().zip([first, second]) {
-            for ((total, blended), coefficients) in totals
-                .iter_mut()
-                .zip(blended)
-                .zip(coefficients.chunks_exact(LANES))
-            {
-                // The chunk holds exactly LANES values, all that the unaligned load reads.
-                let coefficients = _mm256_loadu_ps(coefficients.as_ptr());
-                *total = _mm256_fmadd_ps(blended, coefficients, *total);
-            }
+            accumulate_dot_avx2(totals, &blended, coefficients);
         }
     }
-    totals.map(|totals| {
-        let mut sum = _mm256_setzero_ps();
-        for total in totals {
-            sum = _mm256_add_ps(sum, total);
-        }
-        horizontal_sum(sum)
-    })
+    totals.map(|totals| total_of_avx2(&totals))
 }
 
 /// [`Kernels::boundary_dots`] in AVX2 + FMA, dispatched on the stride as
@@ -519,18 +505,42 @@ unsafe fn blend_dots_fixed_avx2<T: BasisValue, const STRIDE: usize, const VECTOR
         let Some(blended) = blended_avx2::<T, STRIDE, VECTORS>(stored, read) else {
             return blend_dots_any(stored, reads);
         };
-        for ((total, blended), coefficients) in totals
-            .iter_mut()
-            .zip(blended)
-            .zip(coefficients.chunks_exact(LANES))
-        {
-            // The chunk holds exactly LANES values, all that the unaligned load reads.
-            let coefficients = _mm256_loadu_ps(coefficients.as_ptr());
-            *total = _mm256_fmadd_ps(blended, coefficients, *total);
-        }
+        accumulate_dot_avx2(&mut totals, &blended, coefficients);
     }
+    total_of_avx2(&totals)
+}
+
+/// `totals` += `blended` × `coefficients`, lane by lane, one fused multiply-add a register.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn accumulate_dot_avx2<const STRIDE: usize, const VECTORS: usize>(
+    totals: &mut [std::arch::x86_64::__m256; VECTORS],
+    blended: &[std::arch::x86_64::__m256; VECTORS],
+    coefficients: &[f32; STRIDE],
+) {
+    use std::arch::x86_64::*;
+    for ((total, blended), coefficients) in totals
+        .iter_mut()
+        .zip(blended)
+        .zip(coefficients.chunks_exact(LANES))
+    {
+        // The chunk holds exactly LANES values, all that the unaligned load reads.
+        let coefficients = _mm256_loadu_ps(coefficients.as_ptr());
+        *total = _mm256_fmadd_ps(*blended, coefficients, *total);
+    }
+}
+
+/// The sum of all of `totals`' lanes: the registers in order, then [`horizontal_sum`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn total_of_avx2<const VECTORS: usize>(
+    totals: &[std::arch::x86_64::__m256; VECTORS],
+) -> f32 {
+    use std::arch::x86_64::*;
     let mut sum = _mm256_setzero_ps();
-    for total in totals {
+    for &total in totals {
         sum = _mm256_add_ps(sum, total);
     }
     horizontal_sum(sum)

@@ -555,10 +555,10 @@ impl Tables {
     /// Into `out`, the coefficients [`BLUR_WIDTH`] above the warped key of the row
     /// `coefficients` less those as far below, so that a lookup dotted with it gives how
     /// much its visibility changes across that window about the ray's key
-    /// ([`BLURRED_SHARE_LIMIT`]). Found from the row itself, where it is already in cache
-    /// (with rows read from a table of their own, a second random read per band, lookups
-    /// took 16.7% of a profile of colonnade's frames against 12.8% without the check; so,
-    /// 15.7%): per frequency c, sin(c(z + w)) − sin(c(z − w)) = 2·sin(cw)·cos(cz)
+    /// ([`BLURRED_SHARE_LIMIT`]). Found from the row itself, where it is already in cache:
+    /// in a profile of colonnade's frames, lookups took 12.8% without the check, 15.7% with
+    /// it, and 16.7% with blur rows read from a table of their own (a second random read
+    /// per band). Per frequency c, sin(c(z + w)) − sin(c(z − w)) = 2·sin(cw)·cos(cz)
     /// and cos(c(z + w)) − cos(c(z − w)) = −2·sin(cw)·sin(cz), so each half of the blur row
     /// is the other half of the coefficient row, scaled.
     #[inline]
@@ -1887,10 +1887,11 @@ pub const BLUR_WIDTH: f64 = EXACT_END_WIDTH / 16.0;
 /// changes between the keys that far either side, from the ray's coefficient row and the
 /// same blended rows in the same kernel call ([`Kernels::blend_dots_twice`]). Such
 /// samples are read by the series' smooth step rather than by their order, each up to
-/// half wrong, and where they are a good part of the stretch the step decides the answer: occluders extruded along the view rays (silhouette dilation) keep
-/// rays just past them within a texel's depth of their key all along, and an
-/// orthographic view of `plane` so styled, in a thin fog box, read 8.1% dark (0.16% with
-/// this; min-max 0.41%). On the test views it lowered the error at M = 32 by up to 0.3
+/// half wrong, and where they are a good part of the stretch the step decides the
+/// answer: occluders extruded along the view rays (silhouette dilation) keep rays just
+/// past them within a texel's depth of their key all along, and an orthographic view of
+/// `plane` so styled, in a thin fog box, read 8.1% dark (0.16% with this; min-max
+/// 0.41%). On the test views it lowered the error at M = 32 by up to 0.3
 /// points (`plane` orthographic 0.78% → 0.46%) and declined no ray of the built-in
 /// scenes' default views at 1080p but 964 of `colonnade`'s.
 pub const BLURRED_SHARE_LIMIT: f64 = 0.1;
