@@ -887,15 +887,32 @@ pub(crate) fn shade_pixels(
             if control.is_cancelled() {
                 return;
             }
-            let first_row = band.first_row;
-            let mut pixels = Vec::with_capacity(width * band.rows);
-            for_each_in_tiles(width, band.rows, |x, row| pixels.push((x, first_row + row)));
-            let mut shaded = vec![Pixel::default(); pixels.len()];
-            shade_batch(&pixels, &mut shaded);
-            for (&(x, y), pixel) in pixels.iter().zip(&shaded) {
-                band.set((y - first_row) * width + x, pixel);
-            }
-            control.advance(band.rows as u64);
+            // A tile at a time: a whole band's pixels, rays and results took buffers large
+            // enough to be mapped afresh, and faulting their pages in was 7% of `torus`
+            // shaded every pixel.
+            let (first_row, rows) = (band.first_row, band.rows);
+            let tile_len = SHADING_TILE * rows;
+            let mut pixels = Vec::with_capacity(tile_len);
+            let mut shaded = vec![Pixel::default(); tile_len];
+            let mut flush = |pixels: &mut Vec<(usize, usize)>| {
+                if pixels.is_empty() {
+                    return;
+                }
+                let shaded = &mut shaded[..pixels.len()];
+                shade_batch(pixels, shaded);
+                for (&(x, y), pixel) in pixels.iter().zip(shaded.iter()) {
+                    band.set((y - first_row) * width + x, pixel);
+                }
+                pixels.clear();
+            };
+            for_each_in_tiles(width, rows, |x, row| {
+                pixels.push((x, first_row + row));
+                if pixels.len() == tile_len {
+                    flush(&mut pixels);
+                }
+            });
+            flush(&mut pixels);
+            control.advance(rows as u64);
         });
         (layers, width * height, AdaptivePasses::default())
     };
