@@ -19,7 +19,8 @@ pub struct BenchArgs {
     /// Comma-separated scene names (default: all built-in scenes).
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
-    /// Timed runs per row (after one warm-up run).
+    /// Timed runs per row; the rows take turns, each run after an untimed frame of its
+    /// own row (the reference warms up once).
     #[arg(long, default_value_t = 5)]
     runs: usize,
     /// Instead of the method table, time prefiltering on the first scene across image
@@ -276,27 +277,47 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         overrides.apply(&mut base)?;
         base.render.backend = Backend::Cpu;
         let name = &in_fog_box_if(args.fog_box, &mut base, name);
-        for variant in &variants {
-            let mut scene = base.clone();
-            variant.apply(&mut scene);
-            render_scene_timed(&scene, &RenderControl::new())?;
-            let (mut frame_ms, mut scattering_ms) = (Vec::new(), Vec::new());
-            let mut stages = Vec::new();
-            for _ in 0..runs {
+        let scenes: Vec<Scene> = variants
+            .iter()
+            .map(|variant| {
+                let mut scene = base.clone();
+                variant.apply(&mut scene);
+                scene
+            })
+            .collect();
+        let is_reference =
+            |variant: &Variant| variant.method == Method::Reference && variant.downsample == 1;
+        let mut timed: Vec<Vec<(f64, StageTimes)>> = vec![Vec::with_capacity(runs); scenes.len()];
+        // The rows take turns, run by run, so that a slow minute on a shared machine slows
+        // every row alike rather than one. Each timed frame follows an untimed one of its
+        // own row, so that it finds the kept buffers (see `crepuscular::spare`) sized for
+        // it rather than for the row before; the reference, whose frames take seconds,
+        // warms up once.
+        for run in 0..runs {
+            for ((variant, scene), timed) in variants.iter().zip(&scenes).zip(&mut timed) {
+                if run == 0 || !is_reference(variant) {
+                    render_scene_timed(scene, &RenderControl::new())?;
+                }
                 let started = std::time::Instant::now();
-                let (_, times) = render_scene_timed(&scene, &RenderControl::new())?;
-                frame_ms.push(started.elapsed().as_secs_f64() * 1e3);
-                scattering_ms.push(times.scattering() * 1e3);
-                stages.push(times);
+                let (_, times) = render_scene_timed(scene, &RenderControl::new())?;
+                timed.push((started.elapsed().as_secs_f64() * 1e3, times));
             }
+        }
+        for ((variant, scene), timed) in variants.iter().zip(&scenes).zip(timed) {
+            let mut frame_ms: Vec<f64> = timed.iter().map(|(ms, _)| *ms).collect();
+            let mut scattering_ms: Vec<f64> = timed
+                .iter()
+                .map(|(_, times)| times.scattering() * 1e3)
+                .collect();
+            let mut stages: Vec<StageTimes> = timed.into_iter().map(|(_, times)| times).collect();
             stages.sort_by(|a, b| a.scattering().total_cmp(&b.scattering()));
             let stage = stages[stages.len() / 2];
             frame_ms.sort_by(f64::total_cmp);
             scattering_ms.sort_by(f64::total_cmp);
             let row = Row {
                 scene: name.clone(),
-                label: variant.label(&scene),
-                is_reference: variant.method == Method::Reference && variant.downsample == 1,
+                label: variant.label(scene),
+                is_reference: is_reference(variant),
                 detail: format!(
                     "{}×{} sm {}²",
                     scene.camera.width, scene.camera.height, scene.render.shadow_map_size,
@@ -327,7 +348,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     print_table(&rows);
     println!(
-        "\n{} runs per row after one warm-up; {} threads on {}; reference at {} steps; peak resident memory {}",
+        "\n{} runs per row, the rows taking turns, each after an untimed frame of its own (the reference's after one); {} threads on {}; reference at {} steps; peak resident memory {}",
         runs,
         rayon::current_num_threads(),
         processor(),
