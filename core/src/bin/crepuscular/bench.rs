@@ -20,7 +20,7 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
     /// Timed runs per row; the rows take turns, each run after an untimed frame of its
-    /// own row (the reference warms up once).
+    /// own row (the reference, and a lone row, warm up once).
     #[arg(long, default_value_t = 5)]
     runs: usize,
     /// Instead of the method table, time prefiltering on the first scene across image
@@ -292,10 +292,11 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         // every row alike rather than one. Each timed frame follows an untimed one of its
         // own row, so that it finds the kept buffers (see `crepuscular::spare`) sized for
         // it rather than for the row before; the reference, whose frames take seconds,
-        // warms up once.
+        // and a lone row warm up once.
+        let takes_turns = variants.len() > 1;
         for run in 0..runs {
             for ((variant, scene), timed) in variants.iter().zip(&scenes).zip(&mut timed) {
-                if run == 0 || !is_reference(variant) {
+                if run == 0 || (takes_turns && !is_reference(variant)) {
                     render_scene_timed(scene, &RenderControl::new())?;
                 }
                 let started = std::time::Instant::now();
@@ -347,8 +348,13 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         }
     }
     print_table(&rows);
+    let order = if variants.len() > 1 {
+        "the rows taking turns, each run after an untimed frame of its own row (the reference's after one)"
+    } else {
+        "after one warm-up"
+    };
     println!(
-        "\n{} runs per row, the rows taking turns, each after an untimed frame of its own (the reference's after one); {} threads on {}; reference at {} steps; peak resident memory {}",
+        "\n{} runs per row, {order}; {} threads on {}; reference at {} steps; peak resident memory {}",
         runs,
         rayon::current_num_threads(),
         processor(),
