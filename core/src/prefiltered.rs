@@ -1315,6 +1315,9 @@ impl<'a> Prefiltered<'a> {
         // The share of the stretch's weight whose samples lie about the ray's key, within
         // the window of [`Tables::blur_of`].
         let mut blurred = 0.0;
+        // Each read's blur row; `blur_of` writes a row's whole stride, so one zeroing serves
+        // both slices.
+        let mut blur = [[0.0f32; MAX_STRIDE]; 2];
         for (s, (_, share)) in slices.into_iter().enumerate() {
             if share == 0.0 {
                 continue;
@@ -1346,7 +1349,6 @@ impl<'a> Prefiltered<'a> {
                 shares += parts[lane];
                 read.coefficients = self.coefficients(bands[lane], key);
             }
-            let mut blur = [[0.0f32; MAX_STRIDE]; 2];
             for (read, blur) in reads.iter().zip(&mut blur).take(read_count) {
                 self.tables
                     .blur_of(read.coefficients, &mut blur[..self.stride]);
@@ -1423,8 +1425,9 @@ impl<'a> Prefiltered<'a> {
             return Some(());
         }
         visibilities.fill(0.0);
-        // As in `look_up`, over the whole stretch looked up.
+        // As in `look_up`, over the whole stretch looked up, each band's blur row in `blur`.
         let mut blurred = 0.0;
+        let mut blur = [0.0f32; MAX_STRIDE];
         // Pieces off the map in some band count as lit, as in `average`.
         let mut off_the_map = [false; MOST];
         for (slice, share) in self.map.neighbours(located.slice) {
@@ -1464,7 +1467,6 @@ impl<'a> Prefiltered<'a> {
                 let part = share * band_share;
                 // Over the whole stretch, from its first boundary (the empty prefix, of no
                 // weight, where that lies at or before the slice's start) to its last.
-                let mut blur = [0.0f32; MAX_STRIDE];
                 self.tables.blur_of(coefficients, &mut blur[..self.stride]);
                 let mut ends = [0.0f32; 2];
                 self.boundary_dots(&blur[..self.stride], &[rows[0], rows[count - 1]], &mut ends);
