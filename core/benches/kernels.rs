@@ -3,20 +3,23 @@
 //! and per-ray evaluation) on the built-in scenes. Whole-frame timings come from
 //! `crepuscular bench`.
 
+use std::sync::Mutex;
+
 use crepuscular::adaptive::{
     shade_adaptively, EpipolarLines, SurfaceCoordinate, DEFAULT_TOLERANCE,
 };
-use crepuscular::camera::CameraModel;
+use crepuscular::camera::{CameraModel, Ray};
 use crepuscular::epipolar::{epipoles_in_image, EpipolarMap, RectifyDesc};
 use crepuscular::layers::{Layers, Pixel};
 use crepuscular::prefiltered::{Prefiltered, PrefilteredDesc};
 use crepuscular::raster::{rasterize, rasterize_depth, RasterDesc};
-use crepuscular::reference::Marcher;
+use crepuscular::reference::{Marcher, RaySample};
 use crepuscular::render::FlatGeometry;
 use crepuscular::shadow_map::ShadowMap;
 use crepuscular::upsample::{joint_bilateral, reduced_size, sample_pixel};
 use crepuscular::{builtin_scene, RenderControl, Scene, BUILTIN_SCENES};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use rayon::prelude::*;
 
 fn rasterization(c: &mut Criterion) {
     let mut group = c.benchmark_group("rasterize");
@@ -101,8 +104,9 @@ fn reference_march(c: &mut Criterion) {
 }
 
 /// At 1920×1080 with a 1024² map: rectification, the filtered basis for M = 16/32/64,
-/// and evaluation of 4096 rays spread over the image and of a block of 128×128 pixels
-/// at its centre.
+/// and evaluation of 4096 rays spread over the image, of the rays a frame's adaptive
+/// shading shades (the method's batches alone: the rays it declines are not walked), and
+/// of a block of 128×128 pixels at its centre.
 fn prefiltering(c: &mut Criterion) {
     let mut group = c.benchmark_group("prefiltering");
     group.sample_size(10);
@@ -148,6 +152,30 @@ fn prefiltering(c: &mut Criterion) {
                     .sum::<f64>()
             })
         });
+        let runs = shaded_runs(&scene, &camera, &shadow, &prefiltered);
+        let rays: usize = runs.iter().map(Vec::len).sum();
+        eprintln!(
+            "{name}: adaptive shading shades {rays} rays in {} runs",
+            runs.len()
+        );
+        group.bench_function(BenchmarkId::new("shaded_rays_m32", name), |b| {
+            b.iter(|| {
+                runs.par_iter()
+                    .map(|run| {
+                        let mut out = vec![None; run.len()];
+                        prefiltered.march_many(
+                            run.len(),
+                            |i| (&run[i].0, run[i].1, run[i].2),
+                            &mut out,
+                        );
+                        out.iter()
+                            .flatten()
+                            .map(|sample| sample.scattering)
+                            .sum::<f64>()
+                    })
+                    .sum::<f64>()
+            })
+        });
         // Neighbouring pixels, as a frame shades them: its rectified rows stay in cache.
         let block: Vec<_> = (0..128 * 128)
             .map(|i| camera.ray((896 + i % 128) as f64 + 0.5, (476 + i / 128) as f64 + 0.5))
@@ -163,6 +191,77 @@ fn prefiltering(c: &mut Criterion) {
         });
     }
     group.finish();
+}
+
+/// The rays a 1920×1080 frame of `scene` shades with prefiltering, each with its span, in
+/// the runs that adaptive shading hands the method (in the frame's order within a run):
+/// to time the method's rays apart from the passes between them. The frame is the
+/// renderer's but for the light's colour and phase, which scale every pixel alike, and
+/// rays the method declines, which take the reference's march here rather than the walk.
+fn shaded_runs(
+    scene: &Scene,
+    camera: &CameraModel,
+    shadow: &ShadowMap,
+    prefiltered: &Prefiltered,
+) -> Vec<Vec<(Ray, f64, f64)>> {
+    let geometry = FlatGeometry::from_scene(scene);
+    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
+    let planar = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
+        .unwrap()
+        .depth;
+    let max_distance = scene.render.max_distance;
+    // Along the ray to the surface, +∞ for background.
+    let distance =
+        |x: usize, y: usize, ray: &Ray| planar[y * 1920 + x] as f64 * ray.distance_per_depth;
+    let ray_of = |x: usize, y: usize| {
+        let ray = camera.ray(x as f64 + 0.5, y as f64 + 0.5);
+        let t_end = distance(x, y, &ray).min(max_distance as f64);
+        (ray, camera.clip_start * ray.distance_per_depth, t_end)
+    };
+    let marcher = Marcher::new(shadow, &scene.sun, &scene.medium, scene.render.steps);
+    let runs = Mutex::new(Vec::new());
+    let shade = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
+        let rays: Vec<_> = pixels.iter().map(|&(x, y)| ray_of(x, y)).collect();
+        let mut samples = vec![None; rays.len()];
+        prefiltered.march_many(
+            rays.len(),
+            |i| (&rays[i].0, rays[i].1, rays[i].2),
+            &mut samples,
+        );
+        for ((sample, (ray, t_start, t_end)), out) in samples.iter().zip(&rays).zip(out) {
+            let RaySample {
+                scattering,
+                alpha,
+                visibility,
+            } = sample.unwrap_or_else(|| marcher.march(ray, *t_start, *t_end));
+            let v = scattering as f32;
+            *out = Pixel {
+                volume: [v, v, v, alpha as f32],
+                visibility: visibility as f32,
+                depth: *t_end as f32,
+            };
+        }
+        runs.lock().unwrap().push((pixels[0], rays));
+    };
+    let surface =
+        |x: usize, y: usize| Some(distance(x, y, &camera.ray(x as f64 + 0.5, y as f64 + 0.5)));
+    let lines = EpipolarLines::of_view(camera, scene.sun.direction.as_dvec3(), 1);
+    shade_adaptively(
+        1920,
+        1080,
+        DEFAULT_TOLERANCE,
+        max_distance,
+        Some(lines),
+        SurfaceCoordinate::of_camera(camera),
+        &RenderControl::new(),
+        surface,
+        shade,
+    )
+    .unwrap();
+    let mut runs = runs.into_inner().unwrap();
+    // In a fixed order: threads finish runs in any.
+    runs.sort_by_key(|&((x, y), _)| (y, x));
+    runs.into_iter().map(|(_, rays)| rays).collect()
 }
 
 /// `tree` at 1920×1080 and its rasterized camera depth (+∞ for background): its leaves
