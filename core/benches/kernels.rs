@@ -204,11 +204,7 @@ fn shaded_runs(
     shadow: &ShadowMap,
     prefiltered: &Prefiltered,
 ) -> Vec<Vec<(Ray, f64, f64)>> {
-    let geometry = FlatGeometry::from_scene(scene);
-    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
-    let planar = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
-        .unwrap()
-        .depth;
+    let planar = camera_depth_1080p(scene, camera);
     let max_distance = scene.render.max_distance;
     // Along the ray to the surface, +∞ for background.
     let distance =
@@ -268,12 +264,17 @@ fn shaded_runs(
 /// make many depth edges.
 fn tree_camera_depth_1080p() -> (Scene, Vec<f32>) {
     let (scene, camera, _) = with_shadow_map("tree", Some((1920, 1080)));
-    let geometry = FlatGeometry::from_scene(&scene);
-    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
-    let depth = rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
-        .unwrap()
-        .depth;
+    let depth = camera_depth_1080p(&scene, &camera);
     (scene, depth)
+}
+
+/// `scene`'s rasterized planar camera depth at 1920×1080 (+∞ for background).
+fn camera_depth_1080p(scene: &Scene, camera: &CameraModel) -> Vec<f32> {
+    let geometry = FlatGeometry::from_scene(scene);
+    let desc = RasterDesc::perspective(1920, 1080, camera.clip_start, camera.clip_end);
+    rasterize(&geometry.view(), &camera.pixel_from_world(), &desc)
+        .unwrap()
+        .depth
 }
 
 /// Joint-bilateral upsampling of ½- and ¼-resolution layers to 1920×1080, guided by
