@@ -15,6 +15,7 @@ import crepuscular
 from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
 from crepuscular_usd.attributes import ATTRIBUTES, RELATIONSHIPS
 from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
+from crepuscular_usd.implicit import RADIAL_SEGMENTS, tessellate_implicit
 from crepuscular_usd.schema import API_NAME, PROPERTY_NAMES, fallback
 
 SMALL = {"steps": 32, "shadow_map_size": 128}
@@ -289,6 +290,239 @@ def test_point_instancer_equals_the_flattened_scene(tmp_path: Path) -> None:
         )
         _layers_close(rendered["instancer"], rendered[mode], 1e-4)
     np.testing.assert_array_equal(rendered["instanceable"].volume, rendered["plain"].volume)
+
+
+# --- implicit surfaces ----------------------------------------------------------------
+
+
+def _signed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
+    """The volume a closed triangle mesh encloses, positive where its fronts face out."""
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def _closed(triangles: np.ndarray) -> bool:
+    """Whether every edge is shared by exactly two triangles, once each way."""
+    directed = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    forward = {tuple(edge) for edge in directed.tolist()}
+    return len(forward) == len(directed) and all((b, a) in forward for a, b in forward)
+
+
+def _define(stage: Usd.Stage, schema: str, path: str, **attributes: object) -> Usd.Prim:
+    prim = getattr(UsdGeom, schema).Define(stage, path).GetPrim()
+    for name, value in attributes.items():
+        assert prim.GetAttribute(name).Set(value), name
+    return prim
+
+
+_SOLIDS = [
+    ("Cube", {"size": 3.0}, 27.0, [1.5, 1.5, 1.5]),
+    ("Sphere", {"radius": 2.0}, 4 / 3 * np.pi * 8, [2.0, 2.0, 2.0]),
+    ("Cylinder", {"radius": 0.5, "height": 3.0, "axis": "X"}, np.pi * 0.75, [1.5, 0.5, 0.5]),
+    ("Cone", {"radius": 1.0, "height": 3.0, "axis": "Y"}, np.pi, [1.0, 1.5, 1.0]),
+    (
+        "Capsule",
+        {"radius": 0.5, "height": 2.0, "axis": "Z"},
+        np.pi * 0.5 + 4 / 3 * np.pi * 0.125,
+        [0.5, 0.5, 1.5],
+    ),
+    (
+        "Cylinder_1",
+        {"radiusTop": 0.5, "radiusBottom": 1.0, "height": 2.0, "axis": "Y"},
+        np.pi * 2 / 3 * (0.25 + 0.5 + 1.0),
+        [1.0, 1.0, 1.0],
+    ),
+]
+
+
+@pytest.mark.parametrize(("schema", "attributes", "volume", "half_extent"), _SOLIDS)
+def test_implicit_solids_are_closed_outward_and_of_the_authored_size(
+    schema: str, attributes: dict[str, object], volume: float, half_extent: list[float]
+) -> None:
+    if not hasattr(UsdGeom, schema):
+        pytest.skip(f"this USD build has no {schema}")
+    stage = Usd.Stage.CreateInMemory()
+    prim = _define(stage, schema, "/Shape", **attributes)
+    points, triangles, varying = tessellate_implicit(prim, Usd.TimeCode.Default())
+    assert not varying
+    assert _closed(triangles)
+    np.testing.assert_allclose(points.max(axis=0), half_extent, atol=1e-12)
+    np.testing.assert_allclose(points.min(axis=0), np.negative(half_extent), atol=1e-12)
+    # Inscribed polygons: a little less than the round solid, never more.
+    enclosed = _signed_volume(points, triangles)
+    assert 0.99 * volume <= enclosed <= volume * (1 + 1e-12), enclosed
+    UsdGeom.Gprim(prim).GetOrientationAttr().Set(UsdGeom.Tokens.leftHanded)
+    _, flipped, _ = tessellate_implicit(prim, Usd.TimeCode.Default())
+    assert _signed_volume(points, flipped) == pytest.approx(-enclosed)
+
+
+def test_round_surfaces_put_every_vertex_on_the_surface() -> None:
+    stage = Usd.Stage.CreateInMemory()
+    time = Usd.TimeCode.Default()
+    sphere, _, _ = tessellate_implicit(_define(stage, "Sphere", "/S", radius=1.5), time)
+    np.testing.assert_allclose(np.linalg.norm(sphere, axis=1), 1.5, rtol=1e-12)
+    # A capsule's points lie one radius from its spine, the segment between the caps' centres.
+    capsule, _, _ = tessellate_implicit(
+        _define(stage, "Capsule", "/C", radius=0.4, height=1.0, axis="X"), time
+    )
+    along = np.clip(capsule[:, 0], -0.5, 0.5)
+    spine = np.column_stack([along, np.zeros_like(along), np.zeros_like(along)])
+    np.testing.assert_allclose(np.linalg.norm(capsule - spine, axis=1), 0.4, rtol=1e-12)
+    # A cylinder's ring holds RADIAL_SEGMENTS points, each on its radius.
+    cylinder, _, _ = tessellate_implicit(
+        _define(stage, "Cylinder", "/Y", radius=0.7, height=2.0), time
+    )
+    side = cylinder[np.abs(np.hypot(cylinder[:, 0], cylinder[:, 1]) - 0.7) < 1e-12]
+    assert len(side) == 2 * RADIAL_SEGMENTS
+
+
+@pytest.mark.parametrize(
+    ("axis", "width_along", "length_along"), [("Z", 0, 1), ("X", 2, 1), ("Y", 0, 2)]
+)
+def test_a_plane_lies_across_its_axis_and_faces_along_it(
+    axis: str, width_along: int, length_along: int
+) -> None:
+    stage = Usd.Stage.CreateInMemory()
+    prim = _define(stage, "Plane", "/P", width=2.0, length=5.0, axis=axis)
+    points, triangles, _ = tessellate_implicit(prim, Usd.TimeCode.Default())
+    extent = points.max(axis=0) - points.min(axis=0)
+    normal_axis = "XYZ".index(axis)
+    assert extent[width_along] == 2.0
+    assert extent[length_along] == 5.0
+    assert extent[normal_axis] == 0.0
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    normal = np.cross(b - a, c - a).sum(axis=0) / 2.0
+    np.testing.assert_allclose(normal, 10.0 * np.eye(3)[normal_axis], atol=1e-12)
+
+
+def _sphere_mesh(stage: Usd.Stage, path: str, radius: float, segments: int) -> UsdGeom.Mesh:
+    """A finely tessellated sphere as a plain Mesh, quads and pole triangles."""
+    theta = np.linspace(0.0, np.pi, segments // 2 + 1)[1:-1]
+    phi = 2.0 * np.pi * np.arange(segments) / segments
+    rings = np.stack(
+        [
+            np.outer(np.sin(theta), np.cos(phi)),
+            np.outer(np.sin(theta), np.sin(phi)),
+            np.outer(np.cos(theta), np.ones_like(phi)),
+        ],
+        axis=-1,
+    ).reshape(-1, 3)
+    points = radius * np.vstack([[0, 0, 1], rings, [0, 0, -1]])
+    counts: list[int] = []
+    indices: list[int] = []
+    n = segments
+    for k in range(n):
+        counts.append(3)
+        indices += [0, 1 + k, 1 + (k + 1) % n]
+    for r in range(len(theta) - 1):
+        for k in range(n):
+            a, b = 1 + r * n + k, 1 + r * n + (k + 1) % n
+            counts.append(4)
+            indices += [a, a + n, b + n, b]
+    south = len(points) - 1
+    for k in range(n):
+        base = 1 + (len(theta) - 1) * n
+        counts.append(3)
+        indices += [south, base + (k + 1) % n, base + k]
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr([Gf.Vec3f(*p) for p in points])
+    mesh.CreateFaceVertexCountsAttr(counts)
+    mesh.CreateFaceVertexIndicesAttr(indices)
+    return mesh
+
+
+def test_implicit_occluders_shadow_as_the_same_meshes(tmp_path: Path) -> None:
+    """A Cube casts the shadow of the same box authored as a Mesh, and a Sphere that of a
+    sphere tessellated four times finer; both shadows are there."""
+    scene = build_scene(occluder=False, width=128, height=72, steps=64, shadow_map_size=256)
+    layers = {}
+    for form in ("implicit", "mesh"):
+        stage = author_stage(str(tmp_path / f"{form}.usda"), scene)
+        for name, at, turn in (("Box", (-1.2, 3.0, 0.0), 25.0), ("Ball", (1.2, 3.2, -0.5), 0.0)):
+            holder = UsdGeom.Xform.Define(stage, f"/World/{name}")
+            holder.AddTranslateOp().Set(Gf.Vec3d(*at))
+            holder.AddRotateYOp().Set(turn)
+        if form == "implicit":
+            _define(stage, "Cube", "/World/Box/Shape", size=1.2)
+            _define(stage, "Sphere", "/World/Ball/Shape", radius=0.8)
+        else:
+            box = UsdGeom.Mesh.Define(stage, "/World/Box/Shape")
+            points, counts, indices = _box_points(1.2)
+            box.CreatePointsAttr(points)
+            box.CreateFaceVertexCountsAttr(counts)
+            box.CreateFaceVertexIndicesAttr(indices)
+            _sphere_mesh(stage, "/World/Ball/Shape", 0.8, 4 * RADIAL_SEGMENTS)
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=128)
+        frame = reader.read(Usd.TimeCode.Default())
+        assert not frame.geometry.unsupported
+        assert not frame.geometry.invalid
+        layers[form] = crepuscular.render_arrays(**frame.render_kwargs())
+    empty = crepuscular.render(scene)
+    implicit, mesh = (np.asarray(layers[f].volume)[..., :3] for f in ("implicit", "mesh"))
+    unshadowed = np.asarray(empty.volume)[..., :3]
+    shadowed = np.abs(unshadowed - mesh).sum() / unshadowed.sum()
+    assert shadowed > 0.05, shadowed
+    difference = np.abs(implicit - mesh).sum() / unshadowed.sum()
+    assert difference < 0.02 * shadowed, (difference, shadowed)
+    # Depths differ only on the sphere's silhouette, where its facets leave a pixel or not.
+    same_depth = np.isclose(layers["implicit"].depth, layers["mesh"].depth, rtol=2e-3)
+    assert same_depth.mean() > 0.995, same_depth.mean()
+
+
+def test_implicit_prototypes_instance_as_plain_prims(tmp_path: Path) -> None:
+    """A PointInstancer of a Sphere and a Cylinder places the triangles that Xforms holding
+    the same prims do."""
+    geometry = {}
+    placements = [((0.0, 3.0, 0.0), 0), ((1.5, 3.5, -1.0), 1), ((-1.0, 2.8, 1.0), 0)]
+    for mode in ("instancer", "plain"):
+        stage = author_stage(str(tmp_path / f"{mode}.usda"), build_scene(occluder=False, **SMALL))
+        UsdGeom.Scope.Define(stage, "/World/Protos")
+        _define(stage, "Sphere", "/World/Protos/Ball", radius=0.4)
+        _define(stage, "Cylinder", "/World/Protos/Post", radius=0.2, height=1.5, axis="Y")
+        protos = ["/World/Protos/Ball", "/World/Protos/Post"]
+        if mode == "instancer":
+            UsdGeom.Imageable(stage.GetPrimAtPath("/World/Protos")).MakeInvisible()
+            instancer = UsdGeom.PointInstancer.Define(stage, "/World/Instancer")
+            instancer.CreatePrototypesRel().SetTargets([Sdf.Path(p) for p in protos])
+            instancer.CreateProtoIndicesAttr([proto for _, proto in placements])
+            instancer.CreatePositionsAttr([Gf.Vec3f(*at) for at, _ in placements])
+        else:
+            stage.RemovePrim("/World/Protos")
+            for i, (at, proto) in enumerate(placements):
+                holder = UsdGeom.Xform.Define(stage, f"/World/I{i}")
+                holder.AddTranslateOp().Set(Gf.Vec3d(*at))
+                if proto == 0:
+                    _define(stage, "Sphere", f"/World/I{i}/Ball", radius=0.4)
+                else:
+                    _define(
+                        stage, "Cylinder", f"/World/I{i}/Post", radius=0.2, height=1.5, axis="Y"
+                    )
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        geometry[mode] = reader.read(Usd.TimeCode.Default()).geometry
+    ordered = lambda g: np.sort(g.positions[g.triangles].reshape(len(g.triangles), -1), axis=0)  # noqa: E731
+    assert len(geometry["instancer"].triangles) == len(geometry["plain"].triangles) > 2
+    np.testing.assert_allclose(
+        ordered(geometry["instancer"]), ordered(geometry["plain"]), atol=1e-5
+    )
+
+
+def test_an_animated_radius_is_read_each_frame_and_a_bad_one_is_named(tmp_path: Path) -> None:
+    stage = author_stage(str(tmp_path / "s.usda"), build_scene(occluder=False, **SMALL))
+    ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
+    ball.AddTranslateOp().Set(Gf.Vec3d(0.0, 3.0, 0.0))
+    ball.GetRadiusAttr().Set(0.5, Usd.TimeCode(1))
+    ball.GetRadiusAttr().Set(1.0, Usd.TimeCode(2))
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    spans = []
+    for time in (1, 2, 1):
+        positions = reader.read(Usd.TimeCode(time)).geometry.positions
+        spans.append(float(np.ptp(positions[4:, 0])))
+    assert spans == pytest.approx([1.0, 2.0, 1.0])
+    ball.GetRadiusAttr().Set(float("nan"), Usd.TimeCode(3))
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=64).read(Usd.TimeCode(3))
+    assert len(frame.geometry.invalid) == 1
+    assert frame.geometry.invalid[0].startswith("/World/Ball: ")
+    assert "finite" in frame.geometry.invalid[0]
 
 
 # --- time samples ---------------------------------------------------------------------

@@ -2,9 +2,10 @@
 
 Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed in
 `holeIndices` are left out, faces with fewer than three vertices are skipped, and
-`leftHanded` meshes get their winding flipped. Instance proxies and `PointInstancer`
-prototypes share one triangulation per prototype mesh; every placement is one numpy
-matrix product, never a Python loop over vertices.
+`leftHanded` meshes get their winding flipped. Implicit surfaces (Cube, Sphere, Cylinder,
+Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
+Instance proxies and `PointInstancer` prototypes share one triangulation per prototype
+mesh; every placement is one numpy matrix product, never a Python loop over vertices.
 """
 
 from __future__ import annotations
@@ -16,6 +17,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdVol
+
+from crepuscular_usd.implicit import (
+    ImplicitSurfaceError,
+    is_implicit_surface,
+    tessellate_implicit,
+)
 
 __all__ = ["GeometryCollector", "MeshError", "SceneGeometry", "triangulate"]
 
@@ -138,10 +145,20 @@ class GeometryCollector:
     # --- meshes ---------------------------------------------------------------------
 
     def _local_mesh(self, prim: Usd.Prim, time: Usd.TimeCode) -> _LocalMesh | None:
+        """The triangles of a Mesh or an implicit surface in its local space."""
         key = prim.GetPrimInPrototype().GetPath() if prim.IsInstanceProxy() else prim.GetPath()
         cached = self._cache.get(key)
         if cached is not None:
             return cached
+        if is_implicit_surface(prim):
+            try:
+                points, triangles, varying = tessellate_implicit(prim, time)
+            except ImplicitSurfaceError as error:
+                raise MeshError(str(error)) from error
+            local = _LocalMesh(points, triangles)
+            if not varying:
+                self._cache[key] = local
+            return local
         mesh = UsdGeom.Mesh(prim)
         attrs = [
             mesh.GetPointsAttr(),
@@ -172,7 +189,7 @@ class GeometryCollector:
     # --- traversal ------------------------------------------------------------------
 
     def collect(self, time: Usd.TimeCode, origin: F64 | None = None) -> SceneGeometry:
-        """Every visible render-purpose mesh at `time`, in the renderer's space, relative to
+        """Every visible render-purpose surface at `time`, in the renderer's space, relative to
         `origin` (default the origin): subtracted in float64, a point near the camera keeps
         float32 positions precise however far the stage lies from its origin."""
         xforms = UsdGeom.XformCache(time)
@@ -198,7 +215,7 @@ class GeometryCollector:
                     chunks.append((prim.GetPath(), *placed[0]))
                     instanced[prim.GetPath()] = placed[1]
                 continue
-            if prim.IsA(UsdGeom.Mesh):
+            if _is_surface(prim):
                 prims.PruneChildren()
                 try:
                     local = self._local_mesh(prim, time)
@@ -257,7 +274,7 @@ class GeometryCollector:
                 unsupported["PointInstancer (nested)"] += 1
                 prims.PruneChildren()
                 continue
-            if prim.IsA(UsdGeom.Mesh):
+            if _is_surface(prim):
                 prims.PruneChildren()
                 local = self._local_mesh(prim, time)
                 if local is not None and len(local.triangles):
@@ -331,6 +348,14 @@ class GeometryCollector:
             return None
         stacked = np.concatenate(triangles)
         return (np.concatenate(positions), stacked.astype(np.uint32)), sources
+
+
+def _is_surface(prim: Usd.Prim) -> bool:
+    """Whether `prim` is geometry this step draws: a Mesh or an implicit surface."""
+    # One test rules out the Xforms and Scopes that most prims of a large stage are.
+    if not prim.IsA(UsdGeom.Gprim):
+        return False
+    return prim.IsA(UsdGeom.Mesh) or is_implicit_surface(prim)
 
 
 def _transform(points: F64, world_row: F64) -> F64:
