@@ -506,6 +506,108 @@ def test_implicit_prototypes_instance_as_plain_prims(tmp_path: Path) -> None:
     )
 
 
+def _quad_mesh(stage: Usd.Stage, path: str) -> None:
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr([Gf.Vec3f(-0.2, 0, -0.1), Gf.Vec3f(0.2, 0, -0.1), Gf.Vec3f(0, 0, 0.3)])
+    mesh.CreateFaceVertexCountsAttr([3])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2])
+
+
+def _tree(stage: Usd.Stage, path: str) -> None:
+    """A tree's prototype root, lifted a little, and its trunk (the leaves come apart)."""
+    tree = UsdGeom.Xform.Define(stage, path)
+    tree.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.1, 0.0))
+    trunk = UsdGeom.Cylinder.Define(stage, f"{path}/Trunk")
+    trunk.GetAxisAttr().Set(UsdGeom.Tokens.y)
+    trunk.GetRadiusAttr().Set(0.1)
+    trunk.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.5, 0.0))
+
+
+_LEAVES = [
+    (Gf.Vec3f(0.3, 0.0, 0.0), Gf.Quath(0.5, 0.5, -0.5, 0.5), Gf.Vec3f(1.0, 1.0, 1.0)),
+    (Gf.Vec3f(-0.2, 0.2, 0.1), Gf.Quath(1.0, 0.0, 0.0, 0.0), Gf.Vec3f(1.5, 0.5, 1.0)),
+    (Gf.Vec3f(0.0, 0.3, -0.3), Gf.Quath(0.0, 0.0, 1.0, 0.0), Gf.Vec3f(0.8, 0.8, 0.8)),
+]
+_TREES = [
+    (Gf.Vec3f(-1.5, 2.5, 0.0), Gf.Quath(1.0, 0.0, 0.0, 0.0), Gf.Vec3f(1.0, 1.0, 1.0)),
+    (Gf.Vec3f(1.0, 2.2, -1.0), Gf.Quath(0.5, -0.5, 0.5, 0.5), Gf.Vec3f(1.2, 0.9, 1.2)),
+    (Gf.Vec3f(0.0, 2.8, 1.0), Gf.Quath(0.0, 1.0, 0.0, 0.0), Gf.Vec3f(0.7, 0.7, 0.7)),
+]
+
+
+def _place(xform: UsdGeom.Xform, at: Gf.Vec3f, turn: Gf.Quath, scale: Gf.Vec3f) -> None:
+    """The ops that place a prototype as a PointInstancer's instance does."""
+    xform.AddTranslateOp().Set(Gf.Vec3d(at))
+    xform.AddOrientOp(UsdGeom.XformOp.PrecisionHalf).Set(turn)
+    xform.AddScaleOp().Set(scale)
+
+
+def _instancer(
+    stage: Usd.Stage, path: str, prototype: str, placements: list[tuple[object, ...]]
+) -> UsdGeom.PointInstancer:
+    instancer = UsdGeom.PointInstancer.Define(stage, path)
+    instancer.CreatePrototypesRel().SetTargets([Sdf.Path(prototype)])
+    instancer.CreateProtoIndicesAttr([0] * len(placements))
+    instancer.CreatePositionsAttr([at for at, _, _ in placements])
+    instancer.CreateOrientationsAttr([turn for _, turn, _ in placements])
+    instancer.CreateScalesAttr([scale for _, _, scale in placements])
+    return instancer
+
+
+def test_nested_point_instancers_place_what_plain_xforms_do(tmp_path: Path) -> None:
+    """A forest: a PointInstancer of trees, each a trunk and a PointInstancer of leaves,
+    reads as the same trees and leaves authored one Xform each; the second tree is
+    masked out by the forest's invisibleIds."""
+    geometry = {}
+    for mode in ("nested", "plain"):
+        stage = author_stage(str(tmp_path / f"{mode}.usda"), build_scene(occluder=False, **SMALL))
+        if mode == "nested":
+            tree = "/World/Forest/Protos/Tree"
+            _tree(stage, tree)
+            leaves = _instancer(stage, f"{tree}/Leaves", f"{tree}/Leaves/Protos/Leaf", _LEAVES)
+            leaves.AddTranslateOp().Set(Gf.Vec3d(0.0, 1.0, 0.0))
+            leaf = UsdGeom.Xform.Define(stage, f"{tree}/Leaves/Protos/Leaf")
+            leaf.AddRotateXOp().Set(30.0)
+            _quad_mesh(stage, f"{tree}/Leaves/Protos/Leaf/Blade")
+            forest = _instancer(stage, "/World/Forest", tree, _TREES)
+            forest.CreateInvisibleIdsAttr([1])
+        else:
+            for i, placement in enumerate(_TREES):
+                if i == 1:
+                    continue
+                holder = UsdGeom.Xform.Define(stage, f"/World/T{i}")
+                _place(holder, *placement)
+                _tree(stage, f"/World/T{i}/Tree")
+                leaves = UsdGeom.Xform.Define(stage, f"/World/T{i}/Tree/Leaves")
+                leaves.AddTranslateOp().Set(Gf.Vec3d(0.0, 1.0, 0.0))
+                for j, leaf_placement in enumerate(_LEAVES):
+                    instance = UsdGeom.Xform.Define(stage, f"/World/T{i}/Tree/Leaves/L{j}")
+                    _place(instance, *leaf_placement)
+                    leaf = UsdGeom.Xform.Define(stage, f"/World/T{i}/Tree/Leaves/L{j}/Leaf")
+                    leaf.AddRotateXOp().Set(30.0)
+                    _quad_mesh(stage, f"/World/T{i}/Tree/Leaves/L{j}/Leaf/Blade")
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        geometry[mode] = reader.read(Usd.TimeCode.Default()).geometry
+        assert not geometry[mode].unsupported, geometry[mode].unsupported
+    ordered = lambda g: np.sort(g.positions[g.triangles].reshape(len(g.triangles), -1), axis=0)  # noqa: E731
+    trunk = 4 * RADIAL_SEGMENTS
+    assert len(geometry["nested"].triangles) == 2 + 2 * (trunk + len(_LEAVES))
+    assert len(geometry["nested"].triangles) == len(geometry["plain"].triangles)
+    np.testing.assert_allclose(ordered(geometry["nested"]), ordered(geometry["plain"]), atol=1e-5)
+
+
+def test_a_prototype_instancing_itself_is_expanded_once_and_reported(tmp_path: Path) -> None:
+    stage = author_stage(str(tmp_path / "s.usda"), build_scene(occluder=False, **SMALL))
+    proto = "/World/Outer/Protos/Box"
+    _define(stage, "Cube", f"{proto}/Shape", size=0.3)
+    placements = [(Gf.Vec3f(0, 3, 0), Gf.Quath(1, 0, 0, 0), Gf.Vec3f(1, 1, 1))]
+    _instancer(stage, "/World/Outer", proto, placements)
+    _instancer(stage, f"{proto}/Again", proto, placements)
+    geometry = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default()).geometry
+    assert len(geometry.triangles) == 2 + 12
+    assert geometry.unsupported == {"PointInstancer (instancing its own prototype)": 1}
+
+
 def test_an_animated_radius_is_read_each_frame_and_a_bad_one_is_named(tmp_path: Path) -> None:
     stage = author_stage(str(tmp_path / "s.usda"), build_scene(occluder=False, **SMALL))
     ball = UsdGeom.Sphere.Define(stage, "/World/Ball")

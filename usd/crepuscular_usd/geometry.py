@@ -4,8 +4,9 @@ Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed i
 `holeIndices` are left out, faces with fewer than three vertices are skipped, and
 `leftHanded` meshes get their winding flipped. Implicit surfaces (Cube, Sphere, Cylinder,
 Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
-Instance proxies and `PointInstancer` prototypes share one triangulation per prototype
-mesh; every placement is one numpy matrix product, never a Python loop over vertices.
+Instance proxies and `PointInstancer` prototypes (with the instancers nested in them) share
+one triangulation per prototype mesh; every placement is one numpy matrix product, never a
+Python loop over vertices.
 """
 
 from __future__ import annotations
@@ -259,8 +260,12 @@ class GeometryCollector:
         time: Usd.TimeCode,
         xforms: UsdGeom.XformCache,
         unsupported: Counter[str],
+        expanding: tuple[Sdf.Path, ...],
     ) -> list[tuple[Sdf.Path, _LocalMesh, F64]]:
-        """Meshes under a prototype root, with transforms relative to the root's parent."""
+        """Surfaces under a prototype root, each with the (K, 4, 4) rows placing its K copies
+        relative to the root's parent: one for a surface of the prototype's own, one per
+        instance for a surface of a PointInstancer nested in it (a forest's trees, each
+        instancing its leaves). `expanding` holds the prototypes being expanded around it."""
         found: list[tuple[Sdf.Path, _LocalMesh, F64]] = []
         parent = root.GetParent()
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
@@ -270,34 +275,39 @@ class GeometryCollector:
                 prims.PruneChildren()
                 continue
             if prim.IsA(UsdGeom.PointInstancer):
-                # Nested instancers are not read; they are reported with the other skips.
-                unsupported["PointInstancer (nested)"] += 1
                 prims.PruneChildren()
+                nested = self._instanced_meshes(prim, time, xforms, unsupported, expanding)
+                if nested:
+                    relative = row_matrix(xforms.ComputeRelativeTransform(prim, parent)[0])
+                    found.extend((path, local, rows @ relative) for path, local, rows in nested)
                 continue
             if _is_surface(prim):
                 prims.PruneChildren()
                 local = self._local_mesh(prim, time)
                 if local is not None and len(local.triangles):
                     relative, _ = xforms.ComputeRelativeTransform(prim, parent)
-                    found.append((prim.GetPath(), local, row_matrix(relative)))
+                    found.append((prim.GetPath(), local, row_matrix(relative)[None]))
                 continue
             self._count_unsupported(prim, unsupported)
         return found
 
-    def _point_instancer(
+    def _instanced_meshes(
         self,
         prim: Usd.Prim,
         time: Usd.TimeCode,
         xforms: UsdGeom.XformCache,
-        core_row: F64,
         unsupported: Counter[str],
-    ) -> tuple[tuple[F64, npt.NDArray[np.uint32]], set[Sdf.Path]] | None:
+        expanding: tuple[Sdf.Path, ...] = (),
+    ) -> list[tuple[Sdf.Path, _LocalMesh, F64]]:
+        """The surfaces the PointInstancer `prim` places, each with the (K, 4, 4) rows of its
+        copies in the instancer's own space, instance by instance. A prototype that holds an
+        instancer of itself, however deep, is expanded once and counted as skipped."""
         instancer = UsdGeom.PointInstancer(prim)
         where = str(prim.GetPath())
         proto_paths = instancer.GetPrototypesRel().GetForwardedTargets()
         proto_indices = instancer.GetProtoIndicesAttr().Get(time)
         if not proto_paths or proto_indices is None or len(proto_indices) == 0:
-            return None
+            return []
         # ExcludeProtoXform: the prototype root's own transform comes with its meshes below.
         transforms = instancer.ComputeInstanceTransformsAtTime(
             time, time, UsdGeom.PointInstancer.ExcludeProtoXform, UsdGeom.PointInstancer.IgnoreMask
@@ -315,37 +325,53 @@ class GeometryCollector:
                 f"{where}: protoIndices reach {int(indices.max())} but there are "
                 f"{len(proto_paths)} prototypes"
             )
-        world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
-        positions: list[F64] = []
-        triangles: list[npt.NDArray[np.uint32]] = []
-        sources: set[Sdf.Path] = set()
-        base = 0
+        found: list[tuple[Sdf.Path, _LocalMesh, F64]] = []
         for proto_index, proto_path in enumerate(proto_paths):
             placements = instance_rows[indices == proto_index]
             if not len(placements):
+                continue
+            if proto_path in expanding:
+                unsupported["PointInstancer (instancing its own prototype)"] += 1
                 continue
             proto = self._stage.GetPrimAtPath(proto_path)
             if not proto:
                 raise MeshError(f"{where}: prototype {proto_path} does not exist")
             for mesh_path, local, relative in self._prototype_meshes(
-                proto, time, xforms, unsupported
+                proto, time, xforms, unsupported, (*expanding, proto_path)
             ):
-                sources.add(mesh_path)
-                # (K, 4, 4) per-instance rows: mesh-in-prototype, instance, instancer-to-world.
-                full = relative @ placements @ world_row
-                homogeneous = np.concatenate(
-                    [local.points, np.ones((len(local.points), 1))], axis=1
-                )
-                placed = np.einsum("nj,kjl->knl", homogeneous, full)[..., :3]
-                count = len(local.points)
-                offsets = (np.arange(len(placements), dtype=np.int64) * count + base)[:, None, None]
-                positions.append(placed.reshape(-1, 3))
-                triangles.append(
-                    (local.triangles[None, :, :].astype(np.int64) + offsets).reshape(-1, 3)
-                )
-                base += count * len(placements)
-        if not positions:
+                # Rows: the surface in its prototype, then the instance; instance-major.
+                rows = relative[None, :, :, :] @ placements[:, None, :, :]
+                found.append((mesh_path, local, rows.reshape(-1, 4, 4)))
+        return found
+
+    def _point_instancer(
+        self,
+        prim: Usd.Prim,
+        time: Usd.TimeCode,
+        xforms: UsdGeom.XformCache,
+        core_row: F64,
+        unsupported: Counter[str],
+    ) -> tuple[tuple[F64, npt.NDArray[np.uint32]], set[Sdf.Path]] | None:
+        found = self._instanced_meshes(prim, time, xforms, unsupported)
+        if not found:
             return None
+        world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
+        positions: list[F64] = []
+        triangles: list[npt.NDArray[np.uint32]] = []
+        sources: set[Sdf.Path] = set()
+        base = 0
+        for mesh_path, local, rows in found:
+            sources.add(mesh_path)
+            full = rows @ world_row
+            homogeneous = np.concatenate([local.points, np.ones((len(local.points), 1))], axis=1)
+            placed = np.einsum("nj,kjl->knl", homogeneous, full)[..., :3]
+            count = len(local.points)
+            offsets = (np.arange(len(rows), dtype=np.int64) * count + base)[:, None, None]
+            positions.append(placed.reshape(-1, 3))
+            triangles.append(
+                (local.triangles[None, :, :].astype(np.int64) + offsets).reshape(-1, 3)
+            )
+            base += count * len(rows)
         stacked = np.concatenate(triangles)
         return (np.concatenate(positions), stacked.astype(np.uint32)), sources
 
