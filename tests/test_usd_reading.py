@@ -12,6 +12,7 @@ from scenes import build_scene, flatten, move_occluder_off_the_float32_grid
 from usd_helpers import author_stage, light_matrix
 
 import crepuscular
+import crepuscular_usd
 from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
 from crepuscular_usd.attributes import ATTRIBUTES, RELATIONSHIPS
 from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
@@ -821,6 +822,45 @@ def test_stage_without_the_api_gets_physical_defaults(tmp_path: Path) -> None:
     assert frame.medium["extinction"] == pytest.approx(0.05)
     assert frame.medium["extent"] == {"kind": "unbounded"}
     assert set(frame.style) == {"version", "time"}
+
+
+def test_defaults_render_a_centimetre_stage_as_the_same_stage_in_metres(tmp_path: Path) -> None:
+    """Without the API, and with `apply_schema`'s defaults, a Y-up centimetre stage gives the
+    layers of the Z-up metre one: the fallbacks are metres, authored in stage units."""
+    scene = build_scene(**SMALL)
+    layers = {}
+    for up, meters in (("Z", 1.0), ("Y", 0.01)):
+        path = str(tmp_path / f"{up}.usda")
+        stage = author_stage(path, scene, up=up, meters_per_unit=meters, apply_api=False)
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        layers[up, "no API"] = _render(reader)
+        light = stage.GetPrimAtPath("/World/Sun")
+        crepuscular_usd.apply_schema(light)
+        assert light.GetAttribute("crepuscular:medium:extinction").Get() == pytest.approx(
+            0.05 * meters
+        )
+        assert light.GetAttribute("crepuscular:maxDistance").Get() == pytest.approx(100 / meters)
+        assert light.GetAttribute("crepuscular:shadowBias").Get() == -1.0
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        layers[up, "applied"] = _render(reader)
+    reference = layers["Z", "no API"]
+    assert float(np.asarray(reference.volume)[..., :3].mean()) > 0.0
+    for key in (("Y", "no API"), ("Z", "applied"), ("Y", "applied")):
+        _layers_close(layers[key], reference, 1e-4)
+
+
+def test_a_stage_that_does_not_declare_its_units_takes_the_fallbacks_in_its_own(
+    tmp_path: Path,
+) -> None:
+    stage = author_stage(str(tmp_path / "s.usda"), build_scene(**SMALL), apply_api=False)
+    stage.ClearMetadata("metersPerUnit")  # centimetres, as USD reads it
+    frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
+    assert frame.medium["extinction"] == pytest.approx(0.05 / 0.01)
+    assert frame.render_kwargs()["settings"]["max_distance"] == pytest.approx(100 * 0.01)
+    light = stage.GetPrimAtPath("/World/Sun")
+    crepuscular_usd.apply_schema(light)
+    assert light.GetAttribute("crepuscular:medium:extinction").Get() == pytest.approx(0.05)
+    assert light.GetAttribute("crepuscular:maxDistance").Get() == pytest.approx(100)
 
 
 def test_xform_resets_nested_transforms_and_animated_points(tmp_path: Path) -> None:

@@ -145,13 +145,33 @@ class LightSettings:
 
 
 def _value(prim: Usd.Prim, name: str, time: Usd.TimeCode, has_api: bool) -> Any:
+    return _authored_or_fallback(prim, name, time, has_api)[0]
+
+
+def _authored_or_fallback(
+    prim: Usd.Prim, name: str, time: Usd.TimeCode, has_api: bool
+) -> tuple[Any, bool]:
+    """The attribute's value at `time` and True, or its fallback and False where the API is
+    absent or the attribute has no value."""
     if has_api:
         attr = prim.GetAttribute(name)
         if attr:
             value = attr.Get(time)
             if value is not None:
-                return value
-    return fallback(name)
+                return value, True
+    return fallback(name), False
+
+
+def _stage_units_per_metre_power(meters_per_unit: float, length_power: int) -> float:
+    """The factor that takes a value of `length_power` from metres into stage units."""
+    return meters_per_unit ** (-length_power)
+
+
+def _fallbacks_in_metres(stage: Usd.Stage) -> bool:
+    """Whether the fallbacks count in metres on `stage`: where it declares `metersPerUnit`.
+    A stage that does not is read in centimetres, as USD has it, but is most often authored
+    with no unit in mind, and the fallbacks count in its own units, as if it were metres."""
+    return bool(UsdGeom.StageHasAuthoredMetersPerUnit(stage))
 
 
 def _single_target(prim: Usd.Prim, name: str) -> Usd.Prim | None:
@@ -174,13 +194,18 @@ def read_light_settings(
 ) -> LightSettings:
     """Reads every schema attribute of `prim` at `time` (fallbacks where the API is absent).
 
-    Lengths become metres; `crepuscular:holes:pivot` stays in stage space for the caller to
-    transform. Raises `SchemaError` naming the attribute for unusable values.
+    Authored lengths become metres. Fallbacks are the renderer's defaults in metres where
+    the stage declares its units, so that a light without the API renders a centimetre stage
+    as it does the same stage in metres (read as stage units, they made its fog 100 times as
+    dense and its reach 1 m), and in stage units where it does not
+    (`_fallbacks_in_metres`). `crepuscular:holes:pivot` stays in stage space for the
+    caller to transform. Raises `SchemaError` naming the attribute for unusable values.
     """
     has_api = prim.HasAPI(API_NAME)
+    fallbacks_in_metres = _fallbacks_in_metres(prim.GetStage())
     groups: dict[str, dict[str, Any]] = {"medium": {}, "sun": {}, "render": {}, "style": {}}
     for name, spec in FIELDS.items():
-        raw = _value(prim, name, time, has_api)
+        raw, authored = _authored_or_fallback(prim, name, time, has_api)
         try:
             value = spec.convert(raw) if spec.convert else raw
         except (TypeError, ValueError) as error:
@@ -189,10 +214,8 @@ def read_light_settings(
             raise SchemaError(f"{prim.GetPath()}.{name}: {value} is not finite")
         if spec.negative_unset and value < 0:
             continue
-        if spec.length_power == 1:
-            value *= meters_per_unit
-        elif spec.length_power == -1:
-            value /= meters_per_unit
+        if spec.length_power and (authored or not fallbacks_in_metres):
+            value /= _stage_units_per_metre_power(meters_per_unit, spec.length_power)
         node = groups[spec.target[0]]
         for key in spec.target[1:-1]:
             node = node.setdefault(key, {})
@@ -308,13 +331,25 @@ def box_from_extent_prim(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
     return box
 
 
+def _default_in_stage_units(name: str, meters_per_unit: float) -> Any:
+    """The fallback of attribute `name`, a renderer default in metres, in stage units; the
+    negative "unset" of an optional length stays as it is."""
+    value = fallback(name)
+    field = FIELDS.get(name)
+    if field is None or not field.length_power or (field.negative_unset and value < 0):
+        return value
+    return value * _stage_units_per_metre_power(meters_per_unit, field.length_power)
+
+
 def apply_schema(
     light: Usd.Prim,
     *,
     medium_extent: Sdf.Path | None = None,
     overrides: Mapping[str, Any] | None = None,
 ) -> None:
-    """Applies CrepuscularLightAPI to a DistantLight and authors every attribute's default."""
+    """Applies CrepuscularLightAPI to a DistantLight and authors every attribute's default,
+    lengths in the stage's units where it declares them (`_fallbacks_in_metres`);
+    `overrides` are in stage units already."""
     if not light.IsA(UsdLux.DistantLight):
         raise SchemaError(
             f"{light.GetPath()} is a {light.GetTypeName() or 'typeless prim'}; "
@@ -323,10 +358,16 @@ def apply_schema(
     if not light.ApplyAPI(API_NAME):
         raise SchemaError(f"could not apply {API_NAME} to {light.GetPath()}")
     definition = _definition()
+    stage = light.GetStage()
+    meters_per_unit = UsdGeom.GetStageMetersPerUnit(stage) if _fallbacks_in_metres(stage) else 1.0
+    overrides = overrides or {}
     for name in sorted(PROPERTY_NAMES - {MEDIUM_EXTENT, HOLES_OBJECTS}):
         spec = definition.GetAttributeDefinition(name)
         attr = light.CreateAttribute(name, spec.GetTypeName())
-        value = (overrides or {}).get(name, fallback(name))
+        if name in overrides:
+            value = overrides[name]
+        else:
+            value = _default_in_stage_units(name, meters_per_unit)
         if not attr or not attr.Set(value):
             raise SchemaError(f"could not author {light.GetPath()}.{name}")
     extent_rel = light.CreateRelationship(MEDIUM_EXTENT)
