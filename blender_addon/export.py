@@ -400,7 +400,8 @@ def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[d
     The box is the object's matrix times its bounds. Coefficients are read as Cycles reads
     them: Volume Scatter has σs = σt = color·density per channel; Principled Volume has
     σs = color·density and σt = (color + (1 − color)(1 − √absorption))·density. Where σt is
-    coloured, its Rec. 709 luminance is used, and a note says so.
+    coloured it goes to the core per channel (`channel_extinction`, a pass per distinct
+    value, and a note says so), with `extinction` its Rec. 709 luminance.
     """
     where = f"fog object '{fog.name}'"
     evaluated = fog.evaluated_get(depsgraph)
@@ -456,15 +457,21 @@ def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[d
             "Principled Volume"
         )
     sigma_t = float(LUMINANCE @ extinction)
-    if not np.allclose(extinction, extinction[0], rtol=1e-6, atol=0):
+    medium: dict[str, Any] = {"extinction": sigma_t}
+    if np.allclose(extinction, extinction[0], rtol=1e-6, atol=0):
+        albedo = scattering / sigma_t if sigma_t > 0 else np.zeros(3)
+    else:
+        # σs = albedo·σt per channel, each channel scattered at its own σt.
+        albedo = np.divide(scattering, extinction, out=np.zeros(3), where=extinction > 0)
+        medium["channel_extinction"] = extinction.tolist()
+        distinct = len(set(extinction.tolist()))
         notes.append(
             "Cycles' extinction here is coloured "
-            f"({', '.join(f'{v:.4g}' for v in extinction)}); crepuscular uses its luminance "
-            f"{sigma_t:.4g}"
+            f"({', '.join(f'{v:.4g}' for v in extinction)}): the shafts are scattered once "
+            f"per channel value, {distinct} times"
         )
-    albedo = scattering / sigma_t if sigma_t > 0 else np.zeros(3)
     return {
-        "extinction": sigma_t,
+        **medium,
         "albedo": albedo.tolist(),
         "anisotropy": anisotropy,
         "extent": {"kind": "box", "world_from_cube": column_major(world_from_cube)},

@@ -478,7 +478,7 @@ class CREPUSCULAR_PT_scene(bpy.types.Panel):
             box = layout.box()
             box.label(text="The fog object is hidden from the beauty", icon="INFO")
             box.label(text="during renders: the shafts replace its medium.")
-            box.label(text="Coloured extinction is reduced to its luminance.")
+            box.label(text="Coloured extinction: one pass per channel value.")
         else:
             layout.prop(settings, "extinction")
             layout.prop(settings, "albedo")

@@ -276,6 +276,12 @@ def light_values(
     name = f"bpy.data.lights['{data.original.name}']"
     style = style_from_light(settings, time=seconds, hole_objects=[], name=name)
     medium, _notes = export.medium_dict(scene, depsgraph)
+    if "channel_extinction" in medium:
+        # The schema has one extinction: the luminance, with the scattering's colour carried
+        # by the albedo (σs / luminance), so that the stage keeps the fog's tint.
+        sigma = medium["extinction"]
+        scattering = np.asarray(medium["albedo"]) * np.asarray(medium["channel_extinction"])
+        medium = {**medium, "albedo": (scattering / sigma if sigma > 0 else 0 * scattering)}
     lux = UsdLux.LightAPI(light)
     exported = float(lux.GetIntensityAttr().Get(time)) * 2.0 ** float(
         lux.GetExposureAttr().Get(time)

@@ -19,10 +19,9 @@ Blender.
 
 The extension is built from the wheel in `dist/` (after `make demo` or `make test`) and
 installed into a temporary Blender user folder, as the tests install it. Fog is
-grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, which
-crepuscular takes as its luminance (the extension says so), and the cases then measure
-that approximation. Views that see no fog print as black. A sun's disc is left at 0°:
-crepuscular's shafts have hard edges.
+grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, and the
+extension then has crepuscular scatter once per channel value. Views that see no fog
+print as black. A sun's disc is left at 0°: crepuscular's shafts have hard edges.
 """
 
 from __future__ import annotations

@@ -742,6 +742,55 @@ def test_background_camera_depth(scene: dict[str, Any], depth_kind: str) -> None
     np.testing.assert_allclose(layers.depth, scene["render"]["max_distance"], rtol=1e-5)
 
 
+@pytest.mark.parametrize("method", ["reference", "minmax", "prefiltered"])
+def test_coloured_extinction_takes_each_channel_from_a_grey_render(
+    make_scene: Callable[..., dict[str, Any]], method: str
+) -> None:
+    """Each channel of a medium with `channel_extinction` is that channel of the grey medium
+    of its extinction, bit for bit; opacity and visibility blend the channels' by luminance."""
+    base = make_scene(width=96, height=54, steps=64, shadow_map_size=128)
+    base["render"]["method"] = method
+    base["medium"]["albedo"] = [0.9, 0.7, 0.5]
+    tinted = copy.deepcopy(base)
+    tinted["medium"]["channel_extinction"] = [0.03, 0.4, 0.03]
+    layers = render(tinted)
+    grey = {}
+    for extinction in (0.03, 0.4):
+        scene = copy.deepcopy(base)
+        scene["medium"]["extinction"] = extinction
+        grey[extinction] = render(scene)
+    thin, dense = grey[0.03], grey[0.4]
+    volume = np.asarray(layers.volume)
+    np.testing.assert_array_equal(volume[..., 0], np.asarray(thin.volume)[..., 0])
+    np.testing.assert_array_equal(volume[..., 1], np.asarray(dense.volume)[..., 1])
+    np.testing.assert_array_equal(volume[..., 2], np.asarray(thin.volume)[..., 2])
+    weights = (0.2126 + 0.0722, 0.7152)
+    for name, tinted_value, parts in (
+        ("alpha", volume[..., 3], (thin.volume[..., 3], dense.volume[..., 3])),
+        ("visibility", layers.visibility, (thin.visibility, dense.visibility)),
+    ):
+        blend = weights[0] * np.asarray(parts[0]) + weights[1] * np.asarray(parts[1])
+        np.testing.assert_allclose(tinted_value, blend, rtol=1e-5, atol=1e-7, err_msg=name)
+    np.testing.assert_array_equal(layers.depth, thin.depth)
+    # The dense channel differs: the test would pass on a grey render otherwise.
+    assert np.abs(np.asarray(thin.volume)[..., 1] - volume[..., 1]).max() > 1e-3
+
+
+def test_equal_channel_extinctions_render_as_that_grey_medium(scene: dict[str, Any]) -> None:
+    tinted = copy.deepcopy(scene)
+    tinted["medium"]["channel_extinction"] = [0.2, 0.2, 0.2]
+    scene["medium"]["extinction"] = 0.2
+    np.testing.assert_array_equal(render(tinted).volume, render(scene).volume)
+
+
+@pytest.mark.parametrize("value", [[0.1, -0.1, 0.1], [0.1, float("nan"), 0.1], [0.1, 0.2]])
+def test_a_bad_channel_extinction_is_named(scene: dict[str, Any], value: list[float]) -> None:
+    scene["medium"]["channel_extinction"] = value
+    with pytest.raises(InvalidInputError) as info:
+        render(scene)
+    assert "medium.channel_extinction" in str(info.value)
+
+
 # --- backends ----------------------------------------------------------------------------
 
 

@@ -937,6 +937,18 @@ pub struct AdaptivePasses {
     pub between_shaded: usize,
 }
 
+impl AdaptivePasses {
+    /// Adds another frame pass's (`crate::channels`).
+    pub(crate) fn accumulate(&mut self, other: &AdaptivePasses) {
+        self.lattice += other.lattice;
+        self.finer_grid += other.finer_grid;
+        self.between += other.between;
+        self.lattice_shaded += other.lattice_shaded;
+        self.finer_grid_shaded += other.finer_grid_shaded;
+        self.between_shaded += other.between_shaded;
+    }
+}
+
 /// Shades a `width` × `height` image adaptively. `shade(pixels, out)` gives the layers of
 /// a run of pixels (x, y), in shading order (tile by tile), and is called on several runs
 /// at once, so a pixel's layers may depend on nothing but the pixel;

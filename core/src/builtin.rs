@@ -298,6 +298,7 @@ fn sun_at(azimuth: f64, elevation: f64, color: Vec3, strength: f32) -> Sun {
 fn fog(extinction: f32, anisotropy: f32) -> Medium {
     Medium {
         extinction,
+        channel_extinction: None,
         albedo: Vec3::ONE,
         anisotropy,
         phase: PhaseModel::HenyeyGreenstein,

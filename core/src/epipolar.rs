@@ -1333,6 +1333,7 @@ mod tests {
         let light = sun.direction.as_dvec3().normalize();
         let medium = Medium {
             extinction: 0.1,
+            channel_extinction: None,
             albedo: Vec3::ONE,
             anisotropy: 0.0,
             phase: Default::default(),

@@ -8,6 +8,7 @@ pub mod backend;
 pub mod basis_kernels;
 pub mod builtin;
 pub mod camera;
+pub mod channels;
 pub mod composite;
 pub mod control;
 pub mod diffusion;

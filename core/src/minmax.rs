@@ -328,6 +328,7 @@ mod tests {
         };
         let medium = Medium {
             extinction: 0.1,
+            channel_extinction: None,
             albedo: Vec3::ONE,
             anisotropy: 0.0,
             phase: Default::default(),

@@ -182,6 +182,26 @@ impl StageTimes {
     pub fn scattering(&self) -> f64 {
         self.rectify + self.prepare + self.shading
     }
+
+    /// Adds the stages of another pass of the same frame ([`crate::channels`]): times and
+    /// counts add up, memory is the larger pass's.
+    pub(crate) fn accumulate(&mut self, other: &StageTimes) {
+        self.shadow_map += other.shadow_map;
+        self.camera_depth += other.camera_depth;
+        self.rectify += other.rectify;
+        self.prepare += other.prepare;
+        self.planning += other.planning;
+        self.shading += other.shading;
+        self.passes.accumulate(&other.passes);
+        self.occluders += other.occluders;
+        self.transfer_function += other.transfer_function;
+        self.rectified_bytes = self.rectified_bytes.max(other.rectified_bytes);
+        self.structure_bytes = self.structure_bytes.max(other.structure_bytes);
+        self.pixels += other.pixels;
+        self.shaded_pixels += other.shaded_pixels;
+        self.fast_rays += other.fast_rays;
+        self.walked_rays += other.walked_rays;
+    }
 }
 
 /// Renders one frame from borrowed inputs, validating them first.
@@ -191,20 +211,28 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
 
 /// [`render`], also reporting how long each stage took. Runs on the backend that
 /// `render.backend` selects; a Vulkan failure falls back to the CPU with one message on
-/// standard error.
+/// standard error. A medium with coloured extinction takes a pass per distinct channel
+/// ([`crate::channels`]).
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
-    if let Some(device) = crate::backend::vulkan_device(frame.settings.backend) {
-        match crate::gpu::frame::render_timed(&device, frame, control) {
-            Ok((layers, times, _)) => return Ok((layers, times)),
-            Err(Error::Gpu(err)) => crate::backend::report_fallback(&err),
-            Err(other) => return Err(other),
+    crate::channels::by_channel(frame, control, |frame, control| {
+        if let Some(device) = crate::backend::vulkan_device(frame.settings.backend) {
+            match crate::gpu::frame::render_timed(&device, frame, control) {
+                Ok((layers, times, _)) => return Ok((layers, times)),
+                Err(Error::Gpu(err)) => crate::backend::report_fallback(&err),
+                Err(other) => return Err(other),
+            }
         }
-    }
-    render_timed_cpu(frame, control)
+        render_grey_cpu(frame, control)
+    })
 }
 
 /// [`render_timed`] on the CPU backend, the oracle.
 pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+    crate::channels::by_channel(frame, control, render_grey_cpu)
+}
+
+/// [`render_timed_cpu`] of a frame whose medium has one extinction.
+fn render_grey_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     let (mut layers, mut times) = scatter_timed(frame, control, &CpuPrefixSums)?;
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();

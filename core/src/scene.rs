@@ -185,6 +185,12 @@ impl Sun {
 pub struct Medium {
     /// Extinction coefficient σt, per scene unit.
     pub extinction: f32,
+    /// Extinction per channel (RGB), per scene unit, where it is coloured: Cycles scales a
+    /// Volume Scatter's σt by its colour. Where given, it is each channel's σt for the
+    /// scattering ([`crate::channels`]), and `extinction` stands for the medium only where
+    /// one value must (the stylization's operators and transfer function).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub channel_extinction: Option<Vec3>,
     /// Single-scattering albedo ρ per channel, so that σs = ρ·σt.
     #[serde(default = "white")]
     pub albedo: Vec3,
@@ -722,6 +728,9 @@ impl Sun {
 impl Medium {
     pub fn validate(&self) -> Result<()> {
         check_non_negative("medium.extinction", self.extinction)?;
+        if let Some(channels) = self.channel_extinction {
+            check_color("medium.channel_extinction", channels)?;
+        }
         check_color("medium.albedo", self.albedo)?;
         check_finite("medium.anisotropy", self.anisotropy)?;
         if self.anisotropy.abs() >= 1.0 {

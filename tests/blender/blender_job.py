@@ -87,11 +87,12 @@ def job_fidelity(spec: dict[str, Any], out: Path) -> None:
 
 
 def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
-    """The mappings the fidelity scene leaves at their plainest, against Cycles: a
-    Principled Volume with an absorption colour, a sun with colour, temperature, exposure
-    and a disc, and two cameras, orthographic with lens shift and a vertical sensor fit,
-    and a pinhole inside the box. Black surfaces and world, no bounces; each view is
-    rendered by Cycles, then as our reference and default-method layers."""
+    """The mappings the fidelity scene leaves at their plainest, against Cycles: a tinted
+    Principled Volume with an absorption colour (its extinction coloured), a sun with
+    colour, temperature, exposure and a disc, and two cameras, orthographic with lens
+    shift and a vertical sensor fit, and a pinhole inside the box. Black surfaces and
+    world, no bounces; each view is rendered by Cycles, then as our reference and
+    default-method layers."""
     scene = bpy.context.scene
     blender_scenes.setup_cycles(
         scene, width=spec["width"], height=spec["height"], samples=spec["samples"]
@@ -109,10 +110,10 @@ def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
     fog[:3, 3] = [0.0, 0.0, 3.0]
     material = blender_scenes.volume_material(
         "principled",
-        Color=(0.7, 0.7, 0.7, 1.0),
+        Color=(0.9, 0.6, 0.35, 1.0),
         Density=0.3,
         Anisotropy=0.45,
-        **{"Absorption Color": (0.3, 0.3, 0.3, 1.0)},
+        **{"Absorption Color": (0.2, 0.4, 0.6, 1.0)},
     )
     blender_scenes.add_fog_box(scene, fog, material)
     black = blender_scenes.black_material(0.0)

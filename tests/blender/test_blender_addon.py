@@ -522,15 +522,24 @@ def test_fog_object_maps_as_cycles_reads_it(addon: ModuleType) -> None:
     assert medium["extinction"] == pytest.approx(2.0)
     assert medium["albedo"] == pytest.approx([0.5, 0.5, 0.5])
 
-    # Coloured extinction: its luminance, and a note that says so.
+    # Coloured extinction: per channel, with its luminance as the grey value, and a note.
     fog.data.materials[0] = blender_scenes.volume_material(
-        "scatter", Color=(1.0, 0.5, 0.25, 1.0), Density=1.0
+        "scatter", Color=(1.0, 0.5, 0.25, 1.0), Density=2.0
     )
     medium, notes = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
     luminance = 0.2126 * 1.0 + 0.7152 * 0.5 + 0.0722 * 0.25
-    assert medium["extinction"] == pytest.approx(luminance)
-    assert medium["albedo"] == pytest.approx(np.array([1.0, 0.5, 0.25]) / luminance)
-    assert any("luminance" in note for note in notes)
+    assert medium["extinction"] == pytest.approx(2.0 * luminance)
+    assert medium["channel_extinction"] == pytest.approx([2.0, 1.0, 0.5])
+    assert medium["albedo"] == pytest.approx([1.0, 1.0, 1.0])  # sigma_s = sigma_t per channel
+    assert any("3 times" in note for note in notes)
+    # Principled Volume with a coloured absorption: sigma_s / sigma_t per channel.
+    fog.data.materials[0] = blender_scenes.volume_material(
+        "principled", Density=1.0, **{"Absorption Color": (0.0, 0.25, 1.0, 1.0)}
+    )
+    medium, _ = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+    extinction = 0.5 + 0.5 * (1 - np.sqrt([0.0, 0.25, 1.0]))
+    assert medium["channel_extinction"] == pytest.approx(extinction)
+    assert medium["albedo"] == pytest.approx(0.5 / extinction)
 
 
 def test_fog_objects_that_cannot_map_are_named(addon: ModuleType) -> None:

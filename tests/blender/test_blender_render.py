@@ -167,20 +167,30 @@ def mapped_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFact
 @pytest.mark.parametrize("method", ["reference", "prefiltered"])
 @pytest.mark.parametrize("view", ["orthographic", "inside"])
 def test_mapped_settings_match_cycles(mapped_fidelity: Path, view: str, method: str) -> None:
-    """A Principled Volume with an absorption colour, a sun with colour, temperature and
+    """A tinted Principled Volume with an absorption colour, whose extinction is coloured
+    (0.96, 0.75 and 0.50 times the density), a sun with colour, temperature and
     exposure, an orthographic camera with lens shift and a vertical sensor fit, and a
     camera inside the box: each mapped as Cycles reads it. Leaving out any one of those
-    moves a channel's mean by 15% or more, or the per-pixel difference by 14% or more.
-    (The sun's 3° disc is not mapped: our shafts keep hard edges where Cycles' soften,
-    within the bounds here.)"""
+    moves a channel's mean by 15% or more, or the difference of 2x2-pixel blocks by 14%
+    or more: the extinction's luminance for all three channels put red 20% and 50% high
+    and blue 29% and 47% low, the blocks 17% and 35% off. (The sun's 3° disc is not
+    mapped: our shafts keep hard edges where Cycles' soften, within the bounds here.)"""
     cycles = rgba(mapped_fidelity / f"cycles_{view}.exr")[..., :3]
     ours = volume(mapped_fidelity / f"{view}_{method}.exr")[..., :3]
     assert cycles.mean() > 1e-3, "Cycles rendered a black image"
     assert (ours.mean(axis=-1) > 0).mean() > 0.3, "the fog box fills too little of the view"
     np.testing.assert_allclose(ours.mean(axis=(0, 1)), cycles.mean(axis=(0, 1)), rtol=0.02)
-    # Cycles' noise at 256 spp is most of this (1.5% and 2.6% measured, either method).
-    relative = np.abs(ours - cycles).mean() / cycles.mean()
+    # Cycles' noise at 256 spp is most of this: per pixel 2.7% and 4.7% measured (the blue
+    # channel is dim), in 2x2 blocks 1.4% and 2.4%, either method.
+    relative = np.abs(blocks(ours) - blocks(cycles)).mean() / cycles.mean()
     assert relative < 0.04, relative
+
+
+def blocks(image: np.ndarray) -> np.ndarray:
+    """Means of 2x2-pixel blocks (an odd last row or column left out)."""
+    height, width = image.shape[0] // 2 * 2, image.shape[1] // 2 * 2
+    cropped = image[:height, :width]
+    return cropped.reshape(height // 2, 2, width // 2, 2, -1).mean(axis=(1, 3))
 
 
 def test_grey_surfaces_composite_like_cycles(fidelity: dict[str, Any]) -> None:

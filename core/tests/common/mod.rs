@@ -52,6 +52,7 @@ pub fn pinhole(eye: Vec3, forward: Vec3, focal_length: f32, width: u32, height: 
 pub fn medium(extinction: f32, anisotropy: f32) -> Medium {
     Medium {
         extinction,
+        channel_extinction: None,
         albedo: Vec3::new(0.9, 0.8, 0.7),
         anisotropy,
         phase: PhaseModel::HenyeyGreenstein,
