@@ -8,11 +8,10 @@
 
 use rayon::prelude::*;
 
-use crate::camera::CameraModel;
 use crate::control::RenderControl;
 use crate::error::Result;
 use crate::layers::Layers;
-use crate::render::{Frame, StageTimes};
+use crate::render::{apply_transfer_function_timed, Frame, StageTimes};
 use crate::scene::Medium;
 use crate::style::Style;
 use crate::transfer_function::luminance;
@@ -69,16 +68,7 @@ pub fn by_channel(
         &passes[pass.unwrap_or(0)]
     });
     let mut layers = assemble(of_channel);
-    if frame.style.tf.is_some() {
-        let started = std::time::Instant::now();
-        let light = frame.sun.irradiance() * frame.medium.albedo;
-        frame.style.apply_transfer_function(
-            &mut layers,
-            &CameraModel::new(frame.camera),
-            light.to_array(),
-        )?;
-        times.transfer_function += started.elapsed().as_secs_f64();
-    }
+    apply_transfer_function_timed(frame, &mut layers, &mut times)?;
     Ok((layers, times))
 }
 

@@ -234,17 +234,28 @@ pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layer
 /// [`render_timed_cpu`] of a frame whose medium has one extinction.
 fn render_grey_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     let (mut layers, mut times) = scatter_timed(frame, control, &CpuPrefixSums)?;
+    apply_transfer_function_timed(frame, &mut layers, &mut times)?;
+    Ok((layers, times))
+}
+
+/// The frame's transfer function, if any, on the CPU over `layers`, its time added to
+/// `times`.
+pub(crate) fn apply_transfer_function_timed(
+    frame: &Frame,
+    layers: &mut Layers,
+    times: &mut StageTimes,
+) -> Result<()> {
     if frame.style.tf.is_some() {
         let started = std::time::Instant::now();
         let light = frame.sun.irradiance() * frame.medium.albedo;
         frame.style.apply_transfer_function(
-            &mut layers,
+            layers,
             &CameraModel::new(frame.camera),
             light.to_array(),
         )?;
-        times.transfer_function = started.elapsed().as_secs_f64();
+        times.transfer_function += started.elapsed().as_secs_f64();
     }
-    Ok((layers, times))
+    Ok(())
 }
 
 /// Wall time of consecutive stages: each lap is the time since the previous one.
