@@ -276,12 +276,6 @@ def light_values(
     name = f"bpy.data.lights['{data.original.name}']"
     style = style_from_light(settings, time=seconds, hole_objects=[], name=name)
     medium, _notes = export.medium_dict(scene, depsgraph)
-    if "channel_extinction" in medium:
-        # The schema has one extinction: the luminance, with the scattering's colour carried
-        # by the albedo (σs / luminance), so that the stage keeps the fog's tint.
-        sigma = medium["extinction"]
-        scattering = np.asarray(medium["albedo"]) * np.asarray(medium["channel_extinction"])
-        medium = {**medium, "albedo": (scattering / sigma if sigma > 0 else 0 * scattering)}
     lux = UsdLux.LightAPI(light)
     exported = float(lux.GetIntensityAttr().Get(time)) * 2.0 ** float(
         lux.GetExposureAttr().Get(time)
@@ -306,7 +300,7 @@ def light_values(
         if attr_name == "crepuscular:holes:pivot":
             value = (to_stage @ np.array([*value, 1.0]))[:3]
         elif attribute.length_power:
-            value = value * scale**attribute.length_power
+            value = np.asarray(value, dtype=np.float64) * scale**attribute.length_power
         if attribute.type_name in ("color3f", "point3f"):
             value = tuple(float(v) for v in value)
         elif attribute.type_name == "token":

@@ -863,6 +863,21 @@ def test_a_stage_that_does_not_declare_its_units_takes_the_fallbacks_in_its_own(
     assert light.GetAttribute("crepuscular:maxDistance").Get() == pytest.approx(100)
 
 
+def test_channel_extinction_is_read_per_stage_unit_and_negative_leaves_it_unset(
+    tmp_path: Path,
+) -> None:
+    stage = author_stage(str(tmp_path / "s.usda"), build_scene(**SMALL), meters_per_unit=0.01)
+    light = stage.GetPrimAtPath("/World/Sun")
+    attribute = light.GetAttribute("crepuscular:medium:channelExtinction")
+    reader = StageReader(stage, None, None, width=64)
+    assert "channel_extinction" not in reader.read(Usd.TimeCode.Default()).medium
+    attribute.Set(Gf.Vec3f(0.001, 0.002, 0.004))
+    medium = reader.read(Usd.TimeCode.Default()).medium
+    assert medium["channel_extinction"] == pytest.approx([0.1, 0.2, 0.4])
+    attribute.Set(Gf.Vec3f(0.001, -1.0, 0.004))
+    assert "channel_extinction" not in reader.read(Usd.TimeCode.Default()).medium
+
+
 def test_xform_resets_nested_transforms_and_animated_points(tmp_path: Path) -> None:
     stage = author_stage(str(tmp_path / "xf.usda"), build_scene(**SMALL))
     parent = UsdGeom.Xform.Define(stage, "/World/Parent")

@@ -291,7 +291,7 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     fog = np.diag([7.0, 6.0, 4.0, 1.0])
     fog[:3, 3] = [0.0, 0.0, 4.0]
     material = blender_scenes.volume_material(
-        "scatter", Color=(1, 1, 1, 1), Density=0.12, Anisotropy=0.3
+        "scatter", Color=(1.0, 0.8, 0.55, 1), Density=0.12, Anisotropy=0.3
     )
     blender_scenes.add_fog_box(scene, fog, material)
     blender_scenes.add_quad(

@@ -14,7 +14,8 @@ an edge. The bounds, a mean relative error of 1e-4 per layer and 1e-3 scene unit
 per pixel, leave room for that and for other machines' rounding, and stay orders of
 magnitude below any real mismatch: the sun's exposure of 0.5 stop is 41 %, Blender's
 strength / 4 is 75 %, its 6500 K tint is 4 % in red and blue, a camera shift in the wrong
-units moves depth edges by whole pixels.
+units moves depth edges by whole pixels. The fog is tinted, so its extinction travels per
+channel (`crepuscular:medium:channelExtinction`).
 """
 
 from __future__ import annotations
@@ -100,9 +101,13 @@ def test_y_up_centimetre_export_renders_the_same(still: Path) -> None:
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
     assert UsdGeom.GetStageMetersPerUnit(stage) == pytest.approx(0.01)
     light = stage.GetPrimAtPath("/root/Sun/Sun")
-    # Lengths in stage units: the add-on's 0.3 m closing radius and 0.12 per metre.
+    # Lengths in stage units: the add-on's 0.3 m closing radius, and the tinted fog's
+    # 0.12 per metre times its colour per channel (the scalar is their luminance).
     assert light.GetAttribute("crepuscular:closing:radius").Get() == pytest.approx(30.0)
-    assert light.GetAttribute("crepuscular:medium:extinction").Get() == pytest.approx(0.0012)
+    channels = light.GetAttribute("crepuscular:medium:channelExtinction").Get()
+    assert tuple(channels) == pytest.approx((0.0012, 0.00096, 0.00066))
+    luminance = 0.2126 * 0.0012 + 0.7152 * 0.00096 + 0.0722 * 0.00066
+    assert light.GetAttribute("crepuscular:medium:extinction").Get() == pytest.approx(luminance)
     _render(still / "shot_y_up_cm.usda", str(still / "usd_y_up_cm.exr"))
     errors = _errors(still / "blender.0001.exr", still / "usd_y_up_cm.exr")
     _assert_close(errors, "Y up, centimetres:")

@@ -45,13 +45,17 @@ class Attribute:
     target: tuple[str, ...] = ()
     #: Stage units per unit of the value: 1 for lengths, -1 for per-length, 0 for none.
     length_power: int = 0
-    #: Negative means "unset" (the key is left out), for the renderer's optional values.
+    #: Negative (any component of a colour) means "unset" (the key is left out), for the
+    #: renderer's optional values.
     negative_unset: bool = False
 
 
 ATTRIBUTES: dict[str, Attribute] = {
     "crepuscular:medium:extinction": Attribute("float", ("medium", "extinction"), -1),
     "crepuscular:medium:albedo": Attribute("color3f", ("medium", "albedo")),
+    "crepuscular:medium:channelExtinction": Attribute(
+        "color3f", ("medium", "channel_extinction"), -1, True
+    ),
     "crepuscular:medium:anisotropy": Attribute("float", ("medium", "anisotropy")),
     "crepuscular:medium:phase": Attribute("token", ("medium", "phase")),
     "crepuscular:intensityScale": Attribute("float", ("sun", "intensity_scale")),

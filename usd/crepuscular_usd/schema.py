@@ -167,6 +167,14 @@ def _stage_units_per_metre_power(meters_per_unit: float, length_power: int) -> f
     return meters_per_unit ** (-length_power)
 
 
+def _negative(value: Any) -> bool:
+    """Whether a number, or any component of a vector, is negative: an optional value's
+    "unset"."""
+    if isinstance(value, (int, float)):
+        return value < 0
+    return any(float(component) < 0 for component in value)
+
+
 def _fallbacks_in_metres(stage: Usd.Stage) -> bool:
     """Whether the fallbacks count in metres on `stage`: where it declares `metersPerUnit`.
     A stage that does not is read in centimetres, as USD has it, but is most often authored
@@ -212,10 +220,11 @@ def read_light_settings(
             raise SchemaError(f"{prim.GetPath()}.{name}: unusable value {raw!r}") from error
         if isinstance(value, float) and not math.isfinite(value):
             raise SchemaError(f"{prim.GetPath()}.{name}: {value} is not finite")
-        if spec.negative_unset and value < 0:
+        if spec.negative_unset and _negative(value):
             continue
         if spec.length_power and (authored or not fallbacks_in_metres):
-            value /= _stage_units_per_metre_power(meters_per_unit, spec.length_power)
+            factor = _stage_units_per_metre_power(meters_per_unit, spec.length_power)
+            value = [v / factor for v in value] if isinstance(value, list) else value / factor
         node = groups[spec.target[0]]
         for key in spec.target[1:-1]:
             node = node.setdefault(key, {})
@@ -336,7 +345,7 @@ def _default_in_stage_units(name: str, meters_per_unit: float) -> Any:
     negative "unset" of an optional length stays as it is."""
     value = fallback(name)
     field = FIELDS.get(name)
-    if field is None or not field.length_power or (field.negative_unset and value < 0):
+    if field is None or not field.length_power or (field.negative_unset and _negative(value)):
         return value
     return value * _stage_units_per_metre_power(meters_per_unit, field.length_power)
 
