@@ -814,6 +814,24 @@ def test_backend_setting_selects_vulkan_or_cpu_with_matching_layers(
         np.testing.assert_allclose(other.depth, cpu.depth, rtol=1e-3)
 
 
+def test_a_tinted_medium_renders_per_channel_on_either_backend(
+    scene: dict[str, Any], capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Each channel pass takes the backend's path (or its fallback, announced once)."""
+    scene["medium"]["channel_extinction"] = [0.03, 0.3, 0.1]
+    layers = {}
+    for backend in ("cpu", "vulkan"):
+        variant = json.loads(json.dumps(scene))
+        variant["render"]["backend"] = backend
+        layers[backend] = render(variant)
+    error = (
+        np.abs(layers["vulkan"].volume - layers["cpu"].volume).sum()
+        / np.abs(layers["cpu"].volume).sum()
+    )
+    assert error <= 1e-3, error
+    assert capfd.readouterr().err.count("rendering on the CPU instead") <= 1
+
+
 def test_unknown_backend_is_named(scene: dict[str, Any]) -> None:
     scene.setdefault("render", {})["backend"] = "cuda"
     with raises_invalid("render.backend", "cuda"):

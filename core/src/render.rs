@@ -214,11 +214,20 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
 /// standard error. A medium with coloured extinction takes a pass per distinct channel
 /// ([`crate::channels`]).
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
+    // Once a pass falls back, the frame's other passes go straight to the CPU: one message.
+    let fell_back = std::cell::Cell::new(false);
     crate::channels::by_channel(frame, control, |frame, control| {
-        if let Some(device) = crate::backend::vulkan_device(frame.settings.backend) {
+        let device = match fell_back.get() {
+            true => None,
+            false => crate::backend::vulkan_device(frame.settings.backend),
+        };
+        if let Some(device) = device {
             match crate::gpu::frame::render_timed(&device, frame, control) {
                 Ok((layers, times, _)) => return Ok((layers, times)),
-                Err(Error::Gpu(err)) => crate::backend::report_fallback(&err),
+                Err(Error::Gpu(err)) => {
+                    crate::backend::report_fallback(&err);
+                    fell_back.set(true);
+                }
                 Err(other) => return Err(other),
             }
         }
