@@ -14,6 +14,7 @@ from usd_helpers import author_stage, light_matrix
 import crepuscular
 import crepuscular_usd
 from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
+from crepuscular_usd import geometry as geometry_module
 from crepuscular_usd.attributes import ATTRIBUTES, RELATIONSHIPS
 from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
 from crepuscular_usd.implicit import RADIAL_SEGMENTS, tessellate_implicit
@@ -607,6 +608,25 @@ def test_a_prototype_instancing_itself_is_expanded_once_and_reported(tmp_path: P
     geometry = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default()).geometry
     assert len(geometry.triangles) == 2 + 12
     assert geometry.unsupported == {"PointInstancer (instancing its own prototype)": 1}
+
+
+def test_an_instancer_too_large_for_memory_is_named(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    stage = author_stage(str(tmp_path / "s.usda"), build_scene(occluder=False, **SMALL))
+    proto = "/World/Pebbles/Protos/Pebble"
+    _define(stage, "Sphere", proto, radius=0.01)
+    turn, scale = Gf.Quath(1, 0, 0, 0), Gf.Vec3f(1, 1, 1)
+    placements = [(Gf.Vec3f(0.01 * i, 3, 0), turn, scale) for i in range(1000)]
+    _instancer(stage, "/World/Pebbles", proto, placements)
+    reader = StageReader(stage, None, None, width=64)
+    assert len(reader.read(Usd.TimeCode.Default()).geometry.positions) > 1_000_000
+    monkeypatch.setattr(geometry_module, "available_memory", lambda: 2**26)
+    with pytest.raises(MeshError) as info:
+        reader.read(Usd.TimeCode.Default())
+    message = str(info.value)
+    assert message.startswith("/World/Pebbles: too large for memory"), message
+    assert "GiB are free" in message
 
 
 def test_an_animated_radius_is_read_each_frame_and_a_bad_one_is_named(tmp_path: Path) -> None:

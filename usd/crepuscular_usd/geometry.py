@@ -11,6 +11,7 @@ Python loop over vertices.
 
 from __future__ import annotations
 
+import os
 from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -360,6 +361,9 @@ class GeometryCollector:
         triangles: list[npt.NDArray[np.uint32]] = []
         sources: set[Sdf.Path] = set()
         base = 0
+        vertices = sum(len(local.points) * len(rows) for _, local, rows in found)
+        triangles_placed = sum(len(local.triangles) * len(rows) for _, local, rows in found)
+        _check_memory(vertices, triangles_placed, str(prim.GetPath()))
         for mesh_path, local, rows in found:
             sources.add(mesh_path)
             full = rows @ world_row
@@ -374,6 +378,35 @@ class GeometryCollector:
             base += count * len(rows)
         stacked = np.concatenate(triangles)
         return (np.concatenate(positions), stacked.astype(np.uint32)), sources
+
+
+#: Bytes the step holds per vertex an instancer places (the einsum's float64 rows and their
+#: copies, the float32 positions) and per triangle (int64 indices, the uint32 copy, an id).
+BYTES_PER_VERTEX = 4 * 8 + 3 * 8 + 3 * 4
+BYTES_PER_TRIANGLE = 3 * 8 * 2 + 3 * 4 + 4
+
+
+def available_memory() -> int | None:
+    """Physical memory available now, in bytes, where the system says (Linux)."""
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(vertices: int, triangles: int, where: str) -> None:
+    """A `MeshError` naming `where` if placing `vertices` and `triangles` would need more
+    memory than is free: an instancer of a million pebbles is refused with its size rather
+    than swapping the farm node or being killed."""
+    if vertices < 1_000_000:
+        return
+    need = vertices * BYTES_PER_VERTEX + triangles * BYTES_PER_TRIANGLE
+    free = available_memory()
+    if free is not None and need > free:
+        raise MeshError(
+            f"{where}: too large for memory: it places {vertices} vertices and {triangles} "
+            f"triangles, about {need / 2**30:.1f} GiB, and {free / 2**30:.1f} GiB are free"
+        )
 
 
 def _is_surface(prim: Usd.Prim) -> bool:
