@@ -50,29 +50,30 @@ pub fn by_channel(
         tf: None,
         ..frame.style.clone()
     };
-    let mut passes = Vec::with_capacity(distinct.len());
-    let mut times = StageTimes::default();
-    for &extinction in &distinct {
+    let render_pass = |extinction: f32| {
         let medium = grey(extinction);
         let pass = Frame {
             medium: &medium,
             style: &style,
             ..*frame
         };
-        let (layers, pass_times) = render(&pass, control)?;
+        render(&pass, control)
+    };
+    let channels_of = |extinction: f32| values.map(|value| value == extinction);
+    // `distinct` starts with the red channel's value.
+    let (first, mut times) = render_pass(values[0])?;
+    let mut layers = first_pass(first, channels_of(values[0]));
+    for &extinction in &distinct[1..] {
+        let (pass, pass_times) = render_pass(extinction)?;
         times.accumulate(&pass_times);
-        passes.push(layers);
+        add_pass(&mut layers, &pass, channels_of(extinction));
     }
-    let of_channel: [&Layers; 3] = std::array::from_fn(|c| {
-        let pass = distinct.iter().position(|&value| value == values[c]);
-        &passes[pass.unwrap_or(0)]
-    });
-    let mut layers = assemble(of_channel);
     apply_transfer_function_timed(frame, &mut layers, &mut times)?;
     Ok((layers, times))
 }
 
-/// The values, each once, in the order they first appear (bit for bit: -0 and 0 are one).
+/// The values, each once, in the order they first appear (compared as numbers: -0 and 0
+/// are one).
 fn distinct_values(values: [f32; 3]) -> Vec<f32> {
     let mut distinct: Vec<f32> = Vec::with_capacity(3);
     for value in values {
@@ -83,28 +84,45 @@ fn distinct_values(values: [f32; 3]) -> Vec<f32> {
     distinct
 }
 
-/// Channel c's radiance from `of_channel[c]`, opacity and visibility blended by luminance
-/// weights, depth from the red channel's pass (every pass has the same).
-fn assemble(of_channel: [&Layers; 3]) -> Layers {
-    let [red, green, blue] = of_channel;
-    let mut layers = red.clone();
+/// The luminance weight of the `channels` a pass gives.
+fn share(channels: [bool; 3]) -> f32 {
+    luminance(channels.map(f32::from))
+}
+
+/// The assembly's start from the first pass, which gives `channels`: its layers, opacity
+/// and visibility weighted by the share of its channels. The other channels' radiance is
+/// overwritten by the passes that give them; the depth is every pass's.
+fn first_pass(mut layers: Layers, channels: [bool; 3]) -> Layers {
+    let weight = share(channels);
     layers
         .volume
         .par_chunks_mut(4)
         .zip(layers.visibility.par_iter_mut())
-        .enumerate()
-        .for_each(|(pixel, (rgba, visibility))| {
-            let at = |layers: &Layers, channel: usize| layers.volume[4 * pixel + channel];
-            rgba[1] = at(green, 1);
-            rgba[2] = at(blue, 2);
-            rgba[3] = luminance([at(red, 3), at(green, 3), at(blue, 3)]);
-            *visibility = luminance([
-                red.visibility[pixel],
-                green.visibility[pixel],
-                blue.visibility[pixel],
-            ]);
+        .for_each(|(rgba, visibility)| {
+            rgba[3] *= weight;
+            *visibility *= weight;
         });
     layers
+}
+
+/// A later pass into the assembly: the radiance of its `channels`, and its share of the
+/// opacity and visibility. One pass at a time, so that a frame holds two sets of layers
+/// however many passes it takes.
+fn add_pass(out: &mut Layers, pass: &Layers, channels: [bool; 3]) {
+    let weight = share(channels);
+    out.volume
+        .par_chunks_mut(4)
+        .zip(out.visibility.par_iter_mut())
+        .zip(pass.volume.par_chunks(4).zip(pass.visibility.par_iter()))
+        .for_each(|((rgba, visibility), (from, from_visibility))| {
+            for (channel, &given) in channels.iter().enumerate() {
+                if given {
+                    rgba[channel] = from[channel];
+                }
+            }
+            rgba[3] += weight * from[3];
+            *visibility += weight * from_visibility;
+        });
 }
 
 #[cfg(test)]
@@ -132,12 +150,25 @@ mod tests {
             layers(2.0, 0.4, 0.25),
             layers(3.0, 0.6, 1.0),
         );
-        let out = assemble([&red, &green, &blue]);
+        let mut out = first_pass(red, [true, false, false]);
+        add_pass(&mut out, &green, [false, true, false]);
+        add_pass(&mut out, &blue, [false, false, true]);
         assert_eq!(out.depth, vec![7.0, 8.0]);
         for pixel in 0..2 {
             assert_eq!(&out.volume[4 * pixel..4 * pixel + 3], &[1.0, 2.0, 3.0]);
+            // Three passes add up as the luminance does, in the same order.
             assert_eq!(out.volume[4 * pixel + 3], luminance([0.2, 0.4, 0.6]));
             assert_eq!(out.visibility[pixel], luminance([0.5, 0.25, 1.0]));
         }
+        // Two passes: one gives red and blue.
+        let mut out = first_pass(layers(1.0, 0.2, 0.5), [true, false, true]);
+        add_pass(&mut out, &layers(2.0, 0.4, 0.25), [false, true, false]);
+        assert_eq!(&out.volume[0..3], &[1.0, 2.0, 1.0]);
+        let expected = luminance([0.2, 0.4, 0.2]);
+        assert!(
+            (out.volume[3] - expected).abs() <= 1e-7,
+            "{}",
+            out.volume[3]
+        );
     }
 }
