@@ -152,7 +152,8 @@ class GeometryCollector:
         cached = self._cache.get(key)
         if cached is not None:
             return cached
-        if is_implicit_surface(prim):
+        # Meshes first: most surfaces are, and they skip the implicit schemas' tests.
+        if not prim.IsA(UsdGeom.Mesh):
             try:
                 points, triangles, varying = tessellate_implicit(prim, time)
             except ImplicitSurfaceError as error:
