@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdValidation
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, UsdValidation
 from scenes import build_scene
-from usd_helpers import author_stage
+from usd_helpers import author_rig, author_skinned_strip, author_stage
 
 import crepuscular
 from crepuscular_usd import StageReader
@@ -325,6 +325,28 @@ def test_stage_without_the_api_warns_once(tmp_path: Path) -> None:
     assert warnings[1].endswith(
         "skipped 4 unsupported prims: 1 BasisCurves, 2 Points, 1 SphereLight"
     )
+
+
+def test_an_unusable_mesh_is_named_and_the_rest_renders(tmp_path: Path) -> None:
+    """A skinned mesh whose joint influences do not fit its points: the warning names it
+    and why, and the frame renders without it."""
+    path = tmp_path / "rig.usda"
+    stage = author_stage(str(path), build_scene(**SMALL))
+    skeleton = author_rig(stage, "/World/Rig", {1.0: 30.0})
+    author_skinned_strip(stage, "/World/Rig/Strip", skeleton)
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/World/Rig/Strip"))
+    binding.GetJointIndicesPrimvar().Set([0] * 10)
+    binding.GetJointWeightsPrimvar().Set([1.0] * 10)
+    stage.GetRootLayer().Save()
+    status, err = run(*render_args(path, tmp_path / "o", "--frames", "1", "--height", "36"))
+    assert status == 0, err
+    warnings = [line for line in err.splitlines() if "warning" in line]
+    assert warnings == [
+        "crepuscular-usd: warning: skipped 1 unsupported prims: 1 invalid Mesh",
+        "crepuscular-usd: warning: /World/Rig/Strip: its 6 points could not be skinned (do its "
+        "joint influences match its points and its skeleton's joints?)",
+    ], err
+    assert len(list((tmp_path / "o").iterdir())) == 1
 
 
 # --- bad input ----------------------------------------------------------------------------

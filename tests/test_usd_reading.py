@@ -7,9 +7,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdVol, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol, Vt
 from scenes import build_scene, flatten, move_occluder_off_the_float32_grid
-from usd_helpers import author_stage, light_matrix
+from usd_helpers import (
+    STRIP_REST,
+    author_rig,
+    author_skinned_strip,
+    author_stage,
+    light_matrix,
+    posed_strip,
+)
 
 import crepuscular
 import crepuscular_usd
@@ -926,6 +933,117 @@ def test_xform_resets_nested_transforms_and_animated_points(tmp_path: Path) -> N
         kept_id = geometry.ids_by_path[Sdf.Path("/World/Parent/Kept")]
         corners = world[geometry.triangles[geometry.object_ids == kept_id][0]]
         np.testing.assert_allclose(corners, [[100, 1, 0], [100, 2, 0], [99, 1, 0]], atol=1e-5)
+
+
+def _points_of(geometry: crepuscular_usd.SceneGeometry, path: str) -> np.ndarray:
+    object_id = geometry.ids_by_path[Sdf.Path(path)]
+    used = np.unique(geometry.triangles[geometry.object_ids == object_id])
+    return (geometry.positions[used] + geometry.origin).astype(np.float64)
+
+
+def test_skinned_meshes_are_posed_by_blend_shapes_then_joints_each_frame(tmp_path: Path) -> None:
+    """As UsdSkel defines a skinned mesh: its rest points, plus its animation's weighted
+    blend shapes, skinned by its joints (the halfway points blended by weight), in the
+    skeleton's space; its own transform ignored. Read again after a later frame, the first
+    frame's pose comes back."""
+    stage = author_stage(str(tmp_path / "skel.usda"), build_scene(occluder=False, **SMALL))
+    skeleton = author_rig(stage, "/World/Rig", {1.0: 0.0, 2.0: 90.0, 3.0: -40.0})
+    author_skinned_strip(stage, "/World/Rig/Strip", skeleton)
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    for time, degrees in ((1, 0.0), (2, 90.0), (3, -40.0), (1, 0.0)):
+        geometry = reader.read(Usd.TimeCode(time)).geometry
+        assert not geometry.invalid
+        assert not geometry.unsupported
+        points = _points_of(geometry, "/World/Rig/Strip")
+        expected = posed_strip(degrees)
+        order = lambda rows: rows[np.lexsort(rows.T[::-1])]  # noqa: E731
+        np.testing.assert_allclose(order(points), order(expected), atol=1e-5)
+    # Not a pose the reader could reach by reading the rest points under the mesh's own
+    # transform, nor by skipping the blend shape.
+    rest = np.array(STRIP_REST) + np.array([100.0, 100.0, 100.0])
+    assert np.abs(posed_strip(90.0) - rest).max() > 90.0
+
+
+def test_dual_quaternion_skinning_turns_blended_points_by_half_the_angle(
+    tmp_path: Path,
+) -> None:
+    """With `skinningMethod = dualQuaternion`, the points weighted half to each joint turn
+    45 degrees about joint b's pivot when b turns 90, where linear blending would pull them
+    inwards to the chord's midpoint."""
+    stage = author_stage(str(tmp_path / "dqs.usda"), build_scene(occluder=False, **SMALL))
+    skeleton = author_rig(stage, "/World/Rig", {1.0: 90.0})
+    author_skinned_strip(stage, "/World/Rig/Strip", skeleton)
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/World/Rig/Strip"))
+    binding.CreateSkinningMethodAttr().Set(UsdSkel.Tokens.dualQuaternion)
+    geometry = StageReader(stage, None, None, width=64).read(Usd.TimeCode(1)).geometry
+    points = _points_of(geometry, "/World/Rig/Strip")
+    halfway = points[np.abs(points[:, 1] + 0.5 * np.sin(np.pi / 4)) < 1e-4]
+    np.testing.assert_allclose(np.sort(halfway[:, 0]), [10.0, 10.5], atol=1e-5)
+    np.testing.assert_allclose(halfway[:, 2], 1.0 + 0.5 * np.cos(np.pi / 4), atol=1e-5)
+
+
+def test_skinned_prototypes_are_posed_in_every_instance(tmp_path: Path) -> None:
+    """A PointInstancer of a rig (a crowd): each copy is the posed strip where the instance
+    puts it, and the pose follows the animation from frame to frame."""
+    stage = author_stage(str(tmp_path / "crowd.usda"), build_scene(occluder=False, **SMALL))
+    rig = "/World/Crowd/Protos/Rig"
+    skeleton = author_rig(stage, rig, {1.0: 90.0, 2.0: -40.0})
+    author_skinned_strip(stage, f"{rig}/Strip", skeleton)
+    placements = [(Gf.Vec3f(0, 3 * k, 0), Gf.Quath(1, 0, 0, 0), Gf.Vec3f(1)) for k in range(2)]
+    _instancer(stage, "/World/Crowd", rig, placements)
+    reader = StageReader(stage, None, None, width=64)
+    for time, degrees in ((1, 90.0), (2, -40.0)):
+        geometry = reader.read(Usd.TimeCode(time)).geometry
+        assert not geometry.invalid
+        points = _points_of(geometry, "/World/Crowd")
+        posed = posed_strip(degrees)
+        expected = np.concatenate([posed + np.array([0.0, 3.0 * k, 0.0]) for k in range(2)])
+        order = lambda rows: rows[np.lexsort(rows.T[::-1])]  # noqa: E731
+        np.testing.assert_allclose(order(points), order(expected), atol=1e-5)
+
+
+@pytest.mark.parametrize("schema", ["Mesh", "Cube"])
+def test_a_rigidly_bound_surface_follows_its_joint(tmp_path: Path, schema: str) -> None:
+    """Constant joint influences (a prop held by a hand) move the whole surface with joint
+    b: a box Mesh authored at (0, 0, 2), or a Cube at its origin that its geomBindTransform
+    puts there."""
+    stage = author_stage(str(tmp_path / "rigid.usda"), build_scene(occluder=False, **SMALL))
+    skeleton = author_rig(stage, "/World/Rig", {1.0: 90.0})
+    raised = Gf.Matrix4d().SetTranslate(Gf.Vec3d(0.0, 0.0, 2.0))
+    if schema == "Mesh":
+        prop = _define(stage, "Mesh", "/World/Rig/Prop")
+        points, counts, indices = _box_points(0.2)
+        mesh = UsdGeom.Mesh(prop)
+        mesh.CreatePointsAttr([p + Gf.Vec3f(0.0, 0.0, 2.0) for p in points])
+        mesh.CreateFaceVertexCountsAttr(counts)
+        mesh.CreateFaceVertexIndicesAttr(indices)
+    else:
+        prop = _define(stage, "Cube", "/World/Rig/Prop", size=0.2)
+    binding = UsdSkel.BindingAPI.Apply(prop)
+    assert binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(True, 1).Set([1])
+    binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
+    if schema == "Cube":
+        binding.CreateGeomBindTransformAttr(raised)
+    geometry = StageReader(stage, None, None, width=64).read(Usd.TimeCode(1)).geometry
+    points = _points_of(geometry, "/World/Rig/Prop")
+    # (0, 0, 2) turned 90 degrees about x around (0, 0, 1) is (0, -1, 1).
+    np.testing.assert_allclose(points.mean(axis=0), [10.0, -1.0, 1.0], atol=1e-5)
+    np.testing.assert_allclose(np.ptp(points, axis=0), [0.2, 0.2, 0.2], atol=1e-5)
+
+
+def test_a_skinned_mesh_whose_influences_do_not_fit_is_named(tmp_path: Path) -> None:
+    stage = author_stage(str(tmp_path / "bad.usda"), build_scene(occluder=False, **SMALL))
+    skeleton = author_rig(stage, "/World/Rig", {1.0: 90.0})
+    author_skinned_strip(stage, "/World/Rig/Strip", skeleton)
+    # Two influences a point for five of its six points.
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/World/Rig/Strip"))
+    binding.GetJointIndicesPrimvar().Set([0] * 10)
+    binding.GetJointWeightsPrimvar().Set([1.0] * 10)
+    geometry = StageReader(stage, None, None, width=64).read(Usd.TimeCode(1)).geometry
+    assert Sdf.Path("/World/Rig/Strip") not in geometry.ids_by_path
+    assert len(geometry.invalid) == 1
+    assert "/World/Rig/Strip" in geometry.invalid[0]
 
 
 def test_medium_extent_from_a_box_mesh_and_a_volume(tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ import math
 from typing import Any
 
 import numpy as np
-from pxr import Gf, Usd, UsdGeom, UsdLux
+from pxr import Gf, Usd, UsdGeom, UsdLux, UsdSkel
 
 import crepuscular_usd
 
@@ -142,3 +142,67 @@ def author_light(
     angle = sun.get("angular_diameter", math.radians(0.526))
     light.CreateAngleAttr().Set(math.degrees(angle), time)
     return light
+
+
+# A strip up the z axis, skinned by joint "a" at the rig's origin and joint "a/b" 1 up:
+# its bottom on a, its top on b, and a point halfway between them by weight; the top
+# points also carry a blend shape that moves them 0.1 along x.
+STRIP_REST = [(0, 0, 0), (0.5, 0, 0), (0.5, 0, 1.5), (0, 0, 1.5), (0, 0, 2), (0.5, 0, 2)]
+STRIP_JOINTS = [(0, 0), (0, 0), (0, 1), (0, 1), (1, 0), (1, 0)]
+STRIP_WEIGHTS = [(1, 0), (1, 0), (0.5, 0.5), (0.5, 0.5), (1, 0), (1, 0)]
+
+
+def author_rig(stage: Usd.Stage, root: str, turns: dict[float, float]) -> UsdSkel.Skeleton:
+    """A SkelRoot 10 along x whose joint b turns about x by `turns[time]` degrees."""
+    rig = UsdSkel.Root.Define(stage, root)
+    rig.AddTranslateOp().Set(Gf.Vec3d(10.0, 0.0, 0.0))
+    skeleton = UsdSkel.Skeleton.Define(stage, f"{root}/Skel")
+    skeleton.CreateJointsAttr(["a", "a/b"])
+    up = Gf.Matrix4d().SetTranslate(Gf.Vec3d(0.0, 0.0, 1.0))
+    skeleton.CreateBindTransformsAttr([Gf.Matrix4d(1.0), up])
+    skeleton.CreateRestTransformsAttr([Gf.Matrix4d(1.0), up])
+    animation = UsdSkel.Animation.Define(stage, f"{root}/Skel/Anim")
+    animation.CreateJointsAttr(["a", "a/b"])
+    animation.CreateTranslationsAttr([Gf.Vec3f(0.0), Gf.Vec3f(0.0, 0.0, 1.0)])
+    animation.CreateScalesAttr([Gf.Vec3h(1.0)] * 2)
+    rotations = animation.CreateRotationsAttr()
+    for time, degrees in turns.items():
+        turn = Gf.Quatf(Gf.Rotation(Gf.Vec3d(1.0, 0.0, 0.0), degrees).GetQuat())
+        rotations.Set([Gf.Quatf(1.0), turn], Usd.TimeCode(time))
+    animation.CreateBlendShapesAttr(["wide"])
+    animation.CreateBlendShapeWeightsAttr([1.0])
+    binding = UsdSkel.BindingAPI.Apply(skeleton.GetPrim())
+    assert binding.CreateAnimationSourceRel().SetTargets([animation.GetPath()])
+    return skeleton
+
+
+def author_skinned_strip(stage: Usd.Stage, path: str, skeleton: UsdSkel.Skeleton) -> None:
+    strip = UsdGeom.Mesh.Define(stage, path)
+    strip.AddTranslateOp().Set(Gf.Vec3d(100.0, 100.0, 100.0))  # UsdSkel ignores it
+    strip.CreatePointsAttr(STRIP_REST)
+    strip.CreateFaceVertexCountsAttr([4, 4])
+    strip.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 3, 2, 5, 4])
+    binding = UsdSkel.BindingAPI.Apply(strip.GetPrim())
+    assert binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(False, 2).Set([j for pair in STRIP_JOINTS for j in pair])
+    binding.CreateJointWeightsPrimvar(False, 2).Set([w for pair in STRIP_WEIGHTS for w in pair])
+    binding.CreateBlendShapesAttr(["wide"])
+    shape = UsdSkel.BlendShape.Define(stage, f"{path}/Wide")
+    shape.CreateOffsetsAttr([Gf.Vec3f(0.1, 0.0, 0.0)] * 2)
+    shape.CreatePointIndicesAttr([4, 5])
+    assert binding.CreateBlendShapeTargetsRel().SetTargets([shape.GetPath()])
+
+
+def posed_strip(degrees: float) -> np.ndarray:
+    """The strip posed by hand: the blend shape, then linear blend skinning, at x + 10."""
+    rest = np.array(STRIP_REST, dtype=np.float64)
+    rest[4:, 0] += 0.1
+    angle = np.radians(degrees)
+    cos, sin = np.cos(angle), np.sin(angle)
+    turn = np.array([[1, 0, 0], [0, cos, -sin], [0, sin, cos]])
+    pivot = np.array([0.0, 0.0, 1.0])
+    on_b = (rest - pivot) @ turn.T + pivot
+    pairs = zip(STRIP_JOINTS, STRIP_WEIGHTS, strict=True)
+    weights_b = np.array([w[j.index(1)] if 1 in j else 0.0 for j, w in pairs])
+    posed = rest * (1 - weights_b[:, None]) + on_b * weights_b[:, None]
+    return posed + np.array([10.0, 0.0, 0.0])

@@ -258,9 +258,10 @@ def job_silhouette(spec: dict[str, Any], out: Path) -> None:
 
 
 def round_trip_scene(spec: dict[str, Any]) -> Any:
-    """Meshes (one arrayed by a modifier, one that takes holes), a camera with a vertical
-    sensor fit, lens shift and clip range, a sun with exposure, colour and a styled look
-    (closing, holes, a transfer function), and a fog box."""
+    """Meshes (one arrayed by a modifier, one that takes holes, a column posed by an
+    armature), a camera with a vertical sensor fit, lens shift and clip range, a sun with
+    exposure, colour and a styled look (closing, holes, a transfer function), and a fog
+    box."""
     scene = bpy.context.scene
     scene.render.resolution_x, scene.render.resolution_y = spec["width"], spec["height"]
     scene.render.resolution_percentage = 100
@@ -307,7 +308,48 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     array = arrayed.modifiers.new("Array", "ARRAY")
     array.count, array.relative_offset_displace = 3, (1.8, 0.0, 0.4)
     bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.2, location=(2.5, -1.0, 2.0))
+    add_rigged_column(scene)
     return scene
+
+
+def add_rigged_column(scene: Any) -> Any:
+    """A column skinned to a two-bone armature and posed, its upper bone bent 65° and its
+    lower leaning 15°; a ring of vertices halfway between the bones is weighted to both.
+    Returns the armature. Blender's USD exporter writes it as a UsdSkel rest shape, bind
+    and pose, which the USD step must pose again to cast the same shadow."""
+    data = bpy.data.armatures.new("Rig")
+    rig = bpy.data.objects.new("Rig", data)
+    scene.collection.objects.link(rig)
+    rig.location = (4.5, 2.5, 0.0)
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    lower = data.edit_bones.new("lower")
+    lower.head, lower.tail = (0.0, 0.0, 0.0), (0.0, 0.0, 2.5)
+    upper = data.edit_bones.new("upper")
+    upper.head, upper.tail, upper.parent = (0.0, 0.0, 2.5), (0.0, 0.0, 5.0), lower
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.ops.mesh.primitive_cylinder_add(
+        vertices=12, radius=0.5, depth=5.0, location=(4.5, 2.5, 2.5)
+    )
+    column = bpy.context.active_object
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="SELECT")
+    bpy.ops.mesh.subdivide(number_cuts=3)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    column.parent = rig
+    column.matrix_parent_inverse = rig.matrix_world.inverted()
+    column.modifiers.new("Armature", "ARMATURE").object = rig
+    groups = [column.vertex_groups.new(name=name) for name in ("lower", "upper")]
+    for vertex in column.data.vertices:
+        on_upper = min(max(vertex.co.z + 0.5, 0.0), 1.0)  # 0 below the middle, 1 above
+        for group, weight in zip(groups, (1.0 - on_upper, on_upper), strict=True):
+            if weight > 0.0:
+                group.add([vertex.index], weight, "REPLACE")
+    for name, angles in (("lower", (0.0, 15.0, 0.0)), ("upper", (65.0, 0.0, 0.0))):
+        bone = rig.pose.bones[name]
+        bone.rotation_mode = "XYZ"
+        bone.rotation_euler = [math.radians(a) for a in angles]
+    return rig
 
 
 def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
@@ -319,7 +361,15 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
     if spec["animated"]:
         scene.frame_start, scene.frame_end = 1, 3
         frames = [1, 2, 3]
-        camera, sun = scene.camera, scene.objects["Sun"]
+        camera, sun, rig = scene.camera, scene.objects["Sun"], scene.objects["Rig"]
+        # A shape key, keyed: Blender exports shape keys as blend shapes, and their
+        # weights only with the animation.
+        bpy.ops.mesh.primitive_cube_add(size=1.5, location=(-1.0, 3.0, 1.0))
+        stretched = bpy.context.active_object
+        stretched.shape_key_add(name="Basis")
+        shape = stretched.shape_key_add(name="Tall")
+        for point in shape.data:
+            point.co.z *= 4.0
         settings = sun.data.crepuscular
         start, aim = camera.location.copy(), sun.rotation_euler.copy()
         keys = ((0.0, 42.0, 0.0, 0.1), (1.5, 50.0, 0.15, 0.4), (3.0, 35.0, 0.3, 0.8))
@@ -332,6 +382,11 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
             sun.keyframe_insert("rotation_euler", frame=frame)
             settings.closing_radius = radius
             settings.keyframe_insert("closing_radius", frame=frame)
+            bend = rig.pose.bones["upper"]
+            bend.rotation_euler.x = math.radians(65.0 - 40.0 * shift)
+            bend.keyframe_insert("rotation_euler", frame=frame)
+            shape.value = shift / 3.0
+            shape.keyframe_insert("value", frame=frame)
         scene.crepuscular.fog_object.hide_render = True  # the exporter leaves it out
     for frame in frames:
         scene.frame_set(frame)

@@ -300,6 +300,8 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
                     count = sum(skipped.values()) + len(invalid)
                     _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
+                for message in sorted(invalid):
+                    _warn(err, message)
                 disc = frame.sun["angular_diameter"]
                 if disc > crepuscular.SUN_DISC_AS_POINT:
                     _warn(

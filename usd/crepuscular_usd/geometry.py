@@ -4,6 +4,8 @@ Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed i
 `holeIndices` are left out, faces with fewer than three vertices are skipped, and
 `leftHanded` meshes get their winding flipped. Implicit surfaces (Cube, Sphere, Cylinder,
 Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
+Meshes bound to a UsdSkel skeleton are posed: blend shapes, then joints
+(`crepuscular_usd.skinning`).
 Instance proxies and `PointInstancer` prototypes (with the instancers nested in them) share
 one triangulation per prototype mesh; every placement is one numpy matrix product, never a
 Python loop over vertices.
@@ -18,13 +20,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdVol
+from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol
 
 from crepuscular_usd.implicit import (
     ImplicitSurfaceError,
     is_implicit_surface,
     tessellate_implicit,
 )
+from crepuscular_usd.skinning import SkinnedMeshes, SkinningError
 
 __all__ = ["GeometryCollector", "MeshError", "SceneGeometry", "triangulate"]
 
@@ -143,6 +146,7 @@ class GeometryCollector:
         self._core_from_stage = core_from_stage
         self._skip = set(skip)
         self._cache: dict[Sdf.Path, _LocalMesh] = {}
+        self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
 
     # --- meshes ---------------------------------------------------------------------
 
@@ -189,6 +193,22 @@ class GeometryCollector:
             self._cache[key] = local
         return local
 
+    def _posed(self, prim: Usd.Prim, local: _LocalMesh, time: Usd.TimeCode) -> tuple[F64, Usd.Prim]:
+        """The points of `local` as they render at `time`, and the prim whose space they
+        are in: skinned in their skeleton's, else as they are in the mesh's own."""
+        if not self._skinned.is_skinned(prim):
+            return local.points, prim
+        try:
+            return self._skinned.posed_points(prim, local.points, time)
+        except SkinningError as error:
+            raise MeshError(str(error)) from error
+
+    def _add_skel_root(self, prim: Usd.Prim) -> None:
+        try:
+            self._skinned.add_root(prim)
+        except SkinningError as error:
+            raise MeshError(str(error)) from error
+
     # --- traversal ------------------------------------------------------------------
 
     def collect(self, time: Usd.TimeCode, origin: F64 | None = None) -> SceneGeometry:
@@ -222,15 +242,20 @@ class GeometryCollector:
                 prims.PruneChildren()
                 try:
                     local = self._local_mesh(prim, time)
+                    if local is None or len(local.triangles) == 0:
+                        continue
+                    points, space = self._posed(prim, local, time)
                 except MeshError as error:
                     invalid.append(str(error))
                     continue
-                if local is None or len(local.triangles) == 0:
-                    continue
-                world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
-                chunks.append(
-                    (prim.GetPath(), _transform(local.points, world_row), local.triangles)
-                )
+                world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
+                chunks.append((prim.GetPath(), _transform(points, world_row), local.triangles))
+                continue
+            if prim.IsA(UsdSkel.Root):
+                try:
+                    self._add_skel_root(prim)
+                except MeshError as error:
+                    invalid.append(str(error))
                 continue
             self._count_unsupported(prim, unsupported)
         offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
@@ -287,8 +312,14 @@ class GeometryCollector:
                 prims.PruneChildren()
                 local = self._local_mesh(prim, time)
                 if local is not None and len(local.triangles):
-                    relative, _ = xforms.ComputeRelativeTransform(prim, parent)
+                    points, space = self._posed(prim, local, time)
+                    if points is not local.points:
+                        local = _LocalMesh(points, local.triangles)
+                    relative, _ = xforms.ComputeRelativeTransform(space, parent)
                     found.append((prim.GetPath(), local, row_matrix(relative)[None]))
+                continue
+            if prim.IsA(UsdSkel.Root):
+                self._add_skel_root(prim)
                 continue
             self._count_unsupported(prim, unsupported)
         return found
