@@ -20,6 +20,8 @@ import numpy as np
 
 import crepuscular
 
+from .cutouts import MaskSource, MaskTable
+
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
 GEOMETRY_TYPES = {"MESH", "META"}
@@ -33,17 +35,23 @@ class ExportError(ValueError):
 
 @dataclass
 class MeshArrays:
-    """Object-space vertices (N, 3) float32 and triangles (M, 3) uint32 of one mesh."""
+    """Object-space vertices (N, 3) float32 and triangles (M, 3) uint32 of one mesh. For a
+    mesh with cut materials (`cutouts`), a vertex per triangle corner, with its texture
+    coordinates (N, 2) and each triangle's material slot (M,)."""
 
     positions: np.ndarray
     triangles: np.ndarray
+    uvs: np.ndarray | None = None
+    slots: np.ndarray | None = None
 
 
 @dataclass
 class GeometryCache:
-    """Object-space triangles of static meshes, reused across frames."""
+    """Object-space triangles of static meshes, and the alpha of cutout masks, reused across
+    frames."""
 
     meshes: dict[str, MeshArrays] = field(default_factory=dict)
+    masks: dict[MaskSource, np.ndarray] = field(default_factory=dict)
     hits: int = 0
     misses: int = 0
 
@@ -51,9 +59,19 @@ class GeometryCache:
         """Drops the entries of these mesh names, or everything when `names` is None."""
         if names is None:
             self.meshes.clear()
+            self.masks.clear()
         else:
-            for name in names:
-                self.meshes.pop(name, None)
+            for key in [k for k in self.meshes if k.split(_CUT_KEY)[0] in names]:
+                del self.meshes[key]
+
+    def invalidate_images(self, names: set[str]) -> None:
+        """Drops the masks read from these images."""
+        for source in [s for s in self.masks if s.image in names]:
+            del self.masks[source]
+
+
+#: Separates a mesh's name from the UV maps of its loop-split arrays in cache keys.
+_CUT_KEY = "\x00"
 
 
 @dataclass
@@ -68,6 +86,13 @@ class Geometry:
     names: dict[int, str]
     #: The world point the positions are relative to (float64).
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: Alpha cutouts, where a material cuts: texture coordinates per position, a mask
+    #: index per triangle (-1: none) and the masks.
+    uvs: np.ndarray | None = None
+    triangle_masks: np.ndarray | None = None
+    masks: list[crepuscular.AlphaMask] = field(default_factory=list)
+    #: What the export could not map (transparency of other kinds).
+    notes: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -100,19 +125,68 @@ def _static_key(obj: bpy.types.Object) -> str | None:
     return data.name_full
 
 
-def _object_arrays(obj: bpy.types.Object, cache: GeometryCache | None) -> MeshArrays | None:
+def cut_mesh_arrays(mesh: bpy.types.Mesh, slot_uv_maps: tuple[str, ...]) -> MeshArrays:
+    """`mesh_arrays` with a vertex per triangle corner, each with the texture coordinates
+    of the UV map its triangle's slot reads (`slot_uv_maps`, "" for the default map)."""
+    loops = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int64)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    slots = np.empty(len(mesh.loop_triangles), dtype=np.int64)
+    mesh.loop_triangles.foreach_get("material_index", slots)
+    # Cycles takes a slot index past the last slot as the last.
+    slots = np.clip(slots, 0, max(len(slot_uv_maps) - 1, 0))
+    loop_vertices = np.empty(len(mesh.loops), dtype=np.int64)
+    mesh.loops.foreach_get("vertex_index", loop_vertices)
+    coordinates = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", coordinates)
+    corners = loops.reshape(-1, 3)
+    positions = coordinates.reshape(-1, 3)[loop_vertices[corners]].reshape(-1, 3)
+    uvs = np.zeros((len(corners), 3, 2), dtype=np.float32)
+    for name in set(slot_uv_maps):
+        layer = mesh.uv_layers.get(name) if name else None
+        if layer is None:
+            layer = next((uv for uv in mesh.uv_layers if uv.active_render), None)
+        if layer is None:
+            continue  # no UV map: Cycles reads the texture at (0, 0) too
+        loop_uvs = np.empty(len(mesh.loops) * 2, dtype=np.float32)
+        layer.uv.foreach_get("vector", loop_uvs)
+        rows = np.isin(slots, [k for k, uv in enumerate(slot_uv_maps) if uv == name])
+        uvs[rows] = loop_uvs.reshape(-1, 2)[corners[rows]]
+    triangles = np.arange(len(positions), dtype=np.uint32).reshape(-1, 3)
+    return MeshArrays(positions, triangles, uvs.reshape(-1, 2), slots)
+
+
+def _object_arrays(
+    obj: bpy.types.Object,
+    cache: GeometryCache | None,
+    slot_uv_maps: tuple[str, ...] | None = None,
+) -> MeshArrays | None:
+    """The object's mesh arrays; loop-split with texture coordinates where `slot_uv_maps`
+    (the UV map of each material slot) is given."""
     key = _static_key(obj) if cache is not None else None
+    if key is not None and slot_uv_maps is not None:
+        key = key + _CUT_KEY + "|".join(slot_uv_maps)
     if key is not None and cache is not None:
         cached = cache.meshes.get(key)
-        if cached is not None and len(cached.positions) == len(obj.data.vertices):
+        valid = cached is not None and (
+            len(cached.positions) == len(obj.data.vertices)
+            if slot_uv_maps is None
+            else len(cached.triangles) == len(obj.data.loop_triangles)
+        )
+        if cached is not None and valid:
             cache.hits += 1
             return cached
+
+    def read(mesh: bpy.types.Mesh) -> MeshArrays:
+        if slot_uv_maps is None:
+            return mesh_arrays(mesh)
+        return cut_mesh_arrays(mesh, slot_uv_maps)
+
     if obj.type == "MESH":
-        arrays = mesh_arrays(obj.data)
+        arrays = read(obj.data)
     else:
         mesh = obj.to_mesh()
         try:
-            arrays = None if mesh is None else mesh_arrays(mesh)
+            arrays = None if mesh is None else read(mesh)
         finally:
             obj.to_mesh_clear()
     if key is not None and cache is not None and arrays is not None:
@@ -186,8 +260,11 @@ def export_geometry(
     # of particle or geometry-nodes instances of one mesh cost one lookup each; their
     # matrices are then applied in one batch per mesh.
     decisions: dict[tuple[str, str | None], int | None] = {}
-    meshes: dict[int, MeshArrays | None] = {}
-    groups: dict[tuple[int, int], list[Any]] = {}
+    # Per object, its slots' mask indices and UV maps where a material cuts.
+    table = MaskTable(kept=cache.masks if cache is not None else {})
+    cuts: dict[str, _SlotCuts | None] = {}
+    meshes: dict[tuple[int, tuple[str, ...] | None], MeshArrays | None] = {}
+    groups: dict[tuple[tuple[int, tuple[str, ...] | None], int, _SlotCuts | None], list[Any]] = {}
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type not in GEOMETRY_TYPES:
@@ -200,20 +277,27 @@ def export_geometry(
             decisions[key] = object_id
         if object_id is None:
             continue
+        if obj.name_full not in cuts:
+            cuts[obj.name_full] = _slot_cuts(obj, table)
+        cut = cuts[obj.name_full]
         pointer = obj.data.as_pointer() if obj.type == "MESH" else obj.as_pointer()
-        if pointer not in meshes:
-            meshes[pointer] = _object_arrays(obj, cache)
-        arrays = meshes[pointer]
+        mesh_key = (pointer, None if cut is None else cut.uv_maps)
+        if mesh_key not in meshes:
+            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[1])
+        arrays = meshes[mesh_key]
         if arrays is None or len(arrays.triangles) == 0:
             continue
-        groups.setdefault((pointer, object_id), []).append(instance.matrix_world.copy())
+        groups.setdefault((mesh_key, object_id, cut), []).append(instance.matrix_world.copy())
     positions: list[np.ndarray] = []
     triangles: list[np.ndarray] = []
     ids: list[np.ndarray] = []
+    uvs: list[np.ndarray] = []
+    triangle_masks: list[np.ndarray] = []
+    any_cut = any(cut is not None for _, _, cut in groups)
     base = 0
     triangle_total = 0
-    for (pointer, object_id), matrices in groups.items():
-        arrays = meshes[pointer]
+    for (mesh_key, object_id, cut), matrices in groups.items():
+        arrays = meshes[mesh_key]
         if arrays is None:  # never grouped; keeps the type checker informed
             continue
         count, vertices = len(matrices), len(arrays.positions)
@@ -231,6 +315,14 @@ def export_geometry(
         positions.append(world.reshape(-1, 3).astype(np.float32))
         triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
         ids.append(np.full(count * len(arrays.triangles), object_id, dtype=np.uint32))
+        if any_cut:
+            if cut is None or arrays.uvs is None or arrays.slots is None:
+                uvs.append(np.zeros((count * vertices, 2), dtype=np.float32))
+                triangle_masks.append(np.full(count * len(arrays.triangles), -1, np.int64))
+            else:
+                uvs.append(np.tile(arrays.uvs, (count, 1)))
+                per_slot = np.asarray(cut.masks, dtype=np.int64)
+                triangle_masks.append(np.tile(per_slot[arrays.slots], count))
         base += count * vertices
     if not positions:
         return Geometry(
@@ -240,15 +332,42 @@ def export_geometry(
             [],
             {},
             offset,
+            notes=table.notes,
         )
-    return Geometry(
+    geometry = Geometry(
         np.ascontiguousarray(np.concatenate(positions)),
         np.ascontiguousarray(np.concatenate(triangles), dtype=np.uint32),
         np.ascontiguousarray(np.concatenate(ids)),
         sorted(holes),
         {v: k for k, v in names.items()},
         offset,
+        notes=table.notes,
     )
+    if any_cut:
+        geometry.uvs = np.concatenate(uvs)
+        geometry.triangle_masks = np.concatenate(triangle_masks)
+        try:
+            geometry.masks = table.masks()
+        except ValueError as error:
+            raise ExportError(f"alpha cutout: {error}") from error
+    return geometry
+
+
+@dataclass(frozen=True)
+class _SlotCuts:
+    """Per material slot of an object, its mask index in the export (-1: none) and the UV
+    map the mask reads ("" for the default)."""
+
+    masks: tuple[int, ...]
+    uv_maps: tuple[str, ...]
+
+
+def _slot_cuts(obj: bpy.types.Object, table: MaskTable) -> _SlotCuts | None:
+    """The object's slots' masks, or None where no material of it cuts."""
+    found = [table.add(slot.material) for slot in obj.material_slots]
+    if all(index < 0 for index, _ in found):
+        return None
+    return _SlotCuts(tuple(i for i, _ in found), tuple(uv for _, uv in found))
 
 
 def _name_of(names: dict[str, int], object_id: int) -> str:
@@ -571,6 +690,13 @@ def frame_inputs(
         "style": style,
         "origin": geometry.origin,
     }
+    if geometry.uvs is not None:
+        kwargs |= {
+            "uvs": geometry.uvs,
+            "triangle_masks": geometry.triangle_masks,
+            "masks": geometry.masks,
+        }
+    notes += geometry.notes
     return FrameInputs(kwargs, sun.name, notes, geometry)
 
 

@@ -377,6 +377,13 @@ def on_depsgraph_update_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgr
     }
     if changed:
         CACHE.invalidate(changed)
+    images = {
+        update.id.original.name_full
+        for update in depsgraph.updates
+        if isinstance(update.id, bpy.types.Image)
+    }
+    if images:
+        CACHE.invalidate_images(images)
     from . import preview
 
     preview.CONTROLLER.mark_dirty()

@@ -11,6 +11,7 @@ pub mod camera;
 pub mod channels;
 pub mod composite;
 pub mod control;
+pub mod cutout;
 pub mod diffusion;
 pub mod epipolar;
 pub mod error;

@@ -11,6 +11,7 @@ use std::cmp::Ordering;
 use glam::{DMat4, DVec4};
 use rayon::prelude::*;
 
+use crate::cutout::{AlphaMask, TexturedTriangle, OPAQUE};
 use crate::error::{Result, Sizing};
 use crate::render::Geometry;
 use crate::spare::Spare;
@@ -153,6 +154,26 @@ struct ScreenTriangle {
     nearest: f32,
 }
 
+/// The alpha-cut triangles of a raster ([`crate::cutout`]): per screen triangle, its
+/// [`TexturedTriangle`]'s index or [`OPAQUE`] (empty where nothing is cut: a field of
+/// [`ScreenTriangle`] made it 104 bytes rather than 96, and colonnade's shadow map 15%
+/// slower), those set-ups, and the masks.
+struct CutTriangles<'a> {
+    of_screen: Vec<u32>,
+    triangles: Vec<TexturedTriangle>,
+    masks: &'a [AlphaMask<'a>],
+}
+
+impl CutTriangles<'_> {
+    #[inline(always)]
+    fn of(&self, screen_index: u32) -> u32 {
+        self.of_screen
+            .get(screen_index as usize)
+            .copied()
+            .unwrap_or(OPAQUE)
+    }
+}
+
 /// Rasterizes world-space triangles through `pixel_from_world`, which maps a point to
 /// (pixel x · w, pixel y · w, depth, w).
 pub fn rasterize(
@@ -180,7 +201,7 @@ fn rasterize_targets(
     desc: &RasterDesc,
     with_ids: bool,
 ) -> Result<DepthTarget> {
-    let triangles = setup_triangles(geometry, pixel_from_world, desc);
+    let (triangles, cut) = setup_triangles(geometry, pixel_from_world, desc);
     let tiles_x = desc.width.div_ceil(TILE);
     let tiles_y = desc.height.div_ceil(TILE);
     let mut bins = bin_triangles(&triangles, tiles_x, tiles_y);
@@ -233,7 +254,7 @@ fn rasterize_targets(
                 let rect = [x0, y0, x1, (y0 + BAND).min(desc.height)];
                 let bin = &bins[index as usize];
                 let ids = id_band.as_deref_mut();
-                fill_tile(&triangles, bin, rect, desc, width, depth_band, ids);
+                fill_tile(&triangles, &cut, bin, rect, desc, width, depth_band, ids);
             }
         });
     Ok(DepthTarget {
@@ -304,8 +325,10 @@ fn front_to_back(triangles: &[ScreenTriangle], bins: &mut [Vec<u32>]) {
 
 /// Fills `rect` of `depth` and `ids` (if any), the rows from its first on, `width` wide.
 /// Without ids, `bin` must be in [`front_to_back`] order.
+#[allow(clippy::too_many_arguments)]
 fn fill_tile(
     triangles: &[ScreenTriangle],
+    cut: &CutTriangles,
     bin: &[u32],
     rect: [u32; 4],
     desc: &RasterDesc,
@@ -363,11 +386,44 @@ fn fill_tile(
             range: (near, far),
             object_id: triangle.object_id,
         };
-        for_each_covered_run(triangle, drawn, |run| {
+        let mut test_run = |run: &Run| {
             let start = (run.y - rect[1]) as usize * width + run.x as usize;
             let samples = start..start + run.len;
             let ids = ids.as_deref_mut().map(|ids| &mut ids[samples.clone()]);
-            kernels.test(&test, &run, &mut depth[samples], ids);
+            kernels.test(&test, run, &mut depth[samples], ids);
+        };
+        let cutout = cut.of(index);
+        if cutout == OPAQUE {
+            for_each_covered_run(triangle, drawn, |run| test_run(&run));
+            continue;
+        }
+        // Cut by a mask: each run's samples the mask covers, as runs of their own.
+        let textured = &cut.triangles[cutout as usize];
+        let mask = &cut.masks[textured.mask as usize];
+        for_each_covered_run(triangle, drawn, |run| {
+            let covers = |k: usize| {
+                let (x, y) = ((run.x as usize + k) as f64 + 0.5, run.y as f64 + 0.5);
+                mask.covers(textured.uv_at(x, y))
+            };
+            let mut k = 0;
+            while k < run.len {
+                while k < run.len && !covers(k) {
+                    k += 1;
+                }
+                let first = k;
+                while k < run.len && covers(k) {
+                    k += 1;
+                }
+                if k > first {
+                    test_run(&Run {
+                        x: run.x + first as u32,
+                        y: run.y,
+                        len: k - first,
+                        values: run.values_at(first),
+                        step: run.step,
+                    });
+                }
+            }
         });
     }
 }
@@ -556,12 +612,13 @@ fn inside_run(value: i64, step: i64, count: i64) -> (i64, i64) {
     }
 }
 
-/// Transforms, clips and snaps all triangles, in input order.
-fn setup_triangles(
-    geometry: &Geometry,
+/// Transforms, clips and snaps all triangles, in input order, and sets up the texture
+/// coordinates of those cut by masks.
+fn setup_triangles<'g>(
+    geometry: &Geometry<'g>,
     pixel_from_world: &DMat4,
     desc: &RasterDesc,
-) -> Vec<ScreenTriangle> {
+) -> (Vec<ScreenTriangle>, CutTriangles<'g>) {
     let pixel_from_local = geometry.pixel_from_local(pixel_from_world);
     let clip_positions: Vec<DVec4> = geometry
         .positions
@@ -569,24 +626,88 @@ fn setup_triangles(
         .map(|p| pixel_from_local * DVec4::new(p[0] as f64, p[1] as f64, p[2] as f64, 1.0))
         .collect();
     let planes = clip_planes(desc);
-    geometry
+    let corners_of = |triangle: &[u32; 3]| triangle.map(|v| clip_positions[v as usize]);
+    // Per triangle, its index among the cut ones (OPAQUE where it is not cut), and theirs
+    // set up in that order; `None` for one seen edge on, which covers nothing.
+    let (cut_index, textured): (Vec<u32>, Vec<Option<TexturedTriangle>>) = match geometry
+        .cutouts
+        .as_ref()
+        .filter(|cutouts| cutouts.cuts_any())
+    {
+        None => (Vec::new(), Vec::new()),
+        Some(cutouts) => {
+            let mut count = 0u32;
+            let index = cutouts
+                .triangle_masks
+                .iter()
+                .map(|&mask| match mask {
+                    OPAQUE => OPAQUE,
+                    _ => {
+                        count += 1;
+                        count - 1
+                    }
+                })
+                .collect();
+            let cut: Vec<usize> = (0..geometry.triangles.len())
+                .filter(|&t| cutouts.triangle_masks[t] != OPAQUE)
+                .collect();
+            let textured = cut
+                .par_iter()
+                .map(|&t| {
+                    let triangle = &geometry.triangles[t];
+                    let uvs = triangle.map(|v| cutouts.uvs[v as usize]);
+                    TexturedTriangle::new(corners_of(triangle), uvs, cutouts.triangle_masks[t])
+                })
+                .collect();
+            (index, textured)
+        }
+    };
+    let clip_and_snap = |triangle: &[u32; 3], object_id: u32| {
+        let polygon = clip_polygon(&corners_of(triangle), &planes);
+        (1..polygon.len().saturating_sub(1)).filter_map(move |i| {
+            snap_triangle([polygon[0], polygon[i], polygon[i + 1]], object_id, desc)
+        })
+    };
+    let masks = geometry.cutouts.as_ref().map_or(&[][..], |c| c.masks);
+    let triangles_and_ids = geometry
         .triangles
         .par_iter()
-        .zip(geometry.object_ids.par_iter())
-        .flat_map_iter(|(triangle, &object_id)| {
-            let corners = triangle.map(|v| clip_positions[v as usize]);
-            let polygon = clip_polygon(&corners, &planes);
-            let mut out = Vec::new();
-            for i in 1..polygon.len().saturating_sub(1) {
-                if let Some(screen) =
-                    snap_triangle([polygon[0], polygon[i], polygon[i + 1]], object_id, desc)
-                {
-                    out.push(screen);
-                }
-            }
-            out
+        .zip(geometry.object_ids.par_iter());
+    if cut_index.is_empty() {
+        let screen = triangles_and_ids
+            .flat_map_iter(|(triangle, &object_id)| clip_and_snap(triangle, object_id))
+            .collect();
+        let none = CutTriangles {
+            of_screen: Vec::new(),
+            triangles: Vec::new(),
+            masks,
+        };
+        return (screen, none);
+    }
+    let (screen, of_screen): (Vec<ScreenTriangle>, Vec<u32>) = triangles_and_ids
+        .enumerate()
+        .flat_map_iter(|(t, (triangle, &object_id))| {
+            let cutout = cut_index[t];
+            // A cut triangle seen edge on covers nothing.
+            let edge_on = cutout != OPAQUE && textured[cutout as usize].is_none();
+            let pieces: Vec<ScreenTriangle> = match edge_on {
+                true => Vec::new(),
+                false => clip_and_snap(triangle, object_id).collect(),
+            };
+            pieces.into_iter().map(move |piece| (piece, cutout))
         })
-        .collect()
+        .unzip();
+    // Edge-on entries are never indexed; a placeholder keeps the others' indices.
+    let triangles = textured
+        .into_iter()
+        .map(|t| t.unwrap_or(TexturedTriangle::EDGE_ON))
+        .collect();
+    let cut = CutTriangles {
+        of_screen,
+        triangles,
+        masks,
+    };
+    (screen, cut)
 }
 
 /// An affine half-space n·v + c ≥ 0 in clip coordinates. The constant term works because
@@ -857,9 +978,10 @@ mod tests {
             triangles: &triangles,
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let desc = RasterDesc::orthographic(256, 256);
-        let screen = setup_triangles(&geometry, &identity_projection(), &desc);
+        let (screen, _) = setup_triangles(&geometry, &identity_projection(), &desc);
         let mut counts = vec![0u32; 256 * 256];
         for triangle in &screen {
             for_each_covered_sample(triangle, [0, 0, 256, 256], false, |x, y, _| {
@@ -883,6 +1005,7 @@ mod tests {
             triangles: &triangles,
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let target = rasterize(
             &geometry,
@@ -920,6 +1043,7 @@ mod tests {
             triangles,
             object_ids: ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let desc = RasterDesc::orthographic(157, 101);
         (
@@ -987,6 +1111,7 @@ mod tests {
                 triangles: &triangles,
                 object_ids: &ids,
                 origin: glam::DVec3::ZERO,
+                cutouts: None,
             },
             &identity_projection(),
             &desc,
@@ -1001,6 +1126,7 @@ mod tests {
                     triangles: std::slice::from_ref(triangle),
                     object_ids: std::slice::from_ref(id),
                     origin: glam::DVec3::ZERO,
+                    cutouts: None,
                 },
                 &identity_projection(),
                 &desc,
@@ -1095,9 +1221,10 @@ mod tests {
             triangles: &triangles,
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let desc = RasterDesc::orthographic(128, 64);
-        let screen = setup_triangles(&geometry, &identity_projection(), &desc);
+        let (screen, _) = setup_triangles(&geometry, &identity_projection(), &desc);
         let mut bins = bin_triangles(&screen, 2, 1);
         front_to_back(&screen, &mut bins);
         assert_eq!(bins, [vec![1, 0, 2], vec![3]]);
@@ -1120,6 +1247,7 @@ mod tests {
             triangles: &triangles,
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let target = rasterize(
             &geometry,
@@ -1131,29 +1259,36 @@ mod tests {
         assert_eq!(target.depth[0], 2.0);
     }
 
-    #[test]
-    fn triangles_crossing_the_near_plane_are_clipped() {
-        // A perspective projection looking down −Z with a 90° field of view on 64×64.
-        let m = DMat4::from_cols(
+    /// A perspective projection looking down −Z with a 90° field of view on 64×64.
+    fn looking_down_minus_z() -> DMat4 {
+        DMat4::from_cols(
             DVec4::new(32.0, 0.0, 0.0, 0.0),
             DVec4::new(0.0, -32.0, 0.0, 0.0),
             DVec4::new(-32.0, -32.0, -1.0, -1.0),
             DVec4::ZERO,
-        );
-        // A floor at y = −1 running from behind the camera to far away.
-        let positions = [
-            [-50.0, -1.0, 10.0],
-            [50.0, -1.0, 10.0],
-            [50.0, -1.0, -500.0],
-            [-50.0, -1.0, -500.0],
-        ];
-        let triangles = [[0, 1, 2], [0, 2, 3]];
+        )
+    }
+
+    /// A floor at y = −1 running from behind that camera to far away, as two triangles.
+    const FLOOR: [[f32; 3]; 4] = [
+        [-50.0, -1.0, 10.0],
+        [50.0, -1.0, 10.0],
+        [50.0, -1.0, -500.0],
+        [-50.0, -1.0, -500.0],
+    ];
+    const FLOOR_TRIANGLES: [[u32; 3]; 2] = [[0, 1, 2], [0, 2, 3]];
+
+    #[test]
+    fn triangles_crossing_the_near_plane_are_clipped() {
+        let m = looking_down_minus_z();
+        let (positions, triangles) = (FLOOR, FLOOR_TRIANGLES);
         let ids = [4, 4];
         let geometry = Geometry {
             positions: &positions,
             triangles: &triangles,
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let target =
             rasterize(&geometry, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0)).unwrap();
@@ -1178,5 +1313,66 @@ mod tests {
         for i in 0..64 * 32 {
             assert_eq!(target.depth[i], f32::INFINITY);
         }
+    }
+
+    /// The perspective floor of the test above, checkered by a mask every 2 units: where
+    /// the mask at a pixel's own point of the floor (found by casting its ray) is clearly
+    /// solid, the floor is drawn; where clearly empty, nothing is. The two triangles are
+    /// clipped at the near plane, which the coordinates' set-up must not notice.
+    #[test]
+    fn alpha_cut_triangles_draw_where_their_mask_is_solid() {
+        use crate::cutout::{AlphaMask, Cutouts};
+        let m = looking_down_minus_z();
+        let (positions, triangles) = (FLOOR, FLOOR_TRIANGLES);
+        let uvs = positions.map(|[x, _, z]| [x / 2.0, z / 2.0]);
+        let ids = [4, 4];
+        let checker: Vec<f32> = (0..16).map(|k| ((k % 4 + k / 4) % 2) as f32).collect();
+        let masks = [AlphaMask {
+            width: 4,
+            height: 4,
+            alpha: &checker,
+            threshold: 0.5,
+        }];
+        let geometry = Geometry {
+            positions: &positions,
+            triangles: &triangles,
+            object_ids: &ids,
+            origin: glam::DVec3::ZERO,
+            cutouts: Some(Cutouts {
+                uvs: &uvs,
+                triangle_masks: &[0, 0],
+                masks: &masks,
+            }),
+        };
+        let target =
+            rasterize(&geometry, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0)).unwrap();
+        let (mut solid, mut empty) = (0, 0);
+        for y in 33..64 {
+            for x in 0..64 {
+                let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+                let z = -32.0 / (py - 32.0);
+                if z < -500.0 {
+                    continue;
+                }
+                let alpha = masks[0].alpha_at([(px - 32.0) / (py - 32.0) / 2.0, z / 2.0]);
+                let drawn = target.depth[y * 64 + x].is_finite();
+                if alpha > 0.55 {
+                    assert!(drawn, "({x}, {y}) alpha {alpha}");
+                    solid += 1;
+                } else if alpha < 0.45 {
+                    assert!(!drawn, "({x}, {y}) alpha {alpha}");
+                    empty += 1;
+                }
+            }
+        }
+        assert!(solid > 300 && empty > 300, "{solid} solid, {empty} empty");
+        // Without its mask the floor is drawn everywhere in view.
+        let opaque = Geometry {
+            cutouts: None,
+            ..geometry
+        };
+        let whole = rasterize(&opaque, &m, &RasterDesc::perspective(64, 64, 0.1, 1000.0)).unwrap();
+        let drawn = |t: &DepthTarget| t.depth.iter().filter(|d| d.is_finite()).count();
+        assert!(drawn(&whole) > drawn(&target) + empty);
     }
 }

@@ -8,6 +8,7 @@ use rayon::prelude::*;
 use crate::adaptive::{shade_adaptively, AdaptivePasses, EpipolarLines, SurfaceCoordinate};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
+use crate::cutout::Cutouts;
 use crate::epipolar::{
     epipoles_in_image, CpuPartialResampler, CpuResampler, EpipolarMap, RectifyDesc, Resampler,
 };
@@ -44,6 +45,8 @@ pub struct Geometry<'a> {
     /// f32 world positions are 8 mm apart, and colonnade's frame moved by 1.7%). Hosts that
     /// pass world positions give zero.
     pub origin: DVec3,
+    /// Triangles cut by alpha masks, if any ([`crate::cutout`]).
+    pub cutouts: Option<Cutouts<'a>>,
 }
 
 /// How a renderer's depth pass measures distance.
@@ -121,6 +124,7 @@ impl FlatGeometry {
             triangles: &self.triangles,
             object_ids: &self.object_ids,
             origin: self.origin,
+            cutouts: None,
         }
     }
 }
@@ -1133,7 +1137,11 @@ impl Geometry<'_> {
                 ),
             ));
         }
-        check_triangles("", self.positions, self.triangles)
+        check_triangles("", self.positions, self.triangles)?;
+        match &self.cutouts {
+            Some(cutouts) => cutouts.validate(self.positions.len(), self.triangles.len()),
+            None => Ok(()),
+        }
     }
 }
 

@@ -147,6 +147,33 @@ def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
         settings.method = "reference"
 
 
+def job_cutout_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box under a roof of two leaf-card-like quads cut by an
+    image's alpha, one through a Principled BSDF's Alpha and one through a Mix Shader with
+    a Transparent BSDF: Cycles, our layers (reference and default method), and our layers
+    with the cards made opaque."""
+    scene = fog_scene(spec)
+    for name in ("roof_a", "roof_b"):
+        bpy.data.objects.remove(scene.objects[name])
+    image = blender_scenes.alpha_image("Stripes")
+    corners_a = [(-6, -5, 6), (0, -5, 6), (0, 5, 6), (-6, 5, 6)]
+    corners_b = [(0, -5, 6.2), (5, -5, 6.2), (5, 5, 6.2), (0, 5, 6.2)]
+    principled = blender_scenes.cutout_material(image, "principled")
+    mixed = blender_scenes.cutout_material(image, "mix")
+    blender_scenes.add_card(scene, "card_a", corners_a, principled, 3.0)
+    blender_scenes.add_card(scene, "card_b", corners_b, mixed, 2.0)
+    _render(scene, out / "cycles.exr")
+    sun = scene.objects["Sun"]
+    sun.data.crepuscular.enabled = True
+    settings = sun.data.crepuscular
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "reference.exr")) == {"FINISHED"}
+    settings.method = settings.bl_rna.properties["method"].default
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "default.exr")) == {"FINISHED"}
+    for name in ("card_a", "card_b"):
+        scene.objects[name].data.materials[0] = blender_scenes.black_material(0.0)
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "opaque.exr")) == {"FINISHED"}
+
+
 def shaft_scene(spec: dict[str, Any]) -> Any:
     """A grey ground and a cube under a sun with shafts, in an unbounded medium."""
     scene = bpy.context.scene
@@ -408,6 +435,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
 JOBS = {
     "fidelity": job_fidelity,
     "mapped_fidelity": job_mapped_fidelity,
+    "cutout_fidelity": job_cutout_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,

@@ -247,3 +247,50 @@ def setup_cycles(scene: Any, *, width: int, height: int, samples: int) -> None:
     settings.file_format = "OPEN_EXR"
     settings.color_depth = "32"
     settings.color_mode = "RGBA"
+
+
+def alpha_image(name: str, size: int = 64) -> Any:
+    """A float image whose alpha is stripes 8 texels wide, one in two solid, with a round
+    hole in a solid stripe; black colour."""
+    import bpy
+
+    image = bpy.data.images.new(name, size, size, alpha=True, float_buffer=True)
+    y, x = np.mgrid[0:size, 0:size] + 0.5
+    alpha = ((x // 8) % 2 == 1).astype(np.float32)
+    alpha[(x - 44) ** 2 + (y - 24) ** 2 < 9**2] = 0.0
+    rgba = np.zeros((size, size, 4), dtype=np.float32)
+    rgba[..., 3] = alpha
+    image.pixels.foreach_set(rgba.ravel())
+    image.pack()
+    return image
+
+
+def cutout_material(image: Any, kind: str) -> Any:
+    """Black, cut by `image`'s alpha: into a Principled BSDF's Alpha, or as the factor of a
+    Mix Shader from a Transparent BSDF to it."""
+    material = black_material(0.0)
+    material.name = f"Cutout {kind}"
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    texture = nodes.new("ShaderNodeTexImage")
+    texture.image = image
+    bsdf = nodes["Principled BSDF"]
+    if kind == "principled":
+        links.new(texture.outputs["Alpha"], bsdf.inputs["Alpha"])
+    else:
+        transparent = nodes.new("ShaderNodeBsdfTransparent")
+        mix = nodes.new("ShaderNodeMixShader")
+        links.new(texture.outputs["Alpha"], mix.inputs[0])
+        links.new(transparent.outputs[0], mix.inputs[1])
+        links.new(bsdf.outputs[0], mix.inputs[2])
+        links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+    return material
+
+
+def add_card(scene: Any, name: str, corners: Any, material: Any, repeats: float) -> Any:
+    """A quad with a UV map running 0 to `repeats` along its first edge, 0 to 1 along the
+    other."""
+    card = add_quad(scene, name, corners, material)
+    layer = card.data.uv_layers.new(name="UVMap")
+    for loop, uv in zip(card.data.loops, ((0, 0), (repeats, 0), (repeats, 1), (0, 1)), strict=True):
+        layer.uv[loop.index].vector = uv
+    return card

@@ -421,6 +421,73 @@ def test_static_geometry_is_cached_and_invalidated(addon: ModuleType) -> None:
     assert edited.positions[:, 2].max() == pytest.approx(5.0)
 
 
+def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
+    """A card whose material cuts by an image's alpha exports a vertex per triangle corner
+    with the UV map its texture reads, a mask index per triangle and the image's alpha
+    (rows from the bottom); a Mix Shader towards a Transparent BSDF cuts by one minus the
+    factor; other geometry keeps no mask; transparency of other kinds is named in a note."""
+    scene = bpy.context.scene
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    material = blender_scenes.cutout_material(image, "principled")
+    card = blender_scenes.add_card(
+        scene, "Card", [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)], material, 3.0
+    )
+    # A second map, which the texture reads through a UV Map node.
+    leaf = card.data.uv_layers.new(name="Leaf")
+    for loop in card.data.loops:
+        leaf.uv[loop.index].vector = card.data.uv_layers["UVMap"].uv[loop.index].vector * 0.5
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    uv_node = nodes.new("ShaderNodeUVMap")
+    uv_node.uv_map = "Leaf"
+    links.new(uv_node.outputs["UV"], nodes["Image Texture"].inputs["Vector"])
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(5, 0, 0))
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    geometry = addon.export.export_geometry(depsgraph)
+    card_id = next(i for i, name in geometry.names.items() if name == "Card")
+    cut = geometry.object_ids == card_id
+    assert cut.sum() == 2
+    assert (geometry.triangle_masks[cut] == 0).all()
+    assert (geometry.triangle_masks[~cut] == -1).all()
+    corners = geometry.triangles[cut].ravel()
+    assert len(np.unique(corners)) == 6  # a vertex per corner
+    # Each corner's coordinates are the Leaf map's at its position: half the UVMap's.
+    xy = geometry.positions[corners][:, :2]
+    np.testing.assert_allclose(geometry.uvs[corners], xy * [1.5 / 2, 0.5], atol=1e-6)
+    assert len(geometry.masks) == 1
+    pixels = np.array(image.pixels[:], dtype=np.float32).reshape(16, 16, 4)
+    np.testing.assert_array_equal(np.asarray(geometry.masks[0].alpha), pixels[..., 3])
+    assert geometry.masks[0].threshold == 0.5
+    assert geometry.notes == []
+
+    # The Mix Shader's factor is the alpha where the Transparent BSDF is its first input,
+    # and the transparency where it is the second.
+    mixed = blender_scenes.cutout_material(image, "mix")
+    card.data.materials[0] = mixed
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    np.testing.assert_array_equal(np.asarray(geometry.masks[0].alpha), pixels[..., 3])
+    mix = mixed.node_tree.nodes["Mix Shader"]
+    first, second = mix.inputs[1].links[0].from_socket, mix.inputs[2].links[0].from_socket
+    mixed.node_tree.links.new(second, mix.inputs[1])
+    mixed.node_tree.links.new(first, mix.inputs[2])
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    np.testing.assert_array_equal(np.asarray(geometry.masks[0].alpha), 1.0 - pixels[..., 3])
+
+    # A mapping the export cannot follow, and a constant alpha: opaque, with a note.
+    texture = material.node_tree.nodes["Image Texture"]
+    mapping = nodes.new("ShaderNodeMapping")
+    links.new(mapping.outputs["Vector"], texture.inputs["Vector"])
+    card.data.materials[0] = material
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert geometry.uvs is None
+    assert len(geometry.notes) == 1
+    assert "mapped by 'Mapping'" in geometry.notes[0]
+    links.remove(nodes["Principled BSDF"].inputs["Alpha"].links[0])
+    nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.5
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert geometry.uvs is None
+    assert "constant Alpha" in geometry.notes[0]
+
+
 def _plane_distance(
     camera: bpy.types.Object, scene: bpy.types.Scene, x: float, y: float, plane_y: float
 ) -> float:

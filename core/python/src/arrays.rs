@@ -16,16 +16,22 @@ use numpy::{
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-/// Borrows an `(N, 3)` array as `N` rows.
-pub fn rows<'a, T: Element + Pod>(
+/// Borrows an `(N, COLUMNS)` array as `N` rows.
+pub fn rows<'a, T: Element + Pod, const COLUMNS: usize>(
     name: &str,
     array: &'a PyReadonlyArray2<'_, T>,
-) -> Result<&'a [[T; 3]]> {
+) -> Result<&'a [[T; COLUMNS]]>
+where
+    [T; COLUMNS]: Pod,
+{
     let shape = array.shape();
-    if shape[1] != 3 {
+    if shape[1] != COLUMNS {
         return Err(Error::invalid(
             name,
-            format!("must have shape (N, 3), got ({}, {})", shape[0], shape[1]),
+            format!(
+                "must have shape (N, {COLUMNS}), got ({}, {})",
+                shape[0], shape[1]
+            ),
         ));
     }
     Ok(bytemuck::cast_slice(flat(name, array.as_slice())?))
@@ -33,6 +39,14 @@ pub fn rows<'a, T: Element + Pod>(
 
 /// Borrows a one-dimensional array.
 pub fn values<'a, T: Element>(name: &str, array: &'a PyReadonlyArray1<'_, T>) -> Result<&'a [T]> {
+    flat(name, array.as_slice())
+}
+
+/// Borrows a two-dimensional array's values, row after row.
+pub fn values_2d<'a, T: Element>(
+    name: &str,
+    array: &'a PyReadonlyArray2<'_, T>,
+) -> Result<&'a [T]> {
     flat(name, array.as_slice())
 }
 

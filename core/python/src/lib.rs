@@ -11,6 +11,7 @@ mod errors;
 mod files;
 mod run;
 
+use crepuscular::cutout::{AlphaMask, Cutouts};
 use crepuscular::exr_file::ExrCompression;
 use crepuscular::render::FlatGeometry;
 use crepuscular::scene::{parse_json_at, Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
@@ -20,11 +21,11 @@ use crepuscular::{
 };
 use std::path::PathBuf;
 
-use numpy::{PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
+use numpy::{PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-use crate::arrays::{layers_to_py, rows, values, DepthMap};
+use crate::arrays::{layers_to_py, rows, values, values_2d, DepthMap};
 use crate::errors::to_py_err;
 use crate::run::run_detached;
 
@@ -93,6 +94,7 @@ fn render_json<'py>(
 #[pyo3(signature = (
     positions, triangles, object_ids, camera_json, sun_json, medium_json, settings_json, /,
     *, style_json=None, camera_depth=None, depth_kind="planar", progress=None, origin=None,
+    uvs=None, triangle_masks=None, masks=None,
 ))]
 #[allow(clippy::too_many_arguments)]
 fn render_arrays<'py>(
@@ -109,7 +111,26 @@ fn render_arrays<'py>(
     depth_kind: &str,
     progress: Option<Bound<'py, PyAny>>,
     origin: Option<[f64; 3]>,
+    uvs: Option<PyReadonlyArray2<'py, f32>>,
+    triangle_masks: Option<PyReadonlyArray1<'py, u32>>,
+    masks: Option<Vec<(PyReadonlyArray2<'py, f32>, f32)>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
+    let alpha_masks = masks
+        .as_deref()
+        .unwrap_or_default()
+        .iter()
+        .enumerate()
+        .map(|(k, (alpha, threshold))| {
+            let shape = alpha.shape();
+            Ok(AlphaMask {
+                width: shape[1] as u32,
+                height: shape[0] as u32,
+                alpha: values_2d(&format!("masks[{k}]"), alpha)?,
+                threshold: *threshold,
+            })
+        })
+        .collect::<crepuscular::Result<Vec<_>>>()
+        .map_err(to_py_err)?;
     let prepared = (|| {
         let origin = glam::DVec3::from(origin.unwrap_or_default());
         if !origin.is_finite() {
@@ -131,6 +152,20 @@ fn render_arrays<'py>(
             triangles: rows("triangles", &triangles)?,
             object_ids: values("object_ids", &object_ids)?,
             origin,
+            cutouts: match (&uvs, &triangle_masks) {
+                (Some(uvs), Some(triangle_masks)) => Some(Cutouts {
+                    uvs: rows("uvs", uvs)?,
+                    triangle_masks: values("triangle_masks", triangle_masks)?,
+                    masks: &alpha_masks,
+                }),
+                (None, None) => None,
+                _ => {
+                    return Err(Error::invalid(
+                        "triangle_masks",
+                        "uvs and triangle_masks come together (give both or neither)",
+                    ))
+                }
+            },
         };
         let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref())?;
         Ok((camera, sun, medium, settings, style, geometry, kind, depth))

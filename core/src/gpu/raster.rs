@@ -396,6 +396,10 @@ impl Rasterizer for GpuRasterizer {
         pixel_from_world: &DMat4,
         desc: &RasterDesc,
     ) -> Result<DepthTarget> {
+        if geometry.cutouts.as_ref().is_some_and(|c| c.cuts_any()) {
+            let what = "triangles cut by alpha masks, which the CPU backend rasterizes";
+            return Err(GpuError::Unsupported(what.to_owned()).into());
+        }
         Ok(self
             .run(geometry, pixel_from_world, desc)
             .map_err(|err| err.in_stage(self.stage))?)
@@ -597,6 +601,7 @@ mod tests {
             triangles: &triangles,
             object_ids: &ids,
             origin: glam::DVec3::ZERO,
+            cutouts: None,
         };
         let doubled = DMat4::from_scale(DVec3::new(1.0, 1.0, 2.0));
         assert_eq!(depth_bounds(&geometry, &doubled), (-6.0, 5.0));

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, TypeAlias
 
@@ -33,6 +33,7 @@ __all__ = [
     "SCENE_VERSION",
     "STYLE_VERSION",
     "SUN_DISC_AS_POINT",
+    "AlphaMask",
     "CancelledError",
     "CrepuscularError",
     "DepthKind",
@@ -141,6 +142,21 @@ def render(
     return Layers(*raw)
 
 
+@dataclass(frozen=True)
+class AlphaMask:
+    """An alpha texture that cuts the triangles `render_arrays` assigns it (leaf cards,
+    fences), as a renderer's alpha clip does: where its alpha, filtered bilinearly at a
+    sample's texture coordinates, is below `threshold`, the triangle is empty there, to the
+    sun's shadow map and to the camera's depth alike.
+
+    `alpha` is (height, width); row 0 holds v = 0, the bottom of the image (the order of
+    Blender's `Image.pixels` and of OpenGL textures), and the texture repeats in u and v.
+    """
+
+    alpha: npt.ArrayLike
+    threshold: float = 0.5
+
+
 def render_arrays(
     *,
     positions: npt.ArrayLike,
@@ -155,6 +171,9 @@ def render_arrays(
     depth_kind: DepthKind = "planar",
     progress: ProgressCallback | None = None,
     origin: npt.ArrayLike | None = None,
+    uvs: npt.ArrayLike | None = None,
+    triangle_masks: npt.ArrayLike | None = None,
+    masks: Sequence[AlphaMask] = (),
 ) -> Layers:
     """Renders triangles held in arrays.
 
@@ -167,11 +186,30 @@ def render_arrays(
     `positions` are relative to the world point `origin` (the world's origin when omitted).
     Far from the world's origin, pass one near the camera and subtract it in float64 before
     converting to float32: at 100 km float32 world positions lie 8 mm apart.
+
+    Alpha cutouts: `uvs` (N, 2) gives each position texture coordinates, `triangle_masks`
+    (M,) each triangle the index of its `AlphaMask` in `masks`, or -1 for none. Both or
+    neither. Frames with cut triangles rasterize on the CPU backend.
     """
     _check_progress(progress)
     triangle_rows = _convert.index_rows(triangles, "triangles")
+    position_rows = _convert.float_rows(positions, "positions")
+    cutouts: dict[str, Any] = {}
+    if uvs is not None or triangle_masks is not None:
+        if uvs is None or triangle_masks is None:
+            raise _convert.invalid(
+                "triangle_masks", "uvs and triangle_masks come together (give both or neither)"
+            )
+        cutouts = {
+            "uvs": _convert.uv_rows(uvs, len(position_rows)),
+            "triangle_masks": _convert.triangle_masks(triangle_masks, len(triangle_rows)),
+            "masks": [
+                (_convert.alpha_mask(mask.alpha, k), float(mask.threshold))
+                for k, mask in enumerate(masks)
+            ],
+        }
     raw = _core.render_arrays(
-        _convert.float_rows(positions, "positions"),
+        position_rows,
         triangle_rows,
         _convert.object_ids(object_ids, len(triangle_rows)),
         _convert.to_json(camera, "camera"),
@@ -183,6 +221,7 @@ def render_arrays(
         depth_kind=depth_kind,
         progress=progress,
         origin=None if origin is None else _convert.point(origin, "origin"),
+        **cutouts,
     )
     return Layers(*raw)
 

@@ -159,6 +159,46 @@ def object_ids(value: npt.ArrayLike | None, triangle_count: int) -> npt.NDArray[
     return _uint32(array, "object_ids")
 
 
+def uv_rows(value: npt.ArrayLike, position_count: int) -> npt.NDArray[np.float32]:
+    """(N, 2) float32 texture coordinates, one row per position."""
+    array = np.asarray(value)
+    if array.shape != (position_count, 2):
+        raise invalid(
+            "uvs",
+            f"must have shape (N, 2) = ({position_count}, 2), one row per position, "
+            f"got {_shape(array)}",
+        )
+    _require_real(array, "uvs")
+    return _contiguous(array, np.float32)
+
+
+def triangle_masks(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.uint32]:
+    """One mask index per triangle, -1 (no mask) as the core's 0xFFFFFFFF."""
+    array = np.asarray(value)
+    if array.shape != (triangle_count,):
+        raise invalid(
+            "triangle_masks",
+            f"must have shape (M,) = ({triangle_count},), one per triangle, got {_shape(array)}",
+        )
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise invalid("triangle_masks", f"must hold integers, got dtype {array.dtype}")
+    if array.size and array.dtype.kind == "i":
+        if int(array.min()) < -1:
+            row = int(np.argmin(array))
+            raise invalid(f"triangle_masks[{row}]", f"{int(array[row])} is below -1 (no mask)")
+        array = np.where(array < 0, _U32_MAX, array)
+    return _uint32(array, "triangle_masks")
+
+
+def alpha_mask(value: npt.ArrayLike, index: int) -> npt.NDArray[np.float32]:
+    """A (height, width) float32 alpha texture."""
+    array = np.asarray(value)
+    if array.ndim != 2:
+        raise invalid(f"masks[{index}]", f"must have shape (height, width), got {_shape(array)}")
+    _require_real(array, f"masks[{index}]")
+    return _contiguous(array, np.float32)
+
+
 def point(value: npt.ArrayLike, name: str) -> tuple[float, float, float]:
     """Three coordinates for `name`, as float64; the core checks that they are finite."""
     array = np.asarray(value)

@@ -56,6 +56,9 @@ def render_arrays(
     depth_kind: _DepthKind = "planar",
     progress: _Progress | None = None,
     origin: tuple[float, float, float] | None = None,
+    uvs: _Float32Array | None = None,
+    triangle_masks: _UInt32Array | None = None,
+    masks: list[tuple[_Float32Array, float]] | None = None,
 ) -> _RawLayers: ...
 def normalize_scene_json(
     scene_json: str, /, *, base_dir: str | os.PathLike[str] | None = None

@@ -1,0 +1,147 @@
+"""Alpha cutouts from materials: leaf cards, fences and grilles whose image's alpha makes
+them partly transparent in Cycles, found in their node trees and handed to the core as
+alpha masks (`crepuscular.AlphaMask`), which cut the triangles in the shadow map and the
+camera's depth.
+
+Recognised, as artists build them for Cycles: a Principled BSDF whose Alpha is an Image
+Texture's Alpha (or Color), and a Mix Shader between a Transparent BSDF and another shader
+whose factor is an Image Texture's Alpha (or Color). The texture's coordinates are its UV
+Map node's map, or the mesh's default (active render) map when nothing feeds its Vector.
+
+The core clips at alpha 0.5, where Cycles lets each shadow ray through by the alpha: the
+same for the nearly binary masks of cutouts, and within their filtered edges otherwise.
+Any other use of transparency leaves the material opaque, and a note says which.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import bpy
+import numpy as np
+
+import crepuscular
+
+#: Rec. 709 luminance weights: Cycles' colour-to-value conversion in Blender's default
+#: scene-linear space.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+#: Where the core cuts: alpha below this lets light and sight through.
+THRESHOLD = 0.5
+
+
+@dataclass(frozen=True)
+class MaskSource:
+    """Where a material's alpha comes from."""
+
+    image: str
+    #: The UV map by name; "" for the mesh's default one.
+    uv_map: str
+    #: "alpha", or "luminance" where a Color output feeds the alpha.
+    channel: str
+    #: True where the texture's value is the transparent share (a Mix Shader's factor
+    #: towards its second input, the Transparent BSDF).
+    invert: bool
+
+
+def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
+    """The mask a material cuts with, or None; and a note where its transparency is of a
+    kind this cannot map (the material then stays opaque)."""
+    if material is None or material.node_tree is None:
+        return None, None
+    output = material.node_tree.get_output_node("CYCLES")
+    if output is None or not output.inputs["Surface"].is_linked:
+        return None, None
+    shader = output.inputs["Surface"].links[0].from_node
+    where = f"material '{material.name}'"
+    if shader.bl_idname == "ShaderNodeBsdfPrincipled":
+        alpha = shader.inputs["Alpha"]
+        if not alpha.is_linked:
+            if alpha.default_value < 1.0:
+                return None, f"{where}: a constant Alpha is not a cutout; it casts as opaque"
+            return None, None
+        return _image_source(alpha.links[0], invert=False, where=where)
+    if shader.bl_idname == "ShaderNodeMixShader":
+        factor, first, second = shader.inputs[0], shader.inputs[1], shader.inputs[2]
+        transparent = [
+            socket.is_linked and socket.links[0].from_node.bl_idname == "ShaderNodeBsdfTransparent"
+            for socket in (first, second)
+        ]
+        if not any(transparent):
+            return None, None
+        if not factor.is_linked:
+            return None, f"{where}: a constant mix with Transparent BSDF casts as opaque"
+        # The factor blends towards the second input: it is the alpha where the first is
+        # the Transparent BSDF, and the transparency where the second is.
+        return _image_source(factor.links[0], invert=transparent[1], where=where)
+    return None, None
+
+
+def _image_source(link: Any, *, invert: bool, where: str) -> tuple[MaskSource | None, str | None]:
+    node = link.from_node
+    if node.bl_idname != "ShaderNodeTexImage" or node.image is None:
+        return None, f"{where}: its alpha is not an Image Texture's; it casts as opaque"
+    channel = {"Alpha": "alpha", "Color": "luminance"}.get(link.from_socket.name)
+    if channel is None:
+        return None, f"{where}: its alpha comes from '{link.from_socket.name}'; it casts as opaque"
+    vector = node.inputs["Vector"]
+    uv_map = ""
+    if vector.is_linked:
+        source = vector.links[0]
+        if source.from_node.bl_idname == "ShaderNodeUVMap":
+            uv_map = source.from_node.uv_map
+        elif not (
+            source.from_node.bl_idname == "ShaderNodeTexCoord" and source.from_socket.name == "UV"
+        ):
+            return None, (
+                f"{where}: image '{node.image.name}' is mapped by "
+                f"'{source.from_node.name}', not a UV map; it casts as opaque"
+            )
+    return MaskSource(node.image.name_full, uv_map, channel, invert), None
+
+
+def mask_alpha(source: MaskSource) -> np.ndarray:
+    """The (height, width) float32 alpha of `source`, rows from the image's bottom."""
+    image = bpy.data.images[source.image]
+    width, height = image.size
+    if width == 0 or height == 0:
+        raise ValueError(f"image '{image.name}' has no pixels (is its file missing?)")
+    pixels = np.empty(width * height * 4, dtype=np.float32)
+    image.pixels.foreach_get(pixels)
+    rgba = pixels.reshape(height, width, 4)
+    alpha = rgba[..., 3] if source.channel == "alpha" else rgba[..., :3] @ LUMINANCE
+    return np.ascontiguousarray(1.0 - alpha if source.invert else alpha, dtype=np.float32)
+
+
+@dataclass
+class MaskTable:
+    """The masks of one export, each source once, in the order first used. `kept` holds
+    alphas across exports, by source (reading an image's pixels takes a while); the
+    geometry cache owns it and drops those of changed images."""
+
+    kept: dict[MaskSource, np.ndarray] = field(default_factory=dict)
+    sources: list[MaskSource] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    _index: dict[MaskSource, int] = field(default_factory=dict)
+
+    def add(self, material: bpy.types.Material | None) -> tuple[int, str]:
+        """The mask index of `material` in this export (-1 where it does not cut) and the
+        UV map its mask reads ("" for the default)."""
+        source, note = material_mask(material)
+        if note is not None and note not in self.notes:
+            self.notes.append(note)
+        if source is None:
+            return -1, ""
+        if source not in self._index:
+            self._index[source] = len(self.sources)
+            self.sources.append(source)
+        return self._index[source], source.uv_map
+
+    def masks(self) -> list[crepuscular.AlphaMask]:
+        masks = []
+        for source in self.sources:
+            alpha = self.kept.get(source)
+            if alpha is None:
+                alpha = self.kept[source] = mask_alpha(source)
+            masks.append(crepuscular.AlphaMask(alpha, THRESHOLD))
+        return masks
