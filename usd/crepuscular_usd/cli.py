@@ -300,7 +300,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
                     count = sum(skipped.values()) + len(invalid)
                     _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
-                for message in sorted(invalid):
+                for message in [*sorted(invalid), *frame.geometry.notes]:
                     _warn(err, message)
                 disc = frame.sun["angular_diameter"]
                 if disc > crepuscular.SUN_DISC_AS_POINT:

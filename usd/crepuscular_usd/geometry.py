@@ -22,6 +22,8 @@ import numpy as np
 import numpy.typing as npt
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol
 
+import crepuscular
+from crepuscular_usd.cutouts import MaskTable, corner_uvs, face_masks
 from crepuscular_usd.implicit import (
     ImplicitSurfaceError,
     is_implicit_surface,
@@ -29,7 +31,7 @@ from crepuscular_usd.implicit import (
 )
 from crepuscular_usd.skinning import SkinnedMeshes, SkinningError
 
-__all__ = ["GeometryCollector", "MeshError", "SceneGeometry", "triangulate"]
+__all__ = ["GeometryCollector", "MeshError", "SceneGeometry", "triangle_corners", "triangulate"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -52,6 +54,29 @@ def triangulate(
     Faces in `hole_indices` and faces with fewer than 3 vertices produce no triangles.
     Raises `MeshError` naming `where` for inconsistent topology.
     """
+    corners, _ = triangle_corners(
+        face_vertex_counts,
+        face_vertex_indices,
+        hole_indices,
+        left_handed=left_handed,
+        point_count=point_count,
+        where=where,
+    )
+    indices = np.asarray(face_vertex_indices, dtype=np.int64).reshape(-1)
+    return indices[corners].astype(np.uint32)
+
+
+def triangle_corners(
+    face_vertex_counts: npt.ArrayLike,
+    face_vertex_indices: npt.ArrayLike,
+    hole_indices: npt.ArrayLike = (),
+    *,
+    left_handed: bool = False,
+    point_count: int | None = None,
+    where: str = "mesh",
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """`triangulate`'s triangles as (M, 3) positions in the face-vertex list (where
+    face-varying primvars are), and each triangle's face."""
     counts = np.asarray(face_vertex_counts, dtype=np.int64).reshape(-1)
     indices = np.asarray(face_vertex_indices, dtype=np.int64).reshape(-1)
     if np.any(counts < 0):
@@ -78,10 +103,10 @@ def triangulate(
     face = np.repeat(np.arange(len(counts)), per_face)
     corner = np.arange(total) - np.repeat(np.cumsum(per_face) - per_face, per_face)
     base = starts[face]
-    first, second, third = indices[base], indices[base + corner + 1], indices[base + corner + 2]
+    first, second, third = base, base + corner + 1, base + corner + 2
     if left_handed:
         second, third = third, second
-    return np.stack([first, second, third], axis=1).astype(np.uint32)
+    return np.stack([first, second, third], axis=1), face
 
 
 def row_matrix(matrix: object) -> F64:
@@ -93,6 +118,24 @@ def row_matrix(matrix: object) -> F64:
 class _LocalMesh:
     points: F64
     triangles: npt.NDArray[np.uint32]
+    #: Where faces are cut (`crepuscular_usd.cutouts`): a point per triangle corner, each
+    #: with its texture coordinates, the mask index of each triangle (-1: none), and the
+    #: corners' points in `unsplit`, the mesh's own (which skinning poses).
+    uvs: F64 | None = None
+    masks: npt.NDArray[np.int64] | None = None
+    corner_points: npt.NDArray[np.int64] | None = None
+    unsplit: F64 | None = None
+
+
+@dataclass
+class _Chunk:
+    """One owner's placed triangles, with the cutouts of its `_LocalMesh`es if any."""
+
+    path: Sdf.Path
+    points: F64
+    triangles: npt.NDArray[np.uint32]
+    uvs: F64 | None = None
+    masks: npt.NDArray[np.int64] | None = None
 
 
 @dataclass
@@ -112,6 +155,13 @@ class SceneGeometry:
     invalid: list[str] = field(default_factory=list)
     #: The point `positions` are relative to, in the renderer's space (float64).
     origin: F64 = field(default_factory=lambda: np.zeros(3))
+    #: Alpha cutouts where a material cuts: texture coordinates per position, a mask index
+    #: per triangle (-1: none) and the masks (`crepuscular_usd.cutouts`).
+    uvs: npt.NDArray[np.float32] | None = None
+    triangle_masks: npt.NDArray[np.int64] | None = None
+    masks: list[crepuscular.AlphaMask] = field(default_factory=list)
+    #: Materials whose transparency this step cannot map, named.
+    notes: list[str] = field(default_factory=list)
 
     def ids_under(self, roots: Iterable[Sdf.Path]) -> list[int]:
         """Object ids of every owner at or below one of `roots`."""
@@ -147,6 +197,7 @@ class GeometryCollector:
         self._skip = set(skip)
         self._cache: dict[Sdf.Path, _LocalMesh] = {}
         self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+        self._masks = MaskTable()
 
     # --- meshes ---------------------------------------------------------------------
 
@@ -180,28 +231,68 @@ class GeometryCollector:
         if points_value is None or counts is None or indices is None:
             return _LocalMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint32))
         points = np.array(points_value, dtype=np.float64).reshape(-1, 3)
-        triangles = triangulate(
-            counts,
-            indices,
-            attrs[3].Get(time) or (),
-            left_handed=attrs[4].Get(time) == UsdGeom.Tokens.leftHanded,
-            point_count=len(points),
-            where=str(prim.GetPath()),
-        )
-        local = _LocalMesh(points, triangles)
+        topology = {
+            "hole_indices": attrs[3].Get(time) or (),
+            "left_handed": attrs[4].Get(time) == UsdGeom.Tokens.leftHanded,
+            "point_count": len(points),
+            "where": str(prim.GetPath()),
+        }
+        faces = face_masks(prim, len(counts), self._masks)
+        if faces is None:
+            local = _LocalMesh(points, triangulate(counts, indices, **topology))
+        else:
+            local = self._cut_mesh(prim, time, points, counts, indices, faces, topology)
         if not any(attr.ValueMightBeTimeVarying() for attr in attrs):
             self._cache[key] = local
         return local
+
+    def _cut_mesh(
+        self,
+        prim: Usd.Prim,
+        time: Usd.TimeCode,
+        points: F64,
+        counts: object,
+        indices: object,
+        faces: npt.NDArray[np.int64],
+        topology: dict[str, object],
+    ) -> _LocalMesh:
+        """A mesh some of whose faces are cut: a point per triangle corner, with the
+        texture coordinates of the primvar its face's mask reads."""
+        corners, triangle_faces = triangle_corners(counts, indices, **topology)
+        corner_points = np.asarray(indices, dtype=np.int64).reshape(-1)[corners]
+        masks = faces[triangle_faces]
+        uvs = np.zeros((len(corners), 3, 2))
+        for mask in np.unique(masks[masks >= 0]):
+            rows = masks == mask
+            primvar = self._masks.source(int(mask)).primvar
+            values = corner_uvs(
+                prim, primvar, time, corners[rows], corner_points[rows], triangle_faces[rows]
+            )
+            if values is None:
+                note = f"{prim.GetPath()}: primvar '{primvar}' is missing; its mask reads (0, 0)"
+                if note not in self._masks.notes:
+                    self._masks.notes.append(note)
+                continue
+            uvs[rows] = values
+        split = points[corner_points].reshape(-1, 3)
+        triangles = np.arange(len(split), dtype=np.uint32).reshape(-1, 3)
+        return _LocalMesh(
+            split, triangles, uvs.reshape(-1, 2), masks, corner_points.reshape(-1), points
+        )
 
     def _posed(self, prim: Usd.Prim, local: _LocalMesh, time: Usd.TimeCode) -> tuple[F64, Usd.Prim]:
         """The points of `local` as they render at `time`, and the prim whose space they
         are in: skinned in their skeleton's, else as they are in the mesh's own."""
         if not self._skinned.is_skinned(prim):
             return local.points, prim
+        rest = local.points if local.unsplit is None else local.unsplit
         try:
-            return self._skinned.posed_points(prim, local.points, time)
+            posed, space = self._skinned.posed_points(prim, rest, time)
         except SkinningError as error:
             raise MeshError(str(error)) from error
+        if local.corner_points is not None:
+            posed = posed[local.corner_points]
+        return posed, space
 
     def _add_skel_root(self, prim: Usd.Prim) -> None:
         try:
@@ -216,7 +307,7 @@ class GeometryCollector:
         `origin` (default the origin): subtracted in float64, a point near the camera keeps
         float32 positions precise however far the stage lies from its origin."""
         xforms = UsdGeom.XformCache(time)
-        chunks: list[tuple[Sdf.Path, F64, npt.NDArray[np.uint32]]] = []
+        chunks: list[_Chunk] = []
         instanced: dict[Sdf.Path, set[Sdf.Path]] = {}
         unsupported: Counter[str] = Counter()
         invalid: list[str] = []
@@ -235,7 +326,7 @@ class GeometryCollector:
                 prims.PruneChildren()
                 placed = self._point_instancer(prim, time, xforms, core_row, unsupported)
                 if placed is not None:
-                    chunks.append((prim.GetPath(), *placed[0]))
+                    chunks.append(placed[0])
                     instanced[prim.GetPath()] = placed[1]
                 continue
             if _is_surface(prim):
@@ -249,7 +340,10 @@ class GeometryCollector:
                     invalid.append(str(error))
                     continue
                 world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
-                chunks.append((prim.GetPath(), _transform(points, world_row), local.triangles))
+                placed_points = _transform(points, world_row)
+                chunks.append(
+                    _Chunk(prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks)
+                )
                 continue
             if prim.IsA(UsdSkel.Root):
                 try:
@@ -259,7 +353,14 @@ class GeometryCollector:
                 continue
             self._count_unsupported(prim, unsupported)
         offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
-        return _assemble(chunks, instanced, unsupported, invalid, offset)
+        geometry = _assemble(chunks, instanced, unsupported, invalid, offset)
+        geometry.notes = list(self._masks.notes)
+        if geometry.triangle_masks is not None:
+            try:
+                geometry.masks = self._masks.masks()
+            except (OSError, ValueError) as error:
+                raise MeshError(f"alpha cutout: {error}") from error
+        return geometry
 
     @staticmethod
     def _renderable(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
@@ -314,7 +415,7 @@ class GeometryCollector:
                 if local is not None and len(local.triangles):
                     points, space = self._posed(prim, local, time)
                     if points is not local.points:
-                        local = _LocalMesh(points, local.triangles)
+                        local = _LocalMesh(points, local.triangles, local.uvs, local.masks)
                     relative, _ = xforms.ComputeRelativeTransform(space, parent)
                     found.append((prim.GetPath(), local, row_matrix(relative)[None]))
                 continue
@@ -384,13 +485,16 @@ class GeometryCollector:
         xforms: UsdGeom.XformCache,
         core_row: F64,
         unsupported: Counter[str],
-    ) -> tuple[tuple[F64, npt.NDArray[np.uint32]], set[Sdf.Path]] | None:
+    ) -> tuple[_Chunk, set[Sdf.Path]] | None:
         found = self._instanced_meshes(prim, time, xforms, unsupported)
         if not found:
             return None
         world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
         positions: list[F64] = []
         triangles: list[npt.NDArray[np.uint32]] = []
+        uvs: list[F64] = []
+        masks: list[npt.NDArray[np.int64]] = []
+        cut = any(local.masks is not None for _, local, _ in found)
         sources: set[Sdf.Path] = set()
         base = 0
         vertices = sum(len(local.points) * len(rows) for _, local, rows in found)
@@ -407,9 +511,20 @@ class GeometryCollector:
             triangles.append(
                 (local.triangles[None, :, :].astype(np.int64) + offsets).reshape(-1, 3)
             )
+            if cut:
+                copies = len(rows)
+                if local.masks is None or local.uvs is None:
+                    uvs.append(np.zeros((count * copies, 2)))
+                    masks.append(np.full(len(local.triangles) * copies, -1, dtype=np.int64))
+                else:
+                    uvs.append(np.tile(local.uvs, (copies, 1)))
+                    masks.append(np.tile(local.masks, copies))
             base += count * len(rows)
-        stacked = np.concatenate(triangles)
-        return (np.concatenate(positions), stacked.astype(np.uint32)), sources
+        stacked = np.concatenate(triangles).astype(np.uint32)
+        chunk = _Chunk(prim.GetPath(), np.concatenate(positions), stacked)
+        if cut:
+            chunk.uvs, chunk.masks = np.concatenate(uvs), np.concatenate(masks)
+        return chunk, sources
 
 
 #: Bytes the step holds per vertex an instancer places (the einsum's float64 rows and their
@@ -454,7 +569,7 @@ def _transform(points: F64, world_row: F64) -> F64:
 
 
 def _assemble(
-    chunks: list[tuple[Sdf.Path, F64, npt.NDArray[np.uint32]]],
+    chunks: list[_Chunk],
     instanced: dict[Sdf.Path, set[Sdf.Path]],
     unsupported: Counter[str],
     invalid: list[str],
@@ -464,13 +579,23 @@ def _assemble(
     positions: list[F64] = []
     triangles: list[npt.NDArray[np.uint32]] = []
     object_ids: list[npt.NDArray[np.uint32]] = []
+    uvs: list[F64] = []
+    masks: list[npt.NDArray[np.int64]] = []
+    cut = any(chunk.masks is not None for chunk in chunks)
     base = 0
-    for path, points, tris in chunks:
-        object_id = ids_by_path.setdefault(path, len(ids_by_path) + 1)
-        positions.append(points)
-        triangles.append(tris.astype(np.int64) + base)
-        object_ids.append(np.full(len(tris), object_id, dtype=np.uint32))
-        base += len(points)
+    for chunk in chunks:
+        object_id = ids_by_path.setdefault(chunk.path, len(ids_by_path) + 1)
+        positions.append(chunk.points)
+        triangles.append(chunk.triangles.astype(np.int64) + base)
+        object_ids.append(np.full(len(chunk.triangles), object_id, dtype=np.uint32))
+        if cut:
+            if chunk.masks is None or chunk.uvs is None:
+                uvs.append(np.zeros((len(chunk.points), 2)))
+                masks.append(np.full(len(chunk.triangles), -1, dtype=np.int64))
+            else:
+                uvs.append(chunk.uvs)
+                masks.append(chunk.masks)
+        base += len(chunk.points)
     if base > np.iinfo(np.uint32).max:
         raise MeshError(f"the stage has {base} vertices, more than 32-bit indices address")
     return SceneGeometry(
@@ -490,4 +615,6 @@ def _assemble(
         unsupported=unsupported,
         invalid=invalid,
         origin=origin,
+        uvs=np.concatenate(uvs).astype(np.float32) if cut else None,
+        triangle_masks=np.concatenate(masks) if cut else None,
     )

@@ -89,7 +89,15 @@ class Frame:
     light_settings: LightSettings
 
     def render_kwargs(self) -> dict[str, Any]:
+        cutouts: dict[str, Any] = {}
+        if self.geometry.triangle_masks is not None:
+            cutouts = {
+                "uvs": self.geometry.uvs,
+                "triangle_masks": self.geometry.triangle_masks,
+                "masks": self.geometry.masks,
+            }
         return {
+            **cutouts,
             "positions": self.geometry.positions,
             "triangles": self.geometry.triangles,
             "object_ids": self.geometry.object_ids,

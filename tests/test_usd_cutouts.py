@@ -1,0 +1,196 @@
+"""Alpha cutouts read from a USD stage: a card whose UsdPreviewSurface takes its opacity from
+a UsdUVTexture renders as the same card with the texture's empty parts cut out of its
+geometry; a GeomSubset's own material cuts its faces alone; what cannot be mapped is named."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from PIL import Image
+from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
+from scenes import build_scene
+from usd_helpers import author_stage
+
+import crepuscular
+from crepuscular_usd import StageReader
+
+#: Stripes along u, as in test_cutouts.py: solid where u lies in [1/8, 2/8], [3/8, 4/8],
+#: [5/8, 6/8] and [7/8, 1].
+STRIPES = np.array([[0, 1, 0, 1, 0, 1, 0, 1]], dtype=np.float32)
+SOLID_U = [(1 / 8, 2 / 8), (3 / 8, 4 / 8), (5 / 8, 6 / 8), (7 / 8, 1.0)]
+
+
+def _write_png(path: Path, alpha: np.ndarray) -> str:
+    """An RGBA PNG whose alpha is `alpha`, rows top (v = 1) to bottom as files store them."""
+    rgba = np.zeros((*alpha.shape, 4), dtype=np.uint8)
+    rgba[..., 3] = np.round(alpha * 255).astype(np.uint8)
+    Image.fromarray(rgba).save(path)
+    return path.name
+
+
+def _stage(tmp_path: Path, name: str) -> Usd.Stage:
+    scene = build_scene(width=96, height=54, steps=256, shadow_map_size=256, occluder=False)
+    scene["camera"]["world_from_camera"][13] = 2.2  # below the card's edge, seeing through it
+    return author_stage(str(tmp_path / f"{name}.usda"), scene)
+
+
+def _quad(stage: Usd.Stage, path: str, x0: float, x1: float, z0: float = -2, z1: float = 2) -> Any:
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr([(x0, 3, z0), (x1, 3, z0), (x1, 3, z1), (x0, 3, z1)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    return mesh
+
+
+def _cut_material(stage: Usd.Stage, path: str, file: str, **inputs: Any) -> UsdShade.Material:
+    material = UsdShade.Material.Define(stage, path)
+    surface = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    texture = UsdShade.Shader.Define(stage, f"{path}/Alpha")
+    texture.CreateIdAttr("UsdUVTexture")
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    texture.CreateOutput(inputs.pop("channel", "a"), Sdf.ValueTypeNames.Float)
+    reader = UsdShade.Shader.Define(stage, f"{path}/St")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    texture.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        reader.ConnectableAPI(), "result"
+    )
+    opacity = surface.CreateInput("opacity", Sdf.ValueTypeNames.Float)
+    opacity.ConnectToSource(texture.ConnectableAPI(), texture.GetOutputs()[0].GetBaseName())
+    surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
+    return material
+
+
+def _card_uvs(mesh: UsdGeom.Mesh, interpolation: str = UsdGeom.Tokens.faceVarying) -> None:
+    """st running 0 to 1 along x from -2 to 2, and along z from -2 to 2."""
+    points = np.array(mesh.GetPointsAttr().Get())
+    uv = np.c_[(points[:, 0] + 2) / 4, (points[:, 2] + 2) / 4]
+    if interpolation == UsdGeom.Tokens.faceVarying:
+        uv = uv[np.array(mesh.GetFaceVertexIndicesAttr().Get())]
+    primvar = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, interpolation
+    )
+    primvar.Set(Vt.Vec2fArray.FromNumpy(uv.astype(np.float32)))
+
+
+def _render(stage: Usd.Stage) -> crepuscular.Layers:
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    return crepuscular.render_arrays(**frame.render_kwargs())
+
+
+def _mean_relative(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a - b).mean() / max(np.abs(b).mean(), 1e-12))
+
+
+def _strips(tmp_path: Path) -> crepuscular.Layers:
+    stage = _stage(tmp_path, "strips")
+    for k, (u0, u1) in enumerate(SOLID_U):
+        _quad(stage, f"/World/Strip{k}", -2 + 4 * u0, -2 + 4 * u1)
+    return _render(stage)
+
+
+@pytest.mark.parametrize("interpolation", ["faceVarying", "vertex"])
+def test_a_textured_opacity_cuts_the_card_as_its_solid_parts(
+    tmp_path: Path, interpolation: str
+) -> None:
+    stage = _stage(tmp_path, "cut")
+    card = _quad(stage, "/World/Card", -2, 2)
+    _card_uvs(card, interpolation)
+    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
+        _cut_material(stage, "/World/Looks/Leaf", file)
+    )
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    assert frame.geometry.notes == []
+    assert len(frame.geometry.masks) == 1
+    cut = crepuscular.render_arrays(**frame.render_kwargs())
+    strips = _strips(tmp_path)
+    stage_opaque = _stage(tmp_path, "opaque")
+    _quad(stage_opaque, "/World/Card", -2, 2)
+    opaque = _render(stage_opaque)
+    assert _mean_relative(strips.volume, opaque.volume) > 0.02
+    for name in ("volume", "visibility", "depth"):
+        assert _mean_relative(getattr(cut, name), getattr(strips, name)) < 1e-4, name
+
+
+def test_rows_run_from_the_image_top_and_an_exr_reads_the_same(tmp_path: Path) -> None:
+    """A texture solid in its bottom row (v near 0, the card's -z edge) cuts the card to
+    its -z half, from a PNG and from an EXR alike."""
+    bottom_solid = np.array([[0.0], [1.0]], dtype=np.float32)  # file rows: top, bottom
+    png = _write_png(tmp_path / "bottom.png", bottom_solid)
+    exr = tmp_path / "bottom.exr"
+    zeros = np.zeros_like(bottom_solid)
+    crepuscular.write_exr_channels(exr, {"R": zeros, "G": zeros, "B": zeros, "A": bottom_solid})
+    half = _stage(tmp_path, "half")
+    _quad(half, "/World/Card", -2, 2, -2, 0)
+    expected = _render(half)
+    for file in (png, exr.name):
+        stage = _stage(tmp_path, f"from_{file.replace('.', '_')}")
+        card = _quad(stage, "/World/Card", -2, 2)
+        _card_uvs(card)
+        material = _cut_material(stage, "/World/Looks/Leaf", file)
+        UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
+        assert _mean_relative(_render(stage).volume, expected.volume) < 1e-4, file
+
+
+def test_a_subsets_material_cuts_its_faces_alone(tmp_path: Path) -> None:
+    """A card of two faces: a GeomSubset binds the cut material to the x < 0 face; the
+    mesh's own (opaque) material covers the other."""
+    stage = _stage(tmp_path, "subset")
+    card = UsdGeom.Mesh.Define(stage, "/World/Card")
+    card.CreatePointsAttr([(-2, 3, -2), (0, 3, -2), (2, 3, -2), (2, 3, 2), (0, 3, 2), (-2, 3, 2)])
+    card.CreateFaceVertexCountsAttr([4, 4])
+    card.CreateFaceVertexIndicesAttr([0, 1, 4, 5, 1, 2, 3, 4])
+    _card_uvs(card)
+    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    binding = UsdShade.MaterialBindingAPI.Apply(card.GetPrim())
+    plain = UsdShade.Material.Define(stage, "/World/Looks/Plain")
+    assert binding.Bind(plain)
+    subset = binding.CreateMaterialBindSubset("leaves", Vt.IntArray([0]))
+    UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(
+        _cut_material(stage, "/World/Looks/Leaf", file)
+    )
+    cut = _render(stage)
+    reference = _stage(tmp_path, "subset_reference")
+    for k, (u0, u1) in enumerate(SOLID_U[:2]):
+        _quad(reference, f"/World/Strip{k}", -2 + 4 * u0, -2 + 4 * u1)
+    _quad(reference, "/World/Solid", 0, 2)
+    assert _mean_relative(cut.volume, _render(reference).volume) < 1e-4
+
+
+def test_unmappable_opacity_is_named_and_casts_as_opaque(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    stage = _stage(tmp_path, "notes")
+    card = _quad(stage, "/World/Card", -2, 2)
+    _card_uvs(card)
+    missing = _cut_material(stage, "/World/Looks/Missing", "no_such_file.png")
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(missing)
+    other = _quad(stage, "/World/Other", 3, 4)
+    veil = UsdShade.Material.Define(stage, "/World/Looks/Veil")
+    surface = UsdShade.Shader.Define(stage, "/World/Looks/Veil/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.4)
+    veil.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(other.GetPrim()).Bind(veil)
+    frame = StageReader(stage, None, None, width=96).read(Usd.TimeCode.Default())
+    assert frame.geometry.triangle_masks is None
+    notes = frame.geometry.notes
+    assert len(notes) == 2, notes
+    assert notes[0].startswith("/World/Card: ")
+    assert "no_such_file.png was not found" in notes[0]
+    assert notes[1].startswith("/World/Other: ")
+    assert "constant opacity" in notes[1]
+    stage.GetRootLayer().Save()
+    from crepuscular_usd.cli import main
+
+    out = tmp_path / "o" / "shafts.exr"
+    assert main(["render", str(tmp_path / "notes.usda"), "--out", str(out), "--width", "48"]) == 0
+    err = capfd.readouterr().err
+    assert "no_such_file.png was not found" in err
+    assert "constant opacity" in err

@@ -1,0 +1,230 @@
+"""Alpha cutouts of a stage's meshes: leaf cards, fences and grilles whose
+`UsdPreviewSurface` takes its `opacity` from a `UsdUVTexture`, cut as the core's alpha masks
+(`crepuscular.AlphaMask`) in the shadow map and the camera's depth.
+
+A mesh's material is its bound one for full rendering (`ComputeBoundMaterial`), per face
+where `GeomSubset`s bind their own. The texture's coordinates are the primvar its
+`UsdPrimvarReader_float2` names, at any interpolation; its `scale` and `bias` apply, and a
+colour channel is decoded from sRGB where its `sourceColorSpace` says (or, on `auto`, an
+8-bit file implies). The cut is at `opacityThreshold` where that is above 0, else at 0.5: a
+renderer lets a shadow ray through by the opacity itself, which for the nearly binary masks
+of cutouts is the same. Textures are PNG, JPEG, TGA, TIFF or BMP (read with Pillow) or EXR.
+
+Anything else that makes a surface transparent (a constant opacity, another shader, UDIM
+tiles, a transformed texture coordinate) leaves it opaque, with a note that names it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from pxr import Usd, UsdGeom, UsdShade
+
+import crepuscular
+
+__all__ = ["MaskSource", "MaskTable", "face_masks"]
+
+#: The cut where a material sets no `opacityThreshold`.
+DEFAULT_THRESHOLD = 0.5
+_CHANNELS = {"r": 0, "g": 1, "b": 2, "a": 3}
+
+
+@dataclass(frozen=True)
+class MaskSource:
+    """Where a material's opacity comes from."""
+
+    file: str
+    #: "r", "g", "b" or "a".
+    channel: str
+    scale: float
+    bias: float
+    #: Whether a colour channel is decoded from sRGB.
+    srgb: bool
+    threshold: float
+    #: The primvar of the texture coordinates ("" where none is read: all (0, 0)).
+    primvar: str
+
+
+def face_masks(prim: Usd.Prim, face_count: int, table: MaskTable) -> npt.NDArray[np.int64] | None:
+    """Per face of the mesh `prim`, its mask's index in `table` (-1 where the face is
+    opaque), or None where no face is cut."""
+    faces = np.full(face_count, -1, dtype=np.int64)
+    binding = UsdShade.MaterialBindingAPI(prim)
+    whole = table.index(_bound_material(prim), str(prim.GetPath()))
+    faces[:] = whole
+    for subset in binding.GetMaterialBindSubsets():
+        indices = np.asarray(subset.GetIndicesAttr().Get() or [], dtype=np.int64)
+        indices = indices[(indices >= 0) & (indices < face_count)]
+        faces[indices] = table.index(_bound_material(subset.GetPrim()), str(subset.GetPath()))
+    return faces if (faces >= 0).any() else None
+
+
+def _bound_material(prim: Usd.Prim) -> UsdShade.Material | None:
+    material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial(UsdShade.Tokens.full)
+    return material if material else None
+
+
+def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, str | None]:
+    """The mask `material` cuts with, or None; and a note where its opacity is of a kind
+    this cannot map (it then stays opaque)."""
+    if material is None:
+        return None, None
+    surface = material.ComputeSurfaceSource()
+    shader = surface[0] if isinstance(surface, tuple) else surface
+    if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
+        return None, None
+    where = f"material {material.GetPath()}"
+    opacity = shader.GetInput("opacity")
+    if not opacity or not opacity.HasConnectedSource():
+        value = opacity.Get() if opacity else None
+        if value is not None and value < 1.0:
+            return None, f"{where}: a constant opacity is not a cutout; it casts as opaque"
+        return None, None
+    source, output, _ = opacity.GetConnectedSource()
+    texture = UsdShade.Shader(source.GetPrim())
+    if texture.GetIdAttr().Get() != "UsdUVTexture" or output not in _CHANNELS:
+        return None, f"{where}: its opacity is not a UsdUVTexture's channel; it casts as opaque"
+    asset = texture.GetInput("file").Get() if texture.GetInput("file") else None
+    if asset is None or "<UDIM>" in asset.path:
+        return None, f"{where}: its opacity texture has no file or is tiled; it casts as opaque"
+    if not asset.resolvedPath:
+        return None, f"{where}: texture {asset.path} was not found; it casts as opaque"
+    primvar, note = _primvar(texture, where)
+    if note is not None:
+        return None, note
+    channel = _CHANNELS[output]
+    scale = _float4(texture, "scale", 1.0)[channel]
+    bias = _float4(texture, "bias", 0.0)[channel]
+    space_input = texture.GetInput("sourceColorSpace")
+    space = (space_input.Get() if space_input else None) or "auto"
+    srgb = output != "a" and (
+        space == "sRGB" or (space == "auto" and not asset.resolvedPath.lower().endswith(".exr"))
+    )
+    threshold_input = shader.GetInput("opacityThreshold")
+    threshold = float(threshold_input.Get() or 0.0) if threshold_input else 0.0
+    source_record = MaskSource(
+        asset.resolvedPath,
+        output,
+        float(scale),
+        float(bias),
+        srgb,
+        threshold if threshold > 0.0 else DEFAULT_THRESHOLD,
+        primvar,
+    )
+    return source_record, None
+
+
+def _primvar(texture: UsdShade.Shader, where: str) -> tuple[str, str | None]:
+    st = texture.GetInput("st")
+    if not st or not st.HasConnectedSource():
+        return "", None
+    source, _, _ = st.GetConnectedSource()
+    reader = UsdShade.Shader(source.GetPrim())
+    if reader.GetIdAttr().Get() != "UsdPrimvarReader_float2":
+        return "", (
+            f"{where}: its texture coordinates come from {reader.GetPath()}, not a primvar "
+            "reader; it casts as opaque"
+        )
+    varname = reader.GetInput("varname")
+    return str(varname.Get() or "") if varname else "", None
+
+
+def _float4(shader: UsdShade.Shader, name: str, fallback: float) -> tuple[float, ...]:
+    value = shader.GetInput(name).Get() if shader.GetInput(name) else None
+    return tuple(value) if value is not None else (fallback,) * 4
+
+
+def corner_uvs(
+    prim: Usd.Prim,
+    primvar: str,
+    time: Usd.TimeCode,
+    corners: npt.NDArray[np.int64],
+    points_of_corners: npt.NDArray[np.int64],
+    faces: npt.NDArray[np.int64],
+) -> npt.NDArray[np.float64] | None:
+    """The primvar's values at each triangle corner ((M, 3, 2)), from its interpolation:
+    `corners` index the face-vertex list, `points_of_corners` the points, `faces` the
+    triangles' faces. None where the primvar is missing."""
+    reader = UsdGeom.PrimvarsAPI(prim).GetPrimvar(primvar) if primvar else None
+    if reader is None or not reader.HasValue():
+        return None
+    values = reader.ComputeFlattened(time)
+    if values is None:
+        return None
+    array = np.asarray(values, dtype=np.float64).reshape(-1, 2)
+    interpolation = reader.GetInterpolation()
+    if interpolation == UsdGeom.Tokens.faceVarying:
+        index = corners
+    elif interpolation in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+        index = points_of_corners
+    elif interpolation == UsdGeom.Tokens.uniform:
+        index = np.repeat(faces[:, None], 3, axis=1)
+    else:
+        index = np.zeros_like(corners)
+    if len(array) == 0 or index.max(initial=0) >= len(array):
+        return None
+    return array[index]
+
+
+@dataclass
+class MaskTable:
+    """The masks of a collector, each source once, in the order first used; their alpha is
+    read once."""
+
+    sources: list[MaskSource] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    _index: dict[MaskSource, int] = field(default_factory=dict)
+    _alpha: dict[MaskSource, npt.NDArray[np.float32]] = field(default_factory=dict)
+
+    def index(self, material: UsdShade.Material | None, where: str) -> int:
+        source, note = mask_source(material)
+        if note is not None and note not in self.notes:
+            self.notes.append(f"{where}: {note}")
+        if source is None:
+            return -1
+        if source not in self._index:
+            self._index[source] = len(self.sources)
+            self.sources.append(source)
+        return self._index[source]
+
+    def source(self, index: int) -> MaskSource:
+        return self.sources[index]
+
+    def masks(self) -> list[crepuscular.AlphaMask]:
+        """Every mask, its alpha read from its file the first time."""
+        masks = []
+        for source in self.sources:
+            alpha = self._alpha.get(source)
+            if alpha is None:
+                alpha = self._alpha[source] = read_mask(source)
+            masks.append(crepuscular.AlphaMask(alpha, source.threshold))
+        return masks
+
+
+def read_mask(source: MaskSource) -> npt.NDArray[np.float32]:
+    """The (height, width) values of the source's channel, scaled and biased, rows from
+    v = 0 (the image's bottom) up."""
+    path = Path(source.file)
+    if path.suffix.lower() == ".exr":
+        channels = crepuscular.read_exr(path)
+        name = source.channel.upper()
+        found = [key for key in channels if key == name or key.endswith(f".{name}")]
+        if found:
+            values = channels[found[0]]
+        elif name == "A":
+            values = np.ones_like(next(iter(channels.values())))
+        else:
+            raise ValueError(f"texture {path}: no {name} channel")
+    else:
+        from PIL import Image
+
+        with Image.open(path) as image:
+            rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
+        values = rgba[..., _CHANNELS[source.channel]]
+        if source.srgb:
+            values = np.where(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
+    values = values * source.scale + source.bias
+    return np.ascontiguousarray(np.flipud(values), dtype=np.float32)
