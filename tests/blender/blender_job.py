@@ -336,6 +336,13 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     array.count, array.relative_offset_displace = 3, (1.8, 0.0, 0.4)
     bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.2, location=(2.5, -1.0, 2.0))
     add_rigged_column(scene)
+    # A card cut by a PNG's alpha: Blender's exporter writes a UsdPreviewSurface whose
+    # opacity is a UsdUVTexture's alpha.
+    leaf = blender_scenes.alpha_png(Path(spec["out"]) / "leaf.png")
+    card = [(-8.5, -6, 7.2), (-5.2, -6, 7.2), (-5.2, 6, 7.2), (-8.5, 6, 7.2)]
+    blender_scenes.add_card(
+        scene, "leaf_card", card, blender_scenes.cutout_material(leaf, "principled"), 2.0
+    )
     return scene
 
 

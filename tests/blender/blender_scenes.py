@@ -265,6 +265,18 @@ def alpha_image(name: str, size: int = 64) -> Any:
     return image
 
 
+def alpha_png(path: Path) -> Any:
+    """`alpha_image` saved as an 8-bit PNG at `path` and loaded back from the file, as an
+    artist's leaf texture is (the USD exporter copies such files next to the stage)."""
+    import bpy
+
+    image = alpha_image(path.stem)
+    image.filepath_raw = str(path)
+    image.file_format = "PNG"
+    image.save()
+    return bpy.data.images.load(str(path))
+
+
 def cutout_material(image: Any, kind: str) -> Any:
     """Black, cut by `image`'s alpha: into a Principled BSDF's Alpha, or as the factor of a
     Mix Shader from a Transparent BSDF to it."""
