@@ -20,8 +20,11 @@ Blender.
 The extension is built from the wheel in `dist/` (after `make demo` or `make test`) and
 installed into a temporary Blender user folder, as the tests install it. Fog is
 grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, and the
-extension then has crepuscular scatter once per channel value. Views that see no fog
-print as black. A sun's disc is left at 0°: crepuscular's shafts have hard edges.
+extension then has crepuscular scatter once per channel value. `--cutouts` adds one to three
+cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
+Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscular reads as
+alpha masks; `scene.json` leaves them out. Views that see no fog print as black. A sun's disc
+is left at 0°: crepuscular's shafts have hard edges.
 """
 
 from __future__ import annotations
@@ -69,8 +72,59 @@ def random_fog(rng: random.Random, tinted: bool) -> tuple[bpy.types.Material, st
     return blender_scenes.volume_material(kind, **inputs), label
 
 
+def random_alpha(rng: random.Random, size: int = 128) -> np.ndarray:
+    """A (size, size) cutout alpha: stripes, checks, or a solid sheet with round holes.
+    Features span 8 texels or more, as in a real leaf's mask: where they span two, half the
+    mask lies in the one-texel ramps of bilinear filtering, which Cycles reads as partial
+    shadow and crepuscular clips at one half (3.4% apart in 4x4 blocks on such a checker)."""
+    y, x = np.mgrid[0:size, 0:size] + 0.5
+    width = rng.randint(8, 32)
+    kind = rng.choice(["stripes", "checks", "holes"])
+    if kind == "stripes":
+        return ((x // width) % 2).astype(np.float32)
+    if kind == "checks":
+        return ((x // width + y // width) % 2).astype(np.float32)
+    alpha = np.ones((size, size), dtype=np.float32)
+    for _ in range(rng.randint(2, 6)):
+        cx, cy, r = rng.uniform(0, size), rng.uniform(0, size), rng.uniform(8, size / 4)
+        alpha[(x - cx) ** 2 + (y - cy) ** 2 < r**2] = 0.0
+    return alpha
+
+
+def add_cut_cards(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """One to three black cards over the fog box, tilted, cut by random alphas; returns
+    how many."""
+    count = rng.randint(1, 3)
+    for index in range(count):
+        side = rng.uniform(1.0, 4.0)
+        at = centre + half * np.array(
+            [rng.uniform(-0.8, 0.8), rng.uniform(-0.8, 0.8), rng.uniform(0.5, 1.4)]
+        )
+        tilt, yaw = rng.uniform(-0.6, 0.6), rng.uniform(0, math.pi)
+        turn = np.array(
+            [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
+        ) @ np.array(
+            [[1, 0, 0], [0, math.cos(tilt), -math.sin(tilt)], [0, math.sin(tilt), math.cos(tilt)]]
+        )
+        square = np.array([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]) * side
+        corners = [tuple(at + turn @ corner) for corner in square]
+        alpha = random_alpha(rng)
+        image = bpy.data.images.new(
+            f"cut_{index}", *alpha.shape[::-1], alpha=True, float_buffer=True
+        )
+        rgba = np.zeros((*alpha.shape, 4), dtype=np.float32)
+        rgba[..., 3] = alpha
+        image.pixels.foreach_set(rgba.ravel())
+        image.pack()
+        material = blender_scenes.cutout_material(image, rng.choice(["principled", "mix"]))
+        blender_scenes.add_card(scene, f"card_{index}", corners, material, rng.uniform(1, 3))
+    return count
+
+
 def build_case(
-    rng: random.Random, width: int, height: int, samples: int, tinted: bool
+    rng: random.Random, width: int, height: int, samples: int, tinted: bool, cutouts: bool
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
     blender_scenes.reset()
@@ -104,6 +158,8 @@ def build_case(
     )
     sun = blender_scenes.add_sun(scene, travel, strength=3.0, enabled=False)
     labels = [fog_label, f"sun {math.degrees(elevation):.0f}°"]
+    if cutouts:
+        labels.append(f"{add_cut_cards(rng, scene, centre, half)} cut cards")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -236,6 +292,7 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=512, help="Cycles samples per pixel")
     parser.add_argument("--flag", type=float, default=2.0, help="percent error to flag")
     parser.add_argument("--tinted", action="store_true", help="coloured fog (see above)")
+    parser.add_argument("--cutouts", action="store_true", help="cards cut by an image's alpha")
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -244,7 +301,9 @@ def main() -> int:
     for case in range(args.cases):
         # One generator per case, so that any case can be drawn again alone.
         rng = random.Random(f"{args.seed} {case}")
-        scene, sun, summary = build_case(rng, args.width, args.height, args.samples, args.tinted)
+        scene, sun, summary = build_case(
+            rng, args.width, args.height, args.samples, args.tinted, args.cutouts
+        )
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)
         started = time.perf_counter()
