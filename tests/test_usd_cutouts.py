@@ -194,3 +194,38 @@ def test_unmappable_opacity_is_named_and_casts_as_opaque(
     err = capfd.readouterr().err
     assert "no_such_file.png was not found" in err
     assert "constant opacity" in err
+
+
+def test_a_usdz_packages_texture_cuts_and_a_broken_one_is_named(tmp_path: Path) -> None:
+    """Textures inside a .usdz package are read through USD's resolver; a file that is not
+    an image is named and its card casts as opaque."""
+    from pxr import UsdUtils
+
+    stage = _stage(tmp_path, "packaged")
+    card = _quad(stage, "/World/Card", -2, 2)
+    _card_uvs(card)
+    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
+        _cut_material(stage, "/World/Looks/Leaf", file)
+    )
+    stage.GetRootLayer().Save()
+    package = tmp_path / "packaged.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(str(tmp_path / "packaged.usda"), str(package))
+    (tmp_path / "stripes.png").unlink()  # only the package's copy is left
+    packaged = _render(Usd.Stage.Open(str(package)))
+    assert _mean_relative(packaged.volume, _strips(tmp_path).volume) < 1e-4
+
+    (tmp_path / "broken.png").write_bytes(b"not an image")
+    stage = _stage(tmp_path, "broken")
+    card = _quad(stage, "/World/Card", -2, 2)
+    _card_uvs(card)
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
+        _cut_material(stage, "/World/Looks/Leaf", "broken.png")
+    )
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    assert len(frame.geometry.notes) == 1
+    assert "broken.png could not be read" in frame.geometry.notes[0]
+    opaque_stage = _stage(tmp_path, "opaque")
+    _quad(opaque_stage, "/World/Card", -2, 2)
+    broken = crepuscular.render_arrays(**frame.render_kwargs())
+    np.testing.assert_array_equal(broken.volume, _render(opaque_stage).volume)

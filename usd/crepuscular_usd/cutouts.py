@@ -16,12 +16,14 @@ tiles, a transformed texture coordinate) leaves it opaque, with a note that name
 
 from __future__ import annotations
 
+import io
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-from pxr import Usd, UsdGeom, UsdShade
+from pxr import Ar, Usd, UsdGeom, UsdShade
 
 import crepuscular
 
@@ -194,37 +196,66 @@ class MaskTable:
         return self.sources[index]
 
     def masks(self) -> list[crepuscular.AlphaMask]:
-        """Every mask, its alpha read from its file the first time."""
+        """Every mask, its alpha read from its file the first time. A texture that cannot
+        be read is named in a note and cuts nothing."""
         masks = []
         for source in self.sources:
             alpha = self._alpha.get(source)
             if alpha is None:
-                alpha = self._alpha[source] = read_mask(source)
+                try:
+                    alpha = read_mask(source)
+                except (OSError, ValueError) as error:
+                    self.notes.append(
+                        f"texture {source.file} could not be read ({error}); what it cuts "
+                        "casts as opaque"
+                    )
+                    alpha = np.ones((1, 1), dtype=np.float32)
+                self._alpha[source] = alpha
             masks.append(crepuscular.AlphaMask(alpha, source.threshold))
         return masks
+
+
+def _asset_bytes(resolved: str) -> bytes:
+    """The file's bytes through USD's asset resolver, so that textures inside a .usdz
+    package (`shot.usdz[textures/leaf.png]`) read as loose files do."""
+    asset = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(resolved))
+    if not asset:
+        raise ValueError(f"texture {resolved} could not be opened")
+    return bytes(asset.GetBuffer())
 
 
 def read_mask(source: MaskSource) -> npt.NDArray[np.float32]:
     """The (height, width) values of the source's channel, scaled and biased, rows from
     v = 0 (the image's bottom) up."""
-    path = Path(source.file)
-    if path.suffix.lower() == ".exr":
-        channels = crepuscular.read_exr(path)
-        name = source.channel.upper()
-        found = [key for key in channels if key == name or key.endswith(f".{name}")]
-        if found:
-            values = channels[found[0]]
-        elif name == "A":
-            values = np.ones_like(next(iter(channels.values())))
-        else:
-            raise ValueError(f"texture {path}: no {name} channel")
+    suffix = Path(source.file.rstrip("]")).suffix.lower()
+    if suffix == ".exr":
+        values = _exr_channel(source)
     else:
         from PIL import Image
 
-        with Image.open(path) as image:
+        with Image.open(io.BytesIO(_asset_bytes(source.file))) as image:
             rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
         values = rgba[..., _CHANNELS[source.channel]]
         if source.srgb:
             values = np.where(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
     values = values * source.scale + source.bias
     return np.ascontiguousarray(np.flipud(values), dtype=np.float32)
+
+
+def _exr_channel(source: MaskSource) -> npt.NDArray[np.float32]:
+    """The source's channel of an EXR texture, rows as the file stores them (top first)."""
+    if Path(source.file).is_file():
+        channels = crepuscular.read_exr(source.file)
+    else:
+        # The EXR reader takes a path: a packaged file goes through a temporary copy.
+        with tempfile.TemporaryDirectory(prefix="crepuscular-usd-") as folder:
+            copy = Path(folder) / "mask.exr"
+            copy.write_bytes(_asset_bytes(source.file))
+            channels = crepuscular.read_exr(copy)
+    name = source.channel.upper()
+    found = [key for key in channels if key == name or key.endswith(f".{name}")]
+    if found:
+        return channels[found[0]]
+    if name == "A":
+        return np.ones_like(next(iter(channels.values())))
+    raise ValueError(f"texture {source.file}: no {name} channel")

@@ -354,12 +354,9 @@ class GeometryCollector:
             self._count_unsupported(prim, unsupported)
         offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
         geometry = _assemble(chunks, instanced, unsupported, invalid, offset)
-        geometry.notes = list(self._masks.notes)
         if geometry.triangle_masks is not None:
-            try:
-                geometry.masks = self._masks.masks()
-            except (OSError, ValueError) as error:
-                raise MeshError(f"alpha cutout: {error}") from error
+            geometry.masks = self._masks.masks()
+        geometry.notes = list(self._masks.notes)
         return geometry
 
     @staticmethod
