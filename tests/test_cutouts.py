@@ -134,18 +134,22 @@ def test_bad_cutouts_are_named() -> None:
         assert words in str(caught.value), (change, caught.value)
 
 
-def test_cutouts_fall_back_to_the_cpu_on_vulkan(capfd: pytest.CaptureFixture[str]) -> None:
-    """The Vulkan backend leaves cut triangles to the CPU, with one message, and the same
-    layers; skipped where no Vulkan loader is present."""
+def test_cutouts_go_to_the_cpu_on_vulkan_with_one_message(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """The Vulkan backend leaves frames with cut triangles to the CPU, saying so once per
+    process however many frames, with the CPU's layers; frames without stay on the GPU.
+    Skipped where no Vulkan loader is present."""
     arrays = _masked(_scene("prefiltered"), AlphaMask(STRIPES))
     cpu = render_arrays(**arrays)
-    vulkan_settings = {**arrays["settings"], "backend": "vulkan"}
-    try:
-        gpu = render_arrays(**{**arrays, "settings": vulkan_settings})
-    except crepuscular.CrepuscularError as error:  # pragma: no cover - depends on the machine
-        pytest.skip(f"no Vulkan: {error}")
+    vulkan = {**arrays, "settings": {**arrays["settings"], "backend": "vulkan"}}
+    capfd.readouterr()
+    frames = [render_arrays(**vulkan) for _ in range(3)]
     err = capfd.readouterr().err
     if "no Vulkan loader" in err or "no usable Vulkan device" in err:
         pytest.skip(err.strip())
-    assert "triangles cut by alpha masks" in err, err
-    np.testing.assert_array_equal(gpu.volume, cpu.volume)
+    for frame in frames:
+        np.testing.assert_array_equal(frame.volume, cpu.volume)
+    # Once per process: an earlier test may have said it already.
+    assert err.count("cut by alpha masks render on the CPU backend") <= 1, err
+    assert "Vulkan backend unavailable" not in err, err
