@@ -10,6 +10,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 import crepuscular
 
 from . import preview
+from .cutouts import material_mask
 from .properties import TF_KINDS
 from .style import StyleError, apply_preset, bake_tf_image, save_preset
 
@@ -460,6 +461,14 @@ class CREPUSCULAR_PT_object(bpy.types.Panel):
             state = "casts" if context.object.visible_shadow else "does not cast"
             layout.label(text=f"Follows Shadow ray visibility: {state}")
         layout.prop(settings, "takes_holes")
+        # What each material's transparency does to the shafts (`cutouts.py`).
+        for slot in context.object.material_slots:
+            source, note = material_mask(slot.material)
+            if source is not None:
+                uv = source.uv_map or "the default UV map"
+                layout.label(text=f"'{slot.material.name}' cuts by '{source.image}' ({uv})")
+            elif note is not None:
+                layout.label(text=note, icon="ERROR")
 
 
 class CREPUSCULAR_PT_scene(bpy.types.Panel):
