@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from scenes import build_scene, flatten
 
-import crepuscular
 from crepuscular import AlphaMask, InvalidInputError, render_arrays
 
 METHODS = ("reference", "minmax", "prefiltered")
