@@ -133,22 +133,21 @@ def test_bad_cutouts_are_named() -> None:
         assert words in str(caught.value), (change, caught.value)
 
 
-def test_cutouts_go_to_the_cpu_on_vulkan_with_one_message(
-    capfd: pytest.CaptureFixture[str],
-) -> None:
-    """The Vulkan backend leaves frames with cut triangles to the CPU, saying so once per
-    process however many frames, with the CPU's layers; frames without stay on the GPU.
-    Skipped where no Vulkan loader is present."""
+def test_cut_frames_on_vulkan_match_the_cpu(capfd: pytest.CaptureFixture[str]) -> None:
+    """The Vulkan backend cuts by the masks in its own depth passes (on lavapipe here): its
+    frames stay on the GPU, without a fallback, and match the CPU's. Skipped where no
+    Vulkan loader is present."""
     arrays = _masked(_scene("prefiltered"), AlphaMask(STRIPES))
     cpu = render_arrays(**arrays)
     vulkan = {**arrays, "settings": {**arrays["settings"], "backend": "vulkan"}}
     capfd.readouterr()
-    frames = [render_arrays(**vulkan) for _ in range(3)]
+    gpu = render_arrays(**vulkan)
     err = capfd.readouterr().err
     if "no Vulkan loader" in err or "no usable Vulkan device" in err:
         pytest.skip(err.strip())
-    for frame in frames:
-        np.testing.assert_array_equal(frame.volume, cpu.volume)
-    # Once per process: an earlier test may have said it already.
-    assert err.count("cut by alpha masks render on the CPU backend") <= 1, err
     assert "Vulkan backend unavailable" not in err, err
+    for name in ("volume", "visibility", "depth"):
+        assert _mean_relative(getattr(gpu, name), getattr(cpu, name)) < 1e-3, name
+    # Not vacuous: the stripes change the frame far more than that.
+    uncut = render_arrays(**{**vulkan, "uvs": None, "triangle_masks": None, "masks": []})
+    assert _mean_relative(uncut.volume, gpu.volume) > 0.02

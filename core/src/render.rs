@@ -220,30 +220,10 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     // Once a pass falls back, the frame's other passes go straight to the CPU: one message.
     let fell_back = std::cell::Cell::new(false);
-    // The GPU's rasterizer does not cut by alpha masks: such frames go to the CPU, said
-    // once per process rather than once per frame.
-    let cut = frame
-        .geometry
-        .cutouts
-        .as_ref()
-        .is_some_and(|c| c.cuts_any());
     crate::channels::by_channel(frame, control, |frame, control| {
         let device = match fell_back.get() {
             true => None,
             false => crate::backend::vulkan_device(frame.settings.backend),
-        };
-        let device = match (device, cut) {
-            (Some(_), true) => {
-                static SAID: std::sync::Once = std::sync::Once::new();
-                SAID.call_once(|| {
-                    eprintln!(
-                        "crepuscular: frames with triangles cut by alpha masks render on the \
-                         CPU backend (the Vulkan backend does not cut them)"
-                    )
-                });
-                None
-            }
-            (device, _) => device,
         };
         if let Some(device) = device {
             match crate::gpu::frame::render_timed(&device, frame, control) {

@@ -1460,3 +1460,89 @@ fn camera_depth_matches_the_cpu_rasterizer() {
         }
     }
 }
+
+/// Coverage and id mismatches between two depth targets, as fractions of the samples.
+fn coverage_mismatches(gpu: &DepthTarget, cpu: &DepthTarget) -> (f64, f64) {
+    let samples = cpu.depth.len() as f64;
+    let coverage = gpu
+        .depth
+        .iter()
+        .zip(&cpu.depth)
+        .filter(|(g, c)| g.is_finite() != c.is_finite())
+        .count();
+    let ids = gpu.ids.iter().zip(&cpu.ids).filter(|(g, c)| g != c).count();
+    (coverage as f64 / samples, ids as f64 / samples)
+}
+
+/// Every triangle of `tree` cut by a checker of 1 m squares in world x and y (its texture
+/// coordinates), in the shadow map and in a pinhole and an orthographic camera's depth:
+/// the GPU's cut passes against the CPU rasterizer. Measured on lavapipe: coverage differs
+/// on 1.9e-6 of the shadow map's texels and ids on 3.8e-6 (where f32 coordinates round to
+/// the other side of a square's edge), and nowhere in the cameras' depth; the checker
+/// itself removes 35% of the map's texels and 7% and 20% of the cameras' samples.
+#[test]
+fn alpha_cut_triangles_match_the_cpu_rasterizer() {
+    use crepuscular::cutout::{AlphaMask, Cutouts};
+    let Some(device) = device("the alpha-cut raster parity test") else {
+        return;
+    };
+    let mut scene = builtin_scene("tree").unwrap();
+    scene.camera.width = 640;
+    scene.camera.height = 360;
+    let flat = FlatGeometry::from_scene(&scene);
+    let origin = flat.origin;
+    let uvs: Vec<[f32; 2]> = flat
+        .positions
+        .iter()
+        .map(|p| {
+            let (x, y) = (p[0] as f64 + origin.x, p[1] as f64 + origin.y);
+            [(x / 2.0) as f32, (y / 2.0) as f32]
+        })
+        .collect();
+    let checker: Vec<f32> = (0..4).map(|k| ((k % 2 + k / 2) % 2) as f32).collect();
+    let masks = [AlphaMask {
+        width: 2,
+        height: 2,
+        alpha: &checker,
+        threshold: 0.5,
+    }];
+    let triangle_masks = vec![0u32; flat.triangles.len()];
+    let geometry = crepuscular::render::Geometry {
+        cutouts: Some(Cutouts {
+            uvs: &uvs,
+            triangle_masks: &triangle_masks,
+            masks: &masks,
+        }),
+        ..flat.view()
+    };
+    let camera = CameraModel::new(&scene.camera);
+    let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &flat).unwrap();
+    let map_desc = crepuscular::raster::RasterDesc::orthographic(shadow.size, shadow.size);
+    let mut orthographic = scene.clone();
+    orthographic.camera.projection = Projection::orthographic(30.0);
+    let mut targets = vec![("shadow map", shadow.texel_from_world, map_desc, true)];
+    for (kind, scene) in [("pinhole", &scene), ("orthographic", &orthographic)] {
+        let (pixel_from_world, desc) = camera_raster(&CameraModel::new(&scene.camera), 1);
+        targets.push((kind, pixel_from_world, desc, false));
+    }
+    for (label, pixel_from_world, desc, ids) in targets {
+        let rasterizer = match ids {
+            true => gpu::raster::GpuRasterizer::shadow_map(&device),
+            false => gpu::raster::GpuRasterizer::camera_depth(&device),
+        };
+        let cpu = rasterize(&geometry, &pixel_from_world, &desc).unwrap();
+        let gpu = rasterizer
+            .rasterize(&geometry, &pixel_from_world, &desc)
+            .unwrap();
+        let opaque = rasterize(&flat.view(), &pixel_from_world, &desc).unwrap();
+        let (cut_away, _) = coverage_mismatches(&cpu, &opaque);
+        let (coverage, id_errors) = coverage_mismatches(&gpu, &cpu);
+        println!("{label}: the checker removes {cut_away:.3}; coverage {coverage:.2e}, ids {id_errors:.2e}");
+        assert!(
+            cut_away > 0.05,
+            "{label}: the mask cut nothing ({cut_away})"
+        );
+        assert!(coverage <= 1e-4, "{label}: coverage differs on {coverage}");
+        assert!(id_errors <= 1e-4, "{label}: ids differ on {id_errors}");
+    }
+}

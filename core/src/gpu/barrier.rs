@@ -8,6 +8,8 @@ use ash::vk;
 pub enum Access {
     /// A vertex shader reading a storage buffer (the depth passes' vertex pulling).
     VertexRead,
+    /// A fragment shader reading a storage buffer (the cut depth passes' masks).
+    FragmentRead,
     ComputeRead,
     ComputeWrite,
     TransferRead,
@@ -25,6 +27,7 @@ impl Access {
     fn stage(self) -> vk::PipelineStageFlags {
         match self {
             Access::VertexRead => vk::PipelineStageFlags::VERTEX_SHADER,
+            Access::FragmentRead => vk::PipelineStageFlags::FRAGMENT_SHADER,
             Access::ComputeRead | Access::ComputeWrite => vk::PipelineStageFlags::COMPUTE_SHADER,
             Access::TransferRead | Access::TransferWrite => vk::PipelineStageFlags::TRANSFER,
             Access::HostRead => vk::PipelineStageFlags::HOST,
@@ -34,7 +37,9 @@ impl Access {
 
     fn mask(self) -> vk::AccessFlags {
         match self {
-            Access::VertexRead | Access::ComputeRead => vk::AccessFlags::SHADER_READ,
+            Access::VertexRead | Access::FragmentRead | Access::ComputeRead => {
+                vk::AccessFlags::SHADER_READ
+            }
             Access::ComputeWrite => vk::AccessFlags::SHADER_WRITE,
             Access::TransferRead => vk::AccessFlags::TRANSFER_READ,
             Access::TransferWrite => vk::AccessFlags::TRANSFER_WRITE,

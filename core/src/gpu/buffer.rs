@@ -243,9 +243,11 @@ impl Pod for u8 {}
 impl Pod for f32 {}
 impl Pod for u32 {}
 impl Pod for i32 {}
+impl Pod for [f32; 2] {}
 impl Pod for [f32; 3] {}
 impl Pod for [f32; 4] {}
 impl Pod for [u32; 3] {}
+impl Pod for [u32; 4] {}
 
 pub fn as_bytes<T: Pod>(values: &[T]) -> &[u8] {
     // SAFETY: `Pod` types have no padding and no invalid bit patterns.

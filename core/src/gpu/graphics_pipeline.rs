@@ -20,9 +20,12 @@ pub const ID_ATTACHMENT: u32 = 1;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct GraphicsPipelineDesc {
     pub vertex: Shader,
-    /// Writes the R32_UINT id attachment; `None` for a depth-only pass.
+    /// The fragment shader: `None` for a depth-only pass without discards.
     pub fragment: Option<Shader>,
-    /// Storage buffers at bindings 0..buffers of set 0, read by the vertex shader.
+    /// Whether the fragment shader writes the R32_UINT id attachment.
+    pub ids: bool,
+    /// Storage buffers at bindings 0..buffers of set 0, read by the vertex shader (and the
+    /// fragment shader of cut passes).
     pub buffers: u32,
     /// Push constants of the vertex shader.
     pub push_constant_bytes: u32,
@@ -36,6 +39,7 @@ impl GraphicsPipelineDesc {
         Self {
             vertex,
             fragment: None,
+            ids: false,
             buffers,
             push_constant_bytes: 0,
             depth_compare: vk::CompareOp::LESS,
@@ -44,6 +48,15 @@ impl GraphicsPipelineDesc {
 
     /// Adds the id attachment, written by `fragment` in the same pass as depth.
     pub fn with_ids(self, fragment: Shader) -> Self {
+        Self {
+            fragment: Some(fragment),
+            ids: true,
+            ..self
+        }
+    }
+
+    /// Adds a fragment shader that writes no attachment (it discards samples).
+    pub fn with_fragment(self, fragment: Shader) -> Self {
         Self {
             fragment: Some(fragment),
             ..self
@@ -65,7 +78,7 @@ impl GraphicsPipelineDesc {
     }
 
     pub fn writes_ids(&self) -> bool {
-        self.fragment.is_some()
+        self.ids
     }
 
     /// The attachments in render-pass order: depth, then ids.
@@ -194,7 +207,7 @@ impl GraphicsPipeline {
                     .binding(binding)
                     .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
                     .descriptor_count(1)
-                    .stage_flags(vk::ShaderStageFlags::VERTEX)
+                    .stage_flags(vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT)
             })
             .collect();
         let set_info = vk::DescriptorSetLayoutCreateInfo::default().bindings(&bindings);

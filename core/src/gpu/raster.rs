@@ -20,6 +20,10 @@
 //! - The shadow map's object ids come from the same pass: `raster.frag` writes the
 //!   triangle's id into an R32_UINT colour attachment, which the depth test guards. The
 //!   camera depth is a depth-only pass (no fragment shader).
+//! - Frames with alpha-cut triangles ([`crate::cutout`]) draw with `raster_cut.vert` and a
+//!   fragment shader that samples each triangle's mask at its perspective-correct texture
+//!   coordinates, as the CPU does, and discards where it is empty (`raster_cut.frag` with
+//!   ids, `raster_cut_depth.frag` without).
 //! - Ties keep the first triangle, as on the CPU: the depth test is strict and Vulkan
 //!   applies it in primitive order.
 //!
@@ -50,6 +54,9 @@ pub const CAMERA_DEPTH_STAGE: &str = "camera depth";
 const PUSH_BYTES: u32 = 64;
 /// Positions, triangle corners, object ids.
 const BUFFERS: u32 = 3;
+/// Those, and for alpha-cut triangles: texture coordinates, each triangle's mask, the masks'
+/// table (offset, width, height, threshold) and their texels.
+const CUT_BUFFERS: u32 = 7;
 /// Pixels the viewport extends beyond each side of the target. Without it, Vulkan clips
 /// triangles at the image border and the vertices it makes there snap off the original
 /// edges, moving them across samples near the border; a wider band makes lavapipe
@@ -299,8 +306,26 @@ impl GpuRasterizer {
                 geometry.triangles.len()
             ))
         })?;
+        let cutouts = geometry.cutouts.as_ref().filter(|c| c.cuts_any());
+        // The masks' table and their texels, one after another.
+        let (mask_table, texels): (Vec<[u32; 4]>, Vec<f32>) = match cutouts {
+            None => (Vec::new(), Vec::new()),
+            Some(cutouts) => {
+                let mut table = Vec::with_capacity(cutouts.masks.len());
+                let mut texels = Vec::new();
+                for mask in cutouts.masks {
+                    let offset = u32::try_from(texels.len()).map_err(|_| {
+                        GpuError::Unsupported("alpha masks of more than 2³² texels".to_owned())
+                    })?;
+                    table.push([offset, mask.width, mask.height, mask.threshold.to_bits()]);
+                    texels.extend_from_slice(mask.alpha);
+                }
+                (table, texels)
+            }
+        };
         let largest = std::mem::size_of_val(geometry.positions)
-            .max(std::mem::size_of_val(geometry.triangles)) as u64;
+            .max(std::mem::size_of_val(geometry.triangles))
+            .max(std::mem::size_of_val(texels.as_slice())) as u64;
         if largest > device.physical.max_storage_buffer_range as u64 {
             return Err(GpuError::Unsupported(format!(
                 "a {largest}-byte geometry buffer (the device binds up to {})",
@@ -309,12 +334,19 @@ impl GpuRasterizer {
         }
         let encoding =
             DepthEncoding::for_target(desc, || depth_bounds(geometry, pixel_from_world))?;
-        let mut pipeline_desc = GraphicsPipelineDesc::depth_only(Shader::RasterVertex, BUFFERS)
+        let (vertex, buffers) = match cutouts {
+            None => (Shader::RasterVertex, BUFFERS),
+            Some(_) => (Shader::RasterCutVertex, CUT_BUFFERS),
+        };
+        let mut pipeline_desc = GraphicsPipelineDesc::depth_only(vertex, buffers)
             .push_constants(PUSH_BYTES)
             .depth_compare(encoding.compare_op());
-        if self.ids {
-            pipeline_desc = pipeline_desc.with_ids(Shader::RasterFragment);
-        }
+        pipeline_desc = match (self.ids, cutouts.is_some()) {
+            (true, false) => pipeline_desc.with_ids(Shader::RasterFragment),
+            (true, true) => pipeline_desc.with_ids(Shader::RasterCutFragment),
+            (false, true) => pipeline_desc.with_fragment(Shader::RasterCutDepthFragment),
+            (false, false) => pipeline_desc,
+        };
         let pipeline = device.graphics_pipeline(&pipeline_desc)?;
         // Attachments exist before the recorder, so that its Drop (which waits for work
         // in flight) runs before theirs.
@@ -339,11 +371,23 @@ impl GpuRasterizer {
         let framebuffer =
             Framebuffer::new(device, &pipeline, &depth_image, id_image.as_ref(), guard)?;
 
-        let mut rec = Recorder::new(device, self.stage, 1, BUFFERS)?;
+        let mut rec = Recorder::new(device, self.stage, 1, buffers)?;
         let positions = rec.upload(geometry.positions, "positions")?;
         let corners = rec.upload(geometry.triangles, "triangle corners")?;
         let object_ids = rec.upload(geometry.object_ids, "object ids")?;
+        let cut_buffers = match cutouts {
+            None => None,
+            Some(cutouts) => Some([
+                rec.upload(cutouts.uvs, "texture coordinates")?,
+                rec.upload(cutouts.triangle_masks, "triangle masks")?,
+                rec.upload(&mask_table, "alpha masks' table")?,
+                rec.upload(&texels, "alpha masks' texels")?,
+            ]),
+        };
         rec.barrier(Access::TransferWrite, Access::VertexRead);
+        if cut_buffers.is_some() {
+            rec.barrier(Access::TransferWrite, Access::FragmentRead);
+        }
         // The vertex shader's matrix takes the positions as stored, relative to the origin.
         let pixel_from_local = geometry.pixel_from_local(pixel_from_world);
         let clip = clip_from_world(&pixel_from_local, width, height, guard, &encoding).as_mat4();
@@ -362,12 +406,16 @@ impl GpuRasterizer {
             },
         ];
         let attachments = pipeline_desc.attachment_formats().len();
+        let mut bound = vec![&positions, &corners, &object_ids];
+        if let Some(cut) = &cut_buffers {
+            bound.extend(cut.iter());
+        }
         rec.timed(self.stage, |rec| {
             rec.draw(
                 &pipeline_desc,
                 &framebuffer,
                 &clear[..attachments],
-                &[&positions, &corners, &object_ids],
+                &bound,
                 &push,
                 vertex_count,
             )
@@ -396,10 +444,6 @@ impl Rasterizer for GpuRasterizer {
         pixel_from_world: &DMat4,
         desc: &RasterDesc,
     ) -> Result<DepthTarget> {
-        if geometry.cutouts.as_ref().is_some_and(|c| c.cuts_any()) {
-            let what = "triangles cut by alpha masks, which the CPU backend rasterizes";
-            return Err(GpuError::Unsupported(what.to_owned()).into());
-        }
         Ok(self
             .run(geometry, pixel_from_world, desc)
             .map_err(|err| err.in_stage(self.stage))?)

@@ -25,12 +25,18 @@ pub enum Shader {
     RasterVertex,
     /// The shadow map's fragment shader, which writes object ids.
     RasterFragment,
+    /// The depth passes' vertex shader where triangles are cut by alpha masks.
+    RasterCutVertex,
+    /// The shadow map's fragment shader where triangles are cut by alpha masks.
+    RasterCutFragment,
+    /// The camera depth's fragment shader where triangles are cut by alpha masks.
+    RasterCutDepthFragment,
     /// The clock probe (needs VK_KHR_shader_clock).
     Clock,
 }
 
 impl Shader {
-    pub const ALL: [Shader; 14] = [
+    pub const ALL: [Shader; 17] = [
         Shader::March,
         Shader::Morphology,
         Shader::Transfer,
@@ -44,6 +50,9 @@ impl Shader {
         Shader::Holes,
         Shader::RasterVertex,
         Shader::RasterFragment,
+        Shader::RasterCutVertex,
+        Shader::RasterCutFragment,
+        Shader::RasterCutDepthFragment,
         Shader::Clock,
     ];
 
@@ -63,6 +72,9 @@ impl Shader {
             Shader::Holes => "holes.comp",
             Shader::RasterVertex => "raster.vert",
             Shader::RasterFragment => "raster.frag",
+            Shader::RasterCutVertex => "raster_cut.vert",
+            Shader::RasterCutFragment => "raster_cut.frag",
+            Shader::RasterCutDepthFragment => "raster_cut_depth.frag",
             Shader::Clock => "clock.comp",
         }
     }
@@ -70,8 +82,10 @@ impl Shader {
     /// The pipeline stage the shader runs in.
     pub fn stage(self) -> vk::ShaderStageFlags {
         match self {
-            Shader::RasterVertex => vk::ShaderStageFlags::VERTEX,
-            Shader::RasterFragment => vk::ShaderStageFlags::FRAGMENT,
+            Shader::RasterVertex | Shader::RasterCutVertex => vk::ShaderStageFlags::VERTEX,
+            Shader::RasterFragment | Shader::RasterCutFragment | Shader::RasterCutDepthFragment => {
+                vk::ShaderStageFlags::FRAGMENT
+            }
             _ => vk::ShaderStageFlags::COMPUTE,
         }
     }
@@ -102,6 +116,15 @@ impl Shader {
             Shader::RasterVertex => include_bytes!(concat!(env!("OUT_DIR"), "/raster.vert.spv")),
             Shader::RasterFragment => {
                 include_bytes!(concat!(env!("OUT_DIR"), "/raster.frag.spv"))
+            }
+            Shader::RasterCutVertex => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/raster_cut.vert.spv"))
+            }
+            Shader::RasterCutFragment => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/raster_cut.frag.spv"))
+            }
+            Shader::RasterCutDepthFragment => {
+                include_bytes!(concat!(env!("OUT_DIR"), "/raster_cut_depth.frag.spv"))
             }
             Shader::Clock => include_bytes!(concat!(env!("OUT_DIR"), "/clock.comp.spv")),
         }

@@ -189,7 +189,7 @@ def render_arrays(
 
     Alpha cutouts: `uvs` (N, 2) gives each position texture coordinates, `triangle_masks`
     (M,) each triangle the index of its `AlphaMask` in `masks`, or -1 for none. Both or
-    neither. Frames with cut triangles rasterize on the CPU backend.
+    neither. Both backends cut.
     """
     _check_progress(progress)
     triangle_rows = _convert.index_rows(triangles, "triangles")
