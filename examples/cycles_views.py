@@ -23,8 +23,8 @@ grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, an
 extension then has crepuscular scatter once per channel value. `--cutouts` adds one to three
 cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
 Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscular reads as
-alpha masks; `scene.json` leaves them out. Views that see no fog print as black. A sun's disc
-is left at 0°: crepuscular's shafts have hard edges.
+alpha masks (`scene.json` carries them as `alpha_mask` images beside it). Views that see no
+fog print as black. A sun's disc is left at 0°: crepuscular's shafts have hard edges.
 """
 
 from __future__ import annotations
@@ -225,25 +225,40 @@ def block_means(image: np.ndarray, side: int = 4) -> np.ndarray:
     return blocks.mean(axis=(1, 3))
 
 
-def scene_description(inputs: dict) -> dict:
+def scene_description(inputs: dict, out: Path) -> dict:
     """The extension's frame inputs (`export.frame_inputs(...).kwargs`) as a scene
-    description for `crepuscular render --scene`: a mesh per object id, placed at the
-    inputs' origin."""
+    description for `crepuscular render --scene`: a mesh per object id and alpha mask,
+    placed at the inputs' origin, each mask's alpha written beside it as an EXR."""
     world_from_object = np.eye(4)
     world_from_object[:3, 3] = inputs["origin"]
+    triangle_masks = inputs.get("triangle_masks")
+    if triangle_masks is None:
+        triangle_masks = np.full(len(inputs["triangles"]), -1)
+    for index, mask in enumerate(inputs.get("masks", [])):
+        # Files store rows from the top; the mask's run from v = 0, the bottom.
+        alpha = np.ascontiguousarray(np.flipud(np.asarray(mask.alpha, dtype=np.float32)))
+        zeros = np.zeros_like(alpha)
+        planes = {"R": zeros, "G": zeros, "B": zeros, "A": alpha}
+        crepuscular.write_exr_channels(out / f"mask_{index}.exr", planes)
     meshes = []
-    for object_id in np.unique(inputs["object_ids"]):
-        rows = inputs["triangles"][inputs["object_ids"] == object_id]
+    for object_id, mask in sorted(set(zip(inputs["object_ids"], triangle_masks, strict=True))):
+        selected = (inputs["object_ids"] == object_id) & (triangle_masks == mask)
+        rows = inputs["triangles"][selected]
         used, triangles = np.unique(rows, return_inverse=True)
-        meshes.append(
-            {
-                "name": f"object {object_id}",
-                "object_id": int(object_id),
-                "world_from_object": world_from_object.T.flatten().tolist(),
-                "positions": inputs["positions"][used].tolist(),
-                "triangles": triangles.reshape(-1, 3).tolist(),
+        mesh = {
+            "name": f"object {object_id}" + (f" mask {mask}" if mask >= 0 else ""),
+            "object_id": int(object_id),
+            "world_from_object": world_from_object.T.flatten().tolist(),
+            "positions": inputs["positions"][used].tolist(),
+            "triangles": triangles.reshape(-1, 3).tolist(),
+        }
+        if mask >= 0:
+            mesh["uvs"] = inputs["uvs"][used].tolist()
+            mesh["alpha_mask"] = {
+                "image": f"mask_{mask}.exr",
+                "threshold": float(inputs["masks"][mask].threshold),
             }
-        )
+        meshes.append(mesh)
     description = {
         "version": crepuscular.SCENE_VERSION,
         "camera": inputs["camera"],
@@ -279,7 +294,7 @@ def render_case(scene: bpy.types.Scene, sun: bpy.types.Object, out: Path) -> dic
     export = sys.modules[blender_scenes.ADDON_MODULE].export
     inputs = export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).kwargs
     paths["scene"] = out / "scene.json"
-    paths["scene"].write_text(json.dumps(scene_description(inputs)))
+    paths["scene"].write_text(json.dumps(scene_description(inputs, out)))
     return paths
 
 

@@ -3,12 +3,15 @@ card with the mask's empty parts cut out of its geometry, for every method."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from scenes import build_scene, flatten
 
+import crepuscular
 from crepuscular import AlphaMask, InvalidInputError, render_arrays
 
 METHODS = ("reference", "minmax", "prefiltered")
@@ -151,3 +154,47 @@ def test_cut_frames_on_vulkan_match_the_cpu(capfd: pytest.CaptureFixture[str]) -
     # Not vacuous: the stripes change the frame far more than that.
     uncut = render_arrays(**{**vulkan, "uvs": None, "triangle_masks": None, "masks": []})
     assert _mean_relative(uncut.volume, gpu.volume) > 0.02
+
+
+def _stripes_png(path: Path) -> Path:
+    from PIL import Image
+
+    rgba = np.zeros((1, 8, 4), dtype=np.uint8)
+    rgba[..., 3] = (STRIPES * 255).astype(np.uint8)
+    Image.fromarray(rgba).save(path)
+    return path
+
+
+def test_a_scene_files_mesh_cuts_by_its_alpha_mask_image(tmp_path: Path) -> None:
+    """The scene description's `uvs` and `alpha_mask` (an image beside the scene file,
+    named relative to it) cut as `render_arrays`' masks do; a missing image and a mask
+    without coordinates are named."""
+    scene = build_scene(width=96, height=54, steps=256, shadow_map_size=256, occluder=False)
+    scene["render"]["method"] = "prefiltered"
+    scene["camera"]["world_from_camera"][13] = 2.2
+    positions, triangles = _card(0.0, 1.0)
+    _stripes_png(tmp_path / "stripes.png")
+    scene["meshes"].append(
+        {
+            "name": "card",
+            "object_id": CARD_ID,
+            "positions": positions.tolist(),
+            "triangles": triangles.tolist(),
+            "uvs": [[0, 0], [1, 0], [1, 1], [0, 1]],
+            "alpha_mask": {"image": "stripes.png"},
+        }
+    )
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(scene))
+    cut = crepuscular.render(path)
+    strips = render_arrays(**_with(_scene("prefiltered"), [_card(u0, u1) for u0, u1 in SOLID_U]))
+    for name in ("volume", "visibility", "depth"):
+        assert _mean_relative(getattr(cut, name), getattr(strips, name)) < 1e-4, name
+    scene["meshes"][-1]["alpha_mask"]["image"] = "missing.png"
+    with pytest.raises(InvalidInputError, match=r"missing\.png") as caught:
+        crepuscular.render(scene)
+    assert caught.value.field == "meshes[1].alpha_mask.image"
+    del scene["meshes"][-1]["uvs"]
+    with pytest.raises(InvalidInputError) as caught:
+        crepuscular.render(scene)
+    assert caught.value.field == "meshes[1].alpha_mask"

@@ -9,6 +9,8 @@
 //! its vertices' homogeneous pixel coordinates, so clipping (which cuts a triangle into
 //! others) never has to carry them.
 
+use std::borrow::Cow;
+
 use glam::{DMat3, DVec3, DVec4};
 
 use crate::error::{Error, Result};
@@ -17,12 +19,13 @@ use crate::error::{Error, Result};
 pub const OPAQUE: u32 = u32::MAX;
 
 /// An alpha texture: `alpha` holds `width` × `height` values, rows from v = 0 up (the
-/// order of Blender's image pixels and of OpenGL textures), and repeats in u and v.
-#[derive(Clone, Copy, Debug)]
+/// order of Blender's image pixels and of OpenGL textures), and repeats in u and v. Hosts
+/// lend their arrays; a scene description's images are owned.
+#[derive(Clone, Debug)]
 pub struct AlphaMask<'a> {
     pub width: u32,
     pub height: u32,
-    pub alpha: &'a [f32],
+    pub alpha: Cow<'a, [f32]>,
     /// Samples whose filtered alpha is below this are empty.
     pub threshold: f32,
 }
@@ -203,7 +206,7 @@ mod tests {
         AlphaMask {
             width,
             height,
-            alpha,
+            alpha: Cow::Borrowed(alpha),
             threshold: 0.5,
         }
     }

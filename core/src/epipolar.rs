@@ -1314,6 +1314,7 @@ mod tests {
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             object_ids: vec![2, 2],
             origin: glam::DVec3::ZERO,
+            ..FlatGeometry::default()
         };
         let mut scene_camera = Camera::pinhole_looking_at(
             Vec3::new(-10.0, -1.0, 2.0),

@@ -67,6 +67,8 @@ impl MeshBuilder {
             world_from_object: Mat4::IDENTITY,
             positions: self.positions,
             triangles: self.triangles,
+            uvs: None,
+            alpha_mask: None,
         }
     }
 

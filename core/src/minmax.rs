@@ -311,6 +311,8 @@ mod tests {
             world_from_object: Mat4::IDENTITY,
             positions,
             triangles,
+            uvs: None,
+            alpha_mask: None,
         };
         let scene_camera = Camera::pinhole_looking_at(
             Vec3::new(-12.0, -4.0, 2.0),
@@ -344,6 +346,7 @@ mod tests {
             positions: mesh.positions,
             triangles: mesh.triangles,
             origin: glam::DVec3::ZERO,
+            ..FlatGeometry::default()
         };
         let shadow = ShadowMap::build(&camera, &sun, &medium, &settings, &flat.view()).unwrap();
         let map = EpipolarMap::rectify(

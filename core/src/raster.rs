@@ -1330,7 +1330,7 @@ mod tests {
         let masks = [AlphaMask {
             width: 4,
             height: 4,
-            alpha: &checker,
+            alpha: std::borrow::Cow::Borrowed(&checker),
             threshold: 0.5,
         }];
         let geometry = Geometry {

@@ -8,7 +8,7 @@ use rayon::prelude::*;
 use crate::adaptive::{shade_adaptively, AdaptivePasses, EpipolarLines, SurfaceCoordinate};
 use crate::camera::{CameraModel, Ray};
 use crate::control::RenderControl;
-use crate::cutout::Cutouts;
+use crate::cutout::{AlphaMask, Cutouts};
 use crate::epipolar::{
     epipoles_in_image, CpuPartialResampler, CpuResampler, EpipolarMap, RectifyDesc, Resampler,
 };
@@ -87,6 +87,11 @@ pub struct FlatGeometry {
     pub triangles: Vec<[u32; 3]>,
     pub object_ids: Vec<u32>,
     pub origin: DVec3,
+    /// The meshes' alpha cutouts, once loaded ([`FlatGeometry::load_cutouts`]): texture
+    /// coordinates per position, a mask per triangle, the masks' images. Empty without.
+    pub uvs: Vec<[f32; 2]>,
+    pub triangle_masks: Vec<u32>,
+    pub masks: Vec<AlphaMask<'static>>,
 }
 
 impl FlatGeometry {
@@ -118,13 +123,52 @@ impl FlatGeometry {
         flat
     }
 
+    /// Reads the images of the scene's alpha masks (meshes with `alpha_mask`), in the
+    /// order of `from_scene`'s triangles; a mesh without keeps no mask.
+    pub fn load_cutouts(&mut self, scene: &Scene) -> Result<()> {
+        if scene.meshes.iter().all(|mesh| mesh.alpha_mask.is_none()) {
+            return Ok(());
+        }
+        self.uvs.clear();
+        self.triangle_masks.clear();
+        self.masks.clear();
+        for (index, mesh) in scene.meshes.iter().enumerate() {
+            let uvs = mesh.uvs.as_deref().unwrap_or_default();
+            match uvs.len() {
+                0 => self
+                    .uvs
+                    .extend(std::iter::repeat_n([0.0; 2], mesh.positions.len())),
+                _ => self.uvs.extend_from_slice(uvs),
+            }
+            let mask = match &mesh.alpha_mask {
+                None => crate::cutout::OPAQUE,
+                Some(desc) => {
+                    let field = format!("meshes[{index}].alpha_mask.image");
+                    self.masks.push(crate::transfer_function::load_alpha_mask(
+                        &field,
+                        &desc.image,
+                        desc.threshold,
+                    )?);
+                    (self.masks.len() - 1) as u32
+                }
+            };
+            self.triangle_masks
+                .extend(std::iter::repeat_n(mask, mesh.triangles.len()));
+        }
+        Ok(())
+    }
+
     pub fn view(&self) -> Geometry<'_> {
         Geometry {
             positions: &self.positions,
             triangles: &self.triangles,
             object_ids: &self.object_ids,
             origin: self.origin,
-            cutouts: None,
+            cutouts: (!self.triangle_masks.is_empty()).then_some(Cutouts {
+                uvs: &self.uvs,
+                triangle_masks: &self.triangle_masks,
+                masks: &self.masks,
+            }),
         }
     }
 }
@@ -137,7 +181,8 @@ pub fn render_scene(scene: &Scene, control: &RenderControl) -> Result<Layers> {
 /// [`render_scene`], also reporting how long each stage took.
 pub fn render_scene_timed(scene: &Scene, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     scene.validate()?;
-    let geometry = FlatGeometry::from_scene(scene);
+    let mut geometry = FlatGeometry::from_scene(scene);
+    geometry.load_cutouts(scene)?;
     render_timed(&Frame::of_scene(scene, &geometry), control)
 }
 

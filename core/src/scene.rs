@@ -235,6 +235,28 @@ pub struct Mesh {
     pub world_from_object: Mat4,
     pub positions: Vec<[f32; 3]>,
     pub triangles: Vec<[u32; 3]>,
+    /// Texture coordinates, one per position: where `alpha_mask` reads its image.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uvs: Option<Vec<[f32; 2]>>,
+    /// An alpha cutout ([`crate::cutout`]): the mesh's triangles are empty where this
+    /// image's alpha is below the threshold (leaf cards, fences).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_mask: Option<AlphaMaskDesc>,
+}
+
+/// The image of a mesh's alpha cutout: a .png or .exr file whose alpha channel is read
+/// (rows from the image's top, as files store them, v = 0 being the bottom row), relative to
+/// the scene file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AlphaMaskDesc {
+    pub image: std::path::PathBuf,
+    #[serde(default = "half")]
+    pub threshold: f32,
+}
+
+fn half() -> f32 {
+    0.5
 }
 
 fn identity() -> Mat4 {
@@ -539,10 +561,19 @@ impl Scene {
     pub fn load(path: &std::path::Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|err| Error::io(path, err))?;
         let mut scene = Self::from_json(&text)?;
-        scene
-            .style
-            .rebase_paths(path.parent().unwrap_or(std::path::Path::new("")));
+        scene.rebase_paths(path.parent().unwrap_or(std::path::Path::new("")));
         Ok(scene)
+    }
+
+    /// Joins relative file paths (the style's images and the meshes' alpha masks) to
+    /// `base`, the folder of the file the scene came from.
+    pub fn rebase_paths(&mut self, base: &std::path::Path) {
+        self.style.rebase_paths(base);
+        for mask in self.meshes.iter_mut().filter_map(|m| m.alpha_mask.as_mut()) {
+            if mask.image.is_relative() {
+                mask.image = base.join(&mask.image);
+            }
+        }
     }
 
     /// The ids in `style.holes.objects` that no mesh of the scene has, sorted: hole
@@ -752,7 +783,40 @@ impl Mesh {
             &format!("{field}.world_from_object"),
             &self.world_from_object,
         )?;
-        check_triangles(&format!("{field}."), &self.positions, &self.triangles)
+        check_triangles(&format!("{field}."), &self.positions, &self.triangles)?;
+        if let Some(uvs) = &self.uvs {
+            if uvs.len() != self.positions.len() {
+                return Err(Error::invalid(
+                    format!("{field}.uvs"),
+                    format!(
+                        "has {} entries but there are {} positions (give one per position)",
+                        uvs.len(),
+                        self.positions.len()
+                    ),
+                ));
+            }
+            if let Some(k) = uvs.iter().position(|uv| !uv.iter().all(|c| c.is_finite())) {
+                return Err(Error::invalid(
+                    format!("{field}.uvs[{k}]"),
+                    format!("{:?} is not finite", uvs[k]),
+                ));
+            }
+        }
+        if let Some(mask) = &self.alpha_mask {
+            if self.uvs.is_none() {
+                return Err(Error::invalid(
+                    format!("{field}.alpha_mask"),
+                    "needs the mesh's uvs (texture coordinates, one per position)",
+                ));
+            }
+            if !mask.threshold.is_finite() {
+                return Err(Error::invalid(
+                    format!("{field}.alpha_mask.threshold"),
+                    format!("{} is not finite", mask.threshold),
+                ));
+            }
+        }
+        Ok(())
     }
 }
 

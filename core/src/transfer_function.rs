@@ -605,6 +605,30 @@ fn image_format(field: &str, path: &Path) -> Result<ImageFormat> {
     }
 }
 
+/// A mesh's alpha mask from a .png or .exr file (`field` names it in errors): the alpha
+/// channel, rows turned to run from v = 0, the image's bottom row, up.
+pub fn load_alpha_mask(
+    field: &str,
+    path: &Path,
+    threshold: f32,
+) -> Result<crate::cutout::AlphaMask<'static>> {
+    let (width, height, rgba) = load_image(field, path).map_err(|error| match error {
+        Error::InvalidInput { .. } => error,
+        other => Error::invalid(field, format!("cannot read {}: {other}", path.display())),
+    })?;
+    let alpha: Vec<f32> = rgba
+        .chunks_exact(width as usize)
+        .rev()
+        .flat_map(|row| row.iter().map(|texel| texel[3]))
+        .collect();
+    Ok(crate::cutout::AlphaMask {
+        width,
+        height,
+        alpha: std::borrow::Cow::Owned(alpha),
+        threshold,
+    })
+}
+
 /// Reads an image layer's file as straight linear RGBA, rows top to bottom.
 fn load_image(field: &str, path: &Path) -> Result<(u32, u32, Vec<Rgba>)> {
     let (width, height, rgba) = match image_format(field, path)? {

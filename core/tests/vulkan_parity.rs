@@ -1503,7 +1503,7 @@ fn alpha_cut_triangles_match_the_cpu_rasterizer() {
     let masks = [AlphaMask {
         width: 2,
         height: 2,
-        alpha: &checker,
+        alpha: std::borrow::Cow::Borrowed(&checker),
         threshold: 0.5,
     }];
     let triangle_masks = vec![0u32; flat.triangles.len()];

@@ -58,12 +58,13 @@ fn render_json<'py>(
     let (layers, hole_objects_warning) = run_detached(py, progress.as_ref(), |control| {
         let mut scene = Scene::from_json(scene_json)?;
         if let Some(base) = &base_dir {
-            scene.style.rebase_paths(base);
+            scene.rebase_paths(base);
         }
         if let Some(style) = style_json {
             scene.style = Style::from_json(style)?;
         }
-        let geometry = FlatGeometry::from_scene(&scene);
+        let mut geometry = FlatGeometry::from_scene(&scene);
+        geometry.load_cutouts(&scene)?;
         let parts = Parts {
             camera: &scene.camera,
             sun: &scene.sun,
@@ -125,7 +126,7 @@ fn render_arrays<'py>(
             Ok(AlphaMask {
                 width: shape[1] as u32,
                 height: shape[0] as u32,
-                alpha: values_2d(&format!("masks[{k}]"), alpha)?,
+                alpha: std::borrow::Cow::Borrowed(values_2d(&format!("masks[{k}]"), alpha)?),
                 threshold: *threshold,
             })
         })
@@ -198,7 +199,7 @@ fn normalize_scene_json(
     py.detach(|| {
         let mut scene = Scene::from_json(scene_json)?;
         if let Some(base) = &base_dir {
-            scene.style.rebase_paths(base);
+            scene.rebase_paths(base);
         }
         Ok::<_, crepuscular::Error>(scene.to_json())
     })

@@ -318,7 +318,7 @@ impl GpuRasterizer {
                         GpuError::Unsupported("alpha masks of more than 2³² texels".to_owned())
                     })?;
                     table.push([offset, mask.width, mask.height, mask.threshold.to_bits()]);
-                    texels.extend_from_slice(mask.alpha);
+                    texels.extend_from_slice(&mask.alpha);
                 }
                 (table, texels)
             }

@@ -18,6 +18,8 @@ pub fn horizontal_quad(object_id: u32, x0: f32, x1: f32, y0: f32, y1: f32, z: f3
         world_from_object: Mat4::IDENTITY,
         positions: vec![[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]],
         triangles: vec![[0, 1, 2], [0, 2, 3]],
+        uvs: None,
+        alpha_mask: None,
     }
 }
 
