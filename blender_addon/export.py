@@ -24,7 +24,15 @@ from .cutouts import MaskSource, MaskTable
 
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
-GEOMETRY_TYPES = {"MESH", "META"}
+#: Hair curves (CURVES) are drawn as tubes of their radius (`curves_arrays`).
+GEOMETRY_TYPES = {"MESH", "META", "CURVES"}
+#: Sides of the tubes hair curves are drawn as, and the factor on their circumradius that
+#: gives a tube the mean width of the round strand Cycles renders (Cauchy: the mean width
+#: of a convex section is its perimeter over π). With 16 sides the width seen from any
+#: direction is within 1.3% of the strand's; with 8 it varied by 8%, and a roof of strands
+#: read 2.6% bright against Cycles.
+TUBE_SIDES = 16
+TUBE_RADIUS = (math.pi / TUBE_SIDES) / math.sin(math.pi / TUBE_SIDES)
 #: Rec. 709 luminance weights, as Blender's default scene-linear space.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -125,6 +133,53 @@ def _static_key(obj: bpy.types.Object) -> str | None:
     return data.name_full
 
 
+def curves_arrays(curves: bpy.types.Curves) -> MeshArrays:
+    """A hair curves datablock as open tubes of `TUBE_SIDES` sides around the polyline of
+    its points, each ring of the point's radius (no radius attribute: none, as Cycles
+    draws none)."""
+    count = len(curves.points)
+    if count == 0 or "radius" not in curves.attributes:
+        return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
+    points = np.empty(count * 3, dtype=np.float32)
+    curves.points.foreach_get("position", points)
+    points = points.reshape(-1, 3).astype(np.float64)
+    radius = np.empty(count, dtype=np.float32)
+    curves.attributes["radius"].data.foreach_get("value", radius)
+    offsets = np.empty(len(curves.curves) + 1, dtype=np.int64)
+    curves.curve_offset_data.foreach_get("value", offsets)
+    curve_of = np.repeat(np.arange(len(curves.curves)), np.diff(offsets))
+    # Tangents by central differences within each curve (one-sided at its ends).
+    previous = np.maximum(np.arange(count) - 1, offsets[:-1][curve_of])
+    following = np.minimum(np.arange(count) + 1, offsets[1:][curve_of] - 1)
+    tangents = points[following] - points[previous]
+    # One reference axis per curve, the one least along its overall direction, so that
+    # its rings do not twist from point to point.
+    span = points[offsets[1:] - 1] - points[offsets[:-1]]
+    axes = np.eye(3)[np.argmin(np.abs(span), axis=1)][curve_of]
+    normals = np.cross(tangents, axes)
+    lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, lengths, out=np.zeros_like(normals), where=lengths > 0)
+    lengths = np.linalg.norm(tangents, axis=1, keepdims=True)
+    units = np.divide(tangents, lengths, out=np.zeros_like(tangents), where=lengths > 0)
+    binormals = np.cross(units, normals)
+    angles = 2 * np.pi * np.arange(TUBE_SIDES) / TUBE_SIDES
+    ring = (
+        np.cos(angles)[None, :, None] * normals[:, None]
+        + np.sin(angles)[None, :, None] * binormals[:, None]
+    )
+    rings = points[:, None] + TUBE_RADIUS * radius[:, None, None] * ring
+    # Segments join each point to the next one of its curve.
+    starts = np.flatnonzero(np.arange(count) + 1 < offsets[1:][curve_of])
+    side = np.arange(TUBE_SIDES)
+    a = starts[:, None] * TUBE_SIDES + side
+    b = starts[:, None] * TUBE_SIDES + (side + 1) % TUBE_SIDES
+    c, d = a + TUBE_SIDES, b + TUBE_SIDES
+    triangles = np.stack([np.stack([a, b, d], -1), np.stack([a, d, c], -1)], axis=2)
+    return MeshArrays(
+        rings.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.uint32)
+    )
+
+
 def cut_mesh_arrays(mesh: bpy.types.Mesh, slot_uv_maps: tuple[str, ...]) -> MeshArrays:
     """`mesh_arrays` with a vertex per triangle corner, each with the texture coordinates
     of the UV map its triangle's slot reads (`slot_uv_maps`, "" for the default map)."""
@@ -183,6 +238,8 @@ def _object_arrays(
 
     if obj.type == "MESH":
         arrays = read(obj.data)
+    elif obj.type == "CURVES":
+        arrays = curves_arrays(obj.data)
     else:
         mesh = obj.to_mesh()
         try:
@@ -278,7 +335,8 @@ def export_geometry(
         if object_id is None:
             continue
         if obj.name_full not in cuts:
-            cuts[obj.name_full] = _slot_cuts(obj, table)
+            # Hair curves have no texture coordinates to cut by.
+            cuts[obj.name_full] = None if obj.type == "CURVES" else _slot_cuts(obj, table)
         cut = cuts[obj.name_full]
         pointer = obj.data.as_pointer() if obj.type == "MESH" else obj.as_pointer()
         mesh_key = (pointer, None if cut is None else cut.uv_maps)

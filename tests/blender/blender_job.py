@@ -174,6 +174,31 @@ def job_cutout_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "opaque.exr")) == {"FINISHED"}
 
 
+def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box under a roof of hair strands (curves of radius 0.15,
+    bending along y) instead of slats: Cycles, and our layers (reference and default
+    method)."""
+    scene = fog_scene(spec)
+    for name in ("roof_a", "roof_b"):
+        bpy.data.objects.remove(scene.objects[name])
+    y = np.linspace(-5, 5, 9)
+    strands = [np.c_[np.full_like(y, x), y, 6 + 0.3 * np.sin(y + x)] for x in np.arange(-6, 5, 0.7)]
+    blender_scenes.add_hair(scene, "strands", strands, 0.15, blender_scenes.black_material(0.0))
+    # A ground under the box, so that the frame without strands still has geometry.
+    ground = [(-30, -30, -0.01), (30, -30, -0.01), (30, 30, -0.01), (-30, 30, -0.01)]
+    blender_scenes.add_quad(scene, "ground", ground, blender_scenes.black_material(0.0))
+    _render(scene, out / "cycles.exr")
+    sun = scene.objects["Sun"]
+    sun.data.crepuscular.enabled = True
+    settings = sun.data.crepuscular
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "reference.exr")) == {"FINISHED"}
+    settings.method = settings.bl_rna.properties["method"].default
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "default.exr")) == {"FINISHED"}
+    scene.objects["strands"].hide_render = True
+    settings.method = "reference"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
+
+
 def shaft_scene(spec: dict[str, Any]) -> Any:
     """A grey ground and a cube under a sun with shafts, in an unbounded medium."""
     scene = bpy.context.scene
@@ -443,6 +468,7 @@ JOBS = {
     "fidelity": job_fidelity,
     "mapped_fidelity": job_mapped_fidelity,
     "cutout_fidelity": job_cutout_fidelity,
+    "hair_fidelity": job_hair_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,

@@ -265,6 +265,24 @@ def alpha_image(name: str, size: int = 64) -> Any:
     return image
 
 
+def add_hair(scene: Any, name: str, strands: Any, radius: float, material: Any = None) -> Any:
+    """A hair curves object: one curve through each (K, 3) array of `strands`, every point
+    of `radius`."""
+    import bpy
+
+    curves = bpy.data.hair_curves.new(name)
+    curves.add_curves([len(strand) for strand in strands])
+    points = np.concatenate([np.asarray(s, dtype=np.float32) for s in strands])
+    curves.points.foreach_set("position", points.ravel())
+    attribute = curves.attributes.new("radius", "FLOAT", "POINT")
+    attribute.data.foreach_set("value", np.full(len(points), radius, dtype=np.float32))
+    if material is not None:
+        curves.materials.append(material)
+    obj = bpy.data.objects.new(name, curves)
+    scene.collection.objects.link(obj)
+    return obj
+
+
 def alpha_png(path: Path) -> Any:
     """`alpha_image` saved as an 8-bit PNG at `path` and loaded back from the file, as an
     artist's leaf texture is (the USD exporter copies such files next to the stage)."""

@@ -488,6 +488,31 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     assert "constant Alpha" in geometry.notes[0]
 
 
+def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
+    """Hair curves (Curves objects) cast as open tubes around their points' polyline, each
+    ring of the point's radius (scaled so that the tube's mean width is the strand's);
+    curves without a radius attribute cast nothing, as Cycles draws nothing."""
+    scene = bpy.context.scene
+    y = np.linspace(0.0, 3.0, 4)
+    strands = [np.c_[np.full_like(y, x), y, np.full_like(y, 2.0)] for x in (0.0, 1.0, 2.0)]
+    hair = blender_scenes.add_hair(scene, "hair", strands, 0.1)
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    sides = addon.export.TUBE_SIDES
+    assert len(geometry.triangles) == 3 * 3 * sides * 2
+    radius = 0.1 * addon.export.TUBE_RADIUS
+    low, high = geometry.positions.min(axis=0), geometry.positions.max(axis=0)
+    np.testing.assert_allclose(low, [-radius, 0.0, 2.0 - radius], atol=1e-5)
+    np.testing.assert_allclose(high, [2.0 + radius, 3.0, 2.0 + radius], atol=1e-5)
+    # Every vertex lies at the ring's radius from its strand's axis (x = 0, 1 or 2; z = 2).
+    x, z = geometry.positions[:, 0], geometry.positions[:, 2]
+    distance = np.hypot(x - np.round(x), z - 2.0)
+    np.testing.assert_allclose(distance, radius, rtol=1e-5)
+    hair.data.attributes.remove(hair.data.attributes["radius"])
+    hair.data.update_tag()
+    bare = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert len(bare.triangles) == 0
+
+
 def _plane_distance(
     camera: bpy.types.Object, scene: bpy.types.Scene, x: float, y: float, plane_y: float
 ) -> float:

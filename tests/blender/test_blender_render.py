@@ -213,6 +213,28 @@ def test_alpha_cutouts_match_cycles(cutout_fidelity: Path, method: str) -> None:
     assert relative < 0.04, relative
 
 
+@pytest.fixture(scope="module")
+def hair_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _cycles_job(tmp_path_factory, "hair_fidelity", 1)
+
+
+@pytest.mark.parametrize("method", ["reference", "default"])
+def test_hair_curves_match_cycles(hair_fidelity: Path, method: str) -> None:
+    """A roof of hair strands over the fidelity scene's fog: drawn as tubes of their radius,
+    their shadows shape the shafts as Cycles' round strands do; hidden, the layers are 84%
+    off. Measured: mean within 0.45% of Cycles, pixels 1.5% apart, either method. (With
+    8-sided tubes, whose width varies by 8% with the direction they are seen from, the sun's
+    direction saw them 3.6% narrower than the strands, and the layers read 2.6% bright.)"""
+    cycles = rgba(hair_fidelity / "cycles.exr")[..., :3]
+    ours = volume(hair_fidelity / f"{method}.exr")[..., :3]
+    bare = volume(hair_fidelity / "bare.exr")[..., :3]
+    assert cycles.mean() > 1e-3, "Cycles rendered a black image"
+    assert np.abs(bare - cycles).mean() / cycles.mean() > 0.5
+    assert ours.mean() == pytest.approx(cycles.mean(), rel=0.02)
+    relative = np.abs(ours - cycles).mean() / cycles.mean()
+    assert relative < 0.03, relative
+
+
 def blocks(image: np.ndarray) -> np.ndarray:
     """Means of 2x2-pixel blocks (an odd last row or column left out)."""
     height, width = image.shape[0] // 2 * 2, image.shape[1] // 2 * 2
