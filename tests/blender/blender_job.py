@@ -147,6 +147,18 @@ def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
         settings.method = "reference"
 
 
+def _cycles_then_ours(scene: Any, out: Path) -> Any:
+    """Cycles' `cycles.exr` with shafts off, then our `reference.exr` and `default.exr`
+    (the default method, which it leaves set); returns the sun's settings."""
+    _render(scene, out / "cycles.exr")
+    settings = scene.objects["Sun"].data.crepuscular
+    settings.enabled = True
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "reference.exr")) == {"FINISHED"}
+    settings.method = settings.bl_rna.properties["method"].default
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "default.exr")) == {"FINISHED"}
+    return settings
+
+
 def job_cutout_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of two leaf-card-like quads cut by an
     image's alpha, one through a Principled BSDF's Alpha and one through a Mix Shader with
@@ -162,13 +174,7 @@ def job_cutout_fidelity(spec: dict[str, Any], out: Path) -> None:
     mixed = blender_scenes.cutout_material(image, "mix")
     blender_scenes.add_card(scene, "card_a", corners_a, principled, 3.0)
     blender_scenes.add_card(scene, "card_b", corners_b, mixed, 2.0)
-    _render(scene, out / "cycles.exr")
-    sun = scene.objects["Sun"]
-    sun.data.crepuscular.enabled = True
-    settings = sun.data.crepuscular
-    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "reference.exr")) == {"FINISHED"}
-    settings.method = settings.bl_rna.properties["method"].default
-    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "default.exr")) == {"FINISHED"}
+    _cycles_then_ours(scene, out)
     for name in ("card_a", "card_b"):
         scene.objects[name].data.materials[0] = blender_scenes.black_material(0.0)
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "opaque.exr")) == {"FINISHED"}
@@ -187,13 +193,7 @@ def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     # A ground under the box, so that the frame without strands still has geometry.
     ground = [(-30, -30, -0.01), (30, -30, -0.01), (30, 30, -0.01), (-30, 30, -0.01)]
     blender_scenes.add_quad(scene, "ground", ground, blender_scenes.black_material(0.0))
-    _render(scene, out / "cycles.exr")
-    sun = scene.objects["Sun"]
-    sun.data.crepuscular.enabled = True
-    settings = sun.data.crepuscular
-    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "reference.exr")) == {"FINISHED"}
-    settings.method = settings.bl_rna.properties["method"].default
-    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "default.exr")) == {"FINISHED"}
+    settings = _cycles_then_ours(scene, out)
     scene.objects["strands"].hide_render = True
     settings.method = "reference"
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
