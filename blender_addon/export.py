@@ -26,13 +26,6 @@ from .cutouts import MaskSource, MaskTable
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
 #: Hair curves (CURVES) are drawn as tubes of their radius (`curves_arrays`).
 GEOMETRY_TYPES = {"MESH", "META", "CURVES"}
-#: Sides of the tubes hair curves are drawn as, and the factor on their circumradius that
-#: gives a tube the mean width of the round strand Cycles renders (Cauchy: the mean width
-#: of a convex section is its perimeter over π). With 16 sides the width seen from any
-#: direction is within 1.3% of the strand's; with 8 it varied by 8%, and a roof of strands
-#: read 2.6% bright against Cycles.
-TUBE_SIDES = 16
-TUBE_RADIUS = (math.pi / TUBE_SIDES) / math.sin(math.pi / TUBE_SIDES)
 #: Rec. 709 luminance weights, as Blender's default scene-linear space.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -134,50 +127,19 @@ def _static_key(obj: bpy.types.Object) -> str | None:
 
 
 def curves_arrays(curves: bpy.types.Curves) -> MeshArrays:
-    """A hair curves datablock as open tubes of `TUBE_SIDES` sides around the polyline of
-    its points, each ring of the point's radius (no radius attribute: none, as Cycles
-    draws none)."""
+    """A hair curves datablock as tubes around the polylines of its strands
+    (`crepuscular.strand_tubes`), each ring of the point's radius; without a radius
+    attribute, nothing, as Cycles draws nothing."""
     count = len(curves.points)
     if count == 0 or "radius" not in curves.attributes:
         return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
     points = np.empty(count * 3, dtype=np.float32)
     curves.points.foreach_get("position", points)
-    points = points.reshape(-1, 3).astype(np.float64)
     radius = np.empty(count, dtype=np.float32)
     curves.attributes["radius"].data.foreach_get("value", radius)
     offsets = np.empty(len(curves.curves) + 1, dtype=np.int64)
     curves.curve_offset_data.foreach_get("value", offsets)
-    curve_of = np.repeat(np.arange(len(curves.curves)), np.diff(offsets))
-    # Tangents by central differences within each curve (one-sided at its ends).
-    previous = np.maximum(np.arange(count) - 1, offsets[:-1][curve_of])
-    following = np.minimum(np.arange(count) + 1, offsets[1:][curve_of] - 1)
-    tangents = points[following] - points[previous]
-    # One reference axis per curve, the one least along its overall direction, so that
-    # its rings do not twist from point to point.
-    span = points[offsets[1:] - 1] - points[offsets[:-1]]
-    axes = np.eye(3)[np.argmin(np.abs(span), axis=1)][curve_of]
-    normals = np.cross(tangents, axes)
-    lengths = np.linalg.norm(normals, axis=1, keepdims=True)
-    normals = np.divide(normals, lengths, out=np.zeros_like(normals), where=lengths > 0)
-    lengths = np.linalg.norm(tangents, axis=1, keepdims=True)
-    units = np.divide(tangents, lengths, out=np.zeros_like(tangents), where=lengths > 0)
-    binormals = np.cross(units, normals)
-    angles = 2 * np.pi * np.arange(TUBE_SIDES) / TUBE_SIDES
-    ring = (
-        np.cos(angles)[None, :, None] * normals[:, None]
-        + np.sin(angles)[None, :, None] * binormals[:, None]
-    )
-    rings = points[:, None] + TUBE_RADIUS * radius[:, None, None] * ring
-    # Segments join each point to the next one of its curve.
-    starts = np.flatnonzero(np.arange(count) + 1 < offsets[1:][curve_of])
-    side = np.arange(TUBE_SIDES)
-    a = starts[:, None] * TUBE_SIDES + side
-    b = starts[:, None] * TUBE_SIDES + (side + 1) % TUBE_SIDES
-    c, d = a + TUBE_SIDES, b + TUBE_SIDES
-    triangles = np.stack([np.stack([a, b, d], -1), np.stack([a, d, c], -1)], axis=2)
-    return MeshArrays(
-        rings.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.uint32)
-    )
+    return MeshArrays(*crepuscular.strand_tubes(points, np.diff(offsets), radius))
 
 
 def cut_mesh_arrays(mesh: bpy.types.Mesh, slot_uv_maps: tuple[str, ...]) -> MeshArrays:

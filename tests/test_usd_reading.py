@@ -1046,6 +1046,43 @@ def test_a_skinned_mesh_whose_influences_do_not_fit_is_named(tmp_path: Path) -> 
     assert "/World/Rig/Strip" in geometry.invalid[0]
 
 
+def test_basis_curves_cast_as_tubes_of_their_widths(tmp_path: Path) -> None:
+    """BasisCurves (hair, grass, wires) cast as tubes around their points, each ring of
+    half the point's width, with widths per point, per curve or one for all; widths that
+    fit none of those, or none at all, are named."""
+    stage = author_stage(str(tmp_path / "curves.usda"), build_scene(occluder=False, **SMALL))
+    curves = UsdGeom.BasisCurves.Define(stage, "/World/Hair")
+    y = np.linspace(0.0, 3.0, 4)
+    strands = [np.c_[np.full_like(y, x), y, np.full_like(y, 2.0)] for x in (0.0, 1.0, 2.0)]
+    curves.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.concatenate(strands).astype(np.float32)))
+    curves.CreateCurveVertexCountsAttr([4, 4, 4])
+    curves.CreateTypeAttr(UsdGeom.Tokens.cubic)
+    curves.CreateBasisAttr(UsdGeom.Tokens.catmullRom)
+    curves.CreateWrapAttr(UsdGeom.Tokens.pinned)
+    widths = curves.CreateWidthsAttr()
+    # A reader keeps what it read of a static stage: a new one for each edit.
+    read = lambda: StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())  # noqa: E731
+    ring = crepuscular._strands.TUBE_RADIUS
+    for value, expected in (([0.2] * 12, 0.1), ([0.2], 0.1), ([0.1, 0.2, 0.3], None)):
+        widths.Set(value)
+        geometry = read().geometry
+        assert not geometry.invalid
+        points = _points_of(geometry, "/World/Hair")
+        assert (
+            len(geometry.triangles[geometry.object_ids == 2]) == 3 * 3 * 2 * crepuscular.TUBE_SIDES
+        )
+        x, z = points[:, 0], points[:, 2]
+        distance = np.hypot(x - np.round(x), z - 2.0)
+        if expected is None:  # per curve: half of 0.1, 0.2 and 0.3 by strand
+            expected = 0.05 * (np.round(x) + 1)
+        np.testing.assert_allclose(distance, expected * ring, rtol=1e-5)
+    for value, words in (([0.2] * 5, "5 widths match neither"), ([], "no widths")):
+        widths.Set(value)
+        geometry = read().geometry
+        assert len(geometry.invalid) == 1
+        assert words in geometry.invalid[0]
+
+
 def test_medium_extent_from_a_box_mesh_and_a_volume(tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     stage = author_stage(str(tmp_path / "extent.usda"), scene, meters_per_unit=0.1, up="Y")

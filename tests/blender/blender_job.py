@@ -368,6 +368,11 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     blender_scenes.add_card(
         scene, "leaf_card", card, blender_scenes.cutout_material(leaf, "principled"), 2.0
     )
+    # Hair strands across the slats' gaps, inside the fog, which the exporter writes as
+    # BasisCurves with widths.
+    y = np.linspace(-6, 6, 7)
+    strands = [np.c_[np.full_like(y, x), y, 6.6 + 0.2 * np.sin(y + x)] for x in (-2.6, 0.2, 3.0)]
+    blender_scenes.add_hair(scene, "strands", strands, 0.12, blender_scenes.black_material(0.0))
     return scene
 
 

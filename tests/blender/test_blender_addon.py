@@ -497,9 +497,9 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     strands = [np.c_[np.full_like(y, x), y, np.full_like(y, 2.0)] for x in (0.0, 1.0, 2.0)]
     hair = blender_scenes.add_hair(scene, "hair", strands, 0.1)
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
-    sides = addon.export.TUBE_SIDES
+    sides = crepuscular.TUBE_SIDES
     assert len(geometry.triangles) == 3 * 3 * sides * 2
-    radius = 0.1 * addon.export.TUBE_RADIUS
+    radius = 0.1 * crepuscular._strands.TUBE_RADIUS
     low, high = geometry.positions.min(axis=0), geometry.positions.max(axis=0)
     np.testing.assert_allclose(low, [-radius, 0.0, 2.0 - radius], atol=1e-5)
     np.testing.assert_allclose(high, [2.0 + radius, 3.0, 2.0 + radius], atol=1e-5)

@@ -5,7 +5,8 @@ Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed i
 `leftHanded` meshes get their winding flipped. Implicit surfaces (Cube, Sphere, Cylinder,
 Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
 Meshes bound to a UsdSkel skeleton are posed: blend shapes, then joints
-(`crepuscular_usd.skinning`).
+(`crepuscular_usd.skinning`). BasisCurves cast as tubes of their widths
+(`crepuscular.strand_tubes`).
 Instance proxies and `PointInstancer` prototypes (with the instancers nested in them) share
 one triangulation per prototype mesh; every placement is one numpy matrix product, never a
 Python loop over vertices.
@@ -207,6 +208,11 @@ class GeometryCollector:
         cached = self._cache.get(key)
         if cached is not None:
             return cached
+        if prim.IsA(UsdGeom.BasisCurves):
+            local, varying = _curves_mesh(prim, time)
+            if not varying:
+                self._cache[key] = local
+            return local
         # Meshes first: most surfaces are, and they skip the implicit schemas' tests.
         if not prim.IsA(UsdGeom.Mesh):
             try:
@@ -554,11 +560,50 @@ def _check_memory(vertices: int, triangles: int, where: str) -> None:
 
 
 def _is_surface(prim: Usd.Prim) -> bool:
-    """Whether `prim` is geometry this step draws: a Mesh or an implicit surface."""
+    """Whether `prim` is geometry this step draws: a Mesh, BasisCurves or an implicit
+    surface."""
     # One test rules out the Xforms and Scopes that most prims of a large stage are.
     if not prim.IsA(UsdGeom.Gprim):
         return False
-    return prim.IsA(UsdGeom.Mesh) or is_implicit_surface(prim)
+    return prim.IsA(UsdGeom.Mesh) or prim.IsA(UsdGeom.BasisCurves) or is_implicit_surface(prim)
+
+
+def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
+    """BasisCurves as tubes around the polylines of their control points, each ring of half
+    the point's width (`crepuscular.strand_tubes`); and whether that may vary in time.
+    Catmull-Rom and pinned curves pass through their points, as Blender's exporter writes
+    hair; Bezier and B-spline curves are drawn along their control polygon, and curves
+    with normals (ribbons) as tubes too."""
+    curves = UsdGeom.BasisCurves(prim)
+    where = str(prim.GetPath())
+    attrs = [curves.GetPointsAttr(), curves.GetCurveVertexCountsAttr(), curves.GetWidthsAttr()]
+    varying = any(attr.ValueMightBeTimeVarying() for attr in attrs)
+    points_value, counts_value, widths_value = (attr.Get(time) for attr in attrs)
+    if points_value is None or counts_value is None or len(points_value) == 0:
+        return _LocalMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint32)), varying
+    points = np.array(points_value, dtype=np.float64).reshape(-1, 3)
+    counts = np.asarray(counts_value, dtype=np.int64)
+    if counts.min(initial=0) < 0 or int(counts.sum()) != len(points):
+        raise MeshError(
+            f"{where}: curveVertexCounts sum to {int(counts.sum())} but there are "
+            f"{len(points)} points"
+        )
+    if widths_value is None or len(widths_value) == 0:
+        raise MeshError(f"{where}: the curves have no widths, so no thickness; not drawn")
+    widths = np.asarray(widths_value, dtype=np.float64)
+    if len(widths) == len(points):
+        radii = 0.5 * widths
+    elif len(widths) == 1:
+        radii = np.full(len(points), 0.5 * widths[0])
+    elif len(widths) == len(counts):
+        radii = np.repeat(0.5 * widths, counts)
+    else:
+        raise MeshError(
+            f"{where}: {len(widths)} widths match neither its {len(points)} points, its "
+            f"{len(counts)} curves nor one (varying widths of cubic curves are not read)"
+        )
+    positions, triangles = crepuscular.strand_tubes(points, counts, radii)
+    return _LocalMesh(positions.astype(np.float64), triangles), varying
 
 
 def _transform(points: F64, world_row: F64) -> F64:

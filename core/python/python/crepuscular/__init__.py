@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from crepuscular import _convert, _core
+from crepuscular._strands import TUBE_SIDES, strand_tubes
 from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
 
 __all__ = [
@@ -33,6 +34,7 @@ __all__ = [
     "SCENE_VERSION",
     "STYLE_VERSION",
     "SUN_DISC_AS_POINT",
+    "TUBE_SIDES",
     "AlphaMask",
     "CancelledError",
     "CrepuscularError",
@@ -55,6 +57,7 @@ __all__ = [
     "render",
     "render_arrays",
     "scene_from_json",
+    "strand_tubes",
     "validate_scene",
     "write_exr",
     "write_exr_channels",

@@ -1,0 +1,70 @@
+"""Strands (hair, grass, wires) as triangles: open tubes around each strand's polyline,
+which cast the shadow of a round strand from any direction within 1.3%."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+#: Sides of a strand's tube, and the factor on its circumradius that gives the tube the
+#: mean width of the round strand (Cauchy: the mean width of a convex section is its
+#: perimeter over π). With 16 sides the width seen from any direction is within 1.3% of
+#: 2r; with 8 it varied by 8%, and a roof of strands read 2.6% bright against Cycles.
+TUBE_SIDES = 16
+TUBE_RADIUS = (math.pi / TUBE_SIDES) / math.sin(math.pi / TUBE_SIDES)
+
+
+def strand_tubes(
+    points: npt.ArrayLike, counts: npt.ArrayLike, radii: npt.ArrayLike
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
+    """Tubes around strands: `points` (P, 3) holds each strand's points in turn, `counts`
+    how many each strand has, `radii` (P,) the radius at each point. Returns (N, 3) float32
+    positions and (M, 3) uint32 triangles, `TUBE_SIDES` vertices a point and two triangles
+    a side between consecutive points of a strand; a strand of one point makes none."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    counts = np.asarray(counts, dtype=np.int64).reshape(-1)
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    total = len(points)
+    if total == 0 or len(counts) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)
+    if counts.min() < 0 or counts.sum() != total or len(radii) != total:
+        raise ValueError(
+            f"{len(counts)} strands of {int(counts.sum())} points in all, but {total} points "
+            f"and {len(radii)} radii"
+        )
+    starts = np.cumsum(counts) - counts
+    ends = starts + counts
+    strand = np.repeat(np.arange(len(counts)), counts)
+    index = np.arange(total)
+    # Tangents by central differences within each strand (one-sided at its ends).
+    tangents = (
+        points[np.minimum(index + 1, ends[strand] - 1)]
+        - points[np.maximum(index - 1, starts[strand])]
+    )
+    # One reference axis per strand, the one least along its overall direction, so that
+    # its rings do not twist from point to point.
+    span = points[np.maximum(ends - 1, starts)] - points[starts]
+    axes = np.eye(3)[np.argmin(np.abs(span), axis=1)][strand]
+    normals = _unit(np.cross(tangents, axes))
+    binormals = np.cross(_unit(tangents), normals)
+    angles = 2 * np.pi * np.arange(TUBE_SIDES) / TUBE_SIDES
+    ring = (
+        np.cos(angles)[None, :, None] * normals[:, None]
+        + np.sin(angles)[None, :, None] * binormals[:, None]
+    )
+    rings = points[:, None] + TUBE_RADIUS * radii[:, None, None] * ring
+    # Sides join each point to the next one of its strand.
+    first = np.flatnonzero(index + 1 < ends[strand])
+    side = np.arange(TUBE_SIDES)
+    a = first[:, None] * TUBE_SIDES + side
+    b = first[:, None] * TUBE_SIDES + (side + 1) % TUBE_SIDES
+    c, d = a + TUBE_SIDES, b + TUBE_SIDES
+    triangles = np.stack([np.stack([a, b, d], -1), np.stack([a, d, c], -1)], axis=2)
+    return rings.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.uint32)
+
+
+def _unit(vectors: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    lengths = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return np.divide(vectors, lengths, out=np.zeros_like(vectors), where=lengths > 0)
