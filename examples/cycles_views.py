@@ -23,7 +23,9 @@ grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, an
 extension then has crepuscular scatter once per channel value. `--cutouts` adds one to three
 cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
 Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscular reads as
-alpha masks (`scene.json` carries them as `alpha_mask` images beside it). Views that see no
+alpha masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
+hair curves object of 10 to 40 black strands over the box, which the extension draws as tubes
+(`scene.json` carries them as meshes). Views that see no
 fog print as black. A sun's disc is left at 0°: crepuscular's shafts have hard edges.
 """
 
@@ -123,8 +125,35 @@ def add_cut_cards(
     return count
 
 
+def add_strands(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """A hair curves object of 10 to 40 black strands over the fog box, each a wavy line
+    of 6 to 12 points in a random direction, of radius 2 to 15 cm; returns how many."""
+    count = rng.randint(10, 40)
+    strands = []
+    for _ in range(count):
+        start = centre + half * np.array(
+            [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.3, 1.3)]
+        )
+        heading = rng.uniform(0, 2 * math.pi)
+        direction = np.array([math.cos(heading), math.sin(heading), rng.uniform(-0.3, 0.3)])
+        t = np.linspace(0.0, rng.uniform(2, 8), rng.randint(6, 12))
+        wave = 0.3 * np.sin(t * rng.uniform(0.5, 2.0))[:, None] * np.array([0.0, 0.0, 1.0])
+        strands.append(start + t[:, None] * direction + wave)
+    black = blender_scenes.black_material(0.0)
+    blender_scenes.add_hair(scene, "strands", strands, rng.uniform(0.02, 0.15), black)
+    return count
+
+
 def build_case(
-    rng: random.Random, width: int, height: int, samples: int, tinted: bool, cutouts: bool
+    rng: random.Random,
+    width: int,
+    height: int,
+    samples: int,
+    tinted: bool,
+    cutouts: bool,
+    hair: bool = False,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
     blender_scenes.reset()
@@ -160,6 +189,8 @@ def build_case(
     labels = [fog_label, f"sun {math.degrees(elevation):.0f}°"]
     if cutouts:
         labels.append(f"{add_cut_cards(rng, scene, centre, half)} cut cards")
+    if hair:
+        labels.append(f"{add_strands(rng, scene, centre, half)} strands")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -308,6 +339,7 @@ def main() -> int:
     parser.add_argument("--flag", type=float, default=2.0, help="percent error to flag")
     parser.add_argument("--tinted", action="store_true", help="coloured fog (see above)")
     parser.add_argument("--cutouts", action="store_true", help="cards cut by an image's alpha")
+    parser.add_argument("--hair", action="store_true", help="hair strands over the box")
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -317,7 +349,7 @@ def main() -> int:
         # One generator per case, so that any case can be drawn again alone.
         rng = random.Random(f"{args.seed} {case}")
         scene, sun, summary = build_case(
-            rng, args.width, args.height, args.samples, args.tinted, args.cutouts
+            rng, args.width, args.height, args.samples, args.tinted, args.cutouts, args.hair
         )
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)
