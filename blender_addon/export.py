@@ -127,9 +127,9 @@ def _static_key(obj: bpy.types.Object) -> str | None:
 
 
 def curves_arrays(curves: bpy.types.Curves) -> MeshArrays:
-    """A hair curves datablock as tubes around the polylines of its strands
-    (`crepuscular.strand_tubes`), each ring of the point's radius; without a radius
-    attribute, nothing, as Cycles draws nothing."""
+    """A hair curves datablock as tubes along the Catmull-Rom splines of its strands (the
+    hair curves' default type, `crepuscular.strand_tubes`), each ring of the point's
+    radius; without a radius attribute, nothing, as Cycles draws nothing."""
     count = len(curves.points)
     if count == 0 or "radius" not in curves.attributes:
         return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
@@ -139,7 +139,11 @@ def curves_arrays(curves: bpy.types.Curves) -> MeshArrays:
     curves.attributes["radius"].data.foreach_get("value", radius)
     offsets = np.empty(len(curves.curves) + 1, dtype=np.int64)
     curves.curve_offset_data.foreach_get("value", offsets)
-    return MeshArrays(*crepuscular.strand_tubes(points, np.diff(offsets), radius))
+    return MeshArrays(
+        *crepuscular.strand_tubes(
+            points, np.diff(offsets), radius, catmull_rom=crepuscular.CATMULL_ROM_STEPS
+        )
+    )
 
 
 def cut_mesh_arrays(mesh: bpy.types.Mesh, slot_uv_maps: tuple[str, ...]) -> MeshArrays:

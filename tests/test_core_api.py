@@ -836,3 +836,26 @@ def test_unknown_backend_is_named(scene: dict[str, Any]) -> None:
     scene.setdefault("render", {})["backend"] = "cuda"
     with raises_invalid("render.backend", "cuda"):
         validate_scene(scene)
+
+
+def test_strand_tubes_follow_catmull_rom_splines_through_their_points() -> None:
+    """`strand_tubes` with Catmull-Rom steps: rings centred on the uniform spline through
+    the points (at each point exactly, between them on the curve, here a bend bulging past
+    the chord), each at the tube radius; without, on the polyline."""
+    points = np.array([[0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 1, 0]], dtype=np.float64)
+    sides = crepuscular.TUBE_SIDES
+    steps = crepuscular.CATMULL_ROM_STEPS
+    positions, triangles = crepuscular.strand_tubes(points, [4], [0.1] * 4, catmull_rom=steps)
+    assert len(triangles) == 3 * steps * sides * 2
+    centres = positions.reshape(-1, sides, 3).mean(axis=1)
+    np.testing.assert_allclose(centres[::steps], points, atol=1e-6)
+    # Halfway along the middle segment the uniform spline is at its chord's midpoint, and
+    # a quarter along it lies off the chord, towards the bend.
+    np.testing.assert_allclose(centres[steps + 2], [1.5, 0.5, 0.0], atol=1e-6)
+    assert centres[steps + 1][1] < 0.25 - 1e-3
+    ring = np.linalg.norm(positions.reshape(-1, sides, 3) - centres[:, None], axis=2)
+    np.testing.assert_allclose(ring, 0.1 * crepuscular._strands.TUBE_RADIUS, rtol=1e-5)
+    straight, _ = crepuscular.strand_tubes(points, [4], [0.1] * 4)
+    np.testing.assert_allclose(straight.reshape(-1, sides, 3).mean(axis=1), points, atol=1e-6)
+    with pytest.raises(ValueError, match="strands"):
+        crepuscular.strand_tubes(points, [3], [0.1] * 4)

@@ -1068,8 +1068,11 @@ def test_basis_curves_cast_as_tubes_of_their_widths(tmp_path: Path) -> None:
         geometry = read().geometry
         assert not geometry.invalid
         points = _points_of(geometry, "/World/Hair")
+        # Catmull-Rom: each of a strand's 3 segments cut into CATMULL_ROM_STEPS.
+        segments = 3 * 3 * crepuscular.CATMULL_ROM_STEPS
         assert (
-            len(geometry.triangles[geometry.object_ids == 2]) == 3 * 3 * 2 * crepuscular.TUBE_SIDES
+            len(geometry.triangles[geometry.object_ids == 2])
+            == segments * 2 * crepuscular.TUBE_SIDES
         )
         x, z = points[:, 0], points[:, 2]
         distance = np.hypot(x - np.round(x), z - 2.0)

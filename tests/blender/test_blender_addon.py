@@ -498,7 +498,8 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     hair = blender_scenes.add_hair(scene, "hair", strands, 0.1)
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     sides = crepuscular.TUBE_SIDES
-    assert len(geometry.triangles) == 3 * 3 * sides * 2
+    # Hair curves are Catmull-Rom: each of a strand's 3 segments cut into pieces.
+    assert len(geometry.triangles) == 3 * 3 * crepuscular.CATMULL_ROM_STEPS * sides * 2
     radius = 0.1 * crepuscular._strands.TUBE_RADIUS
     low, high = geometry.positions.min(axis=0), geometry.positions.max(axis=0)
     np.testing.assert_allclose(low, [-radius, 0.0, 2.0 - radius], atol=1e-5)

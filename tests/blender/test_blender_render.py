@@ -222,7 +222,7 @@ def hair_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFactor
 def test_hair_curves_match_cycles(hair_fidelity: Path, method: str) -> None:
     """A roof of hair strands over the fidelity scene's fog: drawn as tubes of their radius,
     their shadows shape the shafts as Cycles' round strands do; hidden, the layers are 84%
-    off. Measured: mean within 0.45% of Cycles, pixels 1.5% apart, either method. (With
+    off. Measured: mean within 0.42% of Cycles, pixels 1.3% apart, either method. (With
     8-sided tubes, whose width varies by 8% with the direction they are seen from, the sun's
     direction saw them 3.6% narrower than the strands, and the layers read 2.6% bright.)"""
     cycles = rgba(hair_fidelity / "cycles.exr")[..., :3]

@@ -569,11 +569,10 @@ def _is_surface(prim: Usd.Prim) -> bool:
 
 
 def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
-    """BasisCurves as tubes around the polylines of their control points, each ring of half
-    the point's width (`crepuscular.strand_tubes`); and whether that may vary in time.
-    Catmull-Rom and pinned curves pass through their points, as Blender's exporter writes
-    hair; Bezier and B-spline curves are drawn along their control polygon, and curves
-    with normals (ribbons) as tubes too."""
+    """BasisCurves as tubes of half their widths (`crepuscular.strand_tubes`), and whether
+    that may vary in time: linear curves along their points, Catmull-Rom curves along
+    their splines through them (as Blender's exporter writes hair), Bezier and B-spline
+    curves along their control polygon; curves with normals (ribbons) as tubes too."""
     curves = UsdGeom.BasisCurves(prim)
     where = str(prim.GetPath())
     attrs = [curves.GetPointsAttr(), curves.GetCurveVertexCountsAttr(), curves.GetWidthsAttr()]
@@ -602,7 +601,10 @@ def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
             f"{where}: {len(widths)} widths match neither its {len(points)} points, its "
             f"{len(counts)} curves nor one (varying widths of cubic curves are not read)"
         )
-    positions, triangles = crepuscular.strand_tubes(points, counts, radii)
+    cubic = curves.GetTypeAttr().Get(time) == UsdGeom.Tokens.cubic
+    catmull_rom = cubic and curves.GetBasisAttr().Get(time) == UsdGeom.Tokens.catmullRom
+    steps = crepuscular.CATMULL_ROM_STEPS if catmull_rom else 0
+    positions, triangles = crepuscular.strand_tubes(points, counts, radii, catmull_rom=steps)
     return _LocalMesh(positions.astype(np.float64), triangles), varying
 
 

@@ -26,10 +26,11 @@ import numpy as np
 import numpy.typing as npt
 
 from crepuscular import _convert, _core
-from crepuscular._strands import TUBE_SIDES, strand_tubes
+from crepuscular._strands import CATMULL_ROM_STEPS, TUBE_SIDES, strand_tubes
 from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
 
 __all__ = [
+    "CATMULL_ROM_STEPS",
     "EXR_COMPRESSIONS",
     "SCENE_VERSION",
     "STYLE_VERSION",
