@@ -405,23 +405,22 @@ fn fill_tile(
                 let (x, y) = ((run.x as usize + k) as f64 + 0.5, run.y as f64 + 0.5);
                 mask.covers(textured.uv_at(x, y))
             };
-            let mut k = 0;
-            while k < run.len {
-                while k < run.len && !covers(k) {
-                    k += 1;
-                }
-                let first = k;
-                while k < run.len && covers(k) {
-                    k += 1;
-                }
-                if k > first {
-                    test_run(&Run {
-                        x: run.x + first as u32,
-                        y: run.y,
-                        len: k - first,
-                        values: run.values_at(first),
-                        step: run.step,
-                    });
+            // Each sample's mask is read once; a covered stretch is tested when it ends.
+            let mut first = None;
+            for k in 0..=run.len {
+                match (first, k < run.len && covers(k)) {
+                    (None, true) => first = Some(k),
+                    (Some(start), false) => {
+                        test_run(&Run {
+                            x: run.x + start as u32,
+                            y: run.y,
+                            len: k - start,
+                            values: run.values_at(start),
+                            step: run.step,
+                        });
+                        first = None;
+                    }
+                    _ => {}
                 }
             }
         });

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-from pxr import Ar, Usd, UsdGeom, UsdShade
+from pxr import Ar, Sdf, Usd, UsdGeom, UsdShade
 
 import crepuscular
 
@@ -179,10 +179,17 @@ class MaskTable:
     sources: list[MaskSource] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     _index: dict[MaskSource, int] = field(default_factory=dict)
+    # What each material's network maps to: a stage binds one material to many meshes.
+    _by_material: dict[Sdf.Path, tuple[MaskSource | None, str | None]] = field(default_factory=dict)
     _alpha: dict[MaskSource, npt.NDArray[np.float32]] = field(default_factory=dict)
 
     def index(self, material: UsdShade.Material | None, where: str) -> int:
-        source, note = mask_source(material)
+        if material is None:
+            return -1
+        path = material.GetPath()
+        if path not in self._by_material:
+            self._by_material[path] = mask_source(material)
+        source, note = self._by_material[path]
         if note is not None and note not in self.notes:
             self.notes.append(f"{where}: {note}")
         if source is None:

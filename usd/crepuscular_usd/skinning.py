@@ -46,6 +46,9 @@ class SkinnedMeshes:
         self._cache = UsdSkel.Cache()
         self._populated: set[Sdf.Path] = set()
         self._bindings: dict[Sdf.Path, _Binding] = {}
+        # Each skeleton's skinning transforms at `_time`: a character's meshes share them.
+        self._time: Usd.TimeCode | None = None
+        self._joint_xforms: dict[Sdf.Path, Vt.Matrix4dArray | None] = {}
 
     def add_root(self, prim: Usd.Prim) -> None:
         """Finds the skinned meshes under the SkelRoot `prim` (once per root)."""
@@ -86,7 +89,7 @@ class SkinnedMeshes:
         if binding.blend_shapes is not None:
             _apply_blend_shapes(binding, points, time, where)
         if binding.skinning.HasJointInfluences():
-            joint_xforms = binding.skeleton.ComputeSkinningTransforms(time)
+            joint_xforms = self._skinning_transforms(binding.skeleton, time)
             if joint_xforms is None:
                 raise SkinningError(
                     f"{where}: its skeleton's joint transforms could not be computed"
@@ -101,6 +104,18 @@ class SkinnedMeshes:
             # Blend shapes alone deform the mesh where it stands.
             space = prim
         return np.array(points, dtype=np.float64).reshape(-1, 3), space
+
+    def _skinning_transforms(
+        self, skeleton: UsdSkel.SkeletonQuery, time: Usd.TimeCode
+    ) -> Vt.Matrix4dArray | None:
+        """The skeleton's skinning transforms at `time`, computed once per frame."""
+        if time != self._time:
+            self._time = time
+            self._joint_xforms.clear()
+        path = skeleton.GetPrim().GetPath()
+        if path not in self._joint_xforms:
+            self._joint_xforms[path] = skeleton.ComputeSkinningTransforms(time)
+        return self._joint_xforms[path]
 
 
 def _apply_blend_shapes(
