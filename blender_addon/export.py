@@ -24,8 +24,14 @@ from .cutouts import MaskSource, MaskTable
 
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
-#: Hair curves (CURVES) are drawn as tubes of their radius (`curves_arrays`).
-GEOMETRY_TYPES = {"MESH", "META", "CURVES"}
+#: Hair curves (CURVES) are drawn as tubes of their radius (`curves_arrays`), point clouds
+#: (POINTCLOUD, such as geometry nodes' points) as spheres of theirs (`pointcloud_arrays`).
+GEOMETRY_TYPES = {"MESH", "META", "CURVES", "POINTCLOUD"}
+#: Object types without texture coordinates, which no alpha mask cuts.
+UNCUT_TYPES = {"CURVES", "POINTCLOUD"}
+#: The radius Blender gives a point cloud's points without a radius attribute; Cycles
+#: draws them at it (a render of such a point measured 0.00996).
+DEFAULT_POINT_RADIUS = 0.01
 #: Rec. 709 luminance weights, as Blender's default scene-linear space.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -126,10 +132,12 @@ def _static_key(obj: bpy.types.Object) -> str | None:
     return data.name_full
 
 
-def curves_arrays(curves: bpy.types.Curves) -> MeshArrays:
+def curves_arrays(curves: bpy.types.Curves, facing: np.ndarray | None = None) -> MeshArrays:
     """A hair curves datablock as tubes along the Catmull-Rom splines of its strands (the
     hair curves' default type, `crepuscular.strand_tubes`), each ring of the point's
-    radius; without a radius attribute, nothing, as Cycles draws nothing."""
+    radius; without a radius attribute, nothing, as Cycles draws nothing. With `facing`
+    (the sun's direction in the object's space), each strand's ends are cut so that the
+    sun sees it end at its end points, as Cycles cuts a strand's ends across each ray."""
     count = len(curves.points)
     if count == 0 or "radius" not in curves.attributes:
         return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
@@ -141,9 +149,29 @@ def curves_arrays(curves: bpy.types.Curves) -> MeshArrays:
     curves.curve_offset_data.foreach_get("value", offsets)
     return MeshArrays(
         *crepuscular.strand_tubes(
-            points, np.diff(offsets), radius, catmull_rom=crepuscular.CATMULL_ROM_STEPS
+            points,
+            np.diff(offsets),
+            radius,
+            catmull_rom=crepuscular.CATMULL_ROM_STEPS,
+            facing=facing,
         )
     )
+
+
+def pointcloud_arrays(pointcloud: bpy.types.PointCloud) -> MeshArrays:
+    """A point cloud as a sphere around each point (`crepuscular.point_spheres`), of the
+    point's radius, or Blender's default radius where there is no radius attribute."""
+    count = len(pointcloud.points)
+    positions = np.empty(count * 3, dtype=np.float32)
+    if count:
+        pointcloud.attributes["position"].data.foreach_get("vector", positions)
+    radius = pointcloud.attributes.get("radius")
+    if radius is None:
+        radii = np.full(count, DEFAULT_POINT_RADIUS, dtype=np.float32)
+    else:
+        radii = np.empty(count, dtype=np.float32)
+        radius.data.foreach_get("value", radii)
+    return MeshArrays(*crepuscular.point_spheres(positions.reshape(-1, 3), radii))
 
 
 def cut_mesh_arrays(mesh: bpy.types.Mesh, slot_uv_maps: tuple[str, ...]) -> MeshArrays:
@@ -180,9 +208,11 @@ def _object_arrays(
     obj: bpy.types.Object,
     cache: GeometryCache | None,
     slot_uv_maps: tuple[str, ...] | None = None,
+    facing: np.ndarray | None = None,
 ) -> MeshArrays | None:
     """The object's mesh arrays; loop-split with texture coordinates where `slot_uv_maps`
-    (the UV map of each material slot) is given."""
+    (the UV map of each material slot) is given; hair curves' ends cut for the sun's
+    direction `facing` (in the object's space)."""
     key = _static_key(obj) if cache is not None else None
     if key is not None and slot_uv_maps is not None:
         key = key + _CUT_KEY + "|".join(slot_uv_maps)
@@ -205,7 +235,9 @@ def _object_arrays(
     if obj.type == "MESH":
         arrays = read(obj.data)
     elif obj.type == "CURVES":
-        arrays = curves_arrays(obj.data)
+        arrays = curves_arrays(obj.data, facing)
+    elif obj.type == "POINTCLOUD":
+        arrays = pointcloud_arrays(obj.data)
     else:
         mesh = obj.to_mesh()
         try:
@@ -216,6 +248,23 @@ def _object_arrays(
         cache.misses += 1
         cache.meshes[key] = arrays
     return arrays
+
+
+#: Geometry shared by instances: the object's data, the UV maps its cut slots read, and the
+#: sun's direction in its space (hair curves only).
+_MeshKey = tuple[int, tuple[str, ...] | None, tuple[float, ...] | None]
+
+
+def _local_direction(matrix_world: Any, direction: np.ndarray) -> np.ndarray | None:
+    """A world direction in an object's space (the inverse of its linear part), unit
+    length; None for a matrix that flattens space."""
+    linear = np.array(matrix_world, dtype=np.float64)[:3, :3]
+    try:
+        local = np.linalg.solve(linear, np.asarray(direction, dtype=np.float64))
+    except np.linalg.LinAlgError:
+        return None
+    norm = np.linalg.norm(local)
+    return local / norm if np.isfinite(norm) and norm > 0 else None
 
 
 #: The core's vertex indices are 32-bit.
@@ -266,6 +315,7 @@ def export_geometry(
     cache: GeometryCache | None = None,
     exclude: set[str] | frozenset[str] = frozenset(),
     origin: np.ndarray | None = None,
+    facing: np.ndarray | None = None,
 ) -> Geometry:
     """Triangles of everything that casts shafts in `depsgraph`, relative to the world point
     `origin` (default the world's origin): the camera's position keeps float32 positions
@@ -274,6 +324,8 @@ def export_geometry(
     An instance casts unless it or its instancer is set to Off; set to Auto, it follows
     Blender's Shadow ray visibility of both. With a viewport depsgraph, objects hidden in
     renders are left out too. `exclude` holds original object names (the fog box).
+    `facing`, the sun's travel direction, is what hair strands' ends are cut for
+    (`curves_arrays`).
     """
     render_mode = depsgraph.mode == "RENDER"
     offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
@@ -286,8 +338,8 @@ def export_geometry(
     # Per object, its slots' mask indices and UV maps where a material cuts.
     table = MaskTable(kept=cache.masks if cache is not None else {})
     cuts: dict[str, _SlotCuts | None] = {}
-    meshes: dict[tuple[int, tuple[str, ...] | None], MeshArrays | None] = {}
-    groups: dict[tuple[tuple[int, tuple[str, ...] | None], int, _SlotCuts | None], list[Any]] = {}
+    meshes: dict[_MeshKey, MeshArrays | None] = {}
+    groups: dict[tuple[_MeshKey, int, _SlotCuts | None], list[Any]] = {}
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type not in GEOMETRY_TYPES:
@@ -301,13 +353,19 @@ def export_geometry(
         if object_id is None:
             continue
         if obj.name_full not in cuts:
-            # Hair curves have no texture coordinates to cut by.
-            cuts[obj.name_full] = None if obj.type == "CURVES" else _slot_cuts(obj, table)
+            cuts[obj.name_full] = None if obj.type in UNCUT_TYPES else _slot_cuts(obj, table)
         cut = cuts[obj.name_full]
         pointer = obj.data.as_pointer() if obj.type == "MESH" else obj.as_pointer()
-        mesh_key = (pointer, None if cut is None else cut.uv_maps)
+        local_facing = None
+        if obj.type == "CURVES" and facing is not None:
+            local_facing = _local_direction(instance.matrix_world, facing)
+        mesh_key = (
+            pointer,
+            None if cut is None else cut.uv_maps,
+            None if local_facing is None else tuple(np.round(local_facing, 6)),
+        )
         if mesh_key not in meshes:
-            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[1])
+            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[1], local_facing)
         arrays = meshes[mesh_key]
         if arrays is None or len(arrays.triangles) == 0:
             continue
@@ -682,7 +740,13 @@ def frame_inputs(
     fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None
     exclude = {fog.name_full} if fog is not None else set()
     eye = np.asarray(camera["world_from_camera"][12:15], dtype=np.float64)
-    geometry = export_geometry(depsgraph, cache=cache, exclude=exclude, origin=eye)
+    geometry = export_geometry(
+        depsgraph,
+        cache=cache,
+        exclude=exclude,
+        origin=eye,
+        facing=np.array(sun_dict(evaluated)["direction"]),
+    )
     settings = evaluated.data.crepuscular
     fps = scene.render.fps / scene.render.fps_base
     style = style_from_light(

@@ -441,6 +441,11 @@ class CREPUSCULAR_PT_sun_tf(SunPanel, bpy.types.Panel):
             row.operator(CREPUSCULAR_OT_tf_item_remove.bl_idname, icon="REMOVE")
 
 
+#: Objects that cast shafts themselves (meshes, and what evaluates to them, hair curves and
+#: point clouds) or through what they instance (empties).
+PANEL_OBJECT_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META", "CURVES", "POINTCLOUD", "EMPTY"}
+
+
 class CREPUSCULAR_PT_object(bpy.types.Panel):
     bl_label = "Stylized Shafts"
     bl_space_type = "PROPERTIES"
@@ -450,7 +455,7 @@ class CREPUSCULAR_PT_object(bpy.types.Panel):
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
         obj = context.object
-        return obj is not None and obj.type in {"MESH", "CURVE", "SURFACE", "FONT", "META", "EMPTY"}
+        return obj is not None and obj.type in PANEL_OBJECT_TYPES
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout

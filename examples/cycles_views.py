@@ -24,8 +24,10 @@ extension then has crepuscular scatter once per channel value. `--cutouts` adds 
 cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
 Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscular reads as
 alpha masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
-hair curves object of 10 to 40 black strands over the box, which the extension draws as tubes
-(`scene.json` carries them as meshes). Views that see no
+hair curves object of 10 to 40 black strands over the box, which the extension draws as tubes,
+and `--points` a geometry-nodes point cloud of 20 to 300 black points of random radii over
+and in the box, which it draws as spheres (`scene.json` carries both as meshes). Views that
+see no
 fog print as black. A sun's disc is left at 0°: crepuscular's shafts have hard edges.
 """
 
@@ -146,6 +148,25 @@ def add_strands(
     return count
 
 
+def add_point_cloud(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """A point cloud of 20 to 300 black points over and in the fog box (a geometry-nodes
+    Mesh to Points), of radii from 2 cm up to 5 to 50 cm; returns how many."""
+    count = rng.randint(20, 300)
+    spread = np.array([1.2, 1.2, 0.8])
+    lift = np.array([0.0, 0.0, 0.5])
+    centres = [
+        centre + half * (lift + spread * np.array([rng.uniform(-1, 1) for _ in range(3)]))
+        for _ in range(count)
+    ]
+    largest = rng.uniform(0.05, 0.5)
+    radii = [rng.uniform(0.02, largest) for _ in range(count)]
+    black = blender_scenes.black_material(0.0)
+    blender_scenes.add_points(scene, "points", centres, radii, black)
+    return count
+
+
 def build_case(
     rng: random.Random,
     width: int,
@@ -154,6 +175,7 @@ def build_case(
     tinted: bool,
     cutouts: bool,
     hair: bool = False,
+    points: bool = False,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
     blender_scenes.reset()
@@ -191,6 +213,8 @@ def build_case(
         labels.append(f"{add_cut_cards(rng, scene, centre, half)} cut cards")
     if hair:
         labels.append(f"{add_strands(rng, scene, centre, half)} strands")
+    if points:
+        labels.append(f"{add_point_cloud(rng, scene, centre, half)} points")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -340,6 +364,7 @@ def main() -> int:
     parser.add_argument("--tinted", action="store_true", help="coloured fog (see above)")
     parser.add_argument("--cutouts", action="store_true", help="cards cut by an image's alpha")
     parser.add_argument("--hair", action="store_true", help="hair strands over the box")
+    parser.add_argument("--points", action="store_true", help="a point cloud over the box")
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -349,7 +374,14 @@ def main() -> int:
         # One generator per case, so that any case can be drawn again alone.
         rng = random.Random(f"{args.seed} {case}")
         scene, sun, summary = build_case(
-            rng, args.width, args.height, args.samples, args.tinted, args.cutouts, args.hair
+            rng,
+            args.width,
+            args.height,
+            args.samples,
+            args.tinted,
+            args.cutouts,
+            args.hair,
+            args.points,
         )
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)

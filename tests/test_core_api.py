@@ -859,3 +859,103 @@ def test_strand_tubes_follow_catmull_rom_splines_through_their_points() -> None:
     np.testing.assert_allclose(straight.reshape(-1, sides, 3).mean(axis=1), points, atol=1e-6)
     with pytest.raises(ValueError, match="strands"):
         crepuscular.strand_tubes(points, [3], [0.1] * 4)
+
+
+def test_point_spheres_cast_a_round_shadow_from_every_direction() -> None:
+    """`point_spheres`: a closed polyhedron around each point, wound outwards, whose shadow
+    (projected area: half the sum of area times |n . d| over its faces) is the sphere's
+    pi r^2 within 1.2% from any direction, so a cloud of them blocks the sun as Cycles'
+    spheres do."""
+    centres = np.array([[0.0, 0.0, 0.0], [5.0, -2.0, 1.0]])
+    positions, triangles = crepuscular.point_spheres(centres, [0.5, 2.0])
+    assert triangles.shape == (2 * crepuscular.SPHERE_TRIANGLES, 3)
+    corners = positions.astype(np.float64)[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    rng = np.random.default_rng(7)
+    directions = rng.normal(size=(2000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    for index, (centre, radius) in enumerate(zip(centres, [0.5, 2.0], strict=True)):
+        rows = slice(
+            index * crepuscular.SPHERE_TRIANGLES, (index + 1) * crepuscular.SPHERE_TRIANGLES
+        )
+        outward = np.einsum("ij,ij->i", normals[rows], corners[rows].mean(axis=1) - centre)
+        assert (outward > 0).all()
+        # Each cross product is twice its face's area; front and back both count.
+        shadow = 0.25 * np.abs(normals[rows] @ directions.T).sum(axis=0)
+        np.testing.assert_allclose(shadow, np.pi * radius**2, rtol=0.012)
+        # The mean over directions is the disc's exactly (Cauchy), not just within 1.2%.
+        assert shadow.mean() == pytest.approx(np.pi * radius**2, rel=2e-3)
+        # Every edge is shared by two faces: closed, so no light slips through.
+        edges = np.sort(triangles[rows][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        assert (counts == 2).all()
+
+
+def test_point_spheres_skip_empty_points_and_name_bad_input() -> None:
+    positions, triangles = crepuscular.point_spheres(
+        [[0, 0, 0], [1, 1, 1], [2, 2, 2]], [0.1, 0, -1]
+    )
+    assert len(triangles) == crepuscular.SPHERE_TRIANGLES
+    assert positions[:, 0].max() < 0.5
+    one_radius, _ = crepuscular.point_spheres([[0, 0, 0], [1, 1, 1]], 0.1)
+    assert len(one_radius) == 2 * len(positions)
+    empty, none = crepuscular.point_spheres(np.zeros((0, 3)), np.zeros(0))
+    assert empty.shape == (0, 3)
+    assert none.shape == (0, 3)
+    with pytest.raises(ValueError, match="3 points but 2 radii"):
+        crepuscular.point_spheres(np.zeros((3, 3)), [0.1, 0.1])
+    with pytest.raises(ValueError, match="finite"):
+        crepuscular.point_spheres([[0, float("nan"), 0]], [0.1])
+
+
+def _extent_along(vertices: np.ndarray, axis: np.ndarray, facing: np.ndarray) -> np.ndarray:
+    """The (min, max) of `vertices` along `axis` as seen along `facing`: both projected
+    onto the plane across `facing`."""
+    facing = facing / np.linalg.norm(facing)
+    seen = axis - (axis @ facing) * facing
+    seen /= np.linalg.norm(seen)
+    along = vertices @ seen
+    return np.array([along.min(), along.max()])
+
+
+def test_strand_tube_ends_are_cut_across_the_facing_direction() -> None:
+    """With `facing`, a strand's tube seen along that direction ends at its end points,
+    as Cycles cuts a strand's ends across each ray; cut across the strand (no `facing`),
+    it reaches past them by r cos(angle between the strand and the view), the half
+    ellipse each end adds to its shadow. The middle of the tube is untouched."""
+    strand = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [2.0, 0.0, 1.0], [3.0, 0.0, 1.5]])
+    radius = 0.2
+    facing = np.array([0.3, 0.2, -1.0])
+    axis = (strand[-1] - strand[0]) / np.linalg.norm(strand[-1] - strand[0])
+    ends = _extent_along(strand, axis, facing)
+    plain, triangles = crepuscular.strand_tubes(strand, [4], [radius] * 4)
+    cut, cut_triangles = crepuscular.strand_tubes(strand, [4], [radius] * 4, facing=facing)
+    np.testing.assert_array_equal(triangles, cut_triangles)
+    np.testing.assert_allclose(_extent_along(cut.astype(np.float64), axis, facing), ends, atol=1e-5)
+    # Cut into short pieces and seen at 20° to the strand, the plane reaches past the end
+    # ring into the next ones.
+    steps = crepuscular.CATMULL_ROM_STEPS
+    grazing = axis + np.tan(np.radians(20.0)) * np.array([0.0, 1.0, 0.0])
+    for direction in (facing, grazing):
+        fine, _ = crepuscular.strand_tubes(
+            strand, [4], [radius] * 4, catmull_rom=steps, facing=direction
+        )
+        extent = _extent_along(fine.astype(np.float64), axis, direction)
+        np.testing.assert_allclose(extent, _extent_along(strand, axis, direction), atol=1e-5)
+    seen_along = facing / np.linalg.norm(facing)
+    reach = radius * crepuscular._strands.TUBE_RADIUS * abs(axis @ seen_along)
+    plain_extent = _extent_along(plain.astype(np.float64), axis, facing)
+    np.testing.assert_allclose(plain_extent, ends + np.array([-reach, reach]), rtol=0.02)
+    sides = crepuscular.TUBE_SIDES
+    np.testing.assert_array_equal(plain[sides:-sides], cut[sides:-sides])
+    # One direction per strand, here opposite ones: both cut alike (a plane holds either).
+    two, _ = crepuscular.strand_tubes(
+        np.concatenate([strand, strand + 5.0]), [4, 4], [radius] * 8, facing=[facing, -facing]
+    )
+    np.testing.assert_allclose(two[: len(cut)], cut, atol=1e-6)
+    # A strand seen end-on keeps its ends across it.
+    end_on, _ = crepuscular.strand_tubes(strand, [4], [radius] * 4, facing=axis)
+    np.testing.assert_array_equal(end_on, plain)
+    for bad in ([0.0, 0.0, 0.0], [[0.0, 0.0, 1.0]] * 2, [np.nan, 0.0, 1.0]):
+        with pytest.raises(ValueError, match="facing"):
+            crepuscular.strand_tubes(strand, [4], [radius] * 4, facing=bad)

@@ -309,9 +309,10 @@ def test_apply_schema_authors_the_defaults(stage_path: Path, tmp_path: Path) -> 
 def test_stage_without_the_api_warns_once(tmp_path: Path) -> None:
     path = tmp_path / "plain.usda"
     stage = author_stage(str(path), build_scene(**SMALL), apply_api=False)
-    UsdGeom.Points.Define(stage, "/World/Dust")
+    UsdGeom.NurbsCurves.Define(stage, "/World/Wire")
     UsdGeom.BasisCurves.Define(stage, "/World/Hair")  # drawn (with no points, nothing)
-    UsdGeom.Points.Define(stage, "/World/Dust2")
+    UsdGeom.Points.Define(stage, "/World/Dust")  # drawn (with no points, nothing)
+    UsdGeom.NurbsCurves.Define(stage, "/World/Wire2")
     UsdGeom.Sphere.Define(stage, "/World/Ball")  # drawn, not skipped
     UsdLux.SphereLight.Define(stage, "/World/Lamp")
     stage.GetRootLayer().Save()
@@ -322,7 +323,7 @@ def test_stage_without_the_api_warns_once(tmp_path: Path) -> None:
     warnings = [line for line in err.splitlines() if "warning" in line]
     assert len(warnings) == 2, err
     assert "/World/Sun has no CrepuscularLightAPI" in warnings[0]
-    assert warnings[1].endswith("skipped 3 unsupported prims: 2 Points, 1 SphereLight")
+    assert warnings[1].endswith("skipped 3 unsupported prims: 2 NurbsCurves, 1 SphereLight")
 
 
 def test_an_unusable_mesh_is_named_and_the_rest_renders(tmp_path: Path) -> None:

@@ -1086,6 +1086,131 @@ def test_basis_curves_cast_as_tubes_of_their_widths(tmp_path: Path) -> None:
         assert words in geometry.invalid[0]
 
 
+def _seen_extent(vertices: np.ndarray, first: np.ndarray, last: np.ndarray, sun: np.ndarray):
+    """The extent of `vertices` along the straight strand from `first` to `last` as the
+    sun sees it, and the end points' own."""
+    axis = (last - first) / np.linalg.norm(last - first)
+    seen = axis - (axis @ sun) * sun
+    seen /= np.linalg.norm(seen)
+    along = vertices @ seen
+    return [along.min(), along.max()], sorted([first @ seen, last @ seen])
+
+
+def test_curves_ends_are_cut_for_the_sun(tmp_path: Path) -> None:
+    """Seen from the sun, each strand's tube ends at its end points, as Cycles cuts a
+    strand's ends across each ray: for curves of their own (under a turned, scaled
+    transform) and placed by a PointInstancer, whether its placements see the sun from a
+    few directions (a build each) or from many (copies built at once)."""
+    stage = author_stage(str(tmp_path / "cut.usda"), build_scene(occluder=False, **SMALL))
+    # Straight, so that its ends' direction is the line between them, which the check uses.
+    strand = [Gf.Vec3f(t, 3 * t, t) for t in (0.0, 0.25, 0.6, 1.0)]
+
+    def define(path: str) -> UsdGeom.BasisCurves:
+        curves = UsdGeom.BasisCurves.Define(stage, path)
+        curves.CreatePointsAttr(strand)
+        curves.CreateCurveVertexCountsAttr([4])
+        curves.CreateTypeAttr(UsdGeom.Tokens.cubic)
+        curves.CreateBasisAttr(UsdGeom.Tokens.catmullRom)
+        curves.CreateWidthsAttr([0.3])
+        return curves
+
+    own = define("/World/Hair")
+    own.AddRotateXYZOp().Set(Gf.Vec3f(20.0, 0.0, 50.0))
+    own.AddScaleOp().Set(Gf.Vec3f(1.5, 1.5, 1.5))
+    instancer = UsdGeom.PointInstancer.Define(stage, "/World/Clumps")
+    define("/World/Clumps/Clump")
+    instancer.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Clumps/Clump")])
+    ends = np.array([[0.0, 0.0, 0.0], [1.0, 3.0, 1.0]])
+    for count in (3, 40):
+        rng = np.random.default_rng(count)
+        turns = rng.uniform(0, 2 * np.pi, count)
+        instancer.CreateProtoIndicesAttr([0] * count)
+        instancer.CreatePositionsAttr([Gf.Vec3f(3.0 * k, -4.0, 1.0) for k in range(count)])
+        # In single precision (half precision would turn them by other angles).
+        instancer.CreateOrientationsfAttr(
+            [Gf.Quatf(float(np.cos(t / 2)), 0.0, 0.0, float(np.sin(t / 2))) for t in turns]
+        )
+        frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
+        sun = np.asarray(frame.sun["direction"])
+        geometry = frame.geometry
+        placed = geometry.positions.astype(np.float64) + geometry.origin
+        hair = placed[np.unique(geometry.triangles[geometry.object_ids == 2])]
+        world = np.array(UsdGeom.Xformable(own).ComputeLocalToWorldTransform(0)).T
+        first, last = (world[:3, :3] @ ends.T).T + world[:3, 3]
+        extent, expected = _seen_extent(hair, first, last, sun)
+        np.testing.assert_allclose(extent, expected, atol=1e-4)
+        clumps = np.unique(geometry.triangles[geometry.object_ids == 3])
+        copies = placed[clumps].reshape(count, -1, 3)
+        # Placements that see the sun alike are built together: find each one's copy.
+        found = np.argsort(copies.mean(axis=1)[:, 0])
+        for copy, turn, k in zip(copies[found], turns, range(count), strict=True):
+            rotation = np.array(
+                [[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]]
+            )
+            first, last = (rotation @ ends.T).T + np.array([3.0 * k, -4.0, 1.0])
+            extent, expected = _seen_extent(copy, first, last, sun)
+            np.testing.assert_allclose(extent, expected, atol=1e-4)
+
+
+def test_points_cast_as_spheres_of_their_widths(tmp_path: Path) -> None:
+    """Points (dust, spray, particles) cast a sphere around each point, of half its width,
+    with widths per point or one for all, from `widths` or an indexed `primvars:widths`
+    (which Hydra takes over `widths`); also as a PointInstancer's prototype. Widths that
+    fit neither, or none at all, are named."""
+    stage = author_stage(str(tmp_path / "points.usda"), build_scene(occluder=False, **SMALL))
+    dust = UsdGeom.Points.Define(stage, "/World/Dust")
+    dust.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
+    centres = np.array([[0.0, 0.0, 2.0], [2.0, 1.0, 2.0], [-1.0, 3.0, 4.0]])
+    dust.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(centres.astype(np.float32)))
+    widths = dust.CreateWidthsAttr()
+    read = lambda: StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())  # noqa: E731
+    count = crepuscular.SPHERE_VERTICES
+
+    def spheres() -> np.ndarray:
+        geometry = read().geometry
+        assert not geometry.invalid, geometry.invalid
+        object_id = geometry.ids_by_path[Sdf.Path("/World/Dust")]
+        rows = geometry.triangles[geometry.object_ids == object_id]
+        assert len(rows) == 3 * crepuscular.SPHERE_TRIANGLES
+        used = np.unique(rows)
+        return (geometry.positions[used] + geometry.origin).astype(np.float64).reshape(3, count, 3)
+
+    for value, radii in (([0.2, 0.4, 0.6], [0.1, 0.2, 0.3]), ([0.5], [0.25] * 3)):
+        widths.Set(value)
+        found = spheres()
+        np.testing.assert_allclose(
+            found.mean(axis=1), centres + np.array([0.0, 0.0, 1.0]), atol=1e-5
+        )
+        np.testing.assert_allclose(
+            np.ptp(found, axis=1) / (2 * np.array(radii))[:, None], 1, atol=0.06
+        )
+    primvar = UsdGeom.PrimvarsAPI(dust.GetPrim()).CreatePrimvar(
+        "widths", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex
+    )
+    primvar.Set([0.8, 0.2])
+    primvar.SetIndices(Vt.IntArray([1, 0, 1]))
+    np.testing.assert_allclose(np.ptp(spheres(), axis=1)[:, 0] / [0.2, 0.8, 0.2], 1, atol=0.06)
+    primvar.GetAttr().Clear()
+    primvar.GetIndicesAttr().Clear()
+    # As a prototype: a sphere per point per placement.
+    instancer = UsdGeom.PointInstancer.Define(stage, "/World/Swarm")
+    proto = UsdGeom.Points.Define(stage, "/World/Swarm/Mote")
+    proto.CreatePointsAttr([Gf.Vec3f(0.0, 0.0, 0.0), Gf.Vec3f(1.0, 0.0, 0.0)])
+    proto.CreateWidthsAttr([0.1])
+    instancer.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    instancer.CreateProtoIndicesAttr([0, 0, 0])
+    instancer.CreatePositionsAttr([Gf.Vec3f(0, -3, 2), Gf.Vec3f(1, -3, 2), Gf.Vec3f(2, -3, 2)])
+    geometry = read().geometry
+    swarm = geometry.ids_by_path[Sdf.Path("/World/Swarm")]
+    assert (geometry.object_ids == swarm).sum() == 3 * 2 * crepuscular.SPHERE_TRIANGLES
+    for value, words in (([0.2] * 2, "2 widths match neither"), ([], "no widths")):
+        widths.Set(value)
+        geometry = read().geometry
+        assert len(geometry.invalid) == 1
+        assert "/World/Dust" in geometry.invalid[0]
+        assert words in geometry.invalid[0]
+
+
 def test_medium_extent_from_a_box_mesh_and_a_volume(tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     stage = author_stage(str(tmp_path / "extent.usda"), scene, meters_per_unit=0.1, up="Y")

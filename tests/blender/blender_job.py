@@ -199,6 +199,28 @@ def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
 
 
+def job_points_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box under a roof of points (a geometry-nodes point cloud of
+    random radii 0.12 to 0.4 on a jittered grid) instead of slats: Cycles, our layers
+    (reference and default method), and ours with the points hidden."""
+    scene = fog_scene(spec)
+    for name in ("roof_a", "roof_b"):
+        bpy.data.objects.remove(scene.objects[name])
+    rng = np.random.default_rng(11)
+    x, y = np.meshgrid(np.arange(-6.0, 5.0, 0.8), np.arange(-5.0, 5.0, 0.8))
+    centres = np.c_[x.ravel(), y.ravel(), np.full(x.size, 6.0)]
+    centres += rng.uniform(-0.25, 0.25, centres.shape)
+    radii = rng.uniform(0.12, 0.4, len(centres))
+    black = blender_scenes.black_material(0.0)
+    blender_scenes.add_points(scene, "points", centres, radii, black)
+    ground = [(-30, -30, -0.01), (30, -30, -0.01), (30, 30, -0.01), (-30, 30, -0.01)]
+    blender_scenes.add_quad(scene, "ground", ground, black)
+    settings = _cycles_then_ours(scene, out)
+    scene.objects["points"].hide_render = True
+    settings.method = "reference"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
+
+
 def shaft_scene(spec: dict[str, Any]) -> Any:
     """A grey ground and a cube under a sun with shafts, in an unbounded medium."""
     scene = bpy.context.scene
@@ -311,9 +333,9 @@ def job_silhouette(spec: dict[str, Any], out: Path) -> None:
 
 def round_trip_scene(spec: dict[str, Any]) -> Any:
     """Meshes (one arrayed by a modifier, one that takes holes, a column posed by an
-    armature), a camera with a vertical sensor fit, lens shift and clip range, a sun with
-    exposure, colour and a styled look (closing, holes, a transfer function), and a fog
-    box."""
+    armature), a card cut by an alpha mask, hair strands, a point cloud, a camera with a
+    vertical sensor fit, lens shift and clip range, a sun with exposure, colour and a styled
+    look (closing, holes, a transfer function), and a fog box."""
     scene = bpy.context.scene
     scene.render.resolution_x, scene.render.resolution_y = spec["width"], spec["height"]
     scene.render.resolution_percentage = 100
@@ -373,6 +395,10 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     y = np.linspace(-6, 6, 7)
     strands = [np.c_[np.full_like(y, x), y, 6.6 + 0.2 * np.sin(y + x)] for x in (-2.6, 0.2, 3.0)]
     blender_scenes.add_hair(scene, "strands", strands, 0.12, blender_scenes.black_material(0.0))
+    # A cloud of motes over the fog, which the exporter writes as Points with widths.
+    rng = np.random.default_rng(5)
+    motes = np.c_[rng.uniform(-6, 6, (60, 2)), rng.uniform(6.2, 6.9, 60)]
+    blender_scenes.add_point_cloud(scene, "motes", motes, rng.uniform(0.1, 0.3, 60))
     return scene
 
 
@@ -474,6 +500,7 @@ JOBS = {
     "mapped_fidelity": job_mapped_fidelity,
     "cutout_fidelity": job_cutout_fidelity,
     "hair_fidelity": job_hair_fidelity,
+    "points_fidelity": job_points_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,

@@ -283,6 +283,79 @@ def add_hair(scene: Any, name: str, strands: Any, radius: float, material: Any =
     return obj
 
 
+def add_points(
+    scene: Any, name: str, positions: Any, radii: Any = None, material: Any = None
+) -> Any:
+    """A point cloud, as geometry nodes make one: an object whose modifier turns its mesh's
+    vertices at `positions` into points (Mesh to Points), each of its `radii` (read from a
+    vertex attribute), or without a radius attribute where `radii` is None; `material` is
+    set on the points."""
+    import bpy
+
+    positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(positions))
+    mesh.vertices.foreach_set("co", positions.ravel())
+    if radii is not None:
+        attribute = mesh.attributes.new("point_radius", "FLOAT", "POINT")
+        attribute.data.foreach_set("value", np.asarray(radii, dtype=np.float32))
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    scene.collection.objects.link(obj)
+    group = bpy.data.node_groups.new(f"{name} points", "GeometryNodeTree")
+    group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    nodes, links = group.nodes, group.links
+    to_points = nodes.new("GeometryNodeMeshToPoints")
+    links.new(nodes.new("NodeGroupInput").outputs[0], to_points.inputs["Mesh"])
+    geometry = to_points.outputs[0]
+    if radii is None:
+        remove = nodes.new("GeometryNodeRemoveAttribute")
+        remove.inputs["Name"].default_value = "radius"
+        links.new(geometry, remove.inputs["Geometry"])
+        geometry = remove.outputs[0]
+    else:
+        radius = nodes.new("GeometryNodeInputNamedAttribute")
+        radius.data_type = "FLOAT"
+        radius.inputs["Name"].default_value = "point_radius"
+        links.new(radius.outputs["Attribute"], to_points.inputs["Radius"])
+    if material is not None:
+        set_material = nodes.new("GeometryNodeSetMaterial")
+        set_material.inputs["Material"].default_value = material
+        links.new(geometry, set_material.inputs["Geometry"])
+        geometry = set_material.outputs[0]
+    links.new(geometry, nodes.new("NodeGroupOutput").inputs[0])
+    obj.modifiers.new("points", "NODES").node_group = group
+    return obj
+
+
+def add_point_cloud(scene: Any, name: str, positions: Any, radii: Any, material: Any = None) -> Any:
+    """A Point Cloud object (its own data, not a modifier's output, so that Blender's USD
+    exporter writes it as Points): vertices at `positions` converted to points, with a
+    radius attribute of `radii`."""
+    import bpy
+
+    positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(positions))
+    mesh.vertices.foreach_set("co", positions.ravel())
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    scene.collection.objects.link(obj)
+    for other in bpy.context.selected_objects:
+        other.select_set(False)
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    assert bpy.ops.object.convert(target="POINTCLOUD") == {"FINISHED"}
+    obj = bpy.context.view_layer.objects.active
+    assert obj.type == "POINTCLOUD", obj.type
+    radius = obj.data.attributes.new("radius", "FLOAT", "POINT")
+    radius.data.foreach_set("value", np.asarray(radii, dtype=np.float32))
+    if material is not None:
+        obj.data.materials.append(material)
+    return obj
+
+
 def alpha_png(path: Path) -> Any:
     """`alpha_image` saved as an 8-bit PNG at `path` and loaded back from the file, as an
     artist's leaf texture is (the USD exporter copies such files next to the stage)."""

@@ -11,7 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 
 import numpy as np
 import pytest
@@ -496,6 +496,7 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     y = np.linspace(0.0, 3.0, 4)
     strands = [np.c_[np.full_like(y, x), y, np.full_like(y, 2.0)] for x in (0.0, 1.0, 2.0)]
     hair = blender_scenes.add_hair(scene, "hair", strands, 0.1)
+    assert addon.ui.CREPUSCULAR_PT_object.poll(SimpleNamespace(object=hair))
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     sides = crepuscular.TUBE_SIDES
     # Hair curves are Catmull-Rom: each of a strand's 3 segments cut into pieces.
@@ -508,10 +509,60 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     x, z = geometry.positions[:, 0], geometry.positions[:, 2]
     distance = np.hypot(x - np.round(x), z - 2.0)
     np.testing.assert_allclose(distance, radius, rtol=1e-5)
+    # Facing the sun (here through a turned, scaled object): seen along it, each strand's
+    # tube ends at its end points, as Cycles cuts a strand's ends across each ray.
+    hair.rotation_euler = (0.3, 0.0, 0.8)
+    hair.scale = (1.5, 1.5, 1.5)
+    bpy.context.view_layer.update()
+    sun = np.array([0.4, -0.3, -1.0]) / np.linalg.norm([0.4, -0.3, -1.0])
+    faced = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), facing=sun)
+    matrix = np.array(hair.matrix_world)
+    tubes = faced.positions.astype(np.float64).reshape(3, -1, 3)
+    for strand, tube in zip(strands, tubes, strict=True):
+        world = strand @ matrix[:3, :3].T + matrix[:3, 3]
+        axis = (world[-1] - world[0]) / np.linalg.norm(world[-1] - world[0])
+        seen = axis - (axis @ sun) * sun
+        seen /= np.linalg.norm(seen)
+        along = tube @ seen
+        np.testing.assert_allclose(
+            [along.min(), along.max()], [world[0] @ seen, world[-1] @ seen], atol=1e-4
+        )
     hair.data.attributes.remove(hair.data.attributes["radius"])
     hair.data.update_tag()
     bare = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     assert len(bare.triangles) == 0
+
+
+def test_point_clouds_export_as_spheres_of_their_radius(addon: ModuleType) -> None:
+    """A point cloud (geometry nodes' Mesh to Points) casts a sphere around each point, of
+    the point's radius; without a radius attribute, of Blender's default 0.01, the size
+    Cycles draws such points at."""
+    scene = bpy.context.scene
+    centres = np.array([[0.0, 0.0, 1.0], [2.0, 0.0, 1.0], [0.0, 3.0, 2.0]])
+    radii = np.array([0.1, 0.25, 0.5])
+    points = blender_scenes.add_points(scene, "dust", centres, radii)
+    points.location = (1.0, 0.0, 0.0)
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert len(geometry.triangles) == 3 * crepuscular.SPHERE_TRIANGLES
+    spheres = geometry.positions.reshape(3, -1, 3)
+    np.testing.assert_allclose(spheres.mean(axis=1), centres + np.array([1.0, 0.0, 0.0]), atol=1e-5)
+    extent = spheres.max(axis=1) - spheres.min(axis=1)
+    np.testing.assert_allclose(extent / (2 * radii[:, None]), 1.0, atol=0.06)
+    assert set(geometry.names.values()) == {"dust"}
+    # An artist can switch a point cloud off, or follow its Shadow ray visibility, from the
+    # object panel, as for a mesh.
+    panel = addon.ui.CREPUSCULAR_PT_object
+    assert panel.poll(SimpleNamespace(object=points))
+    points.crepuscular.casts_shafts = "off"
+    assert len(addon.export.export_geometry(bpy.context.evaluated_depsgraph_get()).triangles) == 0
+    points.crepuscular.casts_shafts = "auto"
+    points.visible_shadow = False
+    assert len(addon.export.export_geometry(bpy.context.evaluated_depsgraph_get()).triangles) == 0
+    bpy.data.objects.remove(points)
+    blender_scenes.add_points(scene, "plain", centres)
+    plain = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    extent = np.ptp(plain.positions.reshape(3, -1, 3), axis=1)
+    np.testing.assert_allclose(extent / 0.02, 1.0, atol=0.06)
 
 
 def _plane_distance(

@@ -6,7 +6,7 @@ Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed i
 Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
 Meshes bound to a UsdSkel skeleton are posed: blend shapes, then joints
 (`crepuscular_usd.skinning`). BasisCurves cast as tubes of their widths
-(`crepuscular.strand_tubes`).
+(`crepuscular.strand_tubes`), Points as spheres of theirs (`crepuscular.point_spheres`).
 Instance proxies and `PointInstancer` prototypes (with the instancers nested in them) share
 one triangulation per prototype mesh; every placement is one numpy matrix product, never a
 Python loop over vertices.
@@ -126,6 +126,43 @@ class _LocalMesh:
     masks: npt.NDArray[np.int64] | None = None
     corner_points: npt.NDArray[np.int64] | None = None
     unsplit: F64 | None = None
+    #: Curves: what their tubes are made from, to cut their ends across the sun.
+    strands: _Strands | None = None
+    #: Copies stacked in `points`, one per placement, each its own (the same triangles).
+    copies: int = 1
+
+
+@dataclass
+class _Strands:
+    """The `crepuscular.strand_tubes` inputs of curves, in their local space."""
+
+    points: F64
+    counts: npt.NDArray[np.int64]
+    radii: F64
+    steps: int
+
+    def tubes(self, facing: F64 | None = None) -> _LocalMesh:
+        """The tubes, their ends cut for the sun's local direction `facing` if given."""
+        positions, triangles = crepuscular.strand_tubes(
+            self.points, self.counts, self.radii, catmull_rom=self.steps, facing=facing
+        )
+        return _LocalMesh(positions.astype(np.float64), triangles, strands=self)
+
+    def tube_copies(self, facings: F64) -> _LocalMesh:
+        """A copy of the tubes for each of the K local sun directions `facings` (K, 3),
+        stacked in one call: placements that each see the sun differently (a field of
+        clumps turned at random) cost one build, not one each."""
+        copies = len(facings)
+        positions, triangles = crepuscular.strand_tubes(
+            np.tile(self.points, (copies, 1)),
+            np.tile(self.counts, copies),
+            np.tile(self.radii, copies),
+            catmull_rom=self.steps,
+            facing=np.repeat(facings, len(self.counts), axis=0),
+        )
+        # The copies' triangles are the first's, offset copy by copy.
+        first = triangles[: len(triangles) // copies]
+        return _LocalMesh(positions.astype(np.float64), first, strands=self, copies=copies)
 
 
 @dataclass
@@ -199,6 +236,11 @@ class GeometryCollector:
         self._cache: dict[Sdf.Path, _LocalMesh] = {}
         self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
         self._masks = MaskTable()
+        #: The sun's travel direction in the renderer's space, for the frame collecting.
+        self._facing: F64 | None = None
+        #: Curves' tubes cut for the sun, by their local tubes' identity and the sun's
+        #: direction in their space (rounded): a still sun and still curves build them once.
+        self._faced: dict[tuple[int, tuple[float, ...]], tuple[_LocalMesh, _LocalMesh]] = {}
 
     # --- meshes ---------------------------------------------------------------------
 
@@ -208,8 +250,12 @@ class GeometryCollector:
         cached = self._cache.get(key)
         if cached is not None:
             return cached
-        if prim.IsA(UsdGeom.BasisCurves):
-            local, varying = _curves_mesh(prim, time)
+        if prim.IsA(UsdGeom.BasisCurves) or prim.IsA(UsdGeom.Points):
+            local, varying = (
+                _curves_mesh(prim, time)
+                if prim.IsA(UsdGeom.BasisCurves)
+                else _points_mesh(prim, time)
+            )
             if not varying:
                 self._cache[key] = local
             return local
@@ -300,6 +346,39 @@ class GeometryCollector:
             posed = posed[local.corner_points]
         return posed, space
 
+    def _facing_groups(
+        self, local: _LocalMesh, rows: F64
+    ) -> list[tuple[_LocalMesh, npt.NDArray[np.int64]]]:
+        """`local` as placed by the (K, 4, 4) row-vector `rows`: curves' tubes with their
+        ends cut for the sun as each placement's space sees it (placements that see it
+        alike share them), with the indices of their placements; anything else, or
+        without a sun, `local` for all."""
+        everything = np.arange(len(rows))
+        if local.strands is None or self._facing is None:
+            return [(local, everything)]
+        # A row-vector map sends a local direction d to d @ L: the sun's is solved for.
+        linear = np.swapaxes(rows[:, :3, :3], 1, 2)
+        sun = np.broadcast_to(self._facing, (len(rows), 3))[..., None]
+        try:
+            directions = np.linalg.solve(linear, sun)[..., 0]
+        except np.linalg.LinAlgError:
+            return [(local, everything)]
+        keys = np.round(directions / np.linalg.norm(directions, axis=1, keepdims=True), 6)
+        if not np.isfinite(keys).all():
+            return [(local, everything)]
+        unique, which = np.unique(keys, axis=0, return_inverse=True)
+        if len(unique) > MAX_FACING_GROUPS:
+            return [(local.strands.tube_copies(keys), everything)]
+        groups = []
+        for index, key in enumerate(unique):
+            cache_key = (id(local), tuple(float(v) for v in key))
+            cached = self._faced.get(cache_key)
+            if cached is None or cached[0] is not local:
+                cached = (local, local.strands.tubes(key))
+                self._faced[cache_key] = cached
+            groups.append((cached[1], np.flatnonzero(which.reshape(-1) == index)))
+        return groups
+
     def _add_skel_root(self, prim: Usd.Prim) -> None:
         try:
             self._skinned.add_root(prim)
@@ -308,10 +387,20 @@ class GeometryCollector:
 
     # --- traversal ------------------------------------------------------------------
 
-    def collect(self, time: Usd.TimeCode, origin: F64 | None = None) -> SceneGeometry:
+    def collect(
+        self,
+        time: Usd.TimeCode,
+        origin: F64 | None = None,
+        facing: F64 | None = None,
+    ) -> SceneGeometry:
         """Every visible render-purpose surface at `time`, in the renderer's space, relative to
         `origin` (default the origin): subtracted in float64, a point near the camera keeps
-        float32 positions precise however far the stage lies from its origin."""
+        float32 positions precise however far the stage lies from its origin. Curves' tubes
+        have their ends cut so that `facing`, the sun's travel direction, sees them end at
+        their end points, as a path tracer cuts a strand's ends across each ray."""
+        self._facing = None if facing is None else np.asarray(facing, dtype=np.float64)
+        if len(self._faced) > 4096:
+            self._faced.clear()
         xforms = UsdGeom.XformCache(time)
         chunks: list[_Chunk] = []
         instanced: dict[Sdf.Path, set[Sdf.Path]] = {}
@@ -346,7 +435,8 @@ class GeometryCollector:
                     invalid.append(str(error))
                     continue
                 world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
-                placed_points = _transform(points, world_row)
+                [(local, _)] = self._facing_groups(local, world_row[None])
+                placed_points = _transform(local.points if local.strands else points, world_row)
                 chunks.append(
                     _Chunk(prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks)
                 )
@@ -493,6 +583,11 @@ class GeometryCollector:
         if not found:
             return None
         world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
+        found = [
+            (path, faced, rows[which])
+            for path, local, rows in found
+            for faced, which in self._facing_groups(local, rows @ world_row)
+        ]
         positions: list[F64] = []
         triangles: list[npt.NDArray[np.uint32]] = []
         uvs: list[F64] = []
@@ -500,15 +595,19 @@ class GeometryCollector:
         cut = any(local.masks is not None for _, local, _ in found)
         sources: set[Sdf.Path] = set()
         base = 0
-        vertices = sum(len(local.points) * len(rows) for _, local, rows in found)
+        vertices = sum(len(local.points) // local.copies * len(rows) for _, local, rows in found)
         triangles_placed = sum(len(local.triangles) * len(rows) for _, local, rows in found)
         _check_memory(vertices, triangles_placed, str(prim.GetPath()))
         for mesh_path, local, rows in found:
             sources.add(mesh_path)
             full = rows @ world_row
             homogeneous = np.concatenate([local.points, np.ones((len(local.points), 1))], axis=1)
-            placed = np.einsum("nj,kjl->knl", homogeneous, full)[..., :3]
-            count = len(local.points)
+            if local.copies > 1:  # a copy of its own per placement
+                copies = homogeneous.reshape(local.copies, -1, 4)
+                placed = np.einsum("knj,kjl->knl", copies, full)[..., :3]
+            else:
+                placed = np.einsum("nj,kjl->knl", homogeneous, full)[..., :3]
+            count = len(local.points) // local.copies
             offsets = (np.arange(len(rows), dtype=np.int64) * count + base)[:, None, None]
             positions.append(placed.reshape(-1, 3))
             triangles.append(
@@ -529,6 +628,10 @@ class GeometryCollector:
             chunk.uvs, chunk.masks = np.concatenate(uvs), np.concatenate(masks)
         return chunk, sources
 
+
+#: Placements of one curves prototype that see the sun from more directions than this get
+#: a copy of its tubes each, built in one call, instead of one build per direction.
+MAX_FACING_GROUPS = 16
 
 #: Bytes the step holds per vertex an instancer places (the einsum's float64 rows and their
 #: copies, the float32 positions) and per triangle (int64 indices, the uint32 copy, an id).
@@ -560,12 +663,17 @@ def _check_memory(vertices: int, triangles: int, where: str) -> None:
 
 
 def _is_surface(prim: Usd.Prim) -> bool:
-    """Whether `prim` is geometry this step draws: a Mesh, BasisCurves or an implicit
-    surface."""
+    """Whether `prim` is geometry this step draws: a Mesh, BasisCurves, Points or an
+    implicit surface."""
     # One test rules out the Xforms and Scopes that most prims of a large stage are.
     if not prim.IsA(UsdGeom.Gprim):
         return False
-    return prim.IsA(UsdGeom.Mesh) or prim.IsA(UsdGeom.BasisCurves) or is_implicit_surface(prim)
+    return (
+        prim.IsA(UsdGeom.Mesh)
+        or prim.IsA(UsdGeom.BasisCurves)
+        or prim.IsA(UsdGeom.Points)
+        or is_implicit_surface(prim)
+    )
 
 
 def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
@@ -575,9 +683,10 @@ def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
     curves along their control polygon; curves with normals (ribbons) as tubes too."""
     curves = UsdGeom.BasisCurves(prim)
     where = str(prim.GetPath())
-    attrs = [curves.GetPointsAttr(), curves.GetCurveVertexCountsAttr(), curves.GetWidthsAttr()]
+    attrs = [curves.GetPointsAttr(), curves.GetCurveVertexCountsAttr(), _widths_attr(prim)]
     varying = any(attr.ValueMightBeTimeVarying() for attr in attrs)
-    points_value, counts_value, widths_value = (attr.Get(time) for attr in attrs)
+    points_value, counts_value = (attr.Get(time) for attr in attrs[:2])
+    widths_value = _widths(prim, time)
     if points_value is None or counts_value is None or len(points_value) == 0:
         return _LocalMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint32)), varying
     points = np.array(points_value, dtype=np.float64).reshape(-1, 3)
@@ -604,7 +713,50 @@ def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
     cubic = curves.GetTypeAttr().Get(time) == UsdGeom.Tokens.cubic
     catmull_rom = cubic and curves.GetBasisAttr().Get(time) == UsdGeom.Tokens.catmullRom
     steps = crepuscular.CATMULL_ROM_STEPS if catmull_rom else 0
-    positions, triangles = crepuscular.strand_tubes(points, counts, radii, catmull_rom=steps)
+    return _Strands(points, counts, radii, steps).tubes(None), varying
+
+
+def _widths_attr(prim: Usd.Prim) -> Usd.Attribute:
+    """The widths of curves or points: `primvars:widths` where it is authored (an indexed
+    primvar, as some writers author it), which Hydra takes over the `widths` attribute."""
+    primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("widths")
+    if primvar and primvar.HasAuthoredValue():
+        return primvar.GetAttr()
+    return prim.GetAttribute("widths")
+
+
+def _widths(prim: Usd.Prim, time: Usd.TimeCode) -> object:
+    """The value of `_widths_attr`, flattened through its indices."""
+    primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("widths")
+    if primvar and primvar.HasAuthoredValue():
+        return primvar.ComputeFlattened(time)
+    attr = prim.GetAttribute("widths")
+    return attr.Get(time) if attr else None
+
+
+def _points_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
+    """Points as spheres of half their widths (`crepuscular.point_spheres`), as Cycles
+    draws a point cloud, and whether that may vary in time. Widths are per point or one
+    for all; without widths the points have no size and are named, not drawn."""
+    points_prim = UsdGeom.Points(prim)
+    where = str(prim.GetPath())
+    attrs = [points_prim.GetPointsAttr(), _widths_attr(prim)]
+    varying = any(attr.ValueMightBeTimeVarying() for attr in attrs)
+    points_value, widths_value = attrs[0].Get(time), _widths(prim, time)
+    if points_value is None or len(points_value) == 0:
+        return _LocalMesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint32)), varying
+    points = np.array(points_value, dtype=np.float64).reshape(-1, 3)
+    if widths_value is None or len(widths_value) == 0:
+        raise MeshError(f"{where}: the points have no widths, so no size; not drawn")
+    widths = np.asarray(widths_value, dtype=np.float64)
+    if len(widths) not in (1, len(points)):
+        raise MeshError(
+            f"{where}: {len(widths)} widths match neither its {len(points)} points nor one"
+        )
+    try:
+        positions, triangles = crepuscular.point_spheres(points, 0.5 * widths)
+    except ValueError as error:
+        raise MeshError(f"{where}: {error}") from error
     return _LocalMesh(positions.astype(np.float64), triangles), varying
 
 

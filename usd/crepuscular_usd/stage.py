@@ -199,7 +199,12 @@ class StageReader:
             collector = GeometryCollector(self.stage, self.core_from_stage, skip=skip)
             self._collectors[extent_path] = collector
         camera = self.camera(time)
-        geometry = collector.collect(time, np.asarray(camera["world_from_camera"][12:15]))
+        sun = self.sun(time, intensity_scale=light.sun["intensity_scale"])
+        geometry = collector.collect(
+            time,
+            np.asarray(camera["world_from_camera"][12:15]),
+            facing=np.asarray(sun["direction"], dtype=np.float64),
+        )
         medium = dict(light.medium)
         medium["extent"] = self._extent(light, time)
         style: dict[str, Any] = {"version": crepuscular.STYLE_VERSION, "time": self.seconds(time)}
@@ -212,7 +217,7 @@ class StageReader:
             time=time,
             geometry=geometry,
             camera=camera,
-            sun=self.sun(time, intensity_scale=light.sun["intensity_scale"]),
+            sun=sun,
             medium=medium,
             settings=light.render,
             style=style,

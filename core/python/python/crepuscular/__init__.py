@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from crepuscular import _convert, _core
+from crepuscular._points import SPHERE_TRIANGLES, SPHERE_VERTICES, point_spheres
 from crepuscular._strands import CATMULL_ROM_STEPS, TUBE_SIDES, strand_tubes
 from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
 
@@ -33,6 +34,8 @@ __all__ = [
     "CATMULL_ROM_STEPS",
     "EXR_COMPRESSIONS",
     "SCENE_VERSION",
+    "SPHERE_TRIANGLES",
+    "SPHERE_VERTICES",
     "STYLE_VERSION",
     "SUN_DISC_AS_POINT",
     "TUBE_SIDES",
@@ -53,6 +56,7 @@ __all__ = [
     "builtin_scene_names",
     "composite",
     "load_style",
+    "point_spheres",
     "read_exr",
     "release_kept_buffers",
     "render",

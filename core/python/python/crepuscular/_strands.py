@@ -26,6 +26,7 @@ def strand_tubes(
     radii: npt.ArrayLike,
     *,
     catmull_rom: int = 0,
+    facing: npt.ArrayLike | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
     """Tubes around strands: `points` (P, 3) holds each strand's points in turn, `counts`
     how many each strand has, `radii` (P,) the radius at each point. Returns (N, 3) float32
@@ -34,7 +35,18 @@ def strand_tubes(
 
     With `catmull_rom` = k > 0, each segment is first cut into k along the uniform
     Catmull-Rom spline through the points (end points repeated), as Blender's hair curves
-    and USD's `catmullRom` curves are drawn; radii are interpolated linearly."""
+    and USD's `catmullRom` curves are drawn; radii are interpolated linearly.
+
+    A path tracer (Cycles) cuts a strand's ends across each ray, so that whatever the ray,
+    the strand ends at its end points. A tube's ends cut across the strand instead add half
+    an ellipse to each end of the strand's outline when seen at an angle: on random strands
+    of 2 to 15 cm, 1.9% more shadow from the sun. `facing`, the sun's travel direction
+    (3,) or one per strand (S, 3), cuts each end by the plane through the end point that
+    holds that direction and lies across the strand, so that the sun sees each tube end at
+    its end points, exactly as Cycles' strand (a strand seen nearly end-on keeps its ends
+    across it). The camera still sees the half ellipses: a plane holding the camera's ray
+    as well ends the strand for both, along a slanted line of the same area, but it moves
+    the outline sideways, and on random strands against Cycles it did no better."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     counts = np.asarray(counts, dtype=np.int64).reshape(-1)
     radii = np.asarray(radii, dtype=np.float64).reshape(-1)
@@ -68,7 +80,10 @@ def strand_tubes(
         np.cos(angles)[None, :, None] * normals[:, None]
         + np.sin(angles)[None, :, None] * binormals[:, None]
     )
-    rings = points[:, None] + TUBE_RADIUS * radii[:, None, None] * ring
+    offsets = TUBE_RADIUS * radii[:, None, None] * ring
+    if facing is not None:
+        _face_ends(offsets, points, tangents, starts, ends, facing)
+    rings = points[:, None] + offsets
     # Sides join each point to the next one of its strand.
     first = np.flatnonzero(index + 1 < ends[strand])
     side = np.arange(TUBE_SIDES)
@@ -77,6 +92,58 @@ def strand_tubes(
     c, d = a + TUBE_SIDES, b + TUBE_SIDES
     triangles = np.stack([np.stack([a, b, d], -1), np.stack([a, d, c], -1)], axis=2)
     return rings.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.uint32)
+
+
+def _directions(value: npt.ArrayLike, count: int) -> npt.NDArray[np.float64]:
+    """`facing`: one direction (3,) or one per strand (count, 3), finite and non-zero, as
+    unit (count, 3)."""
+    array = np.asarray(value, dtype=np.float64)
+    if array.shape not in ((3,), (count, 3)):
+        raise ValueError(
+            f"facing must be one direction or one per strand ({count}), not of shape {array.shape}"
+        )
+    norms = np.linalg.norm(array, axis=-1, keepdims=True)
+    if not (np.isfinite(norms).all() and (norms > 0).all()):
+        raise ValueError("facing must be finite non-zero directions")
+    return np.broadcast_to(array / norms, (count, 3))
+
+
+def _face_ends(
+    offsets: npt.NDArray[np.float64],
+    points: npt.NDArray[np.float64],
+    tangents: npt.NDArray[np.float64],
+    starts: npt.NDArray[np.int64],
+    ends: npt.NDArray[np.int64],
+    facing: npt.ArrayLike,
+) -> None:
+    """Cuts each strand's tube (`offsets` of its rings from their points, in place) at
+    each end by the plane through the end point that holds the `facing` direction and lies
+    across the strand (`strand_tubes`): the end ring is moved into it along the strand,
+    and any ring vertex beyond it onto it."""
+    sun = _directions(facing, len(starts))
+    long = np.flatnonzero(ends - starts > 1)
+    vertices = points[:, None] + offsets
+    for end, outward_sign in ((starts[long], -1.0), (ends[long] - 1, 1.0)):
+        outward = outward_sign * _unit(tangents[end])
+        direction = sun[long]
+        # The plane's normal: the strand's outward direction as the sun sees it.
+        normal = _unit(outward - np.einsum("kj,kj->k", outward, direction)[:, None] * direction)
+        cosine = np.einsum("kj,kj->k", normal, outward)
+        # A strand seen nearly end-on keeps its ends across it.
+        usable = cosine > 1e-3
+        strands, ending = long[usable], end[usable]
+        lengths = ends[strands] - starts[strands]
+        owner = np.repeat(np.arange(len(strands)), lengths)
+        first = np.cumsum(lengths) - lengths
+        rows = starts[strands][owner] + np.arange(len(owner)) - first[owner]
+        # Signed distances of every ring vertex of these strands beyond their end planes.
+        beyond = np.einsum(
+            "ksj,kj->ks", vertices[rows] - points[ending][owner, None], normal[usable][owner]
+        )
+        move = np.where((rows == ending[owner])[:, None], beyond, np.maximum(beyond, 0.0))
+        step = -(move / cosine[usable][owner, None])[..., None] * outward[usable][owner, None]
+        vertices[rows] += step
+        offsets[rows] += step
 
 
 def _catmull_rom(
