@@ -174,6 +174,85 @@ def pointcloud_arrays(pointcloud: bpy.types.PointCloud) -> MeshArrays:
     return MeshArrays(*crepuscular.point_spheres(positions.reshape(-1, 3), radii))
 
 
+def particle_hair_arrays(
+    obj: bpy.types.Object, render: bool, facing: np.ndarray | None = None
+) -> MeshArrays:
+    """The legacy particle hair of an evaluated emitter, in its object space, as Cycles
+    draws it: each hair system (rendered as paths) whose modifier shows in this kind of
+    render gives its children, or its parents where it has none, as Catmull-Rom strands
+    through `co_hair`'s keys (2^steps + 1 of them, the render or the viewport steps);
+    radii from the root to the tip radius, shaped by `shape` along the strand's length and
+    scaled by half the radius scale, with a closed tip at 0. Ends are cut for `facing` (see
+    `curves_arrays`). Each key is one Python call; 100,000 strands of 9 keys take seconds."""
+    inverse = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64))
+    points: list[np.ndarray] = []
+    counts: list[np.ndarray] = []
+    radii: list[np.ndarray] = []
+    for modifier in obj.modifiers:
+        shown = modifier.show_render if render else modifier.show_viewport
+        if modifier.type != "PARTICLE_SYSTEM" or not shown:
+            continue
+        system = modifier.particle_system
+        settings = system.settings
+        if settings.type != "HAIR" or settings.render_type != "PATH":
+            continue
+        parents, children = len(system.particles), len(system.child_particles)
+        if not render:
+            children = int(children * settings.display_percentage / 100)
+        first = parents if settings.child_type != "NONE" and children > 0 else 0
+        keys = (1 << (settings.render_step if render else settings.display_step)) + 1
+        if settings.kink == "SPIRAL":
+            keys += settings.kink_extra_steps
+        strands = parents + children - first
+        if strands <= 0:
+            continue
+        world = np.array(
+            [
+                system.co_hair(obj, particle_no=number, step=step)
+                for number in range(first, parents + children)
+                for step in range(keys)
+            ],
+            dtype=np.float64,
+        ).reshape(strands, keys, 3)
+        local = world @ inverse[:3, :3].T + inverse[:3, 3]
+        steps = np.linalg.norm(np.diff(local, axis=1), axis=2)
+        along = np.concatenate([np.zeros((strands, 1)), np.cumsum(steps, axis=1)], axis=1)
+        lengths = along[:, -1:]
+        time = np.divide(along, lengths, out=np.zeros_like(along), where=lengths > 0)
+        scale = 0.5 * settings.radius_scale
+        radius = _hair_shape(
+            settings.shape, scale * settings.root_radius, scale * settings.tip_radius, time
+        )
+        if settings.use_close_tip:
+            radius[:, -1] = 0.0
+        points.append(local.reshape(-1, 3))
+        counts.append(np.full(strands, keys))
+        radii.append(radius.ravel())
+    if not points:
+        return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
+    return MeshArrays(
+        *crepuscular.strand_tubes(
+            np.concatenate(points),
+            np.concatenate(counts),
+            np.concatenate(radii),
+            catmull_rom=crepuscular.CATMULL_ROM_STEPS,
+            facing=facing,
+        )
+    )
+
+
+def _hair_shape(shape: float, root: float, tip: float, time: np.ndarray) -> np.ndarray:
+    """Cycles' radius of particle hair at `time` (0 at the root, 1 at the tip, by length):
+    from `root` to `tip`, bent by `shape` in [-1, 1]."""
+    falling = 1.0 - time
+    if shape < 0.0:
+        falling = falling ** (1.0 + shape)
+    elif shape > 0.0:
+        # At 1 the exponent is infinite: full radius at the root only, as Cycles' powf.
+        falling = falling ** (1.0 / (1.0 - shape) if shape < 1.0 else np.inf)
+    return falling * (root - tip) + tip
+
+
 def cut_mesh_arrays(mesh: bpy.types.Mesh, slot_uv_maps: tuple[str, ...]) -> MeshArrays:
     """`mesh_arrays` with a vertex per triangle corner, each with the texture coordinates
     of the UV map its triangle's slot reads (`slot_uv_maps`, "" for the default map)."""
@@ -250,9 +329,10 @@ def _object_arrays(
     return arrays
 
 
-#: Geometry shared by instances: the object's data, the UV maps its cut slots read, and the
-#: sun's direction in its space (hair curves only).
-_MeshKey = tuple[int, tuple[str, ...] | None, tuple[float, ...] | None]
+#: Geometry shared by instances: the object's data (or the object, for hair curves and its
+#: particle hair), which of its geometry ("data" or particle "hair"), the UV maps its cut
+#: slots read, and the sun's direction in its space (strands only).
+_MeshKey = tuple[int, str, tuple[str, ...] | None, tuple[float, ...] | None]
 
 
 def _local_direction(matrix_world: Any, direction: np.ndarray) -> np.ndarray | None:
@@ -352,20 +432,35 @@ def export_geometry(
             decisions[key] = object_id
         if object_id is None:
             continue
+        hair = instance.show_particles and len(obj.particle_systems) > 0
+        if not (instance.show_self or hair):
+            continue  # an emitter or instancer that Cycles does not render either
+        local_facing = None
+        if (obj.type == "CURVES" or hair) and facing is not None:
+            local_facing = _local_direction(instance.matrix_world, facing)
+        facing_key = None if local_facing is None else tuple(np.round(local_facing, 6))
+        if hair:
+            hair_key: _MeshKey = (obj.as_pointer(), "hair", None, facing_key)
+            if hair_key not in meshes:
+                meshes[hair_key] = particle_hair_arrays(obj, render_mode, local_facing)
+            if len(meshes[hair_key].triangles):
+                groups.setdefault((hair_key, object_id, None), []).append(
+                    instance.matrix_world.copy()
+                )
+        if not instance.show_self:
+            continue
         if obj.name_full not in cuts:
             cuts[obj.name_full] = None if obj.type in UNCUT_TYPES else _slot_cuts(obj, table)
         cut = cuts[obj.name_full]
         pointer = obj.data.as_pointer() if obj.type == "MESH" else obj.as_pointer()
-        local_facing = None
-        if obj.type == "CURVES" and facing is not None:
-            local_facing = _local_direction(instance.matrix_world, facing)
         mesh_key = (
             pointer,
+            "data",
             None if cut is None else cut.uv_maps,
-            None if local_facing is None else tuple(np.round(local_facing, 6)),
+            facing_key if obj.type == "CURVES" else None,
         )
         if mesh_key not in meshes:
-            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[1], local_facing)
+            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[2], local_facing)
         arrays = meshes[mesh_key]
         if arrays is None or len(arrays.triangles) == 0:
             continue

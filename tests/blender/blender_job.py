@@ -221,6 +221,28 @@ def job_points_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
 
 
+def job_particle_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box under a roof of legacy particle hair (an emitter at the
+    roof's edge, not rendered, growing 60 hairs 10 long across the box, of radius 6 cm at
+    the root tapering to 1.8 cm): Cycles, our layers (reference and default method), and
+    ours with the particle system off."""
+    scene = fog_scene(spec)
+    for name in ("roof_a", "roof_b"):
+        bpy.data.objects.remove(scene.objects[name])
+    black = blender_scenes.black_material(0.0)
+    edge = [(-6, -5, 5.5), (-6, 5, 5.5), (-6, 5, 7.5), (-6, -5, 7.5)]
+    emitter = blender_scenes.add_particle_hair(
+        scene, "fur", edge, 60, 10.0, radius_scale=0.12, tip_radius=0.3, material=black
+    )
+    ground = [(-30, -30, -0.01), (30, -30, -0.01), (30, 30, -0.01), (-30, 30, -0.01)]
+    blender_scenes.add_quad(scene, "ground", ground, black)
+    settings = _cycles_then_ours(scene, out)
+    emitter.modifiers["hair"].show_render = False
+    emitter.modifiers["hair"].show_viewport = False
+    settings.method = "reference"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
+
+
 def shaft_scene(spec: dict[str, Any]) -> Any:
     """A grey ground and a cube under a sun with shafts, in an unbounded medium."""
     scene = bpy.context.scene
@@ -501,6 +523,7 @@ JOBS = {
     "cutout_fidelity": job_cutout_fidelity,
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
+    "particle_hair_fidelity": job_particle_hair_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,

@@ -356,6 +356,33 @@ def add_point_cloud(scene: Any, name: str, positions: Any, radii: Any, material:
     return obj
 
 
+def add_particle_hair(
+    scene: Any,
+    name: str,
+    corners: Any,
+    count: int,
+    length: float,
+    *,
+    radius_scale: float = 0.01,
+    tip_radius: float = 0.0,
+    material: Any = None,
+) -> Any:
+    """A quad emitter whose legacy hair particle system grows `count` straight hairs of
+    `length` along its normal, of radius `radius_scale` / 2 at the root tapering to
+    `tip_radius` times that at the tip; the emitter itself is not rendered. Returns it."""
+    emitter = add_quad(scene, name, corners, material)
+    emitter.modifiers.new("hair", "PARTICLE_SYSTEM")
+    settings = emitter.particle_systems[0].settings
+    settings.type, settings.count, settings.hair_length = "HAIR", count, length
+    settings.radius_scale, settings.root_radius, settings.tip_radius = radius_scale, 1.0, tip_radius
+    settings.use_close_tip = False
+    if material is not None:
+        settings.material = 1
+    emitter.show_instancer_for_render = False
+    emitter.show_instancer_for_viewport = False
+    return emitter
+
+
 def alpha_png(path: Path) -> Any:
     """`alpha_image` saved as an 8-bit PNG at `path` and loaded back from the file, as an
     artist's leaf texture is (the USD exporter copies such files next to the stage)."""

@@ -533,6 +533,57 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     assert len(bare.triangles) == 0
 
 
+def test_particle_hair_exports_as_tubes_along_its_paths(addon: ModuleType) -> None:
+    """Legacy particle hair casts as Cycles draws it: a tube along each path's keys
+    (co_hair, 2^steps + 1 of them), its radius half the radius scale times the root radius
+    at the root, falling to the tip radius (times the same) by length, bent by the shape;
+    children in place of their parents; the emitter left out where it is not rendered,
+    and nothing where the particle system's modifier is off."""
+    scene = bpy.context.scene
+    corners = [(-1, -1, 2), (1, -1, 2), (1, 1, 2), (-1, 1, 2)]
+    emitter = blender_scenes.add_particle_hair(
+        scene, "fur", corners, 6, 1.5, radius_scale=0.2, tip_radius=0.25
+    )
+    settings = emitter.particle_systems[0].settings
+    settings.shape = 0.5
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    geometry = addon.export.export_geometry(depsgraph)
+    keys = (1 << settings.display_step) + 1
+    rings = geometry.positions.astype(np.float64).reshape(6, -1, crepuscular.TUBE_SIDES, 3)
+    assert rings.shape[1] == (keys - 1) * crepuscular.CATMULL_ROM_STEPS + 1
+    centres = rings.mean(axis=2)
+    evaluated = emitter.evaluated_get(depsgraph)
+    system = evaluated.particle_systems[0]
+    for number in range(6):
+        path = np.array(
+            [system.co_hair(evaluated, particle_no=number, step=k) for k in range(keys)]
+        )
+        np.testing.assert_allclose(
+            centres[number, :: crepuscular.CATMULL_ROM_STEPS], path, atol=1e-5
+        )
+        # Hairs grow straight up 1.5: the radius at each key by its height (between keys,
+        # the tubes interpolate it linearly).
+        at_keys = rings[number, :: crepuscular.CATMULL_ROM_STEPS]
+        time = (path[:, 2] - 2.0) / 1.5
+        expected = 0.1 * ((1 - time) ** 2 * (1.0 - 0.25) + 0.25)
+        distance = np.linalg.norm(at_keys - path[:, None], axis=2)
+        np.testing.assert_allclose(
+            distance, np.outer(crepuscular._strands.TUBE_RADIUS * expected, np.ones(16)), rtol=1e-4
+        )
+    # The emitter is not rendered: none of its quad.
+    assert np.abs(geometry.positions[:, 2] - 2.0).min() > 1e-4 or len(geometry.positions) == len(
+        rings.reshape(-1, 3)
+    )
+    settings.child_type = "SIMPLE"
+    settings.child_percent = 3
+    children = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert len(children.triangles) == 3 * len(geometry.triangles)
+    emitter.show_instancer_for_viewport = True
+    emitter.modifiers["hair"].show_viewport = False
+    bare = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert len(bare.triangles) == 2
+
+
 def test_point_clouds_export_as_spheres_of_their_radius(addon: ModuleType) -> None:
     """A point cloud (geometry nodes' Mesh to Points) casts a sphere around each point, of
     the point's radius; without a radius attribute, of Blender's default 0.01, the size

@@ -235,6 +235,24 @@ def test_point_clouds_match_cycles(points_fidelity: Path, method: str) -> None:
     _assert_like_cycles(points_fidelity, method, "bare", off=0.3, pixels=0.03)
 
 
+@pytest.fixture(scope="module")
+def particle_hair_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _cycles_job(tmp_path_factory, "particle_hair_fidelity", 1)
+
+
+@pytest.mark.parametrize("method", ["reference", "default"])
+def test_particle_hair_matches_cycles(particle_hair_fidelity: Path, method: str) -> None:
+    """A roof of legacy particle hair (tapering, its emitter not rendered) over the fidelity
+    scene's fog: drawn as tubes along its paths with Cycles' radii, it shapes the shafts
+    as Cycles' strands do. Measured: mean 1.5% over Cycles', pixels 2.2% apart; with the
+    particle system off, 109% off. That 1.5% is not the reading: a Curves object through
+    the same keys and radii renders exactly as the particle hair in Cycles, and Cycles
+    renders our tube mesh within 0.03% of our layers. It is Cycles' curves against a mesh
+    of them in fog (1.4% here), though lighting a ground under them they agree within
+    0.03%, and their outlines seen along the sun within 0.3%; not yet understood."""
+    _assert_like_cycles(particle_hair_fidelity, method, "bare", off=0.5, pixels=0.03)
+
+
 def _assert_like_cycles(folder: Path, method: str, without: str, off: float, pixels: float) -> None:
     """`folder`'s layers of `method` against its Cycles render: the means within 2%, the
     pixels within `pixels` of Cycles' mean; the layers `without` what is under test (the
