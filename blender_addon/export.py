@@ -27,6 +27,8 @@ from .cutouts import MaskSource, MaskTable
 #: Hair curves (CURVES) are drawn as tubes of their radius (`curves_arrays`), point clouds
 #: (POINTCLOUD, such as geometry nodes' points) as spheres of theirs (`pointcloud_arrays`).
 GEOMETRY_TYPES = {"MESH", "META", "CURVES", "POINTCLOUD"}
+#: Both visibility flags: a triangle that blocks the sun and that the camera sees.
+BOTH = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
 #: Object types without texture coordinates, which no alpha mask cuts.
 UNCUT_TYPES = {"CURVES", "POINTCLOUD"}
 #: The radius Blender gives a point cloud's points without a radius attribute; Cycles
@@ -98,6 +100,9 @@ class Geometry:
     uvs: np.ndarray | None = None
     triangle_masks: np.ndarray | None = None
     masks: list[crepuscular.AlphaMask] = field(default_factory=list)
+    #: Per triangle, whether it blocks the sun and whether the camera sees it
+    #: (`crepuscular.BLOCKS_SUN`, `crepuscular.SEEN_BY_CAMERA`); None where all do both.
+    visibility: np.ndarray | None = None
     #: What the export could not map (transparency of other kinds).
     notes: list[str] = field(default_factory=list)
 
@@ -383,6 +388,43 @@ def _hidden_in_render(obj: bpy.types.Object) -> bool:
     return bool(obj.users_collection) and all(c.hide_render for c in obj.users_collection)
 
 
+@dataclass(frozen=True)
+class ShadowLinking:
+    """The objects a light's shadow-linking (blocker) collection includes and excludes, by
+    original name: with any included, only those block the light, less the excluded;
+    with only excluded, everything else does (Blender's light linking rules)."""
+
+    included: frozenset[str]
+    excluded: frozenset[str]
+
+    @classmethod
+    def of_light(cls, light: bpy.types.Object) -> ShadowLinking | None:
+        """The light object's blocker collection, or None where it has none (all block).
+        A child collection's state applies to every object in it."""
+        collection = light.original.light_linking.blocker_collection
+        if collection is None:
+            return None
+        included: set[str] = set()
+        excluded: set[str] = set()
+        # collection_objects and collection_children hold the link states of objects and
+        # children, in their order.
+        for obj, entry in zip(collection.objects, collection.collection_objects, strict=True):
+            state = entry.light_linking.link_state
+            (included if state == "INCLUDE" else excluded).add(obj.name_full)
+        children = zip(collection.children, collection.collection_children, strict=True)
+        for child, entry in children:
+            names = {o.name_full for o in child.all_objects}
+            (included if entry.light_linking.link_state == "INCLUDE" else excluded).update(names)
+        return cls(frozenset(included), frozenset(excluded))
+
+    def blocks(self, chain: list[bpy.types.Object]) -> bool:
+        """Whether an instance (its object, and its instancer if any) blocks the light."""
+        names = {o.original.name_full for o in chain}
+        if names & self.excluded:
+            return False
+        return not self.included or bool(names & self.included)
+
+
 def _casts(obj: bpy.types.Object) -> bool | None:
     """The object's own choice: True/False when forced, None to follow ray visibility."""
     mode = obj.original.crepuscular.casts_shafts
@@ -396,14 +438,16 @@ def export_geometry(
     exclude: set[str] | frozenset[str] = frozenset(),
     origin: np.ndarray | None = None,
     facing: np.ndarray | None = None,
+    blockers: ShadowLinking | None = None,
 ) -> Geometry:
     """Triangles of everything that casts shafts in `depsgraph`, relative to the world point
     `origin` (default the world's origin): the camera's position keeps float32 positions
     precise however far the scene lies from the world's origin.
 
     An instance casts unless it or its instancer is set to Off; set to Auto, it follows
-    Blender's Shadow ray visibility of both. With a viewport depsgraph, objects hidden in
-    renders are left out too. `exclude` holds original object names (the fog box).
+    Blender's Shadow ray visibility of both, and the sun's shadow linking (`blockers`).
+    With a viewport depsgraph, objects hidden in renders are left out too. `exclude` holds
+    original object names (the fog box).
     `facing`, the sun's travel direction, is what hair strands' ends are cut for
     (`curves_arrays`).
     """
@@ -414,24 +458,24 @@ def export_geometry(
     # Decisions per (object, instancer) and meshes per evaluated mesh, so that thousands
     # of particle or geometry-nodes instances of one mesh cost one lookup each; their
     # matrices are then applied in one batch per mesh.
-    decisions: dict[tuple[str, str | None], int | None] = {}
+    decisions: dict[tuple[str, str | None], tuple[int, int] | None] = {}
     # Per object, its slots' mask indices and UV maps where a material cuts.
     table = MaskTable(kept=cache.masks if cache is not None else {})
     cuts: dict[str, _SlotCuts | None] = {}
     meshes: dict[_MeshKey, MeshArrays | None] = {}
-    groups: dict[tuple[_MeshKey, int, _SlotCuts | None], list[Any]] = {}
+    groups: dict[tuple[_MeshKey, int, int, _SlotCuts | None], list[Any]] = {}
     for instance in depsgraph.object_instances:
         obj = instance.object
         if obj.type not in GEOMETRY_TYPES:
             continue
         parent = instance.parent if instance.is_instance else None
         key = (obj.original.name_full, None if parent is None else parent.original.name_full)
-        object_id = decisions.get(key, -1)
-        if object_id == -1:
-            object_id = _decide(obj, parent, render_mode, exclude, names, holes)
-            decisions[key] = object_id
-        if object_id is None:
+        if key not in decisions:
+            decisions[key] = _decide(obj, parent, render_mode, exclude, names, holes, blockers)
+        decided = decisions[key]
+        if decided is None:
             continue
+        object_id, flags = decided
         hair = instance.show_particles and len(obj.particle_systems) > 0
         if not (instance.show_self or hair):
             continue  # an emitter or instancer that Cycles does not render either
@@ -444,7 +488,7 @@ def export_geometry(
             if hair_key not in meshes:
                 meshes[hair_key] = particle_hair_arrays(obj, render_mode, local_facing)
             if len(meshes[hair_key].triangles):
-                groups.setdefault((hair_key, object_id, None), []).append(
+                groups.setdefault((hair_key, object_id, flags, None), []).append(
                     instance.matrix_world.copy()
                 )
         if not instance.show_self:
@@ -464,16 +508,19 @@ def export_geometry(
         arrays = meshes[mesh_key]
         if arrays is None or len(arrays.triangles) == 0:
             continue
-        groups.setdefault((mesh_key, object_id, cut), []).append(instance.matrix_world.copy())
+        groups.setdefault((mesh_key, object_id, flags, cut), []).append(
+            instance.matrix_world.copy()
+        )
     positions: list[np.ndarray] = []
     triangles: list[np.ndarray] = []
     ids: list[np.ndarray] = []
     uvs: list[np.ndarray] = []
     triangle_masks: list[np.ndarray] = []
-    any_cut = any(cut is not None for _, _, cut in groups)
+    visibility: list[np.ndarray] = []
+    any_cut = any(cut is not None for _, _, _, cut in groups)
     base = 0
     triangle_total = 0
-    for (mesh_key, object_id, cut), matrices in groups.items():
+    for (mesh_key, object_id, flags, cut), matrices in groups.items():
         arrays = meshes[mesh_key]
         if arrays is None:  # never grouped; keeps the type checker informed
             continue
@@ -492,6 +539,7 @@ def export_geometry(
         positions.append(world.reshape(-1, 3).astype(np.float32))
         triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
         ids.append(np.full(count * len(arrays.triangles), object_id, dtype=np.uint32))
+        visibility.append(np.full(count * len(arrays.triangles), flags, dtype=np.uint8))
         if any_cut:
             if cut is None or arrays.uvs is None or arrays.slots is None:
                 uvs.append(np.zeros((count * vertices, 2), dtype=np.float32))
@@ -520,6 +568,9 @@ def export_geometry(
         offset,
         notes=table.notes,
     )
+    flags_all = np.concatenate(visibility)
+    if (flags_all != BOTH).any():
+        geometry.visibility = flags_all
     if any_cut:
         geometry.uvs = np.concatenate(uvs)
         geometry.triangle_masks = np.concatenate(triangle_masks)
@@ -558,23 +609,32 @@ def _decide(
     exclude: set[str] | frozenset[str],
     names: dict[str, int],
     holes: set[int],
-) -> int | None:
-    """The object id of an (object, instancer) pair, or None when it does not cast."""
+    blockers: ShadowLinking | None = None,
+) -> tuple[int, int] | None:
+    """The object id of an (object, instancer) pair and its visibility flags (whether it
+    blocks the sun, whether the camera sees it), or None when it does neither."""
     if obj.original.name_full in exclude:
         return None
     chain = [obj] if parent is None else [obj, parent]
+    if not render_mode and any(_hidden_in_render(o.original) for o in chain):
+        return None
     choices = [_casts(o) for o in chain]
     if False in choices:
-        return None
-    if True not in choices and not all(o.visible_shadow for o in chain):
-        return None
-    if not render_mode and any(_hidden_in_render(o.original) for o in chain):
+        blocks = False
+    elif True in choices:
+        blocks = True
+    else:
+        linked = blockers is None or blockers.blocks(chain)
+        blocks = linked and all(o.visible_shadow for o in chain)
+    seen = all(o.visible_camera for o in chain)
+    flags = crepuscular.BLOCKS_SUN * blocks + crepuscular.SEEN_BY_CAMERA * seen
+    if flags == 0:
         return None
     owner = chain[-1].original
     object_id = names.setdefault(owner.name_full, len(names) + 1)
-    if any(o.original.crepuscular.takes_holes for o in chain):
+    if blocks and any(o.original.crepuscular.takes_holes for o in chain):
         holes.add(object_id)
-    return object_id
+    return object_id, flags
 
 
 def column_major(matrix: Any) -> list[float]:
@@ -841,6 +901,7 @@ def frame_inputs(
         exclude=exclude,
         origin=eye,
         facing=np.array(sun_dict(evaluated)["direction"]),
+        blockers=ShadowLinking.of_light(sun),
     )
     settings = evaluated.data.crepuscular
     fps = scene.render.fps / scene.render.fps_base
@@ -873,6 +934,8 @@ def frame_inputs(
         "style": style,
         "origin": geometry.origin,
     }
+    if geometry.visibility is not None:
+        kwargs["triangle_visibility"] = geometry.visibility
     if geometry.uvs is not None:
         kwargs |= {
             "uvs": geometry.uvs,

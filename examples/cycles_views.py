@@ -282,8 +282,9 @@ def block_means(image: np.ndarray, side: int = 4) -> np.ndarray:
 
 def scene_description(inputs: dict, out: Path) -> dict:
     """The extension's frame inputs (`export.frame_inputs(...).kwargs`) as a scene
-    description for `crepuscular render --scene`: a mesh per object id and alpha mask,
-    placed at the inputs' origin, each mask's alpha written beside it as an EXR."""
+    description for `crepuscular render --scene`: a mesh per object id, alpha mask and
+    visibility, placed at the inputs' origin, each mask's alpha written beside it as an
+    EXR."""
     world_from_object = np.eye(4)
     world_from_object[:3, 3] = inputs["origin"]
     triangle_masks = inputs.get("triangle_masks")
@@ -295,9 +296,15 @@ def scene_description(inputs: dict, out: Path) -> dict:
         zeros = np.zeros_like(alpha)
         planes = {"R": zeros, "G": zeros, "B": zeros, "A": alpha}
         crepuscular.write_exr_channels(out / f"mask_{index}.exr", planes)
+    visibility = inputs.get("triangle_visibility")
+    if visibility is None:
+        visibility = np.full(len(inputs["triangles"]), 3)
     meshes = []
-    for object_id, mask in sorted(set(zip(inputs["object_ids"], triangle_masks, strict=True))):
-        selected = (inputs["object_ids"] == object_id) & (triangle_masks == mask)
+    keys = zip(inputs["object_ids"], triangle_masks, visibility, strict=True)
+    for object_id, mask, flags in sorted(set(keys)):
+        selected = (
+            (inputs["object_ids"] == object_id) & (triangle_masks == mask) & (visibility == flags)
+        )
         rows = inputs["triangles"][selected]
         used, triangles = np.unique(rows, return_inverse=True)
         mesh = {
@@ -307,6 +314,10 @@ def scene_description(inputs: dict, out: Path) -> dict:
             "positions": inputs["positions"][used].tolist(),
             "triangles": triangles.reshape(-1, 3).tolist(),
         }
+        if not flags & crepuscular.BLOCKS_SUN:
+            mesh["blocks_sun"] = False
+        if not flags & crepuscular.SEEN_BY_CAMERA:
+            mesh["seen_by_camera"] = False
         if mask >= 0:
             mesh["uvs"] = inputs["uvs"][used].tolist()
             mesh["alpha_mask"] = {

@@ -1211,6 +1211,51 @@ def test_points_cast_as_spheres_of_their_widths(tmp_path: Path) -> None:
         assert words in geometry.invalid[0]
 
 
+def test_the_lights_shadow_linking_decides_what_blocks_it(tmp_path: Path) -> None:
+    """UsdLuxLightAPI's shadowLink collection: an owner it leaves out (a mesh, or a
+    PointInstancer with all it places) does not block the sun but still hides the fog from
+    the camera; unauthored, everything blocks. Excluding the occluder renders its shadow
+    away and keeps its outline in the depth."""
+    stage = author_stage(str(tmp_path / "linked.usda"), build_scene(**SMALL))
+    instancer = UsdGeom.PointInstancer.Define(stage, "/World/Posts")
+    post = UsdGeom.Cube.Define(stage, "/World/Posts/Post")
+    instancer.CreatePrototypesRel().SetTargets([post.GetPath()])
+    instancer.CreateProtoIndicesAttr([0, 0])
+    instancer.CreatePositionsAttr([Gf.Vec3f(3, 1, 0), Gf.Vec3f(-3, 1, 0)])
+    link = UsdLux.LightAPI(stage.GetPrimAtPath("/World/Sun")).GetShadowLinkCollectionAPI()
+
+    def flags_by_owner() -> tuple[dict[str, set[int]], crepuscular.Layers]:
+        frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
+        geometry = frame.geometry
+        flags = geometry.visibility
+        if flags is None:
+            flags = np.full(len(geometry.triangles), 3, dtype=np.uint8)
+        found = {
+            str(path): set(flags[geometry.object_ids == object_id].tolist())
+            for path, object_id in geometry.ids_by_path.items()
+        }
+        return found, crepuscular.render_arrays(**frame.render_kwargs())
+
+    everything, plain = flags_by_owner()
+    assert everything == {"/World/ground": {3}, "/World/occluder": {3}, "/World/Posts": {3}}
+    link.GetExcludesRel().AddTarget("/World/occluder")
+    found, unlinked = flags_by_owner()
+    assert found["/World/occluder"] == {crepuscular.SEEN_BY_CAMERA}
+    assert found["/World/Posts"] == {3}
+    volume, plain_volume = np.asarray(unlinked.volume), np.asarray(plain.volume)
+    assert np.abs(volume - plain_volume).mean() / plain_volume.mean() > 0.01
+    np.testing.assert_array_equal(unlinked.depth, plain.depth)
+    link.GetExcludesRel().ClearTargets(True)
+    link.GetIncludeRootAttr().Set(False)
+    link.GetIncludesRel().AddTarget("/World/ground")
+    found, _ = flags_by_owner()
+    assert found == {
+        "/World/ground": {3},
+        "/World/occluder": {crepuscular.SEEN_BY_CAMERA},
+        "/World/Posts": {crepuscular.SEEN_BY_CAMERA},
+    }
+
+
 def test_medium_extent_from_a_box_mesh_and_a_volume(tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     stage = author_stage(str(tmp_path / "extent.usda"), scene, meters_per_unit=0.1, up="Y")

@@ -41,6 +41,7 @@ mod total_order;
 pub mod transfer_function;
 pub mod uniformity;
 pub mod upsample;
+pub mod visibility;
 
 pub use backend::Backend;
 pub use builtin::{builtin_scene, BUILTIN_SCENES};

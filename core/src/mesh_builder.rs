@@ -69,6 +69,8 @@ impl MeshBuilder {
             triangles: self.triangles,
             uvs: None,
             alpha_mask: None,
+            blocks_sun: true,
+            seen_by_camera: true,
         }
     }
 

@@ -313,6 +313,8 @@ mod tests {
             triangles,
             uvs: None,
             alpha_mask: None,
+            blocks_sun: true,
+            seen_by_camera: true,
         };
         let scene_camera = Camera::pinhole_looking_at(
             Vec3::new(-12.0, -4.0, 2.0),

@@ -31,6 +31,7 @@ use crate::style::Style;
 use crate::upsample::{
     joint_bilateral_into, keep_opacity_guide, opacity_guide, reduced_size, sample_pixel,
 };
+use crate::visibility::VisibilitySplit;
 
 /// Triangles, borrowed so that hosts can pass their buffers without copies.
 #[derive(Clone, Copy, Debug)]
@@ -74,7 +75,12 @@ pub struct Frame<'a> {
     pub sun: &'a Sun,
     pub medium: &'a Medium,
     pub settings: &'a RenderSettings,
+    /// The triangles that block the sun (the shadow map's).
     pub geometry: Geometry<'a>,
+    /// The triangles the camera sees, where they are not `geometry`'s
+    /// ([`crate::visibility`]): an object hidden from shadow rays still hides the fog behind
+    /// it, and one hidden from the camera still casts shafts. None: `geometry`'s.
+    pub camera_geometry: Option<Geometry<'a>>,
     pub camera_depth: Option<CameraDepth<'a>>,
     pub style: &'a Style,
 }
@@ -92,6 +98,9 @@ pub struct FlatGeometry {
     pub uvs: Vec<[f32; 2]>,
     pub triangle_masks: Vec<u32>,
     pub masks: Vec<AlphaMask<'static>>,
+    /// The triangles that block the sun and those the camera sees, where meshes differ
+    /// ([`FlatGeometry::split_visibility`]); None: all do both.
+    pub split: Option<VisibilitySplit>,
 }
 
 impl FlatGeometry {
@@ -121,6 +130,30 @@ impl FlatGeometry {
                 .extend(std::iter::repeat_n(mesh.object_id, mesh.triangles.len()));
         }
         flat
+    }
+
+    /// Splits the triangles by their meshes' `blocks_sun` and `seen_by_camera` (after
+    /// [`FlatGeometry::load_cutouts`], whose masks the split keeps).
+    pub fn split_visibility(&mut self, scene: &Scene) -> Result<()> {
+        self.split = None;
+        if scene
+            .meshes
+            .iter()
+            .all(|m| m.blocks_sun && m.seen_by_camera)
+        {
+            return Ok(());
+        }
+        let visibility: Vec<u8> = scene
+            .meshes
+            .iter()
+            .flat_map(|mesh| {
+                let flags = u8::from(mesh.blocks_sun) * crate::visibility::BLOCKS_SUN
+                    + u8::from(mesh.seen_by_camera) * crate::visibility::SEEN_BY_CAMERA;
+                std::iter::repeat_n(flags, mesh.triangles.len())
+            })
+            .collect();
+        self.split = VisibilitySplit::new(&self.whole(), &visibility, "meshes")?;
+        Ok(())
     }
 
     /// Reads the images of the scene's alpha masks (meshes with `alpha_mask`), in the
@@ -158,7 +191,22 @@ impl FlatGeometry {
         Ok(())
     }
 
+    /// The triangles that block the sun.
     pub fn view(&self) -> Geometry<'_> {
+        match &self.split {
+            Some(split) => split.sun.view(&self.whole()),
+            None => self.whole(),
+        }
+    }
+
+    /// The triangles the camera sees, where they differ from [`FlatGeometry::view`]'s.
+    pub fn camera_view(&self) -> Option<Geometry<'_>> {
+        self.split
+            .as_ref()
+            .map(|split| split.camera.view(&self.whole()))
+    }
+
+    fn whole(&self) -> Geometry<'_> {
         Geometry {
             positions: &self.positions,
             triangles: &self.triangles,
@@ -183,6 +231,7 @@ pub fn render_scene_timed(scene: &Scene, control: &RenderControl) -> Result<(Lay
     scene.validate()?;
     let mut geometry = FlatGeometry::from_scene(scene);
     geometry.load_cutouts(scene)?;
+    geometry.split_visibility(scene)?;
     render_timed(&Frame::of_scene(scene, &geometry), control)
 }
 
@@ -678,7 +727,8 @@ impl SurfaceDistances {
             None => {
                 let ss = frame.settings.supersampling;
                 let (pixel_from_world, desc) = camera_raster(camera, ss);
-                let target = rasterizer.rasterize(&frame.geometry, &pixel_from_world, &desc)?;
+                let target =
+                    rasterizer.rasterize(frame.seen_geometry(), &pixel_from_world, &desc)?;
                 Self::from_planar(camera, ss, target.depth)
             }
         })
@@ -687,7 +737,7 @@ impl SurfaceDistances {
     fn rasterized(camera: &CameraModel, frame: &Frame) -> Result<Self> {
         let ss = frame.settings.supersampling;
         let (pixel_from_world, desc) = camera_raster(camera, ss);
-        let planar = rasterize_depth(&frame.geometry, &pixel_from_world, &desc)?.depth;
+        let planar = rasterize_depth(frame.seen_geometry(), &pixel_from_world, &desc)?.depth;
         Ok(Self::from_planar(camera, ss, planar))
     }
 
@@ -1099,6 +1149,11 @@ impl SampleRays<'_> {
 }
 
 impl<'a> Frame<'a> {
+    /// The triangles the camera sees.
+    pub fn seen_geometry(&self) -> &Geometry<'a> {
+        self.camera_geometry.as_ref().unwrap_or(&self.geometry)
+    }
+
     /// The frame a scene description describes, with the camera depth rasterized.
     pub fn of_scene(scene: &'a Scene, geometry: &'a FlatGeometry) -> Self {
         Frame {
@@ -1107,6 +1162,7 @@ impl<'a> Frame<'a> {
             medium: &scene.medium,
             settings: &scene.render,
             geometry: geometry.view(),
+            camera_geometry: geometry.camera_view(),
             camera_depth: None,
             style: &scene.style,
         }
@@ -1119,7 +1175,17 @@ impl<'a> Frame<'a> {
         self.medium.validate()?;
         self.settings.validate()?;
         self.style.validate()?;
+        let seen = self.seen_geometry();
+        if self.geometry.triangles.is_empty() && seen.triangles.is_empty() {
+            return Err(Error::invalid(
+                "triangles",
+                "the scene is empty: it has no triangles (add at least a ground plane)",
+            ));
+        }
         self.geometry.validate()?;
+        if let Some(camera_geometry) = &self.camera_geometry {
+            camera_geometry.validate()?;
+        }
         if self.settings.downsample > 1
             && self.camera_depth.is_none()
             && self.settings.supersampling > 1
@@ -1165,13 +1231,8 @@ impl Geometry<'_> {
         *pixel_from_world * DMat4::from_translation(self.origin)
     }
 
+    /// Checks the arrays against each other (a frame checks that it has triangles).
     pub fn validate(&self) -> Result<()> {
-        if self.triangles.is_empty() {
-            return Err(Error::invalid(
-                "triangles",
-                "the scene is empty: it has no triangles (add at least a ground plane)",
-            ));
-        }
         if self.object_ids.len() != self.triangles.len() {
             return Err(Error::invalid(
                 "object_ids",

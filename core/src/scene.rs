@@ -242,6 +242,22 @@ pub struct Mesh {
     /// image's alpha is below the threshold (leaf cards, fences).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alpha_mask: Option<AlphaMaskDesc>,
+    /// Whether the mesh is in the sun's shadow map (false: hidden from shadow rays, as
+    /// Blender's Shadow visibility or shadow linking hide an object).
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub blocks_sun: bool,
+    /// Whether the mesh is in the camera's depth, hiding the fog behind it (false: hidden
+    /// from camera rays).
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub seen_by_camera: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn is_true(value: &bool) -> bool {
+    *value
 }
 
 /// The image of a mesh's alpha cutout: a .png or .exr file whose alpha channel is read

@@ -170,6 +170,7 @@ fn camera_depth_is_checked() {
         medium: &scene.medium,
         settings: &scene.render,
         geometry: geometry.view(),
+        camera_geometry: None,
         camera_depth: Some(CameraDepth {
             values,
             kind: DepthKind::Planar,

@@ -217,6 +217,8 @@ fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
         triangles: vec![[0, 1, 2], [0, 2, 3]],
         uvs: None,
         alpha_mask: None,
+        blocks_sun: true,
+        seen_by_camera: true,
     };
     scene.meshes = vec![quad("roof_a", 1, -6.0, 0.0), quad("roof_b", 2, 0.6, 1.6)];
     scene.camera = Camera::pinhole_looking_at(

@@ -243,6 +243,69 @@ def job_particle_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
 
 
+def job_visibility_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box, rendered by Cycles and by us (reference) as its objects'
+    ray visibility and the sun's shadow linking change: "plain"; "unlinked", a blocker
+    collection that excludes a slat; "included", one that includes only the other slat,
+    an instanced copy of it (through its instancer) and the fog (Cycles lights no fog that
+    the light's shadow linking leaves out); "wall", a card between the camera and the box
+    hidden from shadow rays; "ghost", a card over the box hidden from the camera."""
+    scene = fog_scene(spec)
+    sun = scene.objects["Sun"]
+    settings = sun.data.crepuscular
+    black = blender_scenes.black_material(0.0)
+    source = bpy.data.collections.new("slat source")
+    copy = blender_scenes.add_quad(
+        scene, "copied slat", [(-3, -5, 6.5), (-2, -5, 6.5), (-2, 5, 6.5), (-3, 5, 6.5)], black
+    )
+    scene.collection.objects.unlink(copy)
+    source.objects.link(copy)
+    instancer = bpy.data.objects.new("instancer", None)
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+    instancer.location = (3.0, 0.0, 0.0)
+    scene.collection.objects.link(instancer)
+    wall = blender_scenes.add_quad(
+        scene, "wall", [(-6, -3, 0.5), (-3, -6, 0.5), (-3, -6, 3.5), (-6, -3, 3.5)], black
+    )
+    wall.hide_render = True
+
+    def both(name: str) -> None:
+        settings.enabled = False
+        _render(scene, out / f"cycles_{name}.exr")
+        settings.enabled = True
+        path = str(out / f"ours_{name}.exr")
+        assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
+
+    both("plain")
+    blockers = bpy.data.collections.new("blockers")
+    sun.light_linking.blocker_collection = blockers
+
+    def link(states: dict[str, str]) -> None:
+        for obj in list(blockers.objects):
+            blockers.objects.unlink(obj)
+        for name in states:
+            blockers.objects.link(bpy.data.objects[name])
+        for obj, entry in zip(blockers.objects, blockers.collection_objects, strict=True):
+            entry.light_linking.link_state = states[obj.name]
+
+    link({"roof_b": "EXCLUDE"})
+    both("unlinked")
+    fog = scene.crepuscular.fog_object.name
+    link({"roof_a": "INCLUDE", "instancer": "INCLUDE", fog: "INCLUDE"})
+    both("included")
+    sun.light_linking.blocker_collection = None
+    wall.hide_render = False
+    wall.visible_shadow = False
+    both("wall")
+    wall.hide_render = True
+    # Over the lit half of the box, hidden from the camera: only its shadow shows.
+    ghost = blender_scenes.add_quad(
+        scene, "ghost", [(1, -2, 5.5), (3, -2, 5.5), (3, 2, 5.5), (1, 2, 5.5)], black
+    )
+    ghost.visible_camera = False
+    both("ghost")
+
+
 def shaft_scene(spec: dict[str, Any]) -> Any:
     """A grey ground and a cube under a sun with shafts, in an unbounded medium."""
     scene = bpy.context.scene
@@ -524,6 +587,7 @@ JOBS = {
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
     "particle_hair_fidelity": job_particle_hair_fidelity,
+    "visibility_fidelity": job_visibility_fidelity,
     "composite": job_composite,
     "animation": job_animation,
     "silhouette": job_silhouette,

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -384,14 +385,90 @@ def test_export_matches_blenders_evaluated_meshes(addon: ModuleType) -> None:
     np.testing.assert_allclose(ours, expected, atol=1e-4)
     assert geometry.triangles.max() < len(geometry.positions)
 
-    # Shadow ray visibility decides on Auto; On and Off override it.
+    # Shadow ray visibility decides on Auto; On and Off override it. What does not block
+    # the sun still hides the fog from the camera, where the camera sees it.
+    assert geometry.visibility is None
     arrayed.visible_shadow = False
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    assert arrayed.name not in addon.export.export_geometry(depsgraph).names.values()
+    assert _names_by_flag(addon.export.export_geometry(depsgraph)) == (
+        names - {arrayed.name},
+        names,
+    )
     arrayed.crepuscular.casts_shafts = "on"
-    assert arrayed.name in addon.export.export_geometry(depsgraph).names.values()
     text.crepuscular.casts_shafts = "off"
-    assert text.name not in addon.export.export_geometry(depsgraph).names.values()
+    text.visible_camera = False
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    assert _names_by_flag(addon.export.export_geometry(depsgraph)) == (
+        names - {text.name},
+        names - {text.name},
+    )
+
+
+def test_shadow_linking_decides_what_blocks_the_sun(addon: ModuleType) -> None:
+    """The sun's blocker collection, as Blender's light linking defines it: only excluded
+    objects, all but those block; any included, only those (objects of an included child
+    collection too) less the excluded; an instance blocks by its object or its instancer.
+    What does not block the sun still hides the fog from the camera."""
+    scene = bpy.context.scene
+    sun = blender_scenes.add_sun(scene, (0.2, 0.1, -1.0))
+    quads = {}
+    for index, name in enumerate(("a", "b", "c")):
+        x = 2.0 * index
+        corners = [(x, 0, 1), (x + 1, 0, 1), (x + 1, 1, 1), (x, 1, 1)]
+        quads[name] = blender_scenes.add_quad(scene, name, corners)
+    source = bpy.data.collections.new("source")
+    source.objects.link(quads["c"])
+    scene.collection.objects.unlink(quads["c"])
+    instancer = bpy.data.objects.new("instancer", None)
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+    scene.collection.objects.link(instancer)
+    blockers = bpy.data.collections.new("blockers")
+    sun.light_linking.blocker_collection = blockers
+    child = bpy.data.collections.new("child")
+
+    def blocking(states: dict[str, str], child_state: str | None = None) -> set[str]:
+        for obj in list(blockers.objects):
+            blockers.objects.unlink(obj)
+        for collection in list(blockers.children):
+            blockers.children.unlink(collection)
+        for name in states:
+            blockers.objects.link(bpy.data.objects[name])
+        for obj, entry in zip(blockers.objects, blockers.collection_objects, strict=True):
+            entry.light_linking.link_state = states[obj.name]
+        if child_state is not None:
+            blockers.children.link(child)
+            blockers.collection_children[0].light_linking.link_state = child_state
+        linking = addon.export.ShadowLinking.of_light(sun)
+        geometry = addon.export.export_geometry(
+            bpy.context.evaluated_depsgraph_get(), blockers=linking
+        )
+        blocks, seen = _names_by_flag(geometry)
+        assert seen == {"a", "b", "instancer"}
+        return blocks
+
+    assert blocking({}) == {"a", "b", "instancer"}
+    assert blocking({"a": "EXCLUDE"}) == {"b", "instancer"}
+    assert blocking({"a": "INCLUDE"}) == {"a"}
+    assert blocking({"a": "INCLUDE", "instancer": "INCLUDE"}) == {"a", "instancer"}
+    assert blocking({"c": "INCLUDE"}) == {"instancer"}
+    assert blocking({"instancer": "EXCLUDE"}) == {"a", "b"}
+    child.objects.link(quads["b"])
+    assert blocking({"a": "INCLUDE"}, "INCLUDE") == {"a", "b"}
+    assert blocking({}, "EXCLUDE") == {"a", "instancer"}
+    sun.light_linking.blocker_collection = None
+    assert addon.export.ShadowLinking.of_light(sun) is None
+
+
+def _names_by_flag(geometry: Any) -> tuple[set[str], set[str]]:
+    """The objects with triangles that block the sun, and with triangles the camera sees."""
+    flags = (
+        np.full(len(geometry.triangles), 3) if geometry.visibility is None else geometry.visibility
+    )
+    found = []
+    for flag in (crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA):
+        ids = set(geometry.object_ids[(flags & flag) != 0].tolist())
+        found.append({geometry.names[k] for k in ids})
+    return found[0], found[1]
 
 
 def test_static_geometry_is_cached_and_invalidated(addon: ModuleType) -> None:
@@ -605,9 +682,11 @@ def test_point_clouds_export_as_spheres_of_their_radius(addon: ModuleType) -> No
     panel = addon.ui.CREPUSCULAR_PT_object
     assert panel.poll(SimpleNamespace(object=points))
     points.crepuscular.casts_shafts = "off"
-    assert len(addon.export.export_geometry(bpy.context.evaluated_depsgraph_get()).triangles) == 0
+    off = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert (off.visibility == crepuscular.SEEN_BY_CAMERA).all()
     points.crepuscular.casts_shafts = "auto"
     points.visible_shadow = False
+    points.visible_camera = False
     assert len(addon.export.export_geometry(bpy.context.evaluated_depsgraph_get()).triangles) == 0
     bpy.data.objects.remove(points)
     blender_scenes.add_points(scene, "plain", centres)

@@ -200,6 +200,9 @@ class SceneGeometry:
     masks: list[crepuscular.AlphaMask] = field(default_factory=list)
     #: Materials whose transparency this step cannot map, named.
     notes: list[str] = field(default_factory=list)
+    #: Per triangle, `crepuscular.BLOCKS_SUN` and `SEEN_BY_CAMERA` flags, where the light's
+    #: shadow linking leaves some owners out of the shadow map; None where all block.
+    visibility: npt.NDArray[np.uint8] | None = None
 
     def ids_under(self, roots: Iterable[Sdf.Path]) -> list[int]:
         """Object ids of every owner at or below one of `roots`."""
@@ -392,12 +395,16 @@ class GeometryCollector:
         time: Usd.TimeCode,
         origin: F64 | None = None,
         facing: F64 | None = None,
+        shadow_link: Usd.CollectionMembershipQuery | None = None,
     ) -> SceneGeometry:
         """Every visible render-purpose surface at `time`, in the renderer's space, relative to
         `origin` (default the origin): subtracted in float64, a point near the camera keeps
         float32 positions precise however far the stage lies from its origin. Curves' tubes
         have their ends cut so that `facing`, the sun's travel direction, sees them end at
-        their end points, as a path tracer cuts a strand's ends across each ray."""
+        their end points, as a path tracer cuts a strand's ends across each ray. Owners
+        (a mesh, an instance proxy, a PointInstancer) that `shadow_link`, the light's
+        shadow-linking collection, leaves out do not block the sun, and still hide the fog
+        from the camera."""
         self._facing = None if facing is None else np.asarray(facing, dtype=np.float64)
         if len(self._faced) > 4096:
             self._faced.clear()
@@ -450,6 +457,8 @@ class GeometryCollector:
             self._count_unsupported(prim, unsupported)
         offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
         geometry = _assemble(chunks, instanced, unsupported, invalid, offset)
+        if shadow_link is not None:
+            geometry.visibility = _link_visibility(chunks, shadow_link)
         if geometry.triangle_masks is not None:
             geometry.masks = self._masks.masks()
         geometry.notes = list(self._masks.notes)
@@ -758,6 +767,27 @@ def _points_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
     except ValueError as error:
         raise MeshError(f"{where}: {error}") from error
     return _LocalMesh(positions.astype(np.float64), triangles), varying
+
+
+def _link_visibility(
+    chunks: list[_Chunk], shadow_link: Usd.CollectionMembershipQuery
+) -> npt.NDArray[np.uint8] | None:
+    """Per triangle of `chunks` (in `_assemble`'s order), whether its owner blocks the sun
+    by the light's shadow-linking collection; None where every owner does."""
+    blocks = {chunk.path: shadow_link.IsPathIncluded(chunk.path) for chunk in chunks}
+    if all(blocks.values()):
+        return None
+    both = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
+    return np.concatenate(
+        [
+            np.full(
+                len(chunk.triangles),
+                both if blocks[chunk.path] else crepuscular.SEEN_BY_CAMERA,
+                dtype=np.uint8,
+            )
+            for chunk in chunks
+        ]
+    )
 
 
 def _transform(points: F64, world_row: F64) -> F64:

@@ -96,6 +96,8 @@ class Frame:
                 "triangle_masks": self.geometry.triangle_masks,
                 "masks": self.geometry.masks,
             }
+        if self.geometry.visibility is not None:
+            cutouts["triangle_visibility"] = self.geometry.visibility
         return {
             **cutouts,
             "positions": self.geometry.positions,
@@ -139,6 +141,10 @@ class StageReader:
         self._width = width
         self._height = height
         self._collectors: dict[Sdf.Path | None, GeometryCollector] = {}
+        # The light's shadow linking (UsdLuxLightAPI's shadowLink collection): its owners
+        # outside it do not block the light. Unauthored, it holds everything.
+        shadow_link = UsdLux.LightAPI(self.light_prim).GetShadowLinkCollectionAPI()
+        self._shadow_link = shadow_link.ComputeMembershipQuery() if shadow_link else None
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
 
     # --- prims ----------------------------------------------------------------------
@@ -204,6 +210,7 @@ class StageReader:
             time,
             np.asarray(camera["world_from_camera"][12:15]),
             facing=np.asarray(sun["direction"], dtype=np.float64),
+            shadow_link=self._shadow_link,
         )
         medium = dict(light.medium)
         medium["extent"] = self._extent(light, time)

@@ -16,6 +16,7 @@ use crepuscular::exr_file::ExrCompression;
 use crepuscular::render::FlatGeometry;
 use crepuscular::scene::{parse_json_at, Camera, Medium, RenderSettings, Sun, SCENE_VERSION};
 use crepuscular::style::STYLE_VERSION;
+use crepuscular::visibility::VisibilitySplit;
 use crepuscular::{
     CameraDepth, DepthKind, Error, Frame, Geometry, Layers, RenderControl, Scene, Style,
 };
@@ -65,6 +66,7 @@ fn render_json<'py>(
         }
         let mut geometry = FlatGeometry::from_scene(&scene);
         geometry.load_cutouts(&scene)?;
+        geometry.split_visibility(&scene)?;
         let parts = Parts {
             camera: &scene.camera,
             sun: &scene.sun,
@@ -72,7 +74,13 @@ fn render_json<'py>(
             settings: &scene.render,
             style: &scene.style,
         };
-        let layers = parts.render(geometry.view(), depth, kind, control)?;
+        let layers = parts.render(
+            geometry.view(),
+            geometry.camera_view(),
+            depth,
+            kind,
+            control,
+        )?;
         Ok((layers, scene.hole_objects_warning()))
     })?;
     if let Some(warning) = hole_objects_warning {
@@ -91,11 +99,13 @@ fn render_json<'py>(
 /// `positions` (N, 3) float32, `triangles` (M, 3) uint32 and `object_ids` (M,) uint32 must
 /// be C-contiguous and aligned; they are read in place, never copied. `origin` is the world
 /// point the positions are relative to (the world's origin when `None`).
+/// `triangle_visibility` (M,) uint8 flags which triangles block the sun (1) and which the
+/// camera sees (2).
 #[pyfunction]
 #[pyo3(signature = (
     positions, triangles, object_ids, camera_json, sun_json, medium_json, settings_json, /,
     *, style_json=None, camera_depth=None, depth_kind="planar", progress=None, origin=None,
-    uvs=None, triangle_masks=None, masks=None,
+    uvs=None, triangle_masks=None, masks=None, triangle_visibility=None,
 ))]
 #[allow(clippy::too_many_arguments)]
 fn render_arrays<'py>(
@@ -115,6 +125,7 @@ fn render_arrays<'py>(
     uvs: Option<PyReadonlyArray2<'py, f32>>,
     triangle_masks: Option<PyReadonlyArray1<'py, u32>>,
     masks: Option<Vec<(PyReadonlyArray2<'py, f32>, f32)>>,
+    triangle_visibility: Option<PyReadonlyArray1<'py, u8>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let alpha_masks = masks
         .as_deref()
@@ -169,9 +180,19 @@ fn render_arrays<'py>(
             },
         };
         let (kind, depth) = depth_input(depth_kind, camera_depth.as_ref())?;
-        Ok((camera, sun, medium, settings, style, geometry, kind, depth))
+        let split = match &triangle_visibility {
+            Some(flags) => VisibilitySplit::new(
+                &geometry,
+                values("triangle_visibility", flags)?,
+                "triangle_visibility",
+            )?,
+            None => None,
+        };
+        Ok((
+            camera, sun, medium, settings, style, geometry, split, kind, depth,
+        ))
     })();
-    let (camera, sun, medium, settings, style, geometry, kind, depth) =
+    let (camera, sun, medium, settings, style, geometry, split, kind, depth) =
         prepared.map_err(to_py_err)?;
     let layers = run_detached(py, progress.as_ref(), |control| {
         let parts = Parts {
@@ -181,7 +202,16 @@ fn render_arrays<'py>(
             settings: &settings,
             style: &style,
         };
-        parts.render(geometry, depth, kind, control)
+        match &split {
+            Some(split) => parts.render(
+                split.sun.view(&geometry),
+                Some(split.camera.view(&geometry)),
+                depth,
+                kind,
+                control,
+            ),
+            None => parts.render(geometry, None, depth, kind, control),
+        }
     })?;
     layers_to_py(py, layers)
 }
@@ -262,6 +292,7 @@ impl Parts<'_> {
     fn render(
         &self,
         geometry: Geometry<'_>,
+        camera_geometry: Option<Geometry<'_>>,
         depth: Option<DepthMap<'_>>,
         kind: DepthKind,
         control: &RenderControl,
@@ -273,6 +304,7 @@ impl Parts<'_> {
             settings: self.settings,
             style: self.style,
             geometry,
+            camera_geometry,
             camera_depth: depth.map(|map| CameraDepth {
                 values: map.values,
                 kind,

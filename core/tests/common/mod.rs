@@ -20,6 +20,8 @@ pub fn horizontal_quad(object_id: u32, x0: f32, x1: f32, y0: f32, y1: f32, z: f3
         triangles: vec![[0, 1, 2], [0, 2, 3]],
         uvs: None,
         alpha_mask: None,
+        blocks_sun: true,
+        seen_by_camera: true,
     }
 }
 

@@ -31,9 +31,11 @@ from crepuscular._strands import CATMULL_ROM_STEPS, TUBE_SIDES, strand_tubes
 from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
 
 __all__ = [
+    "BLOCKS_SUN",
     "CATMULL_ROM_STEPS",
     "EXR_COMPRESSIONS",
     "SCENE_VERSION",
+    "SEEN_BY_CAMERA",
     "SPHERE_TRIANGLES",
     "SPHERE_VERTICES",
     "STYLE_VERSION",
@@ -70,6 +72,10 @@ __all__ = [
 ]
 
 __version__: str = _core.__version__
+#: `render_arrays`' `triangle_visibility` flags: in the sun's shadow map, in the camera's
+#: depth.
+BLOCKS_SUN: int = 1
+SEEN_BY_CAMERA: int = 2
 #: The scene-description version this build reads and writes.
 SCENE_VERSION: int = _core.SCENE_VERSION
 
@@ -182,6 +188,7 @@ def render_arrays(
     uvs: npt.ArrayLike | None = None,
     triangle_masks: npt.ArrayLike | None = None,
     masks: Sequence[AlphaMask] = (),
+    triangle_visibility: npt.ArrayLike | None = None,
 ) -> Layers:
     """Renders triangles held in arrays.
 
@@ -198,6 +205,11 @@ def render_arrays(
     Alpha cutouts: `uvs` (N, 2) gives each position texture coordinates, `triangle_masks`
     (M,) each triangle the index of its `AlphaMask` in `masks`, or -1 for none. Both or
     neither. Both backends cut.
+
+    `triangle_visibility` (M,) flags each triangle: `BLOCKS_SUN` (1) puts it in the sun's
+    shadow map, `SEEN_BY_CAMERA` (2) in the camera's depth (3, both, when omitted). An
+    object hidden from shadow rays still hides the fog behind it from the camera; one
+    hidden from the camera still casts shafts.
     """
     _check_progress(progress)
     triangle_rows = _convert.index_rows(triangles, "triangles")
@@ -229,6 +241,11 @@ def render_arrays(
         depth_kind=depth_kind,
         progress=progress,
         origin=None if origin is None else _convert.point(origin, "origin"),
+        triangle_visibility=(
+            None
+            if triangle_visibility is None
+            else _convert.triangle_visibility(triangle_visibility, len(triangle_rows))
+        ),
         **cutouts,
     )
     return Layers(*raw)

@@ -190,6 +190,25 @@ def triangle_masks(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.
     return _uint32(array, "triangle_masks")
 
 
+def triangle_visibility(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.uint8]:
+    """One flag set per triangle: 1 blocks the sun, 2 is seen by the camera."""
+    array = np.asarray(value)
+    if array.shape != (triangle_count,):
+        raise invalid(
+            "triangle_visibility",
+            f"must have shape (M,) = ({triangle_count},), one per triangle, got {_shape(array)}",
+        )
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise invalid("triangle_visibility", f"must hold integers, got dtype {array.dtype}")
+    if array.size and (int(array.min()) < 0 or int(array.max()) > 3):
+        row = int(np.argmax((array < 0) | (array > 3)))
+        raise invalid(
+            f"triangle_visibility[{row}]",
+            f"is {int(array[row])}; flags are 1 (blocks the sun) and 2 (seen by the camera)",
+        )
+    return _contiguous(array, np.uint8)
+
+
 def alpha_mask(value: npt.ArrayLike, index: int) -> npt.NDArray[np.float32]:
     """A (height, width) float32 alpha texture."""
     array = np.asarray(value)

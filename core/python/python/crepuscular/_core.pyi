@@ -59,6 +59,7 @@ def render_arrays(
     uvs: _Float32Array | None = None,
     triangle_masks: _UInt32Array | None = None,
     masks: list[tuple[_Float32Array, float]] | None = None,
+    triangle_visibility: npt.NDArray[np.uint8] | None = None,
 ) -> _RawLayers: ...
 def normalize_scene_json(
     scene_json: str, /, *, base_dir: str | os.PathLike[str] | None = None
