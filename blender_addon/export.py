@@ -895,13 +895,20 @@ def frame_inputs(
     fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None
     exclude = {fog.name_full} if fog is not None else set()
     eye = np.asarray(camera["world_from_camera"][12:15], dtype=np.float64)
+    blockers = ShadowLinking.of_light(sun)
+    if blockers is not None and fog is not None and not blockers.blocks([fog]):
+        notes.append(
+            f"the shadow linking of '{sun.name}' leaves the fog object '{fog.name}' out: "
+            "Cycles then lights no fog with it; the shafts are rendered as if it were in "
+            "(include the fog object in the blocker collection to match)"
+        )
     geometry = export_geometry(
         depsgraph,
         cache=cache,
         exclude=exclude,
         origin=eye,
         facing=np.array(sun_dict(evaluated)["direction"]),
-        blockers=ShadowLinking.of_light(sun),
+        blockers=blockers,
     )
     settings = evaluated.data.crepuscular
     fps = scene.render.fps / scene.render.fps_base

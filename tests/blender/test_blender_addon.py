@@ -1028,6 +1028,25 @@ def test_hole_creation_without_objects_that_take_holes_says_so(addon: ModuleType
     assert inputs.kwargs["style"]["holes"]["objects"]
 
 
+def test_a_fog_object_left_out_of_shadow_linking_is_named(addon: ModuleType) -> None:
+    """Cycles lights no fog that the sun's shadow linking leaves out; the shafts still
+    render, with a note that names the fog object and the fix."""
+    scene = _basic_scene()
+    fog = np.diag([4.0, 4.0, 2.0, 1.0])
+    fog[:3, 3] = [0.0, 0.0, 2.0]
+    box = blender_scenes.add_fog_box(scene, fog, blender_scenes.volume_material("scatter"))
+    sun = scene.objects["Sun"]
+    blockers = bpy.data.collections.new("blockers")
+    sun.light_linking.blocker_collection = blockers
+    blockers.objects.link(scene.objects["Roof"])  # included: only it blocks
+    notes = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).notes
+    (note,) = [n for n in notes if "shadow linking" in n]
+    assert f"leaves the fog object '{box.name}' out" in note
+    blockers.objects.link(box)
+    notes = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).notes
+    assert not [n for n in notes if "shadow linking" in n]
+
+
 def test_a_sun_disc_wider_than_the_sun_s_says_it_is_not_used(addon: ModuleType) -> None:
     scene = _basic_scene()
     sun = scene.objects["Sun"]
