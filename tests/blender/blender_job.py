@@ -280,18 +280,12 @@ def job_visibility_fidelity(spec: dict[str, Any], out: Path) -> None:
     blockers = bpy.data.collections.new("blockers")
     sun.light_linking.blocker_collection = blockers
 
-    def link(states: dict[str, str]) -> None:
-        for obj in list(blockers.objects):
-            blockers.objects.unlink(obj)
-        for name in states:
-            blockers.objects.link(bpy.data.objects[name])
-        for obj, entry in zip(blockers.objects, blockers.collection_objects, strict=True):
-            entry.light_linking.link_state = states[obj.name]
-
-    link({"roof_b": "EXCLUDE"})
+    blender_scenes.set_blockers(blockers, {"roof_b": "EXCLUDE"})
     both("unlinked")
     fog = scene.crepuscular.fog_object.name
-    link({"roof_a": "INCLUDE", "instancer": "INCLUDE", fog: "INCLUDE"})
+    blender_scenes.set_blockers(
+        blockers, {"roof_a": "INCLUDE", "instancer": "INCLUDE", fog: "INCLUDE"}
+    )
     both("included")
     sun.light_linking.blocker_collection = None
     wall.hide_render = False

@@ -383,6 +383,30 @@ def add_particle_hair(
     return emitter
 
 
+def set_blockers(
+    collection: Any,
+    states: dict[str, str],
+    child: Any = None,
+    child_state: str | None = None,
+) -> None:
+    """Makes a light's blocker `collection` hold the objects named in `states`, each with
+    its link state ("INCLUDE" or "EXCLUDE"), and `child` with `child_state` if given.
+    (`collection_objects` holds the states in the order of `collection.objects`.)"""
+    import bpy
+
+    for obj in list(collection.objects):
+        collection.objects.unlink(obj)
+    for nested in list(collection.children):
+        collection.children.unlink(nested)
+    for name in states:
+        collection.objects.link(bpy.data.objects[name])
+    for obj, entry in zip(collection.objects, collection.collection_objects, strict=True):
+        entry.light_linking.link_state = states[obj.name]
+    if child is not None and child_state is not None:
+        collection.children.link(child)
+        collection.collection_children[0].light_linking.link_state = child_state
+
+
 def alpha_png(path: Path) -> Any:
     """`alpha_image` saved as an 8-bit PNG at `path` and loaded back from the file, as an
     artist's leaf texture is (the USD exporter copies such files next to the stage)."""

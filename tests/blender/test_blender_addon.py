@@ -427,17 +427,7 @@ def test_shadow_linking_decides_what_blocks_the_sun(addon: ModuleType) -> None:
     child = bpy.data.collections.new("child")
 
     def blocking(states: dict[str, str], child_state: str | None = None) -> set[str]:
-        for obj in list(blockers.objects):
-            blockers.objects.unlink(obj)
-        for collection in list(blockers.children):
-            blockers.children.unlink(collection)
-        for name in states:
-            blockers.objects.link(bpy.data.objects[name])
-        for obj, entry in zip(blockers.objects, blockers.collection_objects, strict=True):
-            entry.light_linking.link_state = states[obj.name]
-        if child_state is not None:
-            blockers.children.link(child)
-            blockers.collection_children[0].light_linking.link_state = child_state
+        blender_scenes.set_blockers(blockers, states, child, child_state)
         linking = addon.export.ShadowLinking.of_light(sun)
         geometry = addon.export.export_geometry(
             bpy.context.evaluated_depsgraph_get(), blockers=linking

@@ -172,16 +172,22 @@ def uv_rows(value: npt.ArrayLike, position_count: int) -> npt.NDArray[np.float32
     return _contiguous(array, np.float32)
 
 
-def triangle_masks(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.uint32]:
-    """One mask index per triangle, -1 (no mask) as the core's 0xFFFFFFFF."""
+def _integer_per_triangle(value: npt.ArrayLike, triangle_count: int, name: str) -> np.ndarray:
+    """An (M,) integer array, one entry per triangle, or an error naming `name`."""
     array = np.asarray(value)
     if array.shape != (triangle_count,):
         raise invalid(
-            "triangle_masks",
+            name,
             f"must have shape (M,) = ({triangle_count},), one per triangle, got {_shape(array)}",
         )
     if array.size and not np.issubdtype(array.dtype, np.integer):
-        raise invalid("triangle_masks", f"must hold integers, got dtype {array.dtype}")
+        raise invalid(name, f"must hold integers, got dtype {array.dtype}")
+    return array
+
+
+def triangle_masks(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.uint32]:
+    """One mask index per triangle, -1 (no mask) as the core's 0xFFFFFFFF."""
+    array = _integer_per_triangle(value, triangle_count, "triangle_masks")
     if array.size and array.dtype.kind == "i":
         if int(array.min()) < -1:
             row = int(np.argmin(array))
@@ -192,14 +198,7 @@ def triangle_masks(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.
 
 def triangle_visibility(value: npt.ArrayLike, triangle_count: int) -> npt.NDArray[np.uint8]:
     """One flag set per triangle: 1 blocks the sun, 2 is seen by the camera."""
-    array = np.asarray(value)
-    if array.shape != (triangle_count,):
-        raise invalid(
-            "triangle_visibility",
-            f"must have shape (M,) = ({triangle_count},), one per triangle, got {_shape(array)}",
-        )
-    if array.size and not np.issubdtype(array.dtype, np.integer):
-        raise invalid("triangle_visibility", f"must hold integers, got dtype {array.dtype}")
+    array = _integer_per_triangle(value, triangle_count, "triangle_visibility")
     if array.size and (int(array.min()) < 0 or int(array.max()) > 3):
         row = int(np.argmax((array < 0) | (array > 3)))
         raise invalid(
