@@ -425,6 +425,19 @@ class ShadowLinking:
         return not self.included or bool(names & self.included)
 
 
+def blocks_sun(chain: list[bpy.types.Object], blockers: ShadowLinking | None) -> bool:
+    """Whether an instance (its object, and its instancer if any) blocks the sun: Casts
+    Shafts Off on either, no; On on either, yes; else by Shadow ray visibility of both and
+    the sun's shadow linking."""
+    choices = [_casts(o) for o in chain]
+    if False in choices:
+        return False
+    if True in choices:
+        return True
+    linked = blockers is None or blockers.blocks(chain)
+    return linked and all(o.visible_shadow for o in chain)
+
+
 def _casts(obj: bpy.types.Object) -> bool | None:
     """The object's own choice: True/False when forced, None to follow ray visibility."""
     mode = obj.original.crepuscular.casts_shafts
@@ -618,14 +631,7 @@ def _decide(
     chain = [obj] if parent is None else [obj, parent]
     if not render_mode and any(_hidden_in_render(o.original) for o in chain):
         return None
-    choices = [_casts(o) for o in chain]
-    if False in choices:
-        blocks = False
-    elif True in choices:
-        blocks = True
-    else:
-        linked = blockers is None or blockers.blocks(chain)
-        blocks = linked and all(o.visible_shadow for o in chain)
+    blocks = blocks_sun(chain, blockers)
     seen = all(o.visible_camera for o in chain)
     flags = crepuscular.BLOCKS_SUN * blocks + crepuscular.SEEN_BY_CAMERA * seen
     if flags == 0:

@@ -17,6 +17,9 @@ each sun with shafts and authors what the add-on would render with, so that
 - `crepuscular:intensityScale` restores the sun's strength, which Blender's exporter writes
   divided by 4, and `inputs:enableColorTemperature` is re-authored with the lamp's
   Temperature checkbox, which Blender 5.0's exporter authors as true on every light;
+- objects that do not block the sun (Casts Shafts Off, no Shadow ray visibility, outside
+  the sun's shadow linking) are excluded from the light's `shadowLink` collection, which
+  Blender's exporter does not write;
 - an animated export gets time samples wherever a value changes over the frame range.
 
 Errors (a fog object that cannot be mapped, a setting the core refuses) are raised: Blender
@@ -474,8 +477,40 @@ def author_shaft_settings(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[st
                 [extent] if extent is not None else []
             )
             light.CreateRelationship(HOLES_OBJECTS, custom=False).SetTargets(holes)
+            author_shadow_link(light, scene, record.sun, prims, fog)
             authored.append(str(light.GetPath()))
     return authored
+
+
+def author_shadow_link(
+    light: Any,
+    scene: bpy.types.Scene,
+    sun: bpy.types.Object,
+    prims: ExportedPrims,
+    fog: bpy.types.Object | None,
+) -> None:
+    """Leaves the objects that do not block `sun` (Casts Shafts Off, no Shadow ray
+    visibility, or outside its shadow linking; `export.blocks_sun`) out of the light's
+    shadowLink collection, which Blender's exporter does not write, so that the USD step
+    casts what the add-on casts. Nothing is authored where every object blocks. Objects are
+    judged on their own: an instance that blocks only through its instancer's linking is
+    judged by its instancer."""
+    from pxr import UsdLux
+
+    blockers = export.ShadowLinking.of_light(sun)
+    left_out = [
+        prim.GetPath()
+        for obj in scene.objects
+        if obj.type in export.GEOMETRY_TYPES | {"EMPTY"}
+        and obj != fog
+        and not export.blocks_sun([obj], blockers)
+        for prim in prims.of(obj)
+    ]
+    if not left_out:
+        return
+    link = UsdLux.LightAPI(light).GetShadowLinkCollectionAPI()
+    link.CreateIncludeRootAttr(True)
+    link.CreateExcludesRel().SetTargets(left_out)
 
 
 class CREPUSCULAR_USDHook(bpy.types.USDHook):

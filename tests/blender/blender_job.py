@@ -411,10 +411,11 @@ def job_silhouette(spec: dict[str, Any], out: Path) -> None:
 
 
 def round_trip_scene(spec: dict[str, Any]) -> Any:
-    """Meshes (one arrayed by a modifier, one that takes holes, a column posed by an
-    armature), a card cut by an alpha mask, hair strands, a point cloud, a camera with a
-    vertical sensor fit, lens shift and clip range, a sun with exposure, colour and a styled
-    look (closing, holes, a transfer function), and a fog box."""
+    """Meshes (one arrayed by a modifier and hidden from shadow rays, one that takes holes,
+    one left out by the sun's shadow linking, a column posed by an armature), a card cut by
+    an alpha mask, hair strands, a point cloud, a camera with a vertical sensor fit, lens
+    shift and clip range, a sun with exposure, colour and a styled look (closing, holes, a
+    transfer function), and a fog box."""
     scene = bpy.context.scene
     scene.render.resolution_x, scene.render.resolution_y = spec["width"], spec["height"]
     scene.render.resolution_percentage = 100
@@ -460,6 +461,12 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     arrayed = bpy.context.active_object
     array = arrayed.modifiers.new("Array", "ARRAY")
     array.count, array.relative_offset_displace = 3, (1.8, 0.0, 0.4)
+    # Hidden from shadow rays, and a slat left out by the sun's shadow linking: both still
+    # hide the fog from the camera. The hook authors them out of the light's shadowLink.
+    arrayed.visible_shadow = False
+    blockers = bpy.data.collections.new("blockers")
+    sun.light_linking.blocker_collection = blockers
+    blender_scenes.set_blockers(blockers, {"slat_2": "EXCLUDE"})
     bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.2, location=(2.5, -1.0, 2.0))
     add_rigged_column(scene)
     # A card cut by a PNG's alpha: Blender's exporter writes a UsdPreviewSurface whose

@@ -19,8 +19,10 @@ mismatch: the sun's exposure of 0.5 stop is 41 %, Blender's strength / 4 is 75 %
 whole pixels, the column read at rest is 0.07 to 0.7 % off per layer and 39 units off in
 depth, the leaf card (a PNG's alpha, which the exporter writes as a UsdPreviewSurface's
 opacity) read as opaque 3 to 13 %, the hair strands (BasisCurves) left out 23 to 55 %,
-and the point cloud (Points) left out 0.07 to 2.9 %. The fog is tinted, so its extinction
-travels per channel (`crepuscular:medium:channelExtinction`).
+the point cloud (Points) left out 0.07 to 2.9 %, and the light's shadowLink collection
+(which the hook authors for the objects that do not block the sun: one hidden from shadow
+rays, one left out by the sun's shadow linking) left out 12 to 32 %. The fog is tinted,
+so its extinction travels per channel (`crepuscular:medium:channelExtinction`).
 """
 
 from __future__ import annotations
