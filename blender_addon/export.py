@@ -389,19 +389,27 @@ def _hidden_in_render(obj: bpy.types.Object) -> bool:
 
 
 @dataclass(frozen=True)
-class ShadowLinking:
-    """The objects a light's shadow-linking (blocker) collection includes and excludes, by
-    original name: with any included, only those block the light, less the excluded;
-    with only excluded, everything else does (Blender's light linking rules)."""
+class LightLinking:
+    """The objects a light's linking collection (blockers: shadow linking; receivers:
+    light linking) includes and excludes, by original name: with any included, only those
+    take part, less the excluded; with only excluded, everything else does (Blender's
+    rules). A child collection's state applies to every object in it."""
 
     included: frozenset[str]
     excluded: frozenset[str]
 
     @classmethod
-    def of_light(cls, light: bpy.types.Object) -> ShadowLinking | None:
-        """The light object's blocker collection, or None where it has none (all block).
-        A child collection's state applies to every object in it."""
-        collection = light.original.light_linking.blocker_collection
+    def of_blockers(cls, light: bpy.types.Object) -> LightLinking | None:
+        """The light object's blocker collection, or None where it has none (all block)."""
+        return cls._of(light.original.light_linking.blocker_collection)
+
+    @classmethod
+    def of_receivers(cls, light: bpy.types.Object) -> LightLinking | None:
+        """The light object's receiver collection, or None where it has none (all receive)."""
+        return cls._of(light.original.light_linking.receiver_collection)
+
+    @classmethod
+    def _of(cls, collection: bpy.types.Collection | None) -> LightLinking | None:
         if collection is None:
             return None
         included: set[str] = set()
@@ -417,15 +425,15 @@ class ShadowLinking:
             (included if entry.light_linking.link_state == "INCLUDE" else excluded).update(names)
         return cls(frozenset(included), frozenset(excluded))
 
-    def blocks(self, chain: list[bpy.types.Object]) -> bool:
-        """Whether an instance (its object, and its instancer if any) blocks the light."""
+    def contains(self, chain: list[bpy.types.Object]) -> bool:
+        """Whether an instance (its object, and its instancer if any) takes part."""
         names = {o.original.name_full for o in chain}
         if names & self.excluded:
             return False
         return not self.included or bool(names & self.included)
 
 
-def blocks_sun(chain: list[bpy.types.Object], blockers: ShadowLinking | None) -> bool:
+def blocks_sun(chain: list[bpy.types.Object], blockers: LightLinking | None) -> bool:
     """Whether an instance (its object, and its instancer if any) blocks the sun: Casts
     Shafts Off on either, no; On on either, yes; else by Shadow ray visibility of both and
     the sun's shadow linking."""
@@ -434,7 +442,7 @@ def blocks_sun(chain: list[bpy.types.Object], blockers: ShadowLinking | None) ->
         return False
     if True in choices:
         return True
-    linked = blockers is None or blockers.blocks(chain)
+    linked = blockers is None or blockers.contains(chain)
     return linked and all(o.visible_shadow for o in chain)
 
 
@@ -451,7 +459,7 @@ def export_geometry(
     exclude: set[str] | frozenset[str] = frozenset(),
     origin: np.ndarray | None = None,
     facing: np.ndarray | None = None,
-    blockers: ShadowLinking | None = None,
+    blockers: LightLinking | None = None,
 ) -> Geometry:
     """Triangles of everything that casts shafts in `depsgraph`, relative to the world point
     `origin` (default the world's origin): the camera's position keeps float32 positions
@@ -622,7 +630,7 @@ def _decide(
     exclude: set[str] | frozenset[str],
     names: dict[str, int],
     holes: set[int],
-    blockers: ShadowLinking | None = None,
+    blockers: LightLinking | None = None,
 ) -> tuple[int, int] | None:
     """The object id of an (object, instancer) pair and its visibility flags (whether it
     blocks the sun, whether the camera sees it), or None when it does neither."""
@@ -901,13 +909,18 @@ def frame_inputs(
     fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None
     exclude = {fog.name_full} if fog is not None else set()
     eye = np.asarray(camera["world_from_camera"][12:15], dtype=np.float64)
-    blockers = ShadowLinking.of_light(sun)
-    if blockers is not None and fog is not None and not blockers.blocks([fog]):
-        notes.append(
-            f"the shadow linking of '{sun.name}' leaves the fog object '{fog.name}' out: "
-            "Cycles then lights no fog with it; the shafts are rendered as if it were in "
-            "(include the fog object in the blocker collection to match)"
-        )
+    blockers = LightLinking.of_blockers(sun)
+    receivers = LightLinking.of_receivers(sun)
+    for linking, kind, collection in (
+        (blockers, "shadow linking", "blocker"),
+        (receivers, "light linking", "receiver"),
+    ):
+        if linking is not None and fog is not None and not linking.contains([fog]):
+            notes.append(
+                f"the {kind} of '{sun.name}' leaves the fog object '{fog.name}' out: "
+                "Cycles then lights no fog with it; the shafts are rendered as if it were "
+                f"in (include the fog object in the {collection} collection to match)"
+            )
     geometry = export_geometry(
         depsgraph,
         cache=cache,

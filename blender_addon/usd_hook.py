@@ -497,7 +497,7 @@ def author_shadow_link(
     judged by its instancer."""
     from pxr import UsdLux
 
-    blockers = export.ShadowLinking.of_light(sun)
+    blockers = export.LightLinking.of_blockers(sun)
     left_out = [
         prim.GetPath()
         for obj in scene.objects

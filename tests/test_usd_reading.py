@@ -1256,6 +1256,27 @@ def test_the_lights_shadow_linking_decides_what_blocks_it(tmp_path: Path) -> Non
     }
 
 
+def test_a_medium_left_out_of_the_lights_linking_is_named(tmp_path: Path) -> None:
+    """A path tracer lights no fog that the light's lightLink or shadowLink collection
+    leaves out; the step renders the shafts and says so, naming the medium's prim."""
+    stage = author_stage(str(tmp_path / "linked.usda"), build_scene(**SMALL))
+    box = UsdGeom.Cube.Define(stage, "/World/Fog")
+    light = stage.GetPrimAtPath("/World/Sun")
+    light.GetRelationship("crepuscular:mediumExtent").SetTargets([box.GetPath()])
+    api = UsdLux.LightAPI(light)
+    read = lambda: StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())  # noqa: E731
+    assert not read().geometry.notes
+    api.GetLightLinkCollectionAPI().GetExcludesRel().AddTarget("/World/Fog")
+    (note,) = read().geometry.notes
+    assert note.startswith("/World/Sun: its lightLink collection leaves the medium /World/Fog")
+    api.GetShadowLinkCollectionAPI().GetIncludeRootAttr().Set(False)
+    api.GetShadowLinkCollectionAPI().GetIncludesRel().AddTarget("/World/ground")
+    assert [n.split(" collection")[0] for n in read().geometry.notes] == [
+        "/World/Sun: its lightLink",
+        "/World/Sun: its shadowLink",
+    ]
+
+
 def test_medium_extent_from_a_box_mesh_and_a_volume(tmp_path: Path) -> None:
     scene = build_scene(**SMALL)
     stage = author_stage(str(tmp_path / "extent.usda"), scene, meters_per_unit=0.1, up="Y")

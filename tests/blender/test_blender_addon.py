@@ -428,7 +428,7 @@ def test_shadow_linking_decides_what_blocks_the_sun(addon: ModuleType) -> None:
 
     def blocking(states: dict[str, str], child_state: str | None = None) -> set[str]:
         blender_scenes.set_blockers(blockers, states, child, child_state)
-        linking = addon.export.ShadowLinking.of_light(sun)
+        linking = addon.export.LightLinking.of_blockers(sun)
         geometry = addon.export.export_geometry(
             bpy.context.evaluated_depsgraph_get(), blockers=linking
         )
@@ -446,7 +446,7 @@ def test_shadow_linking_decides_what_blocks_the_sun(addon: ModuleType) -> None:
     assert blocking({"a": "INCLUDE"}, "INCLUDE") == {"a", "b"}
     assert blocking({}, "EXCLUDE") == {"a", "instancer"}
     sun.light_linking.blocker_collection = None
-    assert addon.export.ShadowLinking.of_light(sun) is None
+    assert addon.export.LightLinking.of_blockers(sun) is None
 
 
 def _names_by_flag(geometry: Any) -> tuple[set[str], set[str]]:
@@ -1018,9 +1018,10 @@ def test_hole_creation_without_objects_that_take_holes_says_so(addon: ModuleType
     assert inputs.kwargs["style"]["holes"]["objects"]
 
 
-def test_a_fog_object_left_out_of_shadow_linking_is_named(addon: ModuleType) -> None:
-    """Cycles lights no fog that the sun's shadow linking leaves out; the shafts still
-    render, with a note that names the fog object and the fix."""
+def test_a_fog_object_left_out_of_light_linking_is_named(addon: ModuleType) -> None:
+    """Cycles lights no fog that the sun's shadow linking or light linking leaves out
+    (measured: the fog renders 0.0); the shafts still render, with a note that names the
+    fog object and the fix."""
     scene = _basic_scene()
     fog = np.diag([4.0, 4.0, 2.0, 1.0])
     fog[:3, 3] = [0.0, 0.0, 2.0]
@@ -1035,6 +1036,13 @@ def test_a_fog_object_left_out_of_shadow_linking_is_named(addon: ModuleType) -> 
     blockers.objects.link(box)
     notes = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).notes
     assert not [n for n in notes if "shadow linking" in n]
+    # So with light linking: a fog object that does not receive the sun gets no light.
+    receivers = bpy.data.collections.new("receivers")
+    sun.light_linking.receiver_collection = receivers
+    blender_scenes.set_blockers(receivers, {box.name: "EXCLUDE"})
+    notes = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).notes
+    (note,) = [n for n in notes if "light linking" in n]
+    assert "include the fog object in the receiver collection" in note
 
 
 def test_a_sun_disc_wider_than_the_sun_s_says_it_is_not_used(addon: ModuleType) -> None:

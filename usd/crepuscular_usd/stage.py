@@ -143,8 +143,11 @@ class StageReader:
         self._collectors: dict[Sdf.Path | None, GeometryCollector] = {}
         # The light's shadow linking (UsdLuxLightAPI's shadowLink collection): its owners
         # outside it do not block the light. Unauthored, it holds everything.
-        shadow_link = UsdLux.LightAPI(self.light_prim).GetShadowLinkCollectionAPI()
+        light_api = UsdLux.LightAPI(self.light_prim)
+        shadow_link = light_api.GetShadowLinkCollectionAPI()
         self._shadow_link = shadow_link.ComputeMembershipQuery() if shadow_link else None
+        light_link = light_api.GetLightLinkCollectionAPI()
+        self._light_link = light_link.ComputeMembershipQuery() if light_link else None
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
 
     # --- prims ----------------------------------------------------------------------
@@ -214,6 +217,8 @@ class StageReader:
         )
         medium = dict(light.medium)
         medium["extent"] = self._extent(light, time)
+        if light.extent_prim is not None:
+            geometry.notes.extend(self._linking_notes(light.extent_prim.GetPath()))
         style: dict[str, Any] = {"version": crepuscular.STYLE_VERSION, "time": self.seconds(time)}
         style.update(light.style)
         if "holes" in style:
@@ -230,6 +235,20 @@ class StageReader:
             style=style,
             light_settings=light,
         )
+
+    def _linking_notes(self, extent: Sdf.Path) -> list[str]:
+        """Notes where the light's lightLink or shadowLink collection leaves the medium's
+        extent prim out: a renderer then lights no fog there (Cycles renders none); the
+        shafts are rendered as if it were in."""
+        notes = []
+        light = self.light_prim.GetPath()
+        for query, name in ((self._light_link, "lightLink"), (self._shadow_link, "shadowLink")):
+            if query is not None and not query.IsPathIncluded(extent):
+                notes.append(
+                    f"{light}: its {name} collection leaves the medium {extent} out, so a "
+                    "path tracer lights no fog in it; the shafts are rendered as if it were in"
+                )
+        return notes
 
     def _extent(self, light: LightSettings, time: Usd.TimeCode) -> dict[str, Any]:
         if light.extent_prim is None:
