@@ -24,7 +24,7 @@ from .cutouts import MaskSource, MaskTable
 
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
-#: Hair curves (CURVES) are drawn as tubes of their radius (`curves_arrays`), point clouds
+#: Hair curves (CURVES) are drawn as ribbons of their radius (`curves_arrays`), point clouds
 #: (POINTCLOUD, such as geometry nodes' points) as spheres of theirs (`pointcloud_arrays`).
 GEOMETRY_TYPES = {"MESH", "META", "CURVES", "POINTCLOUD"}
 #: Both visibility flags: a triangle that blocks the sun and that the camera sees.
@@ -52,6 +52,9 @@ class MeshArrays:
     triangles: np.ndarray
     uvs: np.ndarray | None = None
     slots: np.ndarray | None = None
+    #: Per triangle, `crepuscular.BLOCKS_SUN` or `SEEN_BY_CAMERA` where the arrays are for
+    #: one view each (strand ribbons); None: both.
+    visibility: np.ndarray | None = None
 
 
 @dataclass
@@ -137,12 +140,12 @@ def _static_key(obj: bpy.types.Object) -> str | None:
     return data.name_full
 
 
-def curves_arrays(curves: bpy.types.Curves, facing: np.ndarray | None = None) -> MeshArrays:
-    """A hair curves datablock as tubes along the Catmull-Rom splines of its strands (the
-    hair curves' default type, `crepuscular.strand_tubes`), each ring of the point's
-    radius; without a radius attribute, nothing, as Cycles draws nothing. With `facing`
-    (the sun's direction in the object's space), each strand's ends are cut so that the
-    sun sees it end at its end points, as Cycles cuts a strand's ends across each ray."""
+def curves_arrays(curves: bpy.types.Curves, seen: StrandView | None = None) -> MeshArrays:
+    """A hair curves datablock along the Catmull-Rom splines of its strands (the hair
+    curves' default type) at each point's radius; without a radius attribute, nothing, as
+    Cycles draws nothing. With `seen` (the sun and camera in the object's space), as a
+    ribbon facing each (`crepuscular.strand_ribbons`): each view sees the strand's exact
+    width and ends, as Cycles draws it; without, as tubes (`crepuscular.strand_tubes`)."""
     count = len(curves.points)
     if count == 0 or "radius" not in curves.attributes:
         return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
@@ -152,15 +155,20 @@ def curves_arrays(curves: bpy.types.Curves, facing: np.ndarray | None = None) ->
     curves.attributes["radius"].data.foreach_get("value", radius)
     offsets = np.empty(len(curves.curves) + 1, dtype=np.int64)
     curves.curve_offset_data.foreach_get("value", offsets)
-    return MeshArrays(
-        *crepuscular.strand_tubes(
-            points,
-            np.diff(offsets),
-            radius,
-            catmull_rom=crepuscular.CATMULL_ROM_STEPS,
-            facing=facing,
-        )
+    return _strand_arrays(points.reshape(-1, 3), np.diff(offsets), radius, seen)
+
+
+def _strand_arrays(
+    points: np.ndarray, counts: np.ndarray, radii: np.ndarray, seen: StrandView | None
+) -> MeshArrays:
+    """Strands as ribbons for the sun and camera of `seen`, or as tubes without."""
+    steps = crepuscular.CATMULL_ROM_STEPS
+    if seen is None:
+        return MeshArrays(*crepuscular.strand_tubes(points, counts, radii, catmull_rom=steps))
+    positions, triangles, flags = crepuscular.strand_ribbons(
+        points, counts, radii, catmull_rom=steps, **seen.ribbon_arguments()
     )
+    return MeshArrays(positions, triangles, visibility=flags)
 
 
 def pointcloud_arrays(pointcloud: bpy.types.PointCloud) -> MeshArrays:
@@ -180,16 +188,16 @@ def pointcloud_arrays(pointcloud: bpy.types.PointCloud) -> MeshArrays:
 
 
 def particle_hair_arrays(
-    obj: bpy.types.Object, render: bool, facing: np.ndarray | None = None
+    obj: bpy.types.Object, render: bool, seen: StrandView | None = None
 ) -> MeshArrays:
     """The legacy particle hair of an evaluated emitter, in its object space, as Cycles
     draws it: each hair system (rendered as paths) whose modifier shows in this kind of
     render gives its children, or its parents where it has none, as Catmull-Rom strands
     through `co_hair`'s keys (2^steps + 1 of them, the render or the viewport steps);
     radii from the root to the tip radius, shaped by `shape` along the strand's length and
-    scaled by half the radius scale, with a closed tip at 0. Ends are cut for `facing` (see
+    scaled by half the radius scale, with a closed tip at 0. Drawn for `seen` (see
     `curves_arrays`). Each key is one Python call (0.5 µs; 100,000 strands of 9 keys read
-    in about 0.5 s), and the tubes are 16 x 2 triangles a piece."""
+    in about 0.5 s), and the ribbons 2 triangles a piece per view."""
     inverse = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64))
     points: list[np.ndarray] = []
     counts: list[np.ndarray] = []
@@ -239,14 +247,8 @@ def particle_hair_arrays(
         radii.append(radius.ravel())
     if not points:
         return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
-    return MeshArrays(
-        *crepuscular.strand_tubes(
-            np.concatenate(points),
-            np.concatenate(counts),
-            np.concatenate(radii),
-            catmull_rom=crepuscular.CATMULL_ROM_STEPS,
-            facing=facing,
-        )
+    return _strand_arrays(
+        np.concatenate(points), np.concatenate(counts), np.concatenate(radii), seen
     )
 
 
@@ -296,11 +298,11 @@ def _object_arrays(
     obj: bpy.types.Object,
     cache: GeometryCache | None,
     slot_uv_maps: tuple[str, ...] | None = None,
-    facing: np.ndarray | None = None,
+    seen: StrandView | None = None,
 ) -> MeshArrays | None:
     """The object's mesh arrays; loop-split with texture coordinates where `slot_uv_maps`
-    (the UV map of each material slot) is given; hair curves' ends cut for the sun's
-    direction `facing` (in the object's space)."""
+    (the UV map of each material slot) is given; hair curves drawn for `seen` (the sun
+    and camera in the object's space, `curves_arrays`)."""
     key = _static_key(obj) if cache is not None else None
     if key is not None and slot_uv_maps is not None:
         key = key + _CUT_KEY + "|".join(slot_uv_maps)
@@ -323,7 +325,7 @@ def _object_arrays(
     if obj.type == "MESH":
         arrays = read(obj.data)
     elif obj.type == "CURVES":
-        arrays = curves_arrays(obj.data, facing)
+        arrays = curves_arrays(obj.data, seen)
     elif obj.type == "POINTCLOUD":
         arrays = pointcloud_arrays(obj.data)
     else:
@@ -344,16 +346,37 @@ def _object_arrays(
 _MeshKey = tuple[int, str, tuple[str, ...] | None, tuple[float, ...] | None]
 
 
-def _local_direction(matrix_world: Any, direction: np.ndarray) -> np.ndarray | None:
-    """A world direction in an object's space (the inverse of its linear part), unit
-    length; None for a matrix that flattens space."""
-    linear = np.array(matrix_world, dtype=np.float64)[:3, :3]
-    try:
-        local = np.linalg.solve(linear, np.asarray(direction, dtype=np.float64))
-    except np.linalg.LinAlgError:
-        return None
-    norm = np.linalg.norm(local)
-    return local / norm if np.isfinite(norm) and norm > 0 else None
+@dataclass(frozen=True)
+class StrandView:
+    """The sun's travel direction and the camera (a pinhole's position, or an orthographic
+    camera's view direction), which strands are drawn for (`crepuscular.strand_ribbons`)."""
+
+    sun: np.ndarray
+    camera: np.ndarray
+    orthographic: bool
+
+    def in_space_of(self, matrix_world: np.ndarray) -> StrandView | None:
+        """The same in an object's space; None where its matrix flattens space."""
+        linear, offset = matrix_world[:3, :3], matrix_world[:3, 3]
+        try:
+            sun = np.linalg.solve(linear, self.sun)
+            camera = np.linalg.solve(
+                linear, self.camera if self.orthographic else self.camera - offset
+            )
+        except np.linalg.LinAlgError:
+            return None
+        if not (np.isfinite(sun).all() and np.isfinite(camera).all()):
+            return None
+        return StrandView(sun, camera, self.orthographic)
+
+    def key(self) -> tuple[float, ...]:
+        """Rounded, for sharing one build between instances that see alike."""
+        sun = self.sun / np.linalg.norm(self.sun)
+        return (*np.round(sun, 6), *np.round(self.camera, 6), float(self.orthographic))
+
+    def ribbon_arguments(self) -> dict[str, np.ndarray]:
+        """`crepuscular.strand_ribbons` keywords."""
+        return {"sun": self.sun, "view" if self.orthographic else "eye": self.camera}
 
 
 #: The core's vertex indices are 32-bit.
@@ -462,7 +485,7 @@ def export_geometry(
     cache: GeometryCache | None = None,
     exclude: set[str] | frozenset[str] = frozenset(),
     origin: np.ndarray | None = None,
-    facing: np.ndarray | None = None,
+    seen: StrandView | None = None,
     blockers: LightLinking | None = None,
 ) -> Geometry:
     """Triangles of everything that casts shafts in `depsgraph`, relative to the world point
@@ -473,7 +496,7 @@ def export_geometry(
     Blender's Shadow ray visibility of both, and the sun's shadow linking (`blockers`).
     With a viewport depsgraph, objects hidden in renders are left out too. `exclude` holds
     original object names (the fog box).
-    `facing`, the sun's travel direction, is what hair strands' ends are cut for
+    `seen`, the sun and camera in world space, is what hair strands are drawn for
     (`curves_arrays`).
     """
     render_mode = depsgraph.mode == "RENDER"
@@ -504,14 +527,14 @@ def export_geometry(
         hair = instance.show_particles and len(obj.particle_systems) > 0
         if not (instance.show_self or hair):
             continue  # an emitter or instancer that Cycles does not render either
-        local_facing = None
-        if (obj.type == "CURVES" or hair) and facing is not None:
-            local_facing = _local_direction(instance.matrix_world, facing)
-        facing_key = None if local_facing is None else tuple(np.round(local_facing, 6))
+        local_seen = None
+        if (obj.type == "CURVES" or hair) and seen is not None:
+            local_seen = seen.in_space_of(np.array(instance.matrix_world, dtype=np.float64))
+        seen_key = None if local_seen is None else local_seen.key()
         if hair:
-            hair_key: _MeshKey = (obj.as_pointer(), "hair", None, facing_key)
+            hair_key: _MeshKey = (obj.as_pointer(), "hair", None, seen_key)
             if hair_key not in meshes:
-                meshes[hair_key] = particle_hair_arrays(obj, render_mode, local_facing)
+                meshes[hair_key] = particle_hair_arrays(obj, render_mode, local_seen)
             if len(meshes[hair_key].triangles):
                 groups.setdefault((hair_key, object_id, flags, None), []).append(
                     instance.matrix_world.copy()
@@ -526,10 +549,10 @@ def export_geometry(
             pointer,
             "data",
             None if cut is None else cut.uv_maps,
-            facing_key if obj.type == "CURVES" else None,
+            seen_key if obj.type == "CURVES" else None,
         )
         if mesh_key not in meshes:
-            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[2], local_facing)
+            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[2], local_seen)
         arrays = meshes[mesh_key]
         if arrays is None or len(arrays.triangles) == 0:
             continue
@@ -564,7 +587,10 @@ def export_geometry(
         positions.append(world.reshape(-1, 3).astype(np.float32))
         triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
         ids.append(np.full(count * len(arrays.triangles), object_id, dtype=np.uint32))
-        visibility.append(np.full(count * len(arrays.triangles), flags, dtype=np.uint8))
+        own = flags if arrays.visibility is None else arrays.visibility & flags
+        visibility.append(
+            np.broadcast_to(own, (count, len(arrays.triangles))).reshape(-1).astype(np.uint8)
+        )
         if any_cut:
             if cut is None or arrays.uvs is None or arrays.slots is None:
                 uvs.append(np.zeros((count * vertices, 2), dtype=np.float32))
@@ -925,12 +951,19 @@ def frame_inputs(
                 "Cycles then lights no fog with it; the shafts are rendered as if it were "
                 f"in (include the fog object in the {collection} collection to match)"
             )
+    world_from_camera = np.array(camera["world_from_camera"], dtype=np.float64).reshape(4, 4).T
+    orthographic = camera["projection"]["kind"] == "orthographic"
+    seen = StrandView(
+        np.array(sun_dict(evaluated)["direction"]),
+        -world_from_camera[:3, 2] if orthographic else eye,
+        orthographic,
+    )
     geometry = export_geometry(
         depsgraph,
         cache=cache,
         exclude=exclude,
         origin=eye,
-        facing=np.array(sun_dict(evaluated)["direction"]),
+        seen=seen,
         blockers=blockers,
     )
     settings = evaluated.data.crepuscular

@@ -24,7 +24,7 @@ extension then has crepuscular scatter once per channel value. `--cutouts` adds 
 cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
 Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscular reads as
 alpha masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
-hair curves object of 10 to 40 black strands over the box, which the extension draws as tubes,
+hair curves object of 10 to 40 black strands over the box, which the extension draws as ribbons,
 and `--points` a geometry-nodes point cloud of 20 to 300 black points of random radii over
 and in the box, which it draws as spheres (`scene.json` carries both as meshes). Views that
 see no

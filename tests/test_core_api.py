@@ -959,3 +959,36 @@ def test_strand_tube_ends_are_cut_across_the_facing_direction() -> None:
     for bad in ([0.0, 0.0, 0.0], [[0.0, 0.0, 1.0]] * 2, [np.nan, 0.0, 1.0]):
         with pytest.raises(ValueError, match="facing"):
             crepuscular.strand_tubes(strand, [4], [radius] * 4, facing=bad)
+
+
+def test_strand_ribbons_lie_across_the_sun_and_the_camera() -> None:
+    """`strand_ribbons`: per strand, a ribbon for the sun's shadow map and one for the
+    camera's depth (flagged so), each reaching the radius either side of the strand across
+    both the strand and its view, so that each view sees the strand's exact width and ends;
+    with `view`, an orthographic camera's."""
+    strand = np.array([[0.0, 0.0, 0.0], [1.0, 0.2, 0.5], [2.0, 0.0, 1.0], [3.0, 0.3, 1.5]])
+    radii = np.array([0.2, 0.15, 0.1, 0.05])
+    sun = np.array([0.3, 0.2, -1.0]) / np.linalg.norm([0.3, 0.2, -1.0])
+    eye = np.array([1.0, -6.0, 2.0])
+    positions, triangles, flags = crepuscular.strand_ribbons(strand, [4], radii, sun=sun, eye=eye)
+    assert len(triangles) == 2 * 2 * 3
+    assert flags.tolist() == [crepuscular.BLOCKS_SUN] * 6 + [crepuscular.SEEN_BY_CAMERA] * 6
+    pairs = positions.astype(np.float64).reshape(2, 4, 2, 3)  # view, point, edge
+    for ribbon, toward in ((pairs[0], np.broadcast_to(sun, (4, 3))), (pairs[1], strand - eye)):
+        centres = ribbon.mean(axis=1)
+        np.testing.assert_allclose(centres, strand, atol=1e-6)
+        half = ribbon[:, 1] - centres
+        np.testing.assert_allclose(np.linalg.norm(half, axis=1), radii, rtol=1e-5)
+        np.testing.assert_allclose(np.einsum("ij,ij->i", half, toward), 0.0, atol=1e-5)
+    view = np.array([0.0, 1.0, 0.0])
+    ortho, _, _ = crepuscular.strand_ribbons(strand, [4], radii, sun=sun, view=view)
+    camera = ortho.astype(np.float64).reshape(2, 4, 2, 3)[1]
+    np.testing.assert_allclose((camera[:, 1] - camera.mean(axis=1)) @ view, 0.0, atol=1e-6)
+    for bad, words in (
+        ({"sun": sun}, "eye"),
+        ({"sun": sun, "eye": eye, "view": view}, "eye"),
+        ({"sun": [0.0, 0.0, 0.0], "eye": eye}, "sun"),
+        ({"sun": sun, "eye": [np.inf, 0.0, 0.0]}, "eye"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            crepuscular.strand_ribbons(strand, [4], radii, **bad)

@@ -1046,8 +1046,9 @@ def test_a_skinned_mesh_whose_influences_do_not_fit_is_named(tmp_path: Path) -> 
     assert "/World/Rig/Strip" in geometry.invalid[0]
 
 
-def test_basis_curves_cast_as_tubes_of_their_widths(tmp_path: Path) -> None:
-    """BasisCurves (hair, grass, wires) cast as tubes around their points, each ring of
+def test_basis_curves_cast_as_ribbons_of_their_widths(tmp_path: Path) -> None:
+    """BasisCurves (hair, grass, wires) cast as ribbons along their points, one across the
+    sun and one across the camera, each reaching
     half the point's width, with widths per point, per curve or one for all; widths that
     fit none of those, or none at all, are named."""
     stage = author_stage(str(tmp_path / "curves.usda"), build_scene(occluder=False, **SMALL))
@@ -1062,7 +1063,6 @@ def test_basis_curves_cast_as_tubes_of_their_widths(tmp_path: Path) -> None:
     widths = curves.CreateWidthsAttr()
     # A reader keeps what it read of a static stage: a new one for each edit.
     read = lambda: StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())  # noqa: E731
-    ring = crepuscular._strands.TUBE_RADIUS
     for value, expected in (([0.2] * 12, 0.1), ([0.2], 0.1), ([0.1, 0.2, 0.3], None)):
         widths.Set(value)
         geometry = read().geometry
@@ -1070,15 +1070,12 @@ def test_basis_curves_cast_as_tubes_of_their_widths(tmp_path: Path) -> None:
         points = _points_of(geometry, "/World/Hair")
         # Catmull-Rom: each of a strand's 3 segments cut into CATMULL_ROM_STEPS.
         segments = 3 * 3 * crepuscular.CATMULL_ROM_STEPS
-        assert (
-            len(geometry.triangles[geometry.object_ids == 2])
-            == segments * 2 * crepuscular.TUBE_SIDES
-        )
+        assert len(geometry.triangles[geometry.object_ids == 2]) == segments * 2 * 2
         x, z = points[:, 0], points[:, 2]
         distance = np.hypot(x - np.round(x), z - 2.0)
         if expected is None:  # per curve: half of 0.1, 0.2 and 0.3 by strand
             expected = 0.05 * (np.round(x) + 1)
-        np.testing.assert_allclose(distance, expected * ring, rtol=1e-5)
+        np.testing.assert_allclose(distance, expected, rtol=1e-5)
     for value, words in (([0.2] * 5, "5 widths match neither"), ([], "no widths")):
         widths.Set(value)
         geometry = read().geometry
@@ -1096,11 +1093,12 @@ def _seen_extent(vertices: np.ndarray, first: np.ndarray, last: np.ndarray, sun:
     return [along.min(), along.max()], sorted([first @ seen, last @ seen])
 
 
-def test_curves_ends_are_cut_for_the_sun(tmp_path: Path) -> None:
-    """Seen from the sun, each strand's tube ends at its end points, as Cycles cuts a
-    strand's ends across each ray: for curves of their own (under a turned, scaled
-    transform) and placed by a PointInstancer, whether its placements see the sun from a
-    few directions (a build each) or from many (copies built at once)."""
+def test_curves_are_ribbons_across_the_sun_and_the_camera(tmp_path: Path) -> None:
+    """Seen from the sun, each strand's sun ribbon ends at its end points, as Cycles cuts a
+    strand's ends across each ray, and each camera ribbon lies across the camera's ray:
+    for curves of their own (under a turned, scaled transform) and placed by a
+    PointInstancer, whether its placements see the sun and camera from a few directions
+    (a build each) or from many (copies built at once)."""
     stage = author_stage(str(tmp_path / "cut.usda"), build_scene(occluder=False, **SMALL))
     # Straight, so that its ends' direction is the line between them, which the check uses.
     strand = [Gf.Vec3f(t, 3 * t, t) for t in (0.0, 0.25, 0.6, 1.0)]
@@ -1133,13 +1131,25 @@ def test_curves_ends_are_cut_for_the_sun(tmp_path: Path) -> None:
         frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
         sun = np.asarray(frame.sun["direction"])
         geometry = frame.geometry
+        eye = np.asarray(frame.camera["world_from_camera"][12:15])
         placed = geometry.positions.astype(np.float64) + geometry.origin
-        hair = placed[np.unique(geometry.triangles[geometry.object_ids == 2])]
+        flags = geometry.visibility
+        sun_rows = flags == crepuscular.BLOCKS_SUN
+        camera_rows = flags == crepuscular.SEEN_BY_CAMERA
+        hair = placed[np.unique(geometry.triangles[(geometry.object_ids == 2) & sun_rows])]
         world = np.array(UsdGeom.Xformable(own).ComputeLocalToWorldTransform(0)).T
         first, last = (world[:3, :3] @ ends.T).T + world[:3, 3]
         extent, expected = _seen_extent(hair, first, last, sun)
         np.testing.assert_allclose(extent, expected, atol=1e-4)
-        clumps = np.unique(geometry.triangles[geometry.object_ids == 3])
+        # The camera ribbon: every edge vertex is across the ray from the eye.
+        seen = placed[np.unique(geometry.triangles[(geometry.object_ids == 2) & camera_rows])]
+        axis = (last - first) / np.linalg.norm(last - first)
+        centres = first + np.outer((seen - first) @ axis, axis)
+        rays = centres - eye
+        offsets = seen - centres
+        np.testing.assert_allclose(np.einsum("ij,ij->i", offsets, rays), 0.0, atol=1e-4)
+        np.testing.assert_allclose(np.linalg.norm(offsets, axis=1), 0.15 * 1.5, rtol=1e-4)
+        clumps = np.unique(geometry.triangles[(geometry.object_ids == 3) & sun_rows])
         copies = placed[clumps].reshape(count, -1, 3)
         # Placements that see the sun alike are built together: find each one's copy.
         found = np.argsort(copies.mean(axis=1)[:, 0])

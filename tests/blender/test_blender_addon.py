@@ -576,23 +576,37 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     x, z = geometry.positions[:, 0], geometry.positions[:, 2]
     distance = np.hypot(x - np.round(x), z - 2.0)
     np.testing.assert_allclose(distance, radius, rtol=1e-5)
-    # Facing the sun (here through a turned, scaled object): seen along it, each strand's
-    # tube ends at its end points, as Cycles cuts a strand's ends across each ray.
+    # Seen by a sun and a camera (through a turned, scaled object), each strand is a
+    # ribbon across each view, of the strand's width as it sees it: the sun's in the
+    # shadow map only, the camera's in its depth only.
     hair.rotation_euler = (0.3, 0.0, 0.8)
     hair.scale = (1.5, 1.5, 1.5)
     bpy.context.view_layer.update()
     sun = np.array([0.4, -0.3, -1.0]) / np.linalg.norm([0.4, -0.3, -1.0])
-    faced = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), facing=sun)
+    eye = np.array([-6.0, -8.0, 5.0])
+    seen = addon.export.StrandView(sun, eye, orthographic=False)
+    ribbons = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), seen=seen)
+    flags = ribbons.visibility
+    assert set(flags.tolist()) == {crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA}
     matrix = np.array(hair.matrix_world)
-    tubes = faced.positions.astype(np.float64).reshape(3, -1, 3)
-    for strand, tube in zip(strands, tubes, strict=True):
-        world = strand @ matrix[:3, :3].T + matrix[:3, 3]
-        axis = (world[-1] - world[0]) / np.linalg.norm(world[-1] - world[0])
-        seen = axis - (axis @ sun) * sun
-        seen /= np.linalg.norm(seen)
-        along = tube @ seen
+    width = 0.1 * 1.5
+    for flag in (crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA):
+        corners = ribbons.positions[ribbons.triangles[flags == flag]].astype(np.float64)
+        edges = corners.reshape(-1, 3)
+        # Strands run along y through x = 0, 1, 2 at z = 2 (object space): each edge vertex
+        # is `width` from its strand's axis, across the strand and across the view.
+        local = (edges - matrix[:3, 3]) @ np.linalg.inv(matrix[:3, :3]).T
+        strand = np.round(local[:, 0]).clip(0, 2)
+        axis_point = np.c_[strand, local[:, 1], np.full(len(local), 2.0)]
+        centre = axis_point @ matrix[:3, :3].T + matrix[:3, 3]
+        offset = edges - centre
+        np.testing.assert_allclose(np.linalg.norm(offset, axis=1), width, rtol=1e-4)
+        along = matrix[:3, :3] @ np.array([0.0, 1.0, 0.0])
+        np.testing.assert_allclose(offset @ along, 0.0, atol=1e-4)
+        toward = sun if flag == crepuscular.BLOCKS_SUN else centre - eye
+        toward = toward / np.linalg.norm(toward, axis=-1, keepdims=True)
         np.testing.assert_allclose(
-            [along.min(), along.max()], [world[0] @ seen, world[-1] @ seen], atol=1e-4
+            np.einsum("ij,ij->i", offset, np.broadcast_to(toward, offset.shape)), 0.0, atol=1e-4
         )
     hair.data.attributes.remove(hair.data.attributes["radius"])
     hair.data.update_tag()

@@ -213,11 +213,11 @@ def hair_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFactor
 
 @pytest.mark.parametrize("method", ["reference", "default"])
 def test_hair_curves_match_cycles(hair_fidelity: Path, method: str) -> None:
-    """A roof of hair strands over the fidelity scene's fog: drawn as tubes of their radius,
-    their shadows shape the shafts as Cycles' round strands do; hidden, the layers are 84%
-    off. Measured: mean within 0.42% of Cycles, pixels 1.3% apart, either method. (With
-    8-sided tubes, whose width varies by 8% with the direction they are seen from, the sun's
-    direction saw them 3.6% narrower than the strands, and the layers read 2.6% bright.)"""
+    """A roof of hair strands over the fidelity scene's fog: drawn as ribbons across the sun
+    and the camera, their shadows shape the shafts as Cycles' round strands do; hidden,
+    the layers are 84% off. Measured: mean within 0.02% of Cycles, pixels 1.2% apart,
+    either method. (As 16-sided tubes: 0.42% dark. As 8-sided tubes, whose width varies by
+    8% with the direction they are seen from: 2.6% bright.)"""
     _assert_like_cycles(hair_fidelity, method, "bare", off=0.5, pixels=0.03)
 
 
@@ -243,13 +243,10 @@ def particle_hair_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempP
 @pytest.mark.parametrize("method", ["reference", "default"])
 def test_particle_hair_matches_cycles(particle_hair_fidelity: Path, method: str) -> None:
     """A roof of legacy particle hair (tapering, its emitter not rendered) over the fidelity
-    scene's fog: drawn as tubes along its paths with Cycles' radii, it shapes the shafts
-    as Cycles' strands do. Measured: mean 1.5% over Cycles', pixels 2.2% apart; with the
-    particle system off, 109% off. That 1.5% is not the reading: a Curves object through
-    the same keys and radii renders exactly as the particle hair in Cycles, and Cycles
-    renders our tube mesh within 0.03% of our layers. It is Cycles' curves against a mesh
-    of them in fog (1.4% here), though lighting a ground under them they agree within
-    0.03%, and their outlines seen along the sun within 0.3%; not yet understood."""
+    scene's fog: drawn as ribbons along its paths with Cycles' radii, it shapes the shafts
+    as Cycles' strands do. Measured: mean 0.4% over Cycles', pixels 1.9% apart; with the
+    particle system off, 109% off. (As 16-sided tubes it read 1.5% bright, which Cycles
+    rendering the same tube mesh reproduced: the tubes' geometry, not the reading.)"""
     _assert_like_cycles(particle_hair_fidelity, method, "bare", off=0.5, pixels=0.03)
 
 

@@ -5,8 +5,9 @@ Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed i
 `leftHanded` meshes get their winding flipped. Implicit surfaces (Cube, Sphere, Cylinder,
 Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
 Meshes bound to a UsdSkel skeleton are posed: blend shapes, then joints
-(`crepuscular_usd.skinning`). BasisCurves cast as tubes of their widths
-(`crepuscular.strand_tubes`), Points as spheres of theirs (`crepuscular.point_spheres`).
+(`crepuscular_usd.skinning`). BasisCurves cast as ribbons of their widths across the sun
+and the camera (`crepuscular.strand_ribbons`), Points as spheres of theirs
+(`crepuscular.point_spheres`).
 Instance proxies and `PointInstancer` prototypes (with the instancers nested in them) share
 one triangulation per prototype mesh; every placement is one numpy matrix product, never a
 Python loop over vertices.
@@ -18,6 +19,7 @@ import os
 from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -126,43 +128,115 @@ class _LocalMesh:
     masks: npt.NDArray[np.int64] | None = None
     corner_points: npt.NDArray[np.int64] | None = None
     unsplit: F64 | None = None
-    #: Curves: what their tubes are made from, to cut their ends across the sun.
+    #: Curves: what their ribbons are made from, for the sun and camera of each frame.
     strands: _Strands | None = None
     #: Copies stacked in `points`, one per placement, each its own (the same triangles).
     copies: int = 1
+    #: Per triangle (of one copy), `crepuscular.BLOCKS_SUN` or `SEEN_BY_CAMERA` where the
+    #: triangles are for one view each (strand ribbons); None: both.
+    visibility: npt.NDArray[np.uint8] | None = None
 
 
 @dataclass
 class _Strands:
-    """The `crepuscular.strand_tubes` inputs of curves, in their local space."""
+    """The strand inputs of curves (`crepuscular.strand_ribbons`), in their local space."""
 
     points: F64
     counts: npt.NDArray[np.int64]
     radii: F64
     steps: int
 
-    def tubes(self, facing: F64 | None = None) -> _LocalMesh:
-        """The tubes, their ends cut for the sun's local direction `facing` if given."""
+    def tubes(self) -> _LocalMesh:
+        """Tubes (`crepuscular.strand_tubes`), for frames without a sun and camera."""
         positions, triangles = crepuscular.strand_tubes(
-            self.points, self.counts, self.radii, catmull_rom=self.steps, facing=facing
+            self.points, self.counts, self.radii, catmull_rom=self.steps
         )
         return _LocalMesh(positions.astype(np.float64), triangles, strands=self)
 
-    def tube_copies(self, facings: F64) -> _LocalMesh:
-        """A copy of the tubes for each of the K local sun directions `facings` (K, 3),
-        stacked in one call: placements that each see the sun differently (a field of
-        clumps turned at random) cost one build, not one each."""
-        copies = len(facings)
-        positions, triangles = crepuscular.strand_tubes(
+    def ribbons(self, seen: _StrandView) -> _LocalMesh:
+        """A ribbon across the sun and one across the camera per strand
+        (`crepuscular.strand_ribbons`), `seen` in local space: one (3,) each, or K (K, 3)
+        for a copy per placement, built in one call (a field of clumps turned at random
+        costs one build, not one each)."""
+        copies = 1 if seen.sun.ndim == 1 else len(seen.sun)
+        strands = len(self.counts)
+
+        def per_strand(value: F64) -> F64:
+            return value if value.ndim == 1 else np.repeat(value, strands, axis=0)
+
+        camera = "view" if seen.orthographic else "eye"
+        positions, triangles, flags = crepuscular.strand_ribbons(
             np.tile(self.points, (copies, 1)),
             np.tile(self.counts, copies),
             np.tile(self.radii, copies),
             catmull_rom=self.steps,
-            facing=np.repeat(facings, len(self.counts), axis=0),
+            sun=per_strand(seen.sun),
+            **{camera: per_strand(seen.camera)},
         )
-        # The copies' triangles are the first's, offset copy by copy.
-        first = triangles[: len(triangles) // copies]
-        return _LocalMesh(positions.astype(np.float64), first, strands=self, copies=copies)
+        if copies > 1:
+            # The call lays out every copy's sun ribbons, then every copy's camera ribbons;
+            # placements want each copy's own block, laid out as one copy's call does.
+            half = len(positions) // 2
+            by_copy = [positions[:half], positions[half:]]
+            positions = np.concatenate(
+                [part.reshape(copies, -1, 3) for part in by_copy], axis=1
+            ).reshape(-1, 3)
+            _, triangles, flags = crepuscular.strand_ribbons(
+                self.points,
+                self.counts,
+                self.radii,
+                catmull_rom=self.steps,
+                sun=seen.sun[0],
+                **{camera: seen.camera[0]},
+            )
+        return _LocalMesh(
+            positions.astype(np.float64),
+            triangles,
+            strands=self,
+            copies=copies,
+            visibility=flags,
+        )
+
+
+@dataclass
+class _StrandView:
+    """The sun's travel direction and the camera (a pinhole's position, or an orthographic
+    camera's view direction) in some space, which curves are drawn for: one (3,) each, or
+    one per placement (K, 3)."""
+
+    sun: F64
+    camera: F64
+    orthographic: bool
+
+    def placed_by(self, rows: F64) -> _StrandView | None:
+        """The same in the local spaces of the (K, 4, 4) row-vector placements `rows`;
+        None where one flattens space."""
+        linear = np.swapaxes(rows[:, :3, :3], 1, 2)  # a row-vector map d -> d @ L, solved
+        count = len(rows)
+        camera = self.camera if self.orthographic else self.camera - rows[:, 3, :3]
+        try:
+            sun = np.linalg.solve(linear, np.broadcast_to(self.sun, (count, 3))[..., None])
+            camera = np.linalg.solve(linear, np.broadcast_to(camera, (count, 3))[..., None])
+        except np.linalg.LinAlgError:
+            return None
+        sun, camera = sun[..., 0], camera[..., 0]
+        if not (np.isfinite(sun).all() and np.isfinite(camera).all()):
+            return None
+        return _StrandView(
+            sun / np.linalg.norm(sun, axis=1, keepdims=True), camera, self.orthographic
+        )
+
+
+def strand_view(sun: dict[str, Any], camera: dict[str, Any]) -> _StrandView:
+    """The sun and camera of a frame (`StageReader.sun` and `.camera` dicts, in the
+    renderer's space), which `GeometryCollector.collect` draws curves for."""
+    world_from_camera = np.array(camera["world_from_camera"], dtype=np.float64).reshape(4, 4).T
+    orthographic = camera["projection"]["kind"] == "orthographic"
+    return _StrandView(
+        np.asarray(sun["direction"], dtype=np.float64),
+        -world_from_camera[:3, 2] if orthographic else world_from_camera[:3, 3],
+        orthographic,
+    )
 
 
 @dataclass
@@ -174,6 +248,8 @@ class _Chunk:
     triangles: npt.NDArray[np.uint32]
     uvs: F64 | None = None
     masks: npt.NDArray[np.int64] | None = None
+    #: Per triangle, the `_LocalMesh`es' visibility flags where some are for one view.
+    visibility: npt.NDArray[np.uint8] | None = None
 
 
 @dataclass
@@ -239,10 +315,10 @@ class GeometryCollector:
         self._cache: dict[Sdf.Path, _LocalMesh] = {}
         self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
         self._masks = MaskTable()
-        #: The sun's travel direction in the renderer's space, for the frame collecting.
-        self._facing: F64 | None = None
-        #: Curves' tubes cut for the sun, by their local tubes' identity and the sun's
-        #: direction in their space (rounded): a still sun and still curves build them once.
+        #: The sun and camera in the renderer's space, for the frame collecting.
+        self._seen: _StrandView | None = None
+        #: Curves' ribbons, by their local mesh's identity and the sun and camera in their
+        #: space (rounded): a still shot builds them once.
         self._faced: dict[tuple[int, tuple[float, ...]], tuple[_LocalMesh, _LocalMesh]] = {}
 
     # --- meshes ---------------------------------------------------------------------
@@ -352,32 +428,27 @@ class GeometryCollector:
     def _facing_groups(
         self, local: _LocalMesh, rows: F64
     ) -> list[tuple[_LocalMesh, npt.NDArray[np.int64]]]:
-        """`local` as placed by the (K, 4, 4) row-vector `rows`: curves' tubes with their
-        ends cut for the sun as each placement's space sees it (placements that see it
+        """`local` as placed by the (K, 4, 4) row-vector `rows`: curves as ribbons for the
+        sun and camera as each placement's space sees them (placements that see them
         alike share them), with the indices of their placements; anything else, or
-        without a sun, `local` for all."""
+        without a sun and camera, `local` for all."""
         everything = np.arange(len(rows))
-        if local.strands is None or self._facing is None:
+        if local.strands is None or self._seen is None:
             return [(local, everything)]
-        # A row-vector map sends a local direction d to d @ L: the sun's is solved for.
-        linear = np.swapaxes(rows[:, :3, :3], 1, 2)
-        sun = np.broadcast_to(self._facing, (len(rows), 3))[..., None]
-        try:
-            directions = np.linalg.solve(linear, sun)[..., 0]
-        except np.linalg.LinAlgError:
+        seen = self._seen.placed_by(rows)
+        if seen is None:
             return [(local, everything)]
-        keys = np.round(directions / np.linalg.norm(directions, axis=1, keepdims=True), 6)
-        if not np.isfinite(keys).all():
-            return [(local, everything)]
+        keys = np.round(np.concatenate([seen.sun, seen.camera], axis=1), 6)
         unique, which = np.unique(keys, axis=0, return_inverse=True)
         if len(unique) > MAX_FACING_GROUPS:
-            return [(local.strands.tube_copies(keys), everything)]
+            return [(local.strands.ribbons(seen), everything)]
         groups = []
         for index, key in enumerate(unique):
             cache_key = (id(local), tuple(float(v) for v in key))
             cached = self._faced.get(cache_key)
             if cached is None or cached[0] is not local:
-                cached = (local, local.strands.tubes(key))
+                one = _StrandView(key[:3], key[3:], seen.orthographic)
+                cached = (local, local.strands.ribbons(one))
                 self._faced[cache_key] = cached
             groups.append((cached[1], np.flatnonzero(which.reshape(-1) == index)))
         return groups
@@ -394,18 +465,18 @@ class GeometryCollector:
         self,
         time: Usd.TimeCode,
         origin: F64 | None = None,
-        facing: F64 | None = None,
+        seen: _StrandView | None = None,
         shadow_link: Usd.CollectionMembershipQuery | None = None,
     ) -> SceneGeometry:
         """Every visible render-purpose surface at `time`, in the renderer's space, relative to
         `origin` (default the origin): subtracted in float64, a point near the camera keeps
-        float32 positions precise however far the stage lies from its origin. Curves' tubes
-        have their ends cut so that `facing`, the sun's travel direction, sees them end at
-        their end points, as a path tracer cuts a strand's ends across each ray. Owners
+        float32 positions precise however far the stage lies from its origin. Curves
+        are drawn as ribbons for the sun and camera `seen` (`strand_view`), so that each
+        sees their exact width and ends, as a path tracer draws strands. Owners
         (a mesh, an instance proxy, a PointInstancer) that `shadow_link`, the light's
         shadow-linking collection, leaves out do not block the sun, and still hide the fog
         from the camera."""
-        self._facing = None if facing is None else np.asarray(facing, dtype=np.float64)
+        self._seen = seen
         if len(self._faced) > 4096:
             self._faced.clear()
         xforms = UsdGeom.XformCache(time)
@@ -444,9 +515,11 @@ class GeometryCollector:
                 world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
                 [(local, _)] = self._facing_groups(local, world_row[None])
                 placed_points = _transform(local.points if local.strands else points, world_row)
-                chunks.append(
-                    _Chunk(prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks)
+                chunk = _Chunk(
+                    prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks
                 )
+                chunk.visibility = local.visibility
+                chunks.append(chunk)
                 continue
             if prim.IsA(UsdSkel.Root):
                 try:
@@ -457,8 +530,7 @@ class GeometryCollector:
             self._count_unsupported(prim, unsupported)
         offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
         geometry = _assemble(chunks, instanced, unsupported, invalid, offset)
-        if shadow_link is not None:
-            geometry.visibility = _link_visibility(chunks, shadow_link)
+        geometry.visibility = _visibility(chunks, shadow_link)
         if geometry.triangle_masks is not None:
             geometry.masks = self._masks.masks()
         geometry.notes = list(self._masks.notes)
@@ -601,7 +673,9 @@ class GeometryCollector:
         triangles: list[npt.NDArray[np.uint32]] = []
         uvs: list[F64] = []
         masks: list[npt.NDArray[np.int64]] = []
+        flags: list[npt.NDArray[np.uint8]] = []
         cut = any(local.masks is not None for _, local, _ in found)
+        split = any(local.visibility is not None for _, local, _ in found)
         sources: set[Sdf.Path] = set()
         base = 0
         vertices = sum(len(local.points) // local.copies * len(rows) for _, local, rows in found)
@@ -622,6 +696,11 @@ class GeometryCollector:
             triangles.append(
                 (local.triangles[None, :, :].astype(np.int64) + offsets).reshape(-1, 3)
             )
+            if split:
+                own = local.visibility
+                if own is None:
+                    own = np.full(len(local.triangles), 3, dtype=np.uint8)
+                flags.append(np.tile(own, len(rows)))
             if cut:
                 copies = len(rows)
                 if local.masks is None or local.uvs is None:
@@ -633,13 +712,15 @@ class GeometryCollector:
             base += count * len(rows)
         stacked = np.concatenate(triangles).astype(np.uint32)
         chunk = _Chunk(prim.GetPath(), np.concatenate(positions), stacked)
+        if split:
+            chunk.visibility = np.concatenate(flags)
         if cut:
             chunk.uvs, chunk.masks = np.concatenate(uvs), np.concatenate(masks)
         return chunk, sources
 
 
 #: Placements of one curves prototype that see the sun from more directions than this get
-#: a copy of its tubes each, built in one call, instead of one build per direction.
+#: a copy of its ribbons each, built in one call, instead of one build per direction.
 MAX_FACING_GROUPS = 16
 
 #: Bytes the step holds per vertex an instancer places (the einsum's float64 rows and their
@@ -686,10 +767,10 @@ def _is_surface(prim: Usd.Prim) -> bool:
 
 
 def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
-    """BasisCurves as tubes of half their widths (`crepuscular.strand_tubes`), and whether
+    """BasisCurves' strands at half their widths (`_Strands`, drawn per frame), and whether
     that may vary in time: linear curves along their points, Catmull-Rom curves along
     their splines through them (as Blender's exporter writes hair), Bezier and B-spline
-    curves along their control polygon; curves with normals (ribbons) as tubes too."""
+    curves along their control polygon; curves with normals (ribbons) round too."""
     curves = UsdGeom.BasisCurves(prim)
     where = str(prim.GetPath())
     attrs = [curves.GetPointsAttr(), curves.GetCurveVertexCountsAttr(), _widths_attr(prim)]
@@ -722,7 +803,7 @@ def _curves_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
     cubic = curves.GetTypeAttr().Get(time) == UsdGeom.Tokens.cubic
     catmull_rom = cubic and curves.GetBasisAttr().Get(time) == UsdGeom.Tokens.catmullRom
     steps = crepuscular.CATMULL_ROM_STEPS if catmull_rom else 0
-    return _Strands(points, counts, radii, steps).tubes(None), varying
+    return _Strands(points, counts, radii, steps).tubes(), varying
 
 
 def _widths_attr(prim: Usd.Prim) -> Usd.Attribute:
@@ -769,25 +850,27 @@ def _points_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
     return _LocalMesh(positions.astype(np.float64), triangles), varying
 
 
-def _link_visibility(
-    chunks: list[_Chunk], shadow_link: Usd.CollectionMembershipQuery
+def _visibility(
+    chunks: list[_Chunk], shadow_link: Usd.CollectionMembershipQuery | None
 ) -> npt.NDArray[np.uint8] | None:
-    """Per triangle of `chunks` (in `_assemble`'s order), whether its owner blocks the sun
-    by the light's shadow-linking collection; None where every owner does."""
-    blocks = {chunk.path: shadow_link.IsPathIncluded(chunk.path) for chunk in chunks}
-    if all(blocks.values()):
-        return None
+    """Per triangle of `chunks` (in `_assemble`'s order), the visibility flags: the
+    chunks' own (strand ribbons), less `BLOCKS_SUN` where the light's shadow-linking
+    collection leaves the owner out; None where every triangle has both."""
     both = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
-    return np.concatenate(
-        [
-            np.full(
-                len(chunk.triangles),
-                both if blocks[chunk.path] else crepuscular.SEEN_BY_CAMERA,
-                dtype=np.uint8,
-            )
-            for chunk in chunks
-        ]
-    )
+    parts = []
+    for chunk in chunks:
+        flags = (
+            np.full(len(chunk.triangles), both, dtype=np.uint8)
+            if chunk.visibility is None
+            else chunk.visibility
+        )
+        if shadow_link is not None and not shadow_link.IsPathIncluded(chunk.path):
+            flags = flags & np.uint8(crepuscular.SEEN_BY_CAMERA)
+        parts.append(flags)
+    if not parts:
+        return None
+    flags = np.concatenate(parts)
+    return None if (flags == both).all() else flags
 
 
 def _transform(points: F64, world_row: F64) -> F64:

@@ -22,7 +22,12 @@ import numpy.typing as npt
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdLux
 
 import crepuscular
-from crepuscular_usd.geometry import GeometryCollector, SceneGeometry, row_matrix
+from crepuscular_usd.geometry import (
+    GeometryCollector,
+    SceneGeometry,
+    row_matrix,
+    strand_view,
+)
 from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
 
 __all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage", "tf_message"]
@@ -212,7 +217,7 @@ class StageReader:
         geometry = collector.collect(
             time,
             np.asarray(camera["world_from_camera"][12:15]),
-            facing=np.asarray(sun["direction"], dtype=np.float64),
+            seen=strand_view(sun, camera),
             shadow_link=self._shadow_link,
         )
         medium = dict(light.medium)

@@ -27,7 +27,14 @@ import numpy.typing as npt
 
 from crepuscular import _convert, _core
 from crepuscular._points import SPHERE_TRIANGLES, SPHERE_VERTICES, point_spheres
-from crepuscular._strands import CATMULL_ROM_STEPS, TUBE_SIDES, strand_tubes
+from crepuscular._strands import (
+    BLOCKS_SUN,
+    CATMULL_ROM_STEPS,
+    SEEN_BY_CAMERA,
+    TUBE_SIDES,
+    strand_ribbons,
+    strand_tubes,
+)
 from crepuscular.errors import CancelledError, CrepuscularError, ExrError, InvalidInputError
 
 __all__ = [
@@ -64,6 +71,7 @@ __all__ = [
     "render",
     "render_arrays",
     "scene_from_json",
+    "strand_ribbons",
     "strand_tubes",
     "validate_scene",
     "write_exr",
@@ -72,10 +80,7 @@ __all__ = [
 ]
 
 __version__: str = _core.__version__
-#: `render_arrays`' `triangle_visibility` flags: in the sun's shadow map, in the camera's
-#: depth.
-BLOCKS_SUN: int = 1
-SEEN_BY_CAMERA: int = 2
+
 #: The scene-description version this build reads and writes.
 SCENE_VERSION: int = _core.SCENE_VERSION
 

@@ -4,9 +4,14 @@ which cast the shadow of a round strand from any direction within 1.3%."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+
+#: `render_arrays`' visibility flags (also `crepuscular.BLOCKS_SUN`, `SEEN_BY_CAMERA`).
+BLOCKS_SUN = 1
+SEEN_BY_CAMERA = 2
 
 #: Sides of a strand's tube, and the factor on its circumradius that gives the tube the
 #: mean width of the round strand (Cauchy: the mean width of a convex section is its
@@ -47,28 +52,18 @@ def strand_tubes(
     across it). The camera still sees the half ellipses: a plane holding the camera's ray
     as well ends the strand for both, along a slanted line of the same area, but it moves
     the outline sideways, and on random strands against Cycles it did no better."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    counts = np.asarray(counts, dtype=np.int64).reshape(-1)
-    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
-    if catmull_rom > 1 and len(points):
-        points, counts, radii = _catmull_rom(points, counts, radii, catmull_rom)
-    total = len(points)
-    if total == 0 or len(counts) == 0:
+    prepared = _Prepared.of(points, counts, radii, catmull_rom)
+    if prepared is None:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32)
-    if counts.min() < 0 or counts.sum() != total or len(radii) != total:
-        raise ValueError(
-            f"{len(counts)} strands of {int(counts.sum())} points in all, but {total} points "
-            f"and {len(radii)} radii"
-        )
-    starts = np.cumsum(counts) - counts
-    ends = starts + counts
-    strand = np.repeat(np.arange(len(counts)), counts)
-    index = np.arange(total)
-    # Tangents by central differences within each strand (one-sided at its ends).
-    tangents = (
-        points[np.minimum(index + 1, ends[strand] - 1)]
-        - points[np.maximum(index - 1, starts[strand])]
+    points, radii, starts, ends, strand, tangents = (
+        prepared.points,
+        prepared.radii,
+        prepared.starts,
+        prepared.ends,
+        prepared.strand,
+        prepared.tangents,
     )
+    index = np.arange(len(points))
     # One reference axis per strand, the one least along its overall direction, so that
     # its rings do not twist from point to point.
     span = points[np.maximum(ends - 1, starts)] - points[starts]
@@ -94,17 +89,137 @@ def strand_tubes(
     return rings.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.uint32)
 
 
-def _directions(value: npt.ArrayLike, count: int) -> npt.NDArray[np.float64]:
-    """`facing`: one direction (3,) or one per strand (count, 3), finite and non-zero, as
-    unit (count, 3)."""
+def strand_ribbons(
+    points: npt.ArrayLike,
+    counts: npt.ArrayLike,
+    radii: npt.ArrayLike,
+    *,
+    sun: npt.ArrayLike,
+    eye: npt.ArrayLike | None = None,
+    view: npt.ArrayLike | None = None,
+    catmull_rom: int = 0,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.uint8]]:
+    """Strands as two flat ribbons each, one for the sun's shadow map and one for the
+    camera's depth: returns (N, 3) float32 positions, (M, 3) uint32 triangles and (M,)
+    `render_arrays` visibility flags (`BLOCKS_SUN` for the first ribbon's triangles,
+    `SEEN_BY_CAMERA` for the second's).
+
+    Each ribbon lies across its view, 2r wide: at each point it spans r either side of the
+    strand along the direction across both the strand and the view. Its view therefore
+    sees it exactly as wide as the round strand, and ending at the strand's end points,
+    cut across the strand as seen (as a path tracer such as Cycles cuts a strand's ends
+    across each ray). A tube (`strand_tubes`) is within 1.3% in width and shows half an
+    ellipse at each end to any view its ends are not cut for; a ribbon piece is 2
+    triangles per view against the tube's 32.
+
+    `sun` is the sun's travel direction; the camera is `eye`, a pinhole's position (each
+    point's ribbon then faces it), or `view`, an orthographic camera's direction. Each
+    may be one (3,) or one per strand (S, 3). A strand seen end-on has a ribbon of no
+    width, as its outline is then only its round end. `points`, `counts`, `radii` and
+    `catmull_rom` are `strand_tubes`'."""
+    if (eye is None) == (view is None):
+        raise ValueError("give the camera as eye (a position) or view (a direction): one of them")
+    strand_count = len(np.asarray(counts).reshape(-1))
+    suns = _directions(sun, strand_count, "sun")
+    cameras = (
+        _directions(view, strand_count, "view")
+        if view is not None
+        else _points(eye, strand_count, "eye")
+    )
+    prepared = _Prepared.of(points, counts, radii, catmull_rom)
+    if prepared is None:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32), np.zeros(0, np.uint8)
+    points, radii, ends, strand = prepared.points, prepared.radii, prepared.ends, prepared.strand
+    tangents = _unit(prepared.tangents)
+    total = len(points)
+    index = np.arange(total)
+    seen_along = cameras[strand] if view is not None else _unit(points - cameras[strand])
+    first = np.flatnonzero(index + 1 < ends[strand])
+    positions: list[npt.NDArray[np.float64]] = []
+    triangles: list[npt.NDArray[np.int64]] = []
+    for direction in (suns[strand], seen_along):
+        side = radii[:, None] * _unit(np.cross(tangents, direction))
+        base = 2 * total * len(positions)
+        # Vertex 2k is point k's one edge, 2k + 1 its other.
+        positions.append(np.stack([points - side, points + side], axis=1).reshape(-1, 3))
+        a, b = base + 2 * first, base + 2 * first + 1
+        c, d = a + 2, b + 2
+        triangles.append(np.stack([np.c_[a, b, d], np.c_[a, d, c]], axis=1).reshape(-1, 3))
+    flags = np.repeat(
+        np.array([BLOCKS_SUN, SEEN_BY_CAMERA], dtype=np.uint8), [len(t) for t in triangles]
+    )
+    return (
+        np.concatenate(positions).astype(np.float32),
+        np.concatenate(triangles).astype(np.uint32),
+        flags,
+    )
+
+
+@dataclass
+class _Prepared:
+    """Strands made ready for tubes or ribbons: their points (cut along their Catmull-Rom
+    splines if asked), radii, each strand's first and past-last point, each point's strand,
+    and tangents by central differences within each strand (one-sided at its ends)."""
+
+    points: npt.NDArray[np.float64]
+    radii: npt.NDArray[np.float64]
+    starts: npt.NDArray[np.int64]
+    ends: npt.NDArray[np.int64]
+    strand: npt.NDArray[np.int64]
+    tangents: npt.NDArray[np.float64]
+
+    @classmethod
+    def of(
+        cls, points: npt.ArrayLike, counts: npt.ArrayLike, radii: npt.ArrayLike, catmull_rom: int
+    ) -> _Prepared | None:
+        """None where there is no strand; a mismatch of counts, points and radii is named."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        counts = np.asarray(counts, dtype=np.int64).reshape(-1)
+        radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+        if catmull_rom > 1 and len(points):
+            points, counts, radii = _catmull_rom(points, counts, radii, catmull_rom)
+        total = len(points)
+        if total == 0 or len(counts) == 0:
+            return None
+        if counts.min() < 0 or counts.sum() != total or len(radii) != total:
+            raise ValueError(
+                f"{len(counts)} strands of {int(counts.sum())} points in all, but {total} "
+                f"points and {len(radii)} radii"
+            )
+        starts = np.cumsum(counts) - counts
+        ends = starts + counts
+        strand = np.repeat(np.arange(len(counts)), counts)
+        index = np.arange(total)
+        tangents = (
+            points[np.minimum(index + 1, ends[strand] - 1)]
+            - points[np.maximum(index - 1, starts[strand])]
+        )
+        return cls(points, radii, starts, ends, strand, tangents)
+
+
+def _points(value: npt.ArrayLike, count: int, name: str) -> npt.NDArray[np.float64]:
+    """One point (3,) or one per strand (count, 3), finite, as (count, 3)."""
     array = np.asarray(value, dtype=np.float64)
     if array.shape not in ((3,), (count, 3)):
         raise ValueError(
-            f"facing must be one direction or one per strand ({count}), not of shape {array.shape}"
+            f"{name} must be one point or one per strand ({count}), not of shape {array.shape}"
+        )
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} must be finite")
+    return np.broadcast_to(array, (count, 3))
+
+
+def _directions(value: npt.ArrayLike, count: int, name: str = "facing") -> npt.NDArray[np.float64]:
+    """One direction (3,) or one per strand (count, 3), finite and non-zero, as unit
+    (count, 3)."""
+    array = np.asarray(value, dtype=np.float64)
+    if array.shape not in ((3,), (count, 3)):
+        raise ValueError(
+            f"{name} must be one direction or one per strand ({count}), not of shape {array.shape}"
         )
     norms = np.linalg.norm(array, axis=-1, keepdims=True)
     if not (np.isfinite(norms).all() and (norms > 0).all()):
-        raise ValueError("facing must be finite non-zero directions")
+        raise ValueError(f"{name} must be finite non-zero directions")
     return np.broadcast_to(array / norms, (count, 3))
 
 
