@@ -319,7 +319,7 @@ class GeometryCollector:
         self._seen: _StrandView | None = None
         #: Curves' ribbons, by their local mesh's identity and the sun and camera in their
         #: space (rounded): a still shot builds them once.
-        self._faced: dict[tuple[int, tuple[float, ...]], tuple[_LocalMesh, _LocalMesh]] = {}
+        self._ribbons: dict[tuple[int, tuple[float, ...]], tuple[_LocalMesh, _LocalMesh]] = {}
 
     # --- meshes ---------------------------------------------------------------------
 
@@ -425,7 +425,7 @@ class GeometryCollector:
             posed = posed[local.corner_points]
         return posed, space
 
-    def _facing_groups(
+    def _strand_groups(
         self, local: _LocalMesh, rows: F64
     ) -> list[tuple[_LocalMesh, npt.NDArray[np.int64]]]:
         """`local` as placed by the (K, 4, 4) row-vector `rows`: curves as ribbons for the
@@ -440,16 +440,16 @@ class GeometryCollector:
             return [(local, everything)]
         keys = np.round(np.concatenate([seen.sun, seen.camera], axis=1), 6)
         unique, which = np.unique(keys, axis=0, return_inverse=True)
-        if len(unique) > MAX_FACING_GROUPS:
+        if len(unique) > MAX_STRAND_GROUPS:
             return [(local.strands.ribbons(seen), everything)]
         groups = []
         for index, key in enumerate(unique):
             cache_key = (id(local), tuple(float(v) for v in key))
-            cached = self._faced.get(cache_key)
+            cached = self._ribbons.get(cache_key)
             if cached is None or cached[0] is not local:
                 one = _StrandView(key[:3], key[3:], seen.orthographic)
                 cached = (local, local.strands.ribbons(one))
-                self._faced[cache_key] = cached
+                self._ribbons[cache_key] = cached
             groups.append((cached[1], np.flatnonzero(which.reshape(-1) == index)))
         return groups
 
@@ -477,8 +477,8 @@ class GeometryCollector:
         shadow-linking collection, leaves out do not block the sun, and still hide the fog
         from the camera."""
         self._seen = seen
-        if len(self._faced) > 4096:
-            self._faced.clear()
+        if len(self._ribbons) > 4096:
+            self._ribbons.clear()
         xforms = UsdGeom.XformCache(time)
         chunks: list[_Chunk] = []
         instanced: dict[Sdf.Path, set[Sdf.Path]] = {}
@@ -513,7 +513,7 @@ class GeometryCollector:
                     invalid.append(str(error))
                     continue
                 world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
-                [(local, _)] = self._facing_groups(local, world_row[None])
+                [(local, _)] = self._strand_groups(local, world_row[None])
                 placed_points = _transform(local.points if local.strands else points, world_row)
                 chunk = _Chunk(
                     prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks
@@ -665,9 +665,9 @@ class GeometryCollector:
             return None
         world_row = row_matrix(xforms.GetLocalToWorldTransform(prim)) @ core_row
         found = [
-            (path, faced, rows[which])
+            (path, drawn, rows[which])
             for path, local, rows in found
-            for faced, which in self._facing_groups(local, rows @ world_row)
+            for drawn, which in self._strand_groups(local, rows @ world_row)
         ]
         positions: list[F64] = []
         triangles: list[npt.NDArray[np.uint32]] = []
@@ -719,9 +719,9 @@ class GeometryCollector:
         return chunk, sources
 
 
-#: Placements of one curves prototype that see the sun from more directions than this get
+#: Placements of one curves prototype that see the sun and camera in more ways than this get
 #: a copy of its ribbons each, built in one call, instead of one build per direction.
-MAX_FACING_GROUPS = 16
+MAX_STRAND_GROUPS = 16
 
 #: Bytes the step holds per vertex an instancer places (the einsum's float64 rows and their
 #: copies, the float32 positions) and per triangle (int64 indices, the uint32 copy, an id).
