@@ -283,6 +283,20 @@ def add_hair(scene: Any, name: str, strands: Any, radius: float, material: Any =
     return obj
 
 
+def _vertex_object(scene: Any, name: str, positions: Any) -> Any:
+    """A mesh object of loose vertices at (N, 3) `positions`, linked to `scene`."""
+    import bpy
+
+    positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(positions))
+    mesh.vertices.foreach_set("co", positions.ravel())
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    scene.collection.objects.link(obj)
+    return obj
+
+
 def add_points(
     scene: Any, name: str, positions: Any, radii: Any = None, material: Any = None
 ) -> Any:
@@ -292,16 +306,10 @@ def add_points(
     set on the points."""
     import bpy
 
-    positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-    mesh = bpy.data.meshes.new(name)
-    mesh.vertices.add(len(positions))
-    mesh.vertices.foreach_set("co", positions.ravel())
+    obj = _vertex_object(scene, name, positions)
     if radii is not None:
-        attribute = mesh.attributes.new("point_radius", "FLOAT", "POINT")
+        attribute = obj.data.attributes.new("point_radius", "FLOAT", "POINT")
         attribute.data.foreach_set("value", np.asarray(radii, dtype=np.float32))
-    mesh.update()
-    obj = bpy.data.objects.new(name, mesh)
-    scene.collection.objects.link(obj)
     group = bpy.data.node_groups.new(f"{name} points", "GeometryNodeTree")
     group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
@@ -335,13 +343,7 @@ def add_point_cloud(scene: Any, name: str, positions: Any, radii: Any, material:
     radius attribute of `radii`."""
     import bpy
 
-    positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-    mesh = bpy.data.meshes.new(name)
-    mesh.vertices.add(len(positions))
-    mesh.vertices.foreach_set("co", positions.ravel())
-    mesh.update()
-    obj = bpy.data.objects.new(name, mesh)
-    scene.collection.objects.link(obj)
+    obj = _vertex_object(scene, name, positions)
     for other in bpy.context.selected_objects:
         other.select_set(False)
     bpy.context.view_layer.objects.active = obj

@@ -856,6 +856,8 @@ def _visibility(
     """Per triangle of `chunks` (in `_assemble`'s order), the visibility flags: the
     chunks' own (strand ribbons), less `BLOCKS_SUN` where the light's shadow-linking
     collection leaves the owner out; None where every triangle has both."""
+    if shadow_link is None and all(chunk.visibility is None for chunk in chunks):
+        return None
     both = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
     parts = []
     for chunk in chunks:

@@ -127,6 +127,20 @@ class Frame:
         }
 
 
+def _membership(collection: Usd.CollectionAPI) -> Usd.UsdCollectionMembershipQuery | None:
+    """The collection's membership query, or None where it holds every prim (a light
+    linking collection's fallback: the root included, nothing excluded), so that frames
+    without linking test no paths."""
+    if not collection:
+        return None
+    holds_everything = (
+        collection.GetIncludeRootAttr().Get()
+        and not collection.GetExcludesRel().HasAuthoredTargets()
+        and not collection.GetMembershipExpressionAttr().HasAuthoredValue()
+    )
+    return None if holds_everything else collection.ComputeMembershipQuery()
+
+
 class StageReader:
     """Reads frames of one stage for one camera and one DistantLight."""
 
@@ -149,10 +163,8 @@ class StageReader:
         # The light's shadow linking (UsdLuxLightAPI's shadowLink collection): its owners
         # outside it do not block the light. Unauthored, it holds everything.
         light_api = UsdLux.LightAPI(self.light_prim)
-        shadow_link = light_api.GetShadowLinkCollectionAPI()
-        self._shadow_link = shadow_link.ComputeMembershipQuery() if shadow_link else None
-        light_link = light_api.GetLightLinkCollectionAPI()
-        self._light_link = light_link.ComputeMembershipQuery() if light_link else None
+        self._shadow_link = _membership(light_api.GetShadowLinkCollectionAPI())
+        self._light_link = _membership(light_api.GetLightLinkCollectionAPI())
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
 
     # --- prims ----------------------------------------------------------------------
