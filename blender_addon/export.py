@@ -31,6 +31,8 @@ GEOMETRY_TYPES = {"MESH", "META", "CURVES", "POINTCLOUD"}
 BOTH = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
 #: Object types without texture coordinates, which no alpha mask cuts.
 UNCUT_TYPES = {"CURVES", "POINTCLOUD"}
+#: Object types drawn for the sun and camera as each instance's space sees them.
+SEEN_TYPES = {"CURVES", "POINTCLOUD"}
 #: The radius Blender gives a point cloud's points without a radius attribute; Cycles
 #: draws them at it (a render of such a point measured 0.00996).
 DEFAULT_POINT_RADIUS = 0.01
@@ -52,8 +54,8 @@ class MeshArrays:
     triangles: np.ndarray
     uvs: np.ndarray | None = None
     slots: np.ndarray | None = None
-    #: Per triangle, `crepuscular.BLOCKS_SUN` or `SEEN_BY_CAMERA` where the arrays are for
-    #: one view each (strand ribbons); None: both.
+    #: Per triangle, `crepuscular.BLOCKS_SUN`, `SEEN_BY_CAMERA`, both or neither where the
+    #: arrays are drawn per view (strand ribbons, points' spheres); None: both.
     visibility: np.ndarray | None = None
 
 
@@ -140,7 +142,7 @@ def _static_key(obj: bpy.types.Object) -> str | None:
     return data.name_full
 
 
-def curves_arrays(curves: bpy.types.Curves, seen: StrandView | None = None) -> MeshArrays:
+def curves_arrays(curves: bpy.types.Curves, seen: SunAndCamera | None = None) -> MeshArrays:
     """A hair curves datablock along the Catmull-Rom splines of its strands (the hair
     curves' default type) at each point's radius; without a radius attribute, nothing, as
     Cycles draws nothing. With `seen` (the sun and camera in the object's space), as a
@@ -159,21 +161,25 @@ def curves_arrays(curves: bpy.types.Curves, seen: StrandView | None = None) -> M
 
 
 def _strand_arrays(
-    points: np.ndarray, counts: np.ndarray, radii: np.ndarray, seen: StrandView | None
+    points: np.ndarray, counts: np.ndarray, radii: np.ndarray, seen: SunAndCamera | None
 ) -> MeshArrays:
     """Strands as ribbons for the sun and camera of `seen`, or as tubes without."""
     steps = crepuscular.CATMULL_ROM_STEPS
     if seen is None:
         return MeshArrays(*crepuscular.strand_tubes(points, counts, radii, catmull_rom=steps))
     positions, triangles, flags = crepuscular.strand_ribbons(
-        points, counts, radii, catmull_rom=steps, **seen.ribbon_arguments()
+        points, counts, radii, catmull_rom=steps, **seen.view_arguments()
     )
     return MeshArrays(positions, triangles, visibility=flags)
 
 
-def pointcloud_arrays(pointcloud: bpy.types.PointCloud) -> MeshArrays:
+def pointcloud_arrays(
+    pointcloud: bpy.types.PointCloud, seen: SunAndCamera | None = None
+) -> MeshArrays:
     """A point cloud as a sphere around each point (`crepuscular.point_spheres`), of the
-    point's radius, or Blender's default radius where there is no radius attribute."""
+    point's radius, or Blender's default radius where there is no radius attribute. With
+    `seen` (the sun and camera in the object's space), each view gets the side of each
+    sphere Cycles' rays can hit (`crepuscular.point_sphere_visibility`)."""
     count = len(pointcloud.points)
     positions = np.empty(count * 3, dtype=np.float32)
     if count:
@@ -184,11 +190,17 @@ def pointcloud_arrays(pointcloud: bpy.types.PointCloud) -> MeshArrays:
     else:
         radii = np.empty(count, dtype=np.float32)
         radius.data.foreach_get("value", radii)
-    return MeshArrays(*crepuscular.point_spheres(positions.reshape(-1, 3), radii))
+    centres = positions.reshape(-1, 3)
+    spheres = MeshArrays(*crepuscular.point_spheres(centres, radii))
+    if seen is not None:
+        spheres.visibility = crepuscular.point_sphere_visibility(
+            centres, radii, **seen.view_arguments()
+        )
+    return spheres
 
 
 def particle_hair_arrays(
-    obj: bpy.types.Object, render: bool, seen: StrandView | None = None
+    obj: bpy.types.Object, render: bool, seen: SunAndCamera | None = None
 ) -> MeshArrays:
     """The legacy particle hair of an evaluated emitter, in its object space, as Cycles
     draws it: each hair system (rendered as paths) whose modifier shows in this kind of
@@ -298,11 +310,12 @@ def _object_arrays(
     obj: bpy.types.Object,
     cache: GeometryCache | None,
     slot_uv_maps: tuple[str, ...] | None = None,
-    seen: StrandView | None = None,
+    seen: SunAndCamera | None = None,
 ) -> MeshArrays | None:
     """The object's mesh arrays; loop-split with texture coordinates where `slot_uv_maps`
-    (the UV map of each material slot) is given; hair curves drawn for `seen` (the sun
-    and camera in the object's space, `curves_arrays`)."""
+    (the UV map of each material slot) is given; hair curves and point clouds drawn for
+    `seen` (the sun and camera in the object's space, `curves_arrays`,
+    `pointcloud_arrays`)."""
     key = _static_key(obj) if cache is not None else None
     if key is not None and slot_uv_maps is not None:
         key = key + _CUT_KEY + "|".join(slot_uv_maps)
@@ -327,7 +340,7 @@ def _object_arrays(
     elif obj.type == "CURVES":
         arrays = curves_arrays(obj.data, seen)
     elif obj.type == "POINTCLOUD":
-        arrays = pointcloud_arrays(obj.data)
+        arrays = pointcloud_arrays(obj.data, seen)
     else:
         mesh = obj.to_mesh()
         try:
@@ -342,20 +355,21 @@ def _object_arrays(
 
 #: Geometry shared by instances: the object's data (or the object, for hair curves and its
 #: particle hair), which of its geometry ("data" or particle "hair"), the UV maps its cut
-#: slots read, and the sun's direction in its space (strands only).
+#: slots read, and the sun and camera in its space (strands and points only).
 _MeshKey = tuple[int, str, tuple[str, ...] | None, tuple[float, ...] | None]
 
 
 @dataclass(frozen=True)
-class StrandView:
+class SunAndCamera:
     """The sun's travel direction and the camera (a pinhole's position, or an orthographic
-    camera's view direction), which strands are drawn for (`crepuscular.strand_ribbons`)."""
+    camera's view direction), which strands are drawn for (`crepuscular.strand_ribbons`)
+    and points are culled for (`crepuscular.point_sphere_visibility`)."""
 
     sun: np.ndarray
     camera: np.ndarray
     orthographic: bool
 
-    def in_space_of(self, matrix_world: np.ndarray) -> StrandView | None:
+    def in_space_of(self, matrix_world: np.ndarray) -> SunAndCamera | None:
         """The same in an object's space; None where its matrix flattens space."""
         linear, offset = matrix_world[:3, :3], matrix_world[:3, 3]
         try:
@@ -367,15 +381,15 @@ class StrandView:
             return None
         if not (np.isfinite(sun).all() and np.isfinite(camera).all()):
             return None
-        return StrandView(sun, camera, self.orthographic)
+        return SunAndCamera(sun, camera, self.orthographic)
 
     def key(self) -> tuple[float, ...]:
         """Rounded, for sharing one build between instances that see alike."""
         sun = self.sun / np.linalg.norm(self.sun)
         return (*np.round(sun, 6), *np.round(self.camera, 6), float(self.orthographic))
 
-    def ribbon_arguments(self) -> dict[str, np.ndarray]:
-        """`crepuscular.strand_ribbons` keywords."""
+    def view_arguments(self) -> dict[str, np.ndarray]:
+        """`crepuscular.strand_ribbons` and `point_sphere_visibility` keywords."""
         return {"sun": self.sun, "view" if self.orthographic else "eye": self.camera}
 
 
@@ -485,7 +499,7 @@ def export_geometry(
     cache: GeometryCache | None = None,
     exclude: set[str] | frozenset[str] = frozenset(),
     origin: np.ndarray | None = None,
-    seen: StrandView | None = None,
+    seen: SunAndCamera | None = None,
     blockers: LightLinking | None = None,
 ) -> Geometry:
     """Triangles of everything that casts shafts in `depsgraph`, relative to the world point
@@ -496,8 +510,8 @@ def export_geometry(
     Blender's Shadow ray visibility of both, and the sun's shadow linking (`blockers`).
     With a viewport depsgraph, objects hidden in renders are left out too. `exclude` holds
     original object names (the fog box).
-    `seen`, the sun and camera in world space, is what hair strands are drawn for
-    (`curves_arrays`).
+    `seen`, the sun and camera in world space, is what hair strands and point clouds are
+    drawn for (`curves_arrays`, `pointcloud_arrays`).
     """
     render_mode = depsgraph.mode == "RENDER"
     offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
@@ -528,7 +542,7 @@ def export_geometry(
         if not (instance.show_self or hair):
             continue  # an emitter or instancer that Cycles does not render either
         local_seen = None
-        if (obj.type == "CURVES" or hair) and seen is not None:
+        if (obj.type in SEEN_TYPES or hair) and seen is not None:
             local_seen = seen.in_space_of(np.array(instance.matrix_world, dtype=np.float64))
         seen_key = None if local_seen is None else local_seen.key()
         if hair:
@@ -549,7 +563,7 @@ def export_geometry(
             pointer,
             "data",
             None if cut is None else cut.uv_maps,
-            seen_key if obj.type == "CURVES" else None,
+            seen_key if obj.type in SEEN_TYPES else None,
         )
         if mesh_key not in meshes:
             meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[2], local_seen)
@@ -953,7 +967,7 @@ def frame_inputs(
             )
     world_from_camera = np.array(camera["world_from_camera"], dtype=np.float64).reshape(4, 4).T
     orthographic = camera["projection"]["kind"] == "orthographic"
-    seen = StrandView(
+    seen = SunAndCamera(
         np.array(sun_dict(evaluated)["direction"]),
         -world_from_camera[:3, 2] if orthographic else eye,
         orthographic,

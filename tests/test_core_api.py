@@ -865,30 +865,40 @@ def test_point_spheres_cast_a_round_shadow_from_every_direction() -> None:
     """`point_spheres`: a closed polyhedron around each point, wound outwards, whose shadow
     (projected area: half the sum of area times |n . d| over its faces) is the sphere's
     pi r^2 within 1.2% from any direction, so a cloud of them blocks the sun as Cycles'
-    spheres do."""
-    centres = np.array([[0.0, 0.0, 0.0], [5.0, -2.0, 1.0]])
-    positions, triangles = crepuscular.point_spheres(centres, [0.5, 2.0])
-    assert triangles.shape == (2 * crepuscular.SPHERE_TRIANGLES, 3)
-    corners = positions.astype(np.float64)[triangles]
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    spheres do; larger points are split finer, so that every outline stays within
+    `SPHERE_OUTLINE_TOLERANCE` of the round sphere's."""
+    centres = np.array([[0.0, 0.0, 0.0], [5.0, -2.0, 1.0], [-3.0, 4.0, 9.0]])
+    radii = [0.5, 2.0, 8.0]
+    positions, triangles = crepuscular.point_spheres(centres, radii)
     rng = np.random.default_rng(7)
     directions = rng.normal(size=(2000, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    for index, (centre, radius) in enumerate(zip(centres, [0.5, 2.0], strict=True)):
-        rows = slice(
-            index * crepuscular.SPHERE_TRIANGLES, (index + 1) * crepuscular.SPHERE_TRIANGLES
-        )
-        outward = np.einsum("ij,ij->i", normals[rows], corners[rows].mean(axis=1) - centre)
+    vertex_base = triangle_base = 0
+    for centre, radius, count in zip(centres, radii, [80, 320, 1280], strict=True):
+        alone, faces = crepuscular.point_spheres([centre], [radius])
+        assert len(faces) == count
+        # In the points' order, each with its own vertices.
+        rows = slice(triangle_base, triangle_base + count)
+        np.testing.assert_array_equal(triangles[rows], faces + vertex_base)
+        np.testing.assert_array_equal(positions[vertex_base : vertex_base + len(alone)], alone)
+        vertex_base, triangle_base = vertex_base + len(alone), triangle_base + count
+        corners = alone.astype(np.float64)[faces]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        outward = np.einsum("ij,ij->i", normals, corners.mean(axis=1) - centre)
         assert (outward > 0).all()
         # Each cross product is twice its face's area; front and back both count.
-        shadow = 0.25 * np.abs(normals[rows] @ directions.T).sum(axis=0)
+        shadow = 0.25 * np.abs(normals @ directions.T).sum(axis=0)
         np.testing.assert_allclose(shadow, np.pi * radius**2, rtol=0.012)
         # The mean over directions is the disc's exactly (Cauchy), not just within 1.2%.
         assert shadow.mean() == pytest.approx(np.pi * radius**2, rel=2e-3)
+        # The outline's half-width along each direction (the support function).
+        half_width = ((alone - centre) @ directions.T).max(axis=0)
+        assert np.abs(half_width - radius).max() <= crepuscular.SPHERE_OUTLINE_TOLERANCE
         # Every edge is shared by two faces: closed, so no light slips through.
-        edges = np.sort(triangles[rows][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
         _, counts = np.unique(edges, axis=0, return_counts=True)
         assert (counts == 2).all()
+    assert triangle_base == len(triangles)
 
 
 def test_point_spheres_skip_empty_points_and_name_bad_input() -> None:
@@ -906,6 +916,49 @@ def test_point_spheres_skip_empty_points_and_name_bad_input() -> None:
         crepuscular.point_spheres(np.zeros((3, 3)), [0.1, 0.1])
     with pytest.raises(ValueError, match="finite"):
         crepuscular.point_spheres([[0, float("nan"), 0]], [0.1])
+
+
+def test_point_sphere_visibility_culls_each_views_back_side() -> None:
+    """`point_sphere_visibility`: the camera sees the triangles of a point's sphere that
+    face it, the sun's shadow map holds those that face away from the sun (Cycles culls a
+    point's back side for every ray). Each set covers the whole outline (its projected area
+    is the closed sphere's shadow), a camera inside a point sees none of it, and points of
+    no radius are skipped as `point_spheres` skips them."""
+    centres = np.array([[0.0, 0.0, 0.0], [5.0, -2.0, 1.0], [9.0, 9.0, 9.0], [1.0, 1.0, 0.5]])
+    radii = [0.5, 2.0, 0.0, 0.4]
+    sizes = [80, 320, 80]
+    positions, triangles = crepuscular.point_spheres(centres, radii)
+    corners = positions.astype(np.float64)[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    sun = np.array([0.3, 0.2, -1.0])
+    eye = np.array([4.0, -8.0, 3.0])
+    flags = crepuscular.point_sphere_visibility(centres, radii, sun=sun, eye=eye)
+    assert flags.shape == (len(triangles),)
+    blocks = (flags & crepuscular.BLOCKS_SUN) > 0
+    seen = (flags & crepuscular.SEEN_BY_CAMERA) > 0
+    np.testing.assert_array_equal(blocks, normals @ sun > 0)
+    np.testing.assert_array_equal(seen, np.einsum("ij,ij->i", normals, corners[:, 0] - eye) < 0)
+    view = np.array([-0.5, 1.0, -0.2])
+    ortho = crepuscular.point_sphere_visibility(centres, radii, sun=sun, view=view)
+    for direction, faces in ((sun, blocks), (view, (ortho & crepuscular.SEEN_BY_CAMERA) > 0)):
+        unit = direction / np.linalg.norm(direction)
+        points = np.repeat(np.arange(3), sizes)
+        whole = np.bincount(points, 0.25 * np.abs(normals @ unit))
+        culled = np.bincount(points, 0.5 * np.where(faces, np.abs(normals @ unit), 0.0))
+        np.testing.assert_allclose(culled, whole, rtol=1e-5)
+    # One direction per point, here the point's own eye: inside it, nothing is seen.
+    inside = crepuscular.point_sphere_visibility(centres, radii, sun=sun, eye=centres)
+    assert not (inside & crepuscular.SEEN_BY_CAMERA).any()
+    np.testing.assert_array_equal(inside & crepuscular.BLOCKS_SUN, flags & crepuscular.BLOCKS_SUN)
+    for bad, words in (
+        ({"sun": sun}, "eye"),
+        ({"sun": sun, "eye": eye, "view": view}, "eye"),
+        ({"sun": [0.0, 0.0, 0.0], "eye": eye}, "sun"),
+        ({"sun": [sun] * 2, "eye": eye}, "one per point"),
+        ({"sun": sun, "eye": [np.nan, 0.0, 0.0]}, "eye"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            crepuscular.point_sphere_visibility(centres, radii, **bad)
 
 
 def _extent_along(vertices: np.ndarray, axis: np.ndarray, facing: np.ndarray) -> np.ndarray:

@@ -1083,6 +1083,19 @@ def test_basis_curves_cast_as_ribbons_of_their_widths(tmp_path: Path) -> None:
         assert words in geometry.invalid[0]
 
 
+def _place_turned(instancer: UsdGeom.PointInstancer, count: int, spacing: float) -> np.ndarray:
+    """`count` placements of the first prototype along x, `spacing` apart, each turned
+    about z by a random angle (seeded by `count`); returns the angles."""
+    turns = np.random.default_rng(count).uniform(0, 2 * np.pi, count)
+    instancer.CreateProtoIndicesAttr([0] * count)
+    instancer.CreatePositionsAttr([Gf.Vec3f(spacing * k, -4.0, 1.0) for k in range(count)])
+    # In single precision (half precision would turn them by other angles).
+    instancer.CreateOrientationsfAttr(
+        [Gf.Quatf(float(np.cos(t / 2)), 0.0, 0.0, float(np.sin(t / 2))) for t in turns]
+    )
+    return turns
+
+
 def _seen_extent(vertices: np.ndarray, first: np.ndarray, last: np.ndarray, sun: np.ndarray):
     """The extent of `vertices` along the straight strand from `first` to `last` as the
     sun sees it, and the end points' own."""
@@ -1120,14 +1133,7 @@ def test_curves_are_ribbons_across_the_sun_and_the_camera(tmp_path: Path) -> Non
     instancer.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Clumps/Clump")])
     ends = np.array([[0.0, 0.0, 0.0], [1.0, 3.0, 1.0]])
     for count in (3, 40):
-        rng = np.random.default_rng(count)
-        turns = rng.uniform(0, 2 * np.pi, count)
-        instancer.CreateProtoIndicesAttr([0] * count)
-        instancer.CreatePositionsAttr([Gf.Vec3f(3.0 * k, -4.0, 1.0) for k in range(count)])
-        # In single precision (half precision would turn them by other angles).
-        instancer.CreateOrientationsfAttr(
-            [Gf.Quatf(float(np.cos(t / 2)), 0.0, 0.0, float(np.sin(t / 2))) for t in turns]
-        )
+        turns = _place_turned(instancer, count, spacing=3.0)
         frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
         sun = np.asarray(frame.sun["direction"])
         geometry = frame.geometry
@@ -1219,6 +1225,48 @@ def test_points_cast_as_spheres_of_their_widths(tmp_path: Path) -> None:
         assert len(geometry.invalid) == 1
         assert "/World/Dust" in geometry.invalid[0]
         assert words in geometry.invalid[0]
+
+
+def test_points_show_each_view_the_side_its_rays_hit(tmp_path: Path) -> None:
+    """Cycles culls a point's back side for every ray: the camera sees the triangles of a
+    point's sphere that face it, the sun's shadow map those that face away from the sun,
+    for points of their own (under a turned, scaled transform; one around the camera, which
+    sees none of it) and placed by a PointInstancer, whose placements see the sun and
+    camera from a few directions (a drawing each) or from many (all flagged in one call)."""
+    stage = author_stage(str(tmp_path / "motes.usda"), build_scene(occluder=False, **SMALL))
+    start = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
+    eye = np.asarray(start.camera["world_from_camera"])
+    dust = UsdGeom.Points.Define(stage, "/World/Dust")
+    dust.AddRotateXYZOp().Set(Gf.Vec3f(20.0, 0.0, 50.0))
+    dust.AddScaleOp().Set(Gf.Vec3f(1.5, 1.5, 1.5))
+    dust.CreatePointsAttr([Gf.Vec3f(0.0, 0.0, 2.0), Gf.Vec3f(2.0, 1.0, 2.0)])
+    dust.CreateWidthsAttr([0.4, 0.8])
+    around = UsdGeom.Points.Define(stage, "/World/Around")
+    around.CreatePointsAttr([Gf.Vec3f(*(float(v) for v in eye[12:15]))])
+    around.CreateWidthsAttr([1.0])
+    instancer = UsdGeom.PointInstancer.Define(stage, "/World/Swarm")
+    mote = UsdGeom.Points.Define(stage, "/World/Swarm/Mote")
+    mote.CreatePointsAttr([Gf.Vec3f(0.0, 0.0, 0.0), Gf.Vec3f(0.5, 0.0, 0.3)])
+    mote.CreateWidthsAttr([0.3])
+    instancer.CreatePrototypesRel().SetTargets([mote.GetPath()])
+    for count in (3, 40):
+        _place_turned(instancer, count, spacing=1.5)
+        frame = StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())
+        sun = np.asarray(frame.sun["direction"])
+        geometry = frame.geometry
+        camera = np.asarray(frame.camera["world_from_camera"][12:15])
+        corners = (geometry.positions.astype(np.float64) + geometry.origin)[geometry.triangles]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        facing_eye = np.einsum("ij,ij->i", normals, corners[:, 0] - camera) < 0
+        ids = geometry.ids_by_path
+        for path, placed in (("/World/Dust", 2), ("/World/Around", 1), ("/World/Swarm", 2 * count)):
+            rows = geometry.object_ids == ids[Sdf.Path(path)]
+            assert rows.sum() == placed * crepuscular.SPHERE_TRIANGLES
+            flags = geometry.visibility[rows]
+            seen = (flags & crepuscular.SEEN_BY_CAMERA) > 0
+            np.testing.assert_array_equal(seen, facing_eye[rows] & (path != "/World/Around"))
+            blocks = (flags & crepuscular.BLOCKS_SUN) > 0
+            np.testing.assert_array_equal(blocks, normals[rows] @ sun > 0)
 
 
 def test_the_lights_shadow_linking_decides_what_blocks_it(tmp_path: Path) -> None:

@@ -163,3 +163,59 @@ def test_vulkan_splits_as_the_cpu_does() -> None:
         layers[backend] = render_arrays(**_with_card(with_backend, SEEN_BY_CAMERA))
     assert _relative(np.asarray(layers["vulkan"].volume), np.asarray(layers["cpu"].volume)) < 1e-3
     np.testing.assert_allclose(layers["vulkan"].depth, layers["cpu"].depth, rtol=1e-3)
+
+
+def _looking(eye: np.ndarray, toward: np.ndarray) -> list[float]:
+    """A column-major world-from-camera matrix at `eye` looking along `toward`."""
+    forward = toward / np.linalg.norm(toward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    columns = [*right, 0.0, *up, 0.0, *(-forward), 0.0, *eye, 1.0]
+    return [float(value) for value in columns]
+
+
+def _with_point(arrays: dict[str, Any], centre: np.ndarray, radius: float, flags: Any) -> dict:
+    """`arrays` with one point's sphere (`point_spheres`), its triangles flagged `flags`."""
+    positions, triangles = crepuscular.point_spheres([centre], [radius])
+    base = len(arrays["positions"])
+    return {
+        **arrays,
+        "positions": np.concatenate([arrays["positions"], positions]),
+        "triangles": np.concatenate([arrays["triangles"], triangles + np.uint32(base)]),
+        "object_ids": np.r_[arrays["object_ids"], np.full(len(triangles), 9)].astype(np.uint32),
+        "triangle_visibility": np.r_[
+            np.full(len(arrays["triangles"]), 3), np.broadcast_to(flags, len(triangles))
+        ].astype(np.uint8),
+    }
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_camera_inside_a_point_sees_out_into_the_lit_fog(method: str) -> None:
+    """Cycles culls a point's back side for every ray (`point_sphere_visibility`): from
+    inside a point the camera sees out of it, and the fog inside it is lit. Looking towards
+    the sun, no ray reaches the point's shadow, so the frame is the one without the point;
+    looking away, its far side still shadows the fog beyond it. Drawn closed, the point
+    hides everything from a camera inside it."""
+    scene = _scene(method)
+    travel = np.array(scene["sun"]["direction"], dtype=np.float64)
+    travel /= np.linalg.norm(travel)
+    eye, radius = np.array([0.5, 4.0, -1.0]), 1.5
+    for toward, lit in ((-travel, True), (travel + np.array([0.0, 0.0, 0.5]), False)):
+        scene["camera"]["world_from_camera"] = _looking(eye, toward)
+        arrays = flatten(scene)
+        flags = crepuscular.point_sphere_visibility([eye], [radius], sun=travel, eye=eye)
+        assert not (flags & SEEN_BY_CAMERA).any()
+        culled = _layers(render_arrays(**_with_point(arrays, eye, radius, flags)))
+        bare = _layers(render_arrays(**_with_point(arrays, eye, radius, 0)))
+        closed = _layers(render_arrays(**_with_point(arrays, eye, radius, 3)))
+        np.testing.assert_array_equal(culled["depth"], bare["depth"])
+        radiance = closed["volume"][..., :3].mean()
+        assert radiance < 0.2 * bare["volume"][..., :3].mean()
+        difference = _relative(culled["volume"], bare["volume"])
+        if lit:
+            assert difference < 1e-3, difference
+        else:
+            assert difference > 0.05, difference
+            # The point only takes light away.
+            assert (culled["volume"][..., :3] <= bare["volume"][..., :3] + 1e-6).all()

@@ -202,7 +202,8 @@ def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
 def job_points_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of points (a geometry-nodes point cloud of
     random radii 0.12 to 0.4 on a jittered grid) instead of slats: Cycles, our layers
-    (reference and default method), and ours with the points hidden."""
+    (reference and default method), and ours with the points hidden; then, without them,
+    Cycles and our layers with one point around the camera."""
     scene = fog_scene(spec)
     for name in ("roof_a", "roof_b"):
         bpy.data.objects.remove(scene.objects[name])
@@ -219,6 +220,18 @@ def job_points_fidelity(spec: dict[str, Any], out: Path) -> None:
     scene.objects["points"].hide_render = True
     settings.method = "reference"
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
+    # One point of radius 8 around the camera, reaching into the box: Cycles culls a
+    # point's back side, so the camera sees out of it and the fog inside it is lit, while
+    # its far side shadows the fog beyond it.
+    eye = np.array(scene.camera.matrix_world.translation)
+    blender_scenes.add_points(scene, "shell", [eye], [8.0], black)
+    settings.enabled = False
+    _render(scene, out / "cycles_shell.exr")
+    settings.enabled = True
+    for method in ("reference", settings.bl_rna.properties["method"].default):
+        settings.method = method
+        path = str(out / f"shell_{method}.exr")
+        assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
 
 
 def job_particle_hair_fidelity(spec: dict[str, Any], out: Path) -> None:

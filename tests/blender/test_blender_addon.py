@@ -555,6 +555,17 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     assert "constant Alpha" in geometry.notes[0]
 
 
+def _turned_and_seen(addon: ModuleType, obj: Any) -> tuple[np.ndarray, np.ndarray, Any]:
+    """Turns and scales `obj`; returns a sun direction, a pinhole's eye and the add-on's
+    `SunAndCamera` of both."""
+    obj.rotation_euler = (0.3, 0.0, 0.8)
+    obj.scale = (1.5, 1.5, 1.5)
+    bpy.context.view_layer.update()
+    sun = np.array([0.4, -0.3, -1.0]) / np.linalg.norm([0.4, -0.3, -1.0])
+    eye = np.array([-6.0, -8.0, 5.0])
+    return sun, eye, addon.export.SunAndCamera(sun, eye, orthographic=False)
+
+
 def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     """Hair curves (Curves objects) cast as open tubes around their points' polyline, each
     ring of the point's radius (scaled so that the tube's mean width is the strand's);
@@ -579,12 +590,7 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     # Seen by a sun and a camera (through a turned, scaled object), each strand is a
     # ribbon across each view, of the strand's width as it sees it: the sun's in the
     # shadow map only, the camera's in its depth only.
-    hair.rotation_euler = (0.3, 0.0, 0.8)
-    hair.scale = (1.5, 1.5, 1.5)
-    bpy.context.view_layer.update()
-    sun = np.array([0.4, -0.3, -1.0]) / np.linalg.norm([0.4, -0.3, -1.0])
-    eye = np.array([-6.0, -8.0, 5.0])
-    seen = addon.export.StrandView(sun, eye, orthographic=False)
+    sun, eye, seen = _turned_and_seen(addon, hair)
     ribbons = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), seen=seen)
     flags = ribbons.visibility
     assert set(flags.tolist()) == {crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA}
@@ -681,6 +687,19 @@ def test_point_clouds_export_as_spheres_of_their_radius(addon: ModuleType) -> No
     extent = spheres.max(axis=1) - spheres.min(axis=1)
     np.testing.assert_allclose(extent / (2 * radii[:, None]), 1.0, atol=0.06)
     assert set(geometry.names.values()) == {"dust"}
+    # Seen by a sun and a camera (through a turned, scaled object), each view gets the
+    # side of each sphere that Cycles' rays can hit: the camera the triangles facing it,
+    # the sun's shadow map those facing away from the sun.
+    sun, eye, seen = _turned_and_seen(addon, points)
+    culled = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), seen=seen)
+    np.testing.assert_array_equal(culled.triangles, geometry.triangles)
+    corners = culled.positions.astype(np.float64)[culled.triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    facing_eye = np.einsum("ij,ij->i", normals, corners[:, 0] - eye) < 0
+    np.testing.assert_array_equal((culled.visibility & crepuscular.SEEN_BY_CAMERA) > 0, facing_eye)
+    np.testing.assert_array_equal(
+        (culled.visibility & crepuscular.BLOCKS_SUN) > 0, normals @ sun > 0
+    )
     # An artist can switch a point cloud off, or follow its Shadow ray visibility, from the
     # object panel, as for a mesh.
     panel = addon.ui.CREPUSCULAR_PT_object

@@ -235,6 +235,24 @@ def test_point_clouds_match_cycles(points_fidelity: Path, method: str) -> None:
     _assert_like_cycles(points_fidelity, method, "bare", off=0.3, pixels=0.03)
 
 
+@pytest.mark.parametrize("method", ["reference", "prefiltered"])
+def test_a_point_around_the_camera_matches_cycles(points_fidelity: Path, method: str) -> None:
+    """A point of radius 8 around the camera, reaching into the box: Cycles culls a point's
+    back side for every ray, so the camera sees out of it and the fog inside it is lit,
+    while its far side still shadows the fog beyond it (drawn closed, the camera saw only
+    its inside). Measured: means within 0.03% of Cycles', pixels 0.45% apart, either
+    method (3.7% with the sphere's 80 triangles, before large points were split finer);
+    the frame without the point is 24% off."""
+    cycles = rgba(points_fidelity / "cycles_shell.exr")[..., :3]
+    ours = volume(points_fidelity / f"shell_{method}.exr")[..., :3]
+    without = volume(points_fidelity / "bare.exr")[..., :3]
+    assert cycles.mean() > 1e-3, "Cycles rendered a black image"
+    assert np.abs(without - cycles).mean() / cycles.mean() > 0.15
+    assert ours.mean() == pytest.approx(cycles.mean(), rel=0.01)
+    relative = np.abs(ours - cycles).mean() / cycles.mean()
+    assert relative < 0.015, relative
+
+
 @pytest.fixture(scope="module")
 def particle_hair_fidelity(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _cycles_job(tmp_path_factory, "particle_hair_fidelity", 1)

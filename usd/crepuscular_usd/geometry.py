@@ -7,7 +7,8 @@ Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as m
 Meshes bound to a UsdSkel skeleton are posed: blend shapes, then joints
 (`crepuscular_usd.skinning`). BasisCurves cast as ribbons of their widths across the sun
 and the camera (`crepuscular.strand_ribbons`), Points as spheres of theirs
-(`crepuscular.point_spheres`).
+(`crepuscular.point_spheres`), of which the sun and the camera each get the side their rays
+can hit (`crepuscular.point_sphere_visibility`).
 Instance proxies and `PointInstancer` prototypes (with the instancers nested in them) share
 one triangulation per prototype mesh; every placement is one numpy matrix product, never a
 Python loop over vertices.
@@ -18,7 +19,7 @@ from __future__ import annotations
 import os
 from collections import Counter
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -128,12 +129,13 @@ class _LocalMesh:
     masks: npt.NDArray[np.int64] | None = None
     corner_points: npt.NDArray[np.int64] | None = None
     unsplit: F64 | None = None
-    #: Curves: what their ribbons are made from, for the sun and camera of each frame.
-    strands: _Strands | None = None
+    #: Curves and points: what they are drawn from for the sun and camera of each frame.
+    per_view: _Strands | _PointSpheres | None = None
     #: Copies stacked in `points`, one per placement, each its own (the same triangles).
     copies: int = 1
-    #: Per triangle (of one copy), `crepuscular.BLOCKS_SUN` or `SEEN_BY_CAMERA` where the
-    #: triangles are for one view each (strand ribbons); None: both.
+    #: Per triangle, `crepuscular.BLOCKS_SUN`, `SEEN_BY_CAMERA`, both or neither where the
+    #: triangles are drawn per view: (T,) for every placement (strand ribbons), or (K, T),
+    #: a row per placement (points' spheres, culled as each placement sees them). None: both.
     visibility: npt.NDArray[np.uint8] | None = None
 
 
@@ -151,9 +153,9 @@ class _Strands:
         positions, triangles = crepuscular.strand_tubes(
             self.points, self.counts, self.radii, catmull_rom=self.steps
         )
-        return _LocalMesh(positions.astype(np.float64), triangles, strands=self)
+        return _LocalMesh(positions.astype(np.float64), triangles, per_view=self)
 
-    def ribbons(self, seen: _StrandView) -> _LocalMesh:
+    def for_views(self, seen: _SunAndCamera) -> _LocalMesh:
         """A ribbon across the sun and one across the camera per strand
         (`crepuscular.strand_ribbons`), `seen` in local space: one (3,) each, or K (K, 3)
         for a copy per placement, built in one call (a field of clumps turned at random
@@ -192,23 +194,58 @@ class _Strands:
         return _LocalMesh(
             positions.astype(np.float64),
             triangles,
-            strands=self,
+            per_view=self,
             copies=copies,
             visibility=flags,
         )
 
 
 @dataclass
-class _StrandView:
+class _PointSpheres:
+    """The spheres of Points (`crepuscular.point_spheres`), in their local space."""
+
+    centres: F64
+    #: One per point, or one for all.
+    radii: F64
+    _closed: _LocalMesh | None = field(default=None, repr=False, compare=False)
+
+    def closed(self) -> _LocalMesh:
+        """Closed spheres, for frames without a sun and camera (built once)."""
+        if self._closed is None:
+            positions, triangles = crepuscular.point_spheres(self.centres, self.radii)
+            self._closed = _LocalMesh(positions.astype(np.float64), triangles, per_view=self)
+        return self._closed
+
+    def for_views(self, seen: _SunAndCamera) -> _LocalMesh:
+        """The spheres with the side of each that the sun's and the camera's rays can hit
+        (`crepuscular.point_sphere_visibility`), `seen` in local space: one (3,) each, or
+        K (K, 3), flags for each placement in one call."""
+        copies = 1 if seen.sun.ndim == 1 else len(seen.sun)
+        camera = "view" if seen.orthographic else "eye"
+
+        def per_point(value: F64) -> F64:
+            return value if value.ndim == 1 else np.repeat(value, len(self.centres), axis=0)
+
+        flags = crepuscular.point_sphere_visibility(
+            np.tile(self.centres, (copies, 1)),
+            np.tile(np.broadcast_to(self.radii, len(self.centres)), copies),
+            sun=per_point(seen.sun),
+            **{camera: per_point(seen.camera)},
+        )
+        return replace(self.closed(), visibility=flags.reshape(copies, -1) if copies > 1 else flags)
+
+
+@dataclass
+class _SunAndCamera:
     """The sun's travel direction and the camera (a pinhole's position, or an orthographic
-    camera's view direction) in some space, which curves are drawn for: one (3,) each, or
-    one per placement (K, 3)."""
+    camera's view direction) in some space, which curves and points are drawn for: one (3,)
+    each, or one per placement (K, 3)."""
 
     sun: F64
     camera: F64
     orthographic: bool
 
-    def placed_by(self, rows: F64) -> _StrandView | None:
+    def placed_by(self, rows: F64) -> _SunAndCamera | None:
         """The same in the local spaces of the (K, 4, 4) row-vector placements `rows`;
         None where one flattens space."""
         linear = np.swapaxes(rows[:, :3, :3], 1, 2)  # a row-vector map d -> d @ L, solved
@@ -222,17 +259,17 @@ class _StrandView:
         sun, camera = sun[..., 0], camera[..., 0]
         if not (np.isfinite(sun).all() and np.isfinite(camera).all()):
             return None
-        return _StrandView(
+        return _SunAndCamera(
             sun / np.linalg.norm(sun, axis=1, keepdims=True), camera, self.orthographic
         )
 
 
-def strand_view(sun: dict[str, Any], camera: dict[str, Any]) -> _StrandView:
+def sun_and_camera(sun: dict[str, Any], camera: dict[str, Any]) -> _SunAndCamera:
     """The sun and camera of a frame (`StageReader.sun` and `.camera` dicts, in the
-    renderer's space), which `GeometryCollector.collect` draws curves for."""
+    renderer's space), which `GeometryCollector.collect` draws curves and points for."""
     world_from_camera = np.array(camera["world_from_camera"], dtype=np.float64).reshape(4, 4).T
     orthographic = camera["projection"]["kind"] == "orthographic"
-    return _StrandView(
+    return _SunAndCamera(
         np.asarray(sun["direction"], dtype=np.float64),
         -world_from_camera[:3, 2] if orthographic else world_from_camera[:3, 3],
         orthographic,
@@ -316,10 +353,12 @@ class GeometryCollector:
         self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
         self._masks = MaskTable()
         #: The sun and camera in the renderer's space, for the frame collecting.
-        self._seen: _StrandView | None = None
-        #: Curves' ribbons, by their local mesh's identity and the sun and camera in their
-        #: space (rounded): a still shot builds them once.
-        self._ribbons: dict[tuple[int, tuple[float, ...]], tuple[_LocalMesh, _LocalMesh]] = {}
+        self._seen: _SunAndCamera | None = None
+        #: Curves and points drawn for views, by their local mesh's identity and the sun and
+        #: camera in their space (rounded): a still shot draws them once.
+        self._drawn_for_views: dict[
+            tuple[int, tuple[float, ...]], tuple[_LocalMesh, _LocalMesh]
+        ] = {}
 
     # --- meshes ---------------------------------------------------------------------
 
@@ -425,7 +464,7 @@ class GeometryCollector:
             posed = posed[local.corner_points]
         return posed, space
 
-    def _strand_groups(
+    def _view_groups(
         self, local: _LocalMesh, rows: F64
     ) -> list[tuple[_LocalMesh, npt.NDArray[np.int64]]]:
         """`local` as placed by the (K, 4, 4) row-vector `rows`: curves as ribbons for the
@@ -433,23 +472,23 @@ class GeometryCollector:
         alike share them), with the indices of their placements; anything else, or
         without a sun and camera, `local` for all."""
         everything = np.arange(len(rows))
-        if local.strands is None or self._seen is None:
+        if local.per_view is None or self._seen is None:
             return [(local, everything)]
         seen = self._seen.placed_by(rows)
         if seen is None:
             return [(local, everything)]
         keys = np.round(np.concatenate([seen.sun, seen.camera], axis=1), 6)
         unique, which = np.unique(keys, axis=0, return_inverse=True)
-        if len(unique) > MAX_STRAND_GROUPS:
-            return [(local.strands.ribbons(seen), everything)]
+        if len(unique) > MAX_VIEW_GROUPS:
+            return [(local.per_view.for_views(seen), everything)]
         groups = []
         for index, key in enumerate(unique):
             cache_key = (id(local), tuple(float(v) for v in key))
-            cached = self._ribbons.get(cache_key)
+            cached = self._drawn_for_views.get(cache_key)
             if cached is None or cached[0] is not local:
-                one = _StrandView(key[:3], key[3:], seen.orthographic)
-                cached = (local, local.strands.ribbons(one))
-                self._ribbons[cache_key] = cached
+                one = _SunAndCamera(key[:3], key[3:], seen.orthographic)
+                cached = (local, local.per_view.for_views(one))
+                self._drawn_for_views[cache_key] = cached
             groups.append((cached[1], np.flatnonzero(which.reshape(-1) == index)))
         return groups
 
@@ -465,20 +504,21 @@ class GeometryCollector:
         self,
         time: Usd.TimeCode,
         origin: F64 | None = None,
-        seen: _StrandView | None = None,
+        seen: _SunAndCamera | None = None,
         shadow_link: Usd.CollectionMembershipQuery | None = None,
     ) -> SceneGeometry:
         """Every visible render-purpose surface at `time`, in the renderer's space, relative to
         `origin` (default the origin): subtracted in float64, a point near the camera keeps
         float32 positions precise however far the stage lies from its origin. Curves
-        are drawn as ribbons for the sun and camera `seen` (`strand_view`), so that each
-        sees their exact width and ends, as a path tracer draws strands. Owners
+        are drawn as ribbons for the sun and camera `seen` (`sun_and_camera`), so that each
+        sees their exact width and ends, as a path tracer draws strands, and points as the
+        side of their spheres each view's rays can hit, as Cycles culls them. Owners
         (a mesh, an instance proxy, a PointInstancer) that `shadow_link`, the light's
         shadow-linking collection, leaves out do not block the sun, and still hide the fog
         from the camera."""
         self._seen = seen
-        if len(self._ribbons) > 4096:
-            self._ribbons.clear()
+        if len(self._drawn_for_views) > 4096:
+            self._drawn_for_views.clear()
         xforms = UsdGeom.XformCache(time)
         chunks: list[_Chunk] = []
         instanced: dict[Sdf.Path, set[Sdf.Path]] = {}
@@ -513,12 +553,13 @@ class GeometryCollector:
                     invalid.append(str(error))
                     continue
                 world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
-                [(local, _)] = self._strand_groups(local, world_row[None])
-                placed_points = _transform(local.points if local.strands else points, world_row)
+                [(local, _)] = self._view_groups(local, world_row[None])
+                placed_points = _transform(local.points if local.per_view else points, world_row)
                 chunk = _Chunk(
                     prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks
                 )
-                chunk.visibility = local.visibility
+                if local.visibility is not None:
+                    chunk.visibility = local.visibility.reshape(-1)
                 chunks.append(chunk)
                 continue
             if prim.IsA(UsdSkel.Root):
@@ -667,7 +708,7 @@ class GeometryCollector:
         found = [
             (path, drawn, rows[which])
             for path, local, rows in found
-            for drawn, which in self._strand_groups(local, rows @ world_row)
+            for drawn, which in self._view_groups(local, rows @ world_row)
         ]
         positions: list[F64] = []
         triangles: list[npt.NDArray[np.uint32]] = []
@@ -700,7 +741,7 @@ class GeometryCollector:
                 own = local.visibility
                 if own is None:
                     own = np.full(len(local.triangles), 3, dtype=np.uint8)
-                flags.append(np.tile(own, len(rows)))
+                flags.append(own.reshape(-1) if own.ndim == 2 else np.tile(own, len(rows)))
             if cut:
                 copies = len(rows)
                 if local.masks is None or local.uvs is None:
@@ -719,9 +760,9 @@ class GeometryCollector:
         return chunk, sources
 
 
-#: Placements of one curves prototype that see the sun and camera in more ways than this get
-#: a copy of its ribbons each, built in one call, instead of one build per direction.
-MAX_STRAND_GROUPS = 16
+#: Placements of one curves or points prototype that see the sun and camera in more ways
+#: than this get a drawing each, built in one call, instead of one build per direction.
+MAX_VIEW_GROUPS = 16
 
 #: Bytes the step holds per vertex an instancer places (the einsum's float64 rows and their
 #: copies, the float32 positions) and per triangle (int64 indices, the uint32 copy, an id).
@@ -844,10 +885,9 @@ def _points_mesh(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[_LocalMesh, bool]:
             f"{where}: {len(widths)} widths match neither its {len(points)} points nor one"
         )
     try:
-        positions, triangles = crepuscular.point_spheres(points, 0.5 * widths)
+        return _PointSpheres(points, 0.5 * widths).closed(), varying
     except ValueError as error:
         raise MeshError(f"{where}: {error}") from error
-    return _LocalMesh(positions.astype(np.float64), triangles), varying
 
 
 def _visibility(

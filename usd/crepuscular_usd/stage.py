@@ -26,7 +26,7 @@ from crepuscular_usd.geometry import (
     GeometryCollector,
     SceneGeometry,
     row_matrix,
-    strand_view,
+    sun_and_camera,
 )
 from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
 
@@ -229,7 +229,7 @@ class StageReader:
         geometry = collector.collect(
             time,
             np.asarray(camera["world_from_camera"][12:15]),
-            seen=strand_view(sun, camera),
+            seen=sun_and_camera(sun, camera),
             shadow_link=self._shadow_link,
         )
         medium = dict(light.medium)

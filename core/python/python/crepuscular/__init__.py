@@ -26,7 +26,13 @@ import numpy as np
 import numpy.typing as npt
 
 from crepuscular import _convert, _core
-from crepuscular._points import SPHERE_TRIANGLES, SPHERE_VERTICES, point_spheres
+from crepuscular._points import (
+    SPHERE_OUTLINE_TOLERANCE,
+    SPHERE_TRIANGLES,
+    SPHERE_VERTICES,
+    point_sphere_visibility,
+    point_spheres,
+)
 from crepuscular._strands import (
     BLOCKS_SUN,
     CATMULL_ROM_STEPS,
@@ -43,6 +49,7 @@ __all__ = [
     "EXR_COMPRESSIONS",
     "SCENE_VERSION",
     "SEEN_BY_CAMERA",
+    "SPHERE_OUTLINE_TOLERANCE",
     "SPHERE_TRIANGLES",
     "SPHERE_VERTICES",
     "STYLE_VERSION",
@@ -65,6 +72,7 @@ __all__ = [
     "builtin_scene_names",
     "composite",
     "load_style",
+    "point_sphere_visibility",
     "point_spheres",
     "read_exr",
     "release_kept_buffers",

@@ -197,25 +197,29 @@ class _Prepared:
         return cls(points, radii, starts, ends, strand, tangents)
 
 
-def _points(value: npt.ArrayLike, count: int, name: str) -> npt.NDArray[np.float64]:
-    """One point (3,) or one per strand (count, 3), finite, as (count, 3)."""
+def _points(
+    value: npt.ArrayLike, count: int, name: str, each: str = "strand"
+) -> npt.NDArray[np.float64]:
+    """One point (3,) or one per `each` (count, 3), finite, as (count, 3)."""
     array = np.asarray(value, dtype=np.float64)
     if array.shape not in ((3,), (count, 3)):
         raise ValueError(
-            f"{name} must be one point or one per strand ({count}), not of shape {array.shape}"
+            f"{name} must be one point or one per {each} ({count}), not of shape {array.shape}"
         )
     if not np.isfinite(array).all():
         raise ValueError(f"{name} must be finite")
     return np.broadcast_to(array, (count, 3))
 
 
-def _directions(value: npt.ArrayLike, count: int, name: str = "facing") -> npt.NDArray[np.float64]:
-    """One direction (3,) or one per strand (count, 3), finite and non-zero, as unit
+def _directions(
+    value: npt.ArrayLike, count: int, name: str = "facing", each: str = "strand"
+) -> npt.NDArray[np.float64]:
+    """One direction (3,) or one per `each` (count, 3), finite and non-zero, as unit
     (count, 3)."""
     array = np.asarray(value, dtype=np.float64)
     if array.shape not in ((3,), (count, 3)):
         raise ValueError(
-            f"{name} must be one direction or one per strand ({count}), not of shape {array.shape}"
+            f"{name} must be one direction or one per {each} ({count}), not of shape {array.shape}"
         )
     norms = np.linalg.norm(array, axis=-1, keepdims=True)
     if not (np.isfinite(norms).all() and (norms > 0).all()):
