@@ -36,6 +36,13 @@ SEEN_TYPES = {"CURVES", "POINTCLOUD"}
 #: The radius Blender gives a point cloud's points without a radius attribute; Cycles
 #: draws them at it (a render of such a point measured 0.00996).
 DEFAULT_POINT_RADIUS = 0.01
+#: The volume shader nodes a fog object's closures are read from (`_volume_closures`).
+VOLUME_SHADERS = {
+    "ShaderNodeVolumeScatter",
+    "ShaderNodeVolumeAbsorption",
+    "ShaderNodeVolumePrincipled",
+    "ShaderNodeVolumeCoefficients",
+}
 #: Rec. 709 luminance weights, as Blender's default scene-linear space.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -808,14 +815,106 @@ def _constant(node: bpy.types.Node, name: str, where: str) -> Any:
     return socket.default_value
 
 
+@dataclass
+class _VolumeClosure:
+    """One volume closure of a shader, already weighted: σs and σt per channel, and the
+    anisotropy of its Henyey-Greenstein phase (0 where it only absorbs)."""
+
+    scattering: np.ndarray
+    extinction: np.ndarray
+    anisotropy: float = 0.0
+
+
+def _volume_closures(
+    socket: bpy.types.NodeSocket, weight: float, where: str, notes: list[str]
+) -> list[_VolumeClosure]:
+    """The closures reaching the shader input `socket`, scaled by `weight`, as Cycles
+    builds them: Volume Scatter σs = σt = color·density; Volume Absorption σt =
+    (1 − color)·density; Principled Volume σs = color·density and σt = (color + (1 −
+    color)(1 − √absorption))·density; Volume Coefficients σs = its scatter coefficients and
+    σt = those plus its absorption coefficients; Add Shader sums its inputs, Mix Shader
+    weights them by 1 − Fac and Fac; emission is left out with a note. Other nodes, and
+    inputs that are linked, are named."""
+    if not socket.is_linked or weight == 0:
+        return []
+    node = socket.links[0].from_node
+    while node.bl_idname == "NodeReroute":
+        if not node.inputs[0].is_linked:
+            return []
+        node = node.inputs[0].links[0].from_node
+    kind = node.bl_idname
+    if kind == "ShaderNodeAddShader":
+        return [
+            closure
+            for shader in node.inputs[:2]
+            for closure in _volume_closures(shader, weight, where, notes)
+        ]
+    if kind == "ShaderNodeMixShader":
+        fac = min(max(float(_constant(node, "Fac", where)), 0.0), 1.0)
+        first = _volume_closures(node.inputs[1], weight * (1 - fac), where, notes)
+        return first + _volume_closures(node.inputs[2], weight * fac, where, notes)
+    if kind == "ShaderNodeEmission":
+        notes.append(f"'{node.name}' is ignored: shafts have no emission")
+        return []
+    if kind not in VOLUME_SHADERS:
+        raise ExportError(
+            f"{where}: the volume shader '{node.name}' is a {kind}; use Volume Scatter, "
+            "Volume Absorption, Principled Volume or Volume Coefficients, or Add and Mix "
+            "Shaders of them"
+        )
+    phase = getattr(node, "phase", "HENYEY_GREENSTEIN")
+    if phase != "HENYEY_GREENSTEIN":
+        raise ExportError(f"{where}: phase '{phase}' is not supported (Henyey-Greenstein)")
+    if kind == "ShaderNodeVolumeCoefficients":
+        absorbing = np.array(_constant(node, "Absorption Coefficients", where), dtype=np.float64)
+        scattering = np.maximum(np.array(_constant(node, "Scatter Coefficients", where)), 0)
+        if np.any(np.array(_constant(node, "Emission Coefficients", where)) != 0):
+            notes.append(f"the emission of '{node.name}' is ignored: shafts have no emission")
+        scattering = scattering * weight
+        extinction = scattering + np.maximum(absorbing, 0) * weight
+        return [_VolumeClosure(scattering, extinction, float(_constant(node, "Anisotropy", where)))]
+    color = np.maximum(np.array(_constant(node, "Color", where)[:3], dtype=np.float64), 0)
+    density = max(float(_constant(node, "Density", where)), 0.0) * weight
+    if kind == "ShaderNodeVolumeAbsorption":
+        return [_VolumeClosure(np.zeros(3), np.maximum(1 - color, 0) * density)]
+    anisotropy = float(_constant(node, "Anisotropy", where))
+    if kind == "ShaderNodeVolumeScatter":
+        return [_VolumeClosure(color * density, color * density, anisotropy)]
+    absorption = np.array(_constant(node, "Absorption Color", where)[:3], dtype=np.float64)
+    absorbed = np.maximum(1 - color, 0) * np.maximum(1 - np.sqrt(np.maximum(absorption, 0)), 0)
+    for name in ("Emission Strength", "Blackbody Intensity"):
+        if float(_constant(node, name, where)) != 0:
+            notes.append(f"{name} of '{node.name}' is ignored: shafts have no emission")
+    return [_VolumeClosure(color * density, (color + absorbed) * density, anisotropy)]
+
+
+def _mean_anisotropy(closures: list[_VolumeClosure], where: str, notes: list[str]) -> float:
+    """The one Henyey-Greenstein anisotropy of the closures that scatter: theirs where they
+    agree; else their mean weighted by scattering (luminance), with a note, since Cycles
+    scatters by each lobe in proportion to its σs, which one lobe only approximates."""
+    lobes = [c for c in closures if float(LUMINANCE @ c.scattering) > 0]
+    if not lobes:
+        return 0.0
+    values = np.array([lobe.anisotropy for lobe in lobes])
+    if np.allclose(values, values[0], rtol=0, atol=1e-6):
+        return float(values[0])
+    weights = np.array([float(LUMINANCE @ lobe.scattering) for lobe in lobes])
+    mean = float(weights @ values / weights.sum())
+    notes.append(
+        f"{where}: scattering lobes of anisotropy {', '.join(f'{v:g}' for v in values)} are "
+        f"rendered as one of {mean:.3g}, their mean weighted by scattering"
+    )
+    return mean
+
+
 def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[dict, list[str]]:
-    """The medium of a fog object: a box mesh with a Volume Scatter or Principled Volume.
+    """The medium of a fog object: a box mesh whose volume shader is a Volume Scatter,
+    Volume Absorption or Principled Volume, or Add and Mix Shaders of them.
 
     The box is the object's matrix times its bounds. Coefficients are read as Cycles reads
-    them: Volume Scatter has σs = σt = color·density per channel; Principled Volume has
-    σs = color·density and σt = (color + (1 − color)(1 − √absorption))·density. Where σt is
-    coloured it goes to the core per channel (`channel_extinction`, a pass per distinct
-    value, and a note says so), with `extinction` its Rec. 709 luminance.
+    them (`_volume_closures`) and summed over the shader's closures, as Cycles sums them.
+    Where σt is coloured it goes to the core per channel (`channel_extinction`, a pass per
+    distinct value, and a note says so), with `extinction` its Rec. 709 luminance.
     """
     where = f"fog object '{fog.name}'"
     evaluated = fog.evaluated_get(depsgraph)
@@ -843,33 +942,12 @@ def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[d
     output = material.node_tree.get_output_node("CYCLES")
     if output is None or not output.inputs["Volume"].is_linked:
         raise ExportError(f"{where}: material '{material.name}' has no Volume output link")
-    node = output.inputs["Volume"].links[0].from_node
     where = f"{where}, material '{material.name}'"
-    color = np.array(_constant(node, "Color", where)[:3], dtype=np.float64)
-    density = max(float(_constant(node, "Density", where)), 0.0)
-    anisotropy = float(_constant(node, "Anisotropy", where))
-    notes = []
-    if node.bl_idname == "ShaderNodeVolumeScatter":
-        phase = getattr(node, "phase", "HENYEY_GREENSTEIN")
-        if phase != "HENYEY_GREENSTEIN":
-            raise ExportError(f"{where}: phase '{phase}' is not supported (Henyey-Greenstein)")
-        scattering = np.maximum(color, 0) * density
-        extinction = scattering
-    elif node.bl_idname == "ShaderNodeVolumePrincipled":
-        absorption = np.array(_constant(node, "Absorption Color", where)[:3], dtype=np.float64)
-        color = np.maximum(color, 0)
-        scattering = color * density
-        extinction = (
-            color + np.maximum(1 - color, 0) * np.maximum(1 - np.sqrt(np.maximum(absorption, 0)), 0)
-        ) * density
-        for name in ("Emission Strength", "Blackbody Intensity"):
-            if float(_constant(node, name, where)) != 0:
-                notes.append(f"{name} of '{node.name}' is ignored: shafts have no emission")
-    else:
-        raise ExportError(
-            f"{where}: the volume shader is '{node.bl_idname}'; use Volume Scatter or "
-            "Principled Volume"
-        )
+    notes: list[str] = []
+    closures = _volume_closures(output.inputs["Volume"], 1.0, where, notes)
+    scattering = sum((closure.scattering for closure in closures), np.zeros(3))
+    extinction = sum((closure.extinction for closure in closures), np.zeros(3))
+    anisotropy = _mean_anisotropy(closures, where, notes)
     sigma_t = float(LUMINANCE @ extinction)
     medium: dict[str, Any] = {"extinction": sigma_t}
     if np.allclose(extinction, extinction[0], rtol=1e-6, atol=0):

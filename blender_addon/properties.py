@@ -374,8 +374,9 @@ class CrepuscularScene(PropertyGroup):
         type=bpy.types.Object,
         poll=_poll_fog,
         update=_tag_preview,
-        description="A box mesh whose material is a Volume Scatter or Principled Volume. "
-        "It is hidden from the beauty while shafts replace it",
+        description="A box mesh whose material's volume is a Volume Scatter, Volume "
+        "Absorption, Principled Volume or Volume Coefficients, or Add and Mix Shaders of "
+        "them. It is hidden from the beauty while shafts replace it",
     )
     extinction: FloatProperty(
         name="Extinction",

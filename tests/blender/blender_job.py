@@ -234,6 +234,51 @@ def job_points_fidelity(spec: dict[str, Any], out: Path) -> None:
         assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
 
 
+def job_closures_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog as an Add Shader of Volume Scatter and a coloured Volume
+    Absorption, a Mix Shader of Volume Scatter and Principled Volume, and Volume
+    Coefficients (beside an Emission of strength 0): Cycles and our layers (reference) of
+    each."""
+    scene = fog_scene(spec)
+    fog = scene.crepuscular.fog_object
+    scatter = {"Color": (0.9, 0.9, 0.9, 1.0), "Density": 0.3, "Anisotropy": 0.3}
+    materials = {
+        "added": blender_scenes.volume_graph(
+            "add",
+            [("scatter", scatter)],
+            [("absorption", {"Color": (0.2, 0.5, 0.8, 1.0), "Density": 0.15})],
+        ),
+        "mixed": blender_scenes.volume_graph(
+            "mix",
+            [("scatter", scatter)],
+            [("principled", {"Density": 0.8, "Anisotropy": 0.3})],
+            fac=0.3,
+        ),
+        "coefficients": blender_scenes.volume_graph(
+            "add",
+            [
+                (
+                    "coefficients",
+                    {
+                        "Absorption Coefficients": (0.05, 0.1, 0.2),
+                        "Scatter Coefficients": (0.3, 0.25, 0.2),
+                        "Anisotropy": 0.3,
+                    },
+                )
+            ],
+            [("emission", {"Strength": 0.0})],
+        ),
+    }
+    settings = scene.objects["Sun"].data.crepuscular
+    for name, material in materials.items():
+        fog.data.materials[0] = material
+        settings.enabled = False
+        _render(scene, out / f"cycles_{name}.exr")
+        settings.enabled = True
+        path = str(out / f"{name}.exr")
+        assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
+
+
 def job_particle_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of legacy particle hair (an emitter at the
     roof's edge, not rendered, growing 60 hairs 10 long across the box, of radius 6 cm at
@@ -600,6 +645,7 @@ JOBS = {
     "cutout_fidelity": job_cutout_fidelity,
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
+    "closures_fidelity": job_closures_fidelity,
     "particle_hair_fidelity": job_particle_hair_fidelity,
     "visibility_fidelity": job_visibility_fidelity,
     "composite": job_composite,

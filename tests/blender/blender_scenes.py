@@ -152,6 +152,45 @@ def volume_material(kind: str = "scatter", **inputs: Any) -> Any:
     return material
 
 
+#: Node types of `volume_graph`'s shaders.
+VOLUME_NODES = {
+    "scatter": "ShaderNodeVolumeScatter",
+    "absorption": "ShaderNodeVolumeAbsorption",
+    "principled": "ShaderNodeVolumePrincipled",
+    "coefficients": "ShaderNodeVolumeCoefficients",
+    "emission": "ShaderNodeEmission",
+}
+
+
+def volume_graph(
+    combine: str,
+    first: list[tuple[str, dict[str, Any]]],
+    second: list[tuple[str, dict[str, Any]]],
+    fac: float = 0.5,
+) -> Any:
+    """A material whose volume output is an Add Shader (`combine` "add") or a Mix Shader
+    ("mix", at `fac`) of two shaders, each given as [(kind, inputs)] (`VOLUME_NODES`)."""
+    import bpy
+
+    material = bpy.data.materials.new(f"Fog {combine}")
+    tree = material.node_tree
+    for node in list(tree.nodes):
+        if node.bl_idname != "ShaderNodeOutputMaterial":
+            tree.nodes.remove(node)
+    joint = tree.nodes.new("ShaderNodeAddShader" if combine == "add" else "ShaderNodeMixShader")
+    if combine == "mix":
+        joint.inputs["Fac"].default_value = fac
+    shader_inputs = [socket for socket in joint.inputs if socket.type == "SHADER"]
+    for (kind, inputs), socket in zip([*first, *second], shader_inputs, strict=True):
+        shader = tree.nodes.new(VOLUME_NODES[kind])
+        for name, value in inputs.items():
+            shader.inputs[name].default_value = value
+        tree.links.new(shader.outputs[0], socket)
+    output = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
+    tree.links.new(joint.outputs[0], output.inputs["Volume"])
+    return material
+
+
 def add_fog_box(scene: Any, matrix: Any, material: Any) -> Any:
     """Blender's default cube (vertices at ±1) placed by `matrix`, with `material`."""
     import bpy

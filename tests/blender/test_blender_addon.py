@@ -839,6 +839,68 @@ def test_fog_object_maps_as_cycles_reads_it(addon: ModuleType) -> None:
     assert medium["albedo"] == pytest.approx(0.5 / extinction)
 
 
+def test_fog_shaders_of_several_closures_sum_as_cycles_sums_them(addon: ModuleType) -> None:
+    """Add Shader sums its volume closures' coefficients, Mix Shader weights them by
+    1 - Fac and Fac, Volume Absorption only absorbs, Volume Coefficients gives them
+    outright, and emission is left out with a note; lobes of different anisotropy are
+    rendered as their mean weighted by scattering, with a note."""
+    scene = bpy.context.scene
+    material = blender_scenes.volume_graph(
+        "add",
+        [("scatter", {"Color": (0.8, 0.8, 0.8, 1.0), "Density": 0.5, "Anisotropy": 0.3})],
+        [("absorption", {"Color": (0.2, 0.4, 0.6, 1.0), "Density": 0.3})],
+    )
+    blender_scenes.add_fog_box(scene, np.eye(4), material)
+
+    def medium() -> tuple[dict[str, Any], list[str]]:
+        return addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+
+    found, notes = medium()
+    extinction = 0.4 + 0.3 * np.array([0.8, 0.6, 0.4])
+    assert found["channel_extinction"] == pytest.approx(extinction)
+    assert found["albedo"] == pytest.approx(0.4 / extinction)
+    assert found["anisotropy"] == pytest.approx(0.3)
+    assert not any("anisotropy" in note for note in notes)
+    # A quarter of a Principled Volume of the other anisotropy, three quarters scatter.
+    material = blender_scenes.volume_graph(
+        "mix",
+        [("scatter", {"Color": (1.0, 1.0, 1.0, 1.0), "Density": 0.4, "Anisotropy": 0.5})],
+        [("principled", {"Density": 0.8, "Anisotropy": -0.1})],
+        fac=0.25,
+    )
+    scene.crepuscular.fog_object.data.materials[0] = material
+    found, notes = medium()
+    assert found["extinction"] == pytest.approx(0.75 * 0.4 + 0.25 * 0.8)
+    assert found["albedo"] == pytest.approx([(0.3 + 0.25 * 0.4) / 0.5] * 3)
+    assert found["anisotropy"] == pytest.approx((0.3 * 0.5 + 0.1 * -0.1) / 0.4)
+    assert any("rendered as one of" in note for note in notes)
+    material = blender_scenes.volume_graph(
+        "add",
+        [
+            (
+                "coefficients",
+                {
+                    "Absorption Coefficients": (0.1, 0.2, 0.3),
+                    "Scatter Coefficients": (0.4, 0.4, 0.4),
+                    "Anisotropy": 0.2,
+                },
+            )
+        ],
+        [("emission", {"Strength": 2.0})],
+    )
+    scene.crepuscular.fog_object.data.materials[0] = material
+    found, notes = medium()
+    assert found["channel_extinction"] == pytest.approx([0.5, 0.6, 0.7])
+    assert found["albedo"] == pytest.approx(0.4 / np.array([0.5, 0.6, 0.7]))
+    assert any("is ignored" in note for note in notes)
+    nodes = material.node_tree.nodes
+    diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+    add = next(node for node in nodes if node.bl_idname == "ShaderNodeAddShader")
+    material.node_tree.links.new(diffuse.outputs[0], add.inputs[1])
+    with pytest.raises(addon.export.ExportError, match="ShaderNodeBsdfDiffuse"):
+        medium()
+
+
 def test_fog_objects_that_cannot_map_are_named(addon: ModuleType) -> None:
     scene = bpy.context.scene
     material = blender_scenes.volume_material("scatter", Density=1.0)
