@@ -26,9 +26,10 @@ Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscu
 alpha masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
 hair curves object of 10 to 40 black strands over the box, which the extension draws as ribbons,
 and `--points` a geometry-nodes point cloud of 20 to 300 black points of random radii over
-and in the box, which it draws as spheres (`scene.json` carries both as meshes). Views that
-see no
-fog print as black. A sun's disc is left at 0°: crepuscular's shafts have hard edges.
+and in the box, which it draws as spheres (`scene.json` carries both as meshes).
+`--closures` builds each fog of several volume closures: an Add or Mix Shader of it and a
+Volume Absorption, or Volume Coefficients. Views that see no fog print as black. A sun's
+disc is left at 0°: crepuscular's shafts have hard edges.
 """
 
 from __future__ import annotations
@@ -58,8 +59,11 @@ from differential_views import random_geometry  # noqa: E402
 METHODS = ("reference", "minmax", "default")
 
 
-def random_fog(rng: random.Random, tinted: bool) -> tuple[bpy.types.Material, str]:
-    """A Volume Scatter or Principled Volume of random density, anisotropy and colour."""
+def random_fog(
+    rng: random.Random, tinted: bool, closures: bool = False
+) -> tuple[bpy.types.Material, str]:
+    """A Volume Scatter or Principled Volume of random density, anisotropy and colour; with
+    `closures`, built of several closures instead (`combined_fog`)."""
     grey = rng.uniform(0.3, 1.0)
     colour = (grey, grey, grey, 1.0)
     if tinted:
@@ -73,7 +77,44 @@ def random_fog(rng: random.Random, tinted: bool) -> tuple[bpy.types.Material, st
         absorption = rng.uniform(0.0, 1.0)
         inputs["Absorption Color"] = (absorption, absorption, absorption, 1.0)
     label = f"{kind} density {density:.3f} g {anisotropy:+.2f}"
+    if closures:
+        return combined_fog(rng, tinted, kind, inputs, label)
     return blender_scenes.volume_material(kind, **inputs), label
+
+
+def combined_fog(
+    rng: random.Random, tinted: bool, kind: str, inputs: dict, label: str
+) -> tuple[bpy.types.Material, str]:
+    """The fog `kind` with `inputs` plus a Volume Absorption (an Add Shader), mixed with
+    one (a Mix Shader of random factor), or as Volume Coefficients of the same scattering
+    and an absorption."""
+    grey = rng.uniform(0.1, 0.9)
+    absorbing = (grey, grey, grey, 1.0)
+    if tinted:
+        absorbing = (rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9), 1.0)
+    absorption = {"Color": absorbing, "Density": inputs["Density"] * rng.uniform(0.2, 1.0)}
+    combine = rng.choice(["add", "mix", "coefficients"])
+    if combine == "coefficients":
+        scattering = [inputs["Density"] * c for c in inputs["Color"][:3]]
+        absorbed = [absorption["Density"] * (1 - c) for c in absorbing[:3]]
+        coefficients = {
+            "Scatter Coefficients": scattering,
+            "Absorption Coefficients": absorbed,
+            "Anisotropy": inputs["Anisotropy"],
+        }
+        material = blender_scenes.volume_graph(
+            "add", [("coefficients", coefficients)], [("emission", {"Strength": 0.0})]
+        )
+        return (
+            material,
+            f"coefficients density {inputs['Density']:.3f} g {inputs['Anisotropy']:+.2f}",
+        )
+    fac = rng.uniform(0.2, 0.8)
+    material = blender_scenes.volume_graph(
+        combine, [(kind, inputs)], [("absorption", absorption)], fac=fac
+    )
+    mixed = f" fac {fac:.2f}" if combine == "mix" else ""
+    return material, f"{label} {combine} absorption {absorption['Density']:.3f}{mixed}"
 
 
 def random_alpha(rng: random.Random, size: int = 128) -> np.ndarray:
@@ -176,6 +217,7 @@ def build_case(
     cutouts: bool,
     hair: bool = False,
     points: bool = False,
+    closures: bool = False,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
     blender_scenes.reset()
@@ -196,7 +238,7 @@ def build_case(
     world_from_cube = np.eye(4)
     world_from_cube[:3, :3] = np.array([[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]) @ np.diag(half)
     world_from_cube[:3, 3] = centre
-    material, fog_label = random_fog(rng, tinted)
+    material, fog_label = random_fog(rng, tinted, closures)
     blender_scenes.add_fog_box(scene, world_from_cube, material)
 
     elevation, azimuth = math.radians(rng.uniform(10, 85)), rng.uniform(0, 2 * math.pi)
@@ -376,6 +418,9 @@ def main() -> int:
     parser.add_argument("--cutouts", action="store_true", help="cards cut by an image's alpha")
     parser.add_argument("--hair", action="store_true", help="hair strands over the box")
     parser.add_argument("--points", action="store_true", help="a point cloud over the box")
+    parser.add_argument(
+        "--closures", action="store_true", help="fog of several volume closures (see above)"
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -393,6 +438,7 @@ def main() -> int:
             args.cutouts,
             args.hair,
             args.points,
+            args.closures,
         )
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)

@@ -178,7 +178,13 @@ def test_unmappable_opacity_is_named_and_casts_as_opaque(
     surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.4)
     veil.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
     UsdShade.MaterialBindingAPI.Apply(other.GetPrim()).Bind(veil)
-    frame = StageReader(stage, None, None, width=96).read(Usd.TimeCode.Default())
+    # A material bound to many meshes is named once, on the first, and once only however
+    # many frames one reader reads.
+    third = _quad(stage, "/World/Third", 5, 6)
+    UsdShade.MaterialBindingAPI.Apply(third.GetPrim()).Bind(veil)
+    reader = StageReader(stage, None, None, width=96)
+    reader.read(Usd.TimeCode.Default())
+    frame = reader.read(Usd.TimeCode.Default())
     assert frame.geometry.triangle_masks is None
     notes = frame.geometry.notes
     assert len(notes) == 2, notes

@@ -182,6 +182,7 @@ class MaskTable:
     # What each material's network maps to: a stage binds one material to many meshes.
     _by_material: dict[Sdf.Path, tuple[MaskSource | None, str | None]] = field(default_factory=dict)
     _alpha: dict[MaskSource, npt.NDArray[np.float32]] = field(default_factory=dict)
+    _noted: set[Sdf.Path] = field(default_factory=set)
 
     def index(self, material: UsdShade.Material | None, where: str) -> int:
         if material is None:
@@ -190,7 +191,10 @@ class MaskTable:
         if path not in self._by_material:
             self._by_material[path] = mask_source(material)
         source, note = self._by_material[path]
-        if note is not None and note not in self.notes:
+        if note is not None and path not in self._noted:
+            # Once per material, on the first mesh bound to it: a stage binds one material
+            # to many meshes, and the table lives for every frame of a range.
+            self._noted.add(path)
             self.notes.append(f"{where}: {note}")
         if source is None:
             return -1
