@@ -19,9 +19,11 @@ duration of a render (and restored after), so the beauty does not count the medi
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import sys
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
@@ -108,6 +110,46 @@ def render_layers(
     for entry in inputs[1:]:
         inputs[0].notes.extend(note for note in entry.notes if note not in inputs[0].notes)
     return crepuscular.Layers(width, height, volume, visibility, depth), inputs[0]
+
+
+@contextlib.contextmanager
+def shown_as_rendered(view_layer: bpy.types.ViewLayer) -> Iterator[None]:
+    """Within it, what renders is shown in the viewport too, so that the viewport's
+    depsgraph holds it: objects hidden there (the eye or the monitor) and collections hidden
+    there whose render visibility is on. The operator renders from that depsgraph, which
+    otherwise leaves them out where F12 renders them. Restored afterwards, whatever
+    happens."""
+    restore: list[Callable[[], None]] = []
+    try:
+        for layer_collection in _layer_collections(view_layer.layer_collection):
+            collection = layer_collection.collection
+            if layer_collection.exclude or collection.hide_render:
+                continue
+            if layer_collection.hide_viewport:
+                layer_collection.hide_viewport = False
+                restore.append(functools.partial(setattr, layer_collection, "hide_viewport", True))
+            if collection.hide_viewport:
+                collection.hide_viewport = False
+                restore.append(functools.partial(setattr, collection, "hide_viewport", True))
+        for obj in view_layer.objects:
+            if obj.hide_render:
+                continue
+            if obj.hide_viewport:
+                obj.hide_viewport = False
+                restore.append(functools.partial(setattr, obj, "hide_viewport", True))
+            if obj.hide_get(view_layer=view_layer):
+                obj.hide_set(False, view_layer=view_layer)
+                restore.append(functools.partial(obj.hide_set, True, view_layer=view_layer))
+        yield
+    finally:
+        for undo in reversed(restore):
+            undo()
+
+
+def _layer_collections(root: bpy.types.LayerCollection) -> Iterator[bpy.types.LayerCollection]:
+    yield root
+    for child in root.children:
+        yield from _layer_collections(child)
 
 
 def layers_path(scene: bpy.types.Scene, frame: int) -> str:
@@ -427,8 +469,9 @@ class CREPUSCULAR_OT_render_layers(bpy.types.Operator):
         wm = context.window_manager
         wm.progress_begin(0.0, 1.0)
         try:
-            depsgraph = context.evaluated_depsgraph_get()
-            layers, inputs = render_layers(scene, depsgraph, progress=wm.progress_update)
+            with shown_as_rendered(context.view_layer):
+                depsgraph = context.evaluated_depsgraph_get()
+                layers, inputs = render_layers(scene, depsgraph, progress=wm.progress_update)
             path = (
                 bpy.path.abspath(self.filepath)
                 if self.filepath

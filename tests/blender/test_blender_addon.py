@@ -954,6 +954,53 @@ def test_render_layers_operator_writes_the_layers(addon: ModuleType, tmp_path: P
     assert again["volume.R"].mean() < 0.5 * channels["volume.R"].mean()
 
 
+def test_render_layers_renders_what_is_hidden_only_in_the_viewport(
+    addon: ModuleType, tmp_path: Path
+) -> None:
+    """The operator renders what F12 renders: a roof hidden in the viewport (the eye, the
+    monitor, or its collection's) still casts, one hidden from renders does not, and the
+    viewport's hiding is as it was afterwards."""
+    scene = _basic_scene()
+    roof = scene.objects["Roof"]
+    ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
+    blender_scenes.add_quad(scene, "Ground", ground, blender_scenes.black_material(0.0))
+    shown = tmp_path / "shown.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(shown)) == {"FINISHED"}
+    expected = crepuscular.read_exr(shown)
+    folder = bpy.data.collections.new("Roofs")
+    scene.collection.children.link(folder)
+    scene.collection.objects.unlink(roof)
+    folder.objects.link(roof)
+    layer = bpy.context.view_layer.layer_collection.children["Roofs"]
+
+    def hide_eye(hidden: bool) -> None:
+        roof.hide_set(hidden)
+
+    def hide_monitor(hidden: bool) -> None:
+        roof.hide_viewport = hidden
+
+    def hide_collection(hidden: bool) -> None:
+        folder.hide_viewport = hidden
+
+    def hide_layer(hidden: bool) -> None:
+        layer.hide_viewport = hidden
+
+    for hide in (hide_eye, hide_monitor, hide_collection, hide_layer):
+        hide(True)
+        path = tmp_path / f"{hide.__name__}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        found = crepuscular.read_exr(path)
+        for name, channel in found.items():
+            np.testing.assert_array_equal(channel, expected[name], err_msg=hide.__name__)
+        hidden = (roof.hide_get(), roof.hide_viewport, folder.hide_viewport, layer.hide_viewport)
+        assert sum(hidden) == 1, hide.__name__
+        hide(False)
+    roof.hide_render = True
+    bare = tmp_path / "bare.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(bare)) == {"FINISHED"}
+    assert crepuscular.read_exr(bare)["visibility"].mean() > expected["visibility"].mean() + 0.05
+
+
 def test_adaptive_tolerance_reaches_the_renderer(addon: ModuleType, tmp_path: Path) -> None:
     scene = _basic_scene()
     settings = scene.objects["Sun"].data.crepuscular
