@@ -113,33 +113,62 @@ def render_layers(
 
 
 @contextlib.contextmanager
-def shown_as_rendered(view_layer: bpy.types.ViewLayer) -> Iterator[None]:
-    """Within it, what renders is shown in the viewport too, so that the viewport's
-    depsgraph holds it: objects hidden there (the eye or the monitor) and collections hidden
-    there whose render visibility is on. The operator renders from that depsgraph, which
-    otherwise leaves them out where F12 renders them. Restored afterwards, whatever
-    happens."""
+def evaluated_as_rendered(view_layer: bpy.types.ViewLayer) -> Iterator[None]:
+    """Within it, the viewport's depsgraph evaluates the view layer as a render does, so
+    that the operator, which renders from that depsgraph, renders what F12 renders:
+
+    - objects and collections hidden only in the viewport (the eye, the monitor, or a
+      collection's) are shown;
+    - modifiers are on or off as for renders, subdivision and multires at their render
+      levels, particle systems at their render steps and children's render amount, with
+      every particle and their emitters shown as rendered;
+    - curves, surfaces, text and metaballs at their render resolutions.
+
+    Everything is set back afterwards, whatever happens. Linked data, which cannot be
+    changed, keeps its library's settings."""
     restore: list[Callable[[], None]] = []
+
+    def put(target: Any, name: str, value: Any) -> None:
+        # Linked data is evaluated as the library has it.
+        if not target.id_data.is_editable:
+            return
+        old = getattr(target, name)
+        if old != value:
+            setattr(target, name, value)
+            restore.append(functools.partial(setattr, target, name, old))
+
     try:
         for layer_collection in _layer_collections(view_layer.layer_collection):
             collection = layer_collection.collection
             if layer_collection.exclude or collection.hide_render:
                 continue
-            if layer_collection.hide_viewport:
-                layer_collection.hide_viewport = False
-                restore.append(functools.partial(setattr, layer_collection, "hide_viewport", True))
-            if collection.hide_viewport:
-                collection.hide_viewport = False
-                restore.append(functools.partial(setattr, collection, "hide_viewport", True))
+            put(layer_collection, "hide_viewport", False)
+            put(collection, "hide_viewport", False)
         for obj in view_layer.objects:
             if obj.hide_render:
                 continue
-            if obj.hide_viewport:
-                obj.hide_viewport = False
-                restore.append(functools.partial(setattr, obj, "hide_viewport", True))
-            if obj.hide_get(view_layer=view_layer):
+            put(obj, "hide_viewport", False)
+            if obj.hide_get(view_layer=view_layer):  # the view layer's own state
                 obj.hide_set(False, view_layer=view_layer)
                 restore.append(functools.partial(obj.hide_set, True, view_layer=view_layer))
+            put(obj, "show_instancer_for_viewport", obj.show_instancer_for_render)
+            for modifier in obj.modifiers:
+                put(modifier, "show_viewport", modifier.show_render)
+                if modifier.type in {"SUBSURF", "MULTIRES"}:
+                    put(modifier, "levels", modifier.render_levels)
+            for system in obj.particle_systems:
+                settings = system.settings
+                put(settings, "display_step", settings.render_step)
+                put(settings, "child_percent", settings.rendered_child_count)
+                put(settings, "display_percentage", 100)
+            data = obj.data
+            if isinstance(data, bpy.types.Curve):
+                if data.render_resolution_u > 0:
+                    put(data, "resolution_u", data.render_resolution_u)
+                if isinstance(data, bpy.types.SurfaceCurve) and data.render_resolution_v > 0:
+                    put(data, "resolution_v", data.render_resolution_v)
+            elif isinstance(data, bpy.types.MetaBall) and data.render_resolution > 0:
+                put(data, "resolution", data.render_resolution)
         yield
     finally:
         for undo in reversed(restore):
@@ -469,7 +498,7 @@ class CREPUSCULAR_OT_render_layers(bpy.types.Operator):
         wm = context.window_manager
         wm.progress_begin(0.0, 1.0)
         try:
-            with shown_as_rendered(context.view_layer):
+            with evaluated_as_rendered(context.view_layer):
                 depsgraph = context.evaluated_depsgraph_get()
                 layers, inputs = render_layers(scene, depsgraph, progress=wm.progress_update)
             path = (

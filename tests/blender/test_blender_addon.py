@@ -1001,6 +1001,52 @@ def test_render_layers_renders_what_is_hidden_only_in_the_viewport(
     assert crepuscular.read_exr(bare)["visibility"].mean() > expected["visibility"].mean() + 0.05
 
 
+def test_render_layers_evaluates_modifiers_and_particles_as_rendered(
+    addon: ModuleType, tmp_path: Path
+) -> None:
+    """The operator evaluates modifiers, subdivision levels and particle amounts as F12
+    does: its layers are those of the scene with each viewport setting set to its render
+    setting by hand (and not those of the viewport's own settings), and every viewport
+    setting is as it was afterwards."""
+    scene = _basic_scene()
+    roof = scene.objects["Roof"]
+    ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
+    blender_scenes.add_quad(scene, "Ground", ground, blender_scenes.black_material(0.0))
+    array = roof.modifiers.new("Array", "ARRAY")
+    array.relative_offset_displace = (1.2, 0.0, 0.0)
+    array.show_viewport = False
+    bpy.ops.mesh.primitive_cube_add(size=2.0, location=(-3.0, 0.0, 4.0))
+    block = bpy.context.active_object
+    subdivision = block.modifiers.new("Subdivision", "SUBSURF")
+    subdivision.levels, subdivision.render_levels = 0, 3
+    corners = [(-2, -2, 5), (2, -2, 5), (2, 2, 5), (-2, 2, 5)]
+    emitter = blender_scenes.add_particle_hair(scene, "fur", corners, 20, 1.0, radius_scale=0.2)
+    particles = emitter.particle_systems[0].settings
+    particles.child_type = "SIMPLE"
+    particles.child_percent, particles.rendered_child_count = 1, 10
+    particles.display_step, particles.render_step = 2, 4
+    viewport = (array.show_viewport, subdivision.levels, particles.child_percent, 2)
+
+    def operator_layers(name: str) -> dict[str, np.ndarray]:
+        path = tmp_path / f"{name}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        return crepuscular.read_exr(path)
+
+    array.show_viewport, subdivision.levels = True, 3
+    particles.child_percent, particles.display_step = 10, 4
+    by_hand = operator_layers("by_hand")
+    array.show_viewport, subdivision.levels = viewport[0], viewport[1]
+    particles.child_percent, particles.display_step = viewport[2], viewport[3]
+    found = operator_layers("found")
+    for name, channel in found.items():
+        np.testing.assert_array_equal(channel, by_hand[name], err_msg=name)
+    now = (array.show_viewport, subdivision.levels, particles.child_percent)
+    assert (*now, particles.display_step) == viewport
+    layers, _ = addon.render.render_layers(scene, bpy.context.evaluated_depsgraph_get())
+    in_viewport = np.asarray(layers.visibility)
+    assert np.abs(in_viewport - by_hand["visibility"]).mean() > 0.004
+
+
 def test_adaptive_tolerance_reaches_the_renderer(addon: ModuleType, tmp_path: Path) -> None:
     scene = _basic_scene()
     settings = scene.objects["Sun"].data.crepuscular
