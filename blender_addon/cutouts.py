@@ -5,8 +5,10 @@ camera's depth.
 
 Recognised, as artists build them for Cycles: a Principled BSDF whose Alpha is an Image
 Texture's Alpha (or Color), and a Mix Shader between a Transparent BSDF and another shader
-whose factor is an Image Texture's Alpha (or Color). The texture's coordinates are its UV
-Map node's map, or the mesh's default (active render) map when nothing feeds its Vector.
+whose factor is an Image Texture's Alpha (or Color). A constant Alpha or factor, or a
+Transparent BSDF alone, is one alpha everywhere, clipped as masks are. The texture's
+coordinates are its UV Map node's map, or the mesh's default (active render) map when
+nothing feeds its Vector.
 
 The core clips at alpha 0.5, where Cycles lets each shadow ray through by the alpha: the
 same for the nearly binary masks of cutouts, and within their filtered edges otherwise.
@@ -42,6 +44,8 @@ class MaskSource:
     #: True where the texture's value is the transparent share (a Mix Shader's factor
     #: towards its second input, the Transparent BSDF).
     invert: bool
+    #: The alpha of a material transparent alike everywhere (no image), else None.
+    constant: float | None = None
 
 
 def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
@@ -57,10 +61,13 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
     if shader.bl_idname == "ShaderNodeBsdfPrincipled":
         alpha = shader.inputs["Alpha"]
         if not alpha.is_linked:
-            if alpha.default_value < 1.0:
-                return None, f"{where}: a constant Alpha is not a cutout; it casts as opaque"
-            return None, None
+            return _constant_source(float(alpha.default_value), where)
         return _image_source(alpha.links[0], invert=False, where=where)
+    if shader.bl_idname == "ShaderNodeBsdfTransparent":
+        color = shader.inputs["Color"]
+        if color.is_linked:
+            return None, f"{where}: its Transparent BSDF's Color is linked; it casts as opaque"
+        return _constant_source(1.0 - float(np.array(color.default_value[:3]) @ LUMINANCE), where)
     if shader.bl_idname == "ShaderNodeMixShader":
         factor, first, second = shader.inputs[0], shader.inputs[1], shader.inputs[2]
         transparent = [
@@ -70,11 +77,29 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
         if not any(transparent):
             return None, None
         if not factor.is_linked:
-            return None, f"{where}: a constant mix with Transparent BSDF casts as opaque"
+            fac = min(max(float(factor.default_value), 0.0), 1.0)
+            return _constant_source(1.0 - fac if transparent[1] else fac, where)
         # The factor blends towards the second input: it is the alpha where the first is
         # the Transparent BSDF, and the transparency where the second is.
         return _image_source(factor.links[0], invert=transparent[1], where=where)
     return None, None
+
+
+def _constant_source(alpha: float, where: str) -> tuple[MaskSource | None, str | None]:
+    """A material of one alpha everywhere, clipped at `THRESHOLD` as masks are: below it,
+    a mask that cuts every triangle (it neither casts nor hides the fog), else opaque; a
+    note where the alpha is partial, since Cycles lets the rest through."""
+    alpha = min(max(alpha, 0.0), 1.0)
+    note = None
+    if 0.0 < alpha < 1.0:
+        effect = "casts as opaque" if alpha >= THRESHOLD else "neither casts nor hides the fog"
+        note = (
+            f"{where}: its alpha {alpha:.2f} is clipped at {THRESHOLD}: it {effect} "
+            f"(Cycles lets {1 - alpha:.0%} of the light through)"
+        )
+    if alpha >= THRESHOLD:
+        return None, note
+    return MaskSource("", "", "alpha", invert=False, constant=alpha), note
 
 
 def _image_source(link: Any, *, invert: bool, where: str) -> tuple[MaskSource | None, str | None]:
@@ -102,6 +127,8 @@ def _image_source(link: Any, *, invert: bool, where: str) -> tuple[MaskSource | 
 
 def mask_alpha(source: MaskSource) -> np.ndarray:
     """The (height, width) float32 alpha of `source`, rows from the image's bottom."""
+    if source.constant is not None:
+        return np.full((1, 1), source.constant, dtype=np.float32)
     image = bpy.data.images[source.image]
     width, height = image.size
     if width == 0 or height == 0:

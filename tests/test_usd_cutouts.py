@@ -175,7 +175,7 @@ def test_unmappable_opacity_is_named_and_casts_as_opaque(
     veil = UsdShade.Material.Define(stage, "/World/Looks/Veil")
     surface = UsdShade.Shader.Define(stage, "/World/Looks/Veil/Surface")
     surface.CreateIdAttr("UsdPreviewSurface")
-    surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.4)
+    surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.7)
     veil.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
     UsdShade.MaterialBindingAPI.Apply(other.GetPrim()).Bind(veil)
     # A material bound to many meshes is named once, on the first, and once only however
@@ -191,7 +191,7 @@ def test_unmappable_opacity_is_named_and_casts_as_opaque(
     assert notes[0].startswith("/World/Card: ")
     assert "no_such_file.png was not found" in notes[0]
     assert notes[1].startswith("/World/Other: ")
-    assert "constant opacity" in notes[1]
+    assert "opacity 0.70 is cut at 0.5: it casts as opaque" in notes[1]
     stage.GetRootLayer().Save()
     from crepuscular_usd.cli import main
 
@@ -199,7 +199,45 @@ def test_unmappable_opacity_is_named_and_casts_as_opaque(
     assert main(["render", str(tmp_path / "notes.usda"), "--out", str(out), "--width", "48"]) == 0
     err = capfd.readouterr().err
     assert "no_such_file.png was not found" in err
-    assert "constant opacity" in err
+    assert "opacity 0.70 is cut" in err
+
+
+def test_a_constant_opacity_is_cut_as_a_mask(tmp_path: Path) -> None:
+    """A card of one opacity everywhere is cut as a mask of that value: below the cut it
+    neither casts nor hides the fog (the frame is the one without it), at or above it is
+    opaque. With an opacityThreshold that is USD's own meaning and needs no note; without,
+    the cut is at 0.5 and a note names the light a renderer would let through."""
+    bare = _render(_stage(tmp_path, "bare"))
+    stage = _stage(tmp_path, "veiled")
+    card = _quad(stage, "/World/Card", -2, 2)
+    solid = _render(stage)
+    veil = UsdShade.Material.Define(stage, "/World/Looks/Veil")
+    surface = UsdShade.Shader.Define(stage, "/World/Looks/Veil/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    opacity = surface.CreateInput("opacity", Sdf.ValueTypeNames.Float)
+    threshold = surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float)
+    veil.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(veil)
+    for value, cut, expected, note in (
+        (0.2, 0.0, bare, "neither casts nor hides the fog (a renderer lets 80%"),
+        (0.6, 0.0, solid, "casts as opaque"),
+        (0.2, 0.3, bare, None),
+        (0.4, 0.3, solid, None),
+    ):
+        opacity.Set(value)
+        threshold.Set(cut)
+        frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(
+            Usd.TimeCode.Default()
+        )
+        layers = crepuscular.render_arrays(**frame.render_kwargs())
+        np.testing.assert_array_equal(layers.depth, expected.depth)
+        assert _mean_relative(layers.volume, expected.volume) < 1e-6
+        if note is None:
+            assert frame.geometry.notes == []
+        else:
+            assert len(frame.geometry.notes) == 1
+            assert note in frame.geometry.notes[0]
+    assert _mean_relative(solid.volume, bare.volume) > 0.01
 
 
 def test_a_usdz_packages_texture_cuts_and_a_broken_one_is_named(tmp_path: Path) -> None:

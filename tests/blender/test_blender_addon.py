@@ -552,7 +552,60 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.5
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     assert geometry.uvs is None
-    assert "constant Alpha" in geometry.notes[0]
+    assert "alpha 0.50 is clipped at 0.5: it casts as opaque" in geometry.notes[0]
+    # One alpha everywhere below the threshold: a 1x1 mask that cuts the whole card, from
+    # a constant Alpha, a Mix Shader's constant factor, or a Transparent BSDF alone.
+    nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.2
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert len(geometry.masks) == 1
+    np.testing.assert_allclose(np.asarray(geometry.masks[0].alpha), [[0.2]])
+    assert "neither casts nor hides the fog (Cycles lets 80% of the light" in geometry.notes[0]
+    mixed.node_tree.links.remove(mix.inputs[0].links[0])
+    mix.inputs[0].default_value = 0.75  # towards the second input, now the Transparent BSDF
+    card.data.materials[0] = mixed
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    np.testing.assert_allclose(np.asarray(geometry.masks[0].alpha), [[0.25]])
+    clear = bpy.data.materials.new("Clear")
+    tree = clear.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    transparent = tree.nodes.new("ShaderNodeBsdfTransparent")
+    tree.links.new(transparent.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    card.data.materials[0] = clear
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert [np.asarray(mask.alpha).tolist() for mask in geometry.masks] == [[[0.0]]]
+    assert geometry.notes == []
+
+
+def test_a_clear_card_neither_casts_nor_hides_the_fog(addon: ModuleType, tmp_path: Path) -> None:
+    """A card whose surface is a Transparent BSDF alone (no UV map) renders as if it were
+    not there, as in Cycles; made half opaque (alpha 0.6) it casts as an opaque card."""
+    scene = _basic_scene()
+    ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
+    blender_scenes.add_quad(scene, "Ground", ground, blender_scenes.black_material(0.0))
+
+    def layers(name: str) -> dict[str, np.ndarray]:
+        path = tmp_path / f"{name}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        return crepuscular.read_exr(path)
+
+    bare = layers("bare")
+    clear = bpy.data.materials.new("Clear")
+    tree = clear.node_tree
+    principled = tree.nodes["Principled BSDF"]
+    tree.nodes.remove(principled)
+    transparent = tree.nodes.new("ShaderNodeBsdfTransparent")
+    tree.links.new(transparent.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    corners = [(-3, -2, 3), (3, -2, 3), (3, -2, 5), (-3, -2, 5)]
+    card = blender_scenes.add_quad(scene, "Card", corners, clear)
+    for name, channel in layers("clear").items():
+        np.testing.assert_array_equal(channel, bare[name], err_msg=name)
+    opaque = blender_scenes.black_material(0.0)
+    card.data.materials[0] = opaque
+    solid = layers("solid")
+    assert np.abs(solid["depth"] - bare["depth"]).max() > 1.0
+    opaque.node_tree.nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.6
+    for name, channel in layers("partial").items():
+        np.testing.assert_array_equal(channel, solid[name], err_msg=name)
 
 
 def _turned_and_seen(addon: ModuleType, obj: Any) -> tuple[np.ndarray, np.ndarray, Any]:

@@ -10,8 +10,10 @@ colour channel is decoded from sRGB where its `sourceColorSpace` says (or, on `a
 renderer lets a shadow ray through by the opacity itself, which for the nearly binary masks
 of cutouts is the same. Textures are PNG, JPEG, TGA, TIFF or BMP (read with Pillow) or EXR.
 
-Anything else that makes a surface transparent (a constant opacity, another shader, UDIM
-tiles, a transformed texture coordinate) leaves it opaque, with a note that names it.
+A constant opacity is one value everywhere, cut the same way (below the cut, the surface
+neither casts nor hides the fog). Anything else that makes a surface transparent (another
+shader, UDIM tiles, a transformed texture coordinate) leaves it opaque, with a note that
+names it.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ class MaskSource:
     threshold: float
     #: The primvar of the texture coordinates ("" where none is read: all (0, 0)).
     primvar: str
+    #: The opacity of a material opaque alike everywhere (no file), else None.
+    constant: float | None = None
 
 
 def face_masks(prim: Usd.Prim, face_count: int, table: MaskTable) -> npt.NDArray[np.int64] | None:
@@ -80,11 +84,14 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         return None, None
     where = f"material {material.GetPath()}"
     opacity = shader.GetInput("opacity")
+    threshold_input = shader.GetInput("opacityThreshold")
+    threshold = float(threshold_input.Get() or 0.0) if threshold_input else 0.0
+    cut = threshold if threshold > 0.0 else DEFAULT_THRESHOLD
     if not opacity or not opacity.HasConnectedSource():
         value = opacity.Get() if opacity else None
-        if value is not None and value < 1.0:
-            return None, f"{where}: a constant opacity is not a cutout; it casts as opaque"
-        return None, None
+        if value is None or value >= 1.0:
+            return None, None
+        return _constant_source(float(value), cut, threshold > 0.0, where)
     source, output, _ = opacity.GetConnectedSource()
     texture = UsdShade.Shader(source.GetPrim())
     if texture.GetIdAttr().Get() != "UsdUVTexture" or output not in _CHANNELS:
@@ -105,18 +112,30 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
     srgb = output != "a" and (
         space == "sRGB" or (space == "auto" and not asset.resolvedPath.lower().endswith(".exr"))
     )
-    threshold_input = shader.GetInput("opacityThreshold")
-    threshold = float(threshold_input.Get() or 0.0) if threshold_input else 0.0
     source_record = MaskSource(
-        asset.resolvedPath,
-        output,
-        float(scale),
-        float(bias),
-        srgb,
-        threshold if threshold > 0.0 else DEFAULT_THRESHOLD,
-        primvar,
+        asset.resolvedPath, output, float(scale), float(bias), srgb, cut, primvar
     )
     return source_record, None
+
+
+def _constant_source(
+    opacity: float, cut: float, masked: bool, where: str
+) -> tuple[MaskSource | None, str | None]:
+    """A material of one opacity everywhere, cut at `cut` as masks are: below it, a mask
+    that cuts every face (it neither casts nor hides the fog), else opaque. With an
+    `opacityThreshold` (`masked`) that is USD's own meaning; without, a renderer lets the
+    rest through, and a note says so."""
+    opacity = min(max(opacity, 0.0), 1.0)
+    note = None
+    if not masked and opacity > 0.0:
+        effect = "casts as opaque" if opacity >= cut else "neither casts nor hides the fog"
+        note = (
+            f"{where}: its opacity {opacity:.2f} is cut at {cut}: it {effect} (a renderer "
+            f"lets {1 - opacity:.0%} of the light through)"
+        )
+    if opacity >= cut:
+        return None, note
+    return MaskSource("", "a", 1.0, 0.0, False, cut, "", constant=opacity), note
 
 
 def _primvar(texture: UsdShade.Shader, where: str) -> tuple[str, str | None]:
@@ -238,6 +257,8 @@ def _asset_bytes(resolved: str) -> bytes:
 def read_mask(source: MaskSource) -> npt.NDArray[np.float32]:
     """The (height, width) values of the source's channel, scaled and biased, rows from
     v = 0 (the image's bottom) up."""
+    if source.constant is not None:
+        return np.full((1, 1), source.constant, dtype=np.float32)
     suffix = Path(source.file.rstrip("]")).suffix.lower()
     if suffix == ".exr":
         values = _exr_channel(source)

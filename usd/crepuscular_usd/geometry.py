@@ -434,7 +434,10 @@ class GeometryCollector:
         uvs = np.zeros((len(corners), 3, 2))
         for mask in np.unique(masks[masks >= 0]):
             rows = masks == mask
-            primvar = self._masks.source(int(mask)).primvar
+            source = self._masks.source(int(mask))
+            if source.constant is not None:
+                continue  # one opacity everywhere: no coordinates to read
+            primvar = source.primvar
             values = corner_uvs(
                 prim, primvar, time, corners[rows], corner_points[rows], triangle_faces[rows]
             )
