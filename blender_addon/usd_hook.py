@@ -15,8 +15,10 @@ each sun with shafts and authors what the add-on would render with, so that
   axis), read off the light's prim; the transfer function is authored in metres, as the
   USD step reads it;
 - `crepuscular:intensityScale` restores the sun's strength, which Blender's exporter writes
-  divided by 4, and `inputs:enableColorTemperature` is re-authored with the lamp's
-  Temperature checkbox, which Blender 5.0's exporter authors as true on every light;
+  divided by 4, `crepuscular:angleScale` its disc, which it writes as half the angle (its
+  importer doubles it back; USD's `inputs:angle` is the angular diameter), and
+  `inputs:enableColorTemperature` is re-authored with the lamp's Temperature checkbox,
+  which Blender 5.0's exporter authors as true on every light;
 - objects that do not block the sun (Casts Shafts Off, no Shadow ray visibility, outside
   the sun's shadow linking) are excluded from the light's `shadowLink` collection, which
   Blender's exporter does not write;
@@ -283,12 +285,18 @@ def light_values(
     exported = float(lux.GetIntensityAttr().Get(time)) * 2.0 ** float(
         lux.GetExposureAttr().Get(time)
     )
-    strength = export.sun_dict(evaluated)["strength"]
+    sun_desc = export.sun_dict(evaluated)
+    strength = sun_desc["strength"]
+    exported_angle = math.radians(float(UsdLux.DistantLight(light).GetAngleAttr().Get(time)))
+    diameter = sun_desc["angular_diameter"]
     sections = {
         "medium": medium,
         "render": export.settings_dict(settings),
         "style": style,
-        "sun": {"intensity_scale": strength / exported if exported > 0 else 1.0},
+        "sun": {
+            "intensity_scale": strength / exported if exported > 0 else 1.0,
+            "angle_scale": diameter / exported_angle if exported_angle > 0 else 1.0,
+        },
     }
     values: dict[str, Any] = {}
     for attr_name, attribute in ATTRIBUTES.items():

@@ -29,7 +29,7 @@ and `--points` a geometry-nodes point cloud of 20 to 300 black points of random 
 and in the box, which it draws as spheres (`scene.json` carries both as meshes).
 `--closures` builds each fog of several volume closures: an Add or Mix Shader of it and a
 Volume Absorption, or Volume Coefficients. Views that see no fog print as black. A sun's
-disc is left at 0°: crepuscular's shafts have hard edges.
+disc is left at 0° (a point sun).
 """
 
 from __future__ import annotations

@@ -149,7 +149,9 @@ def test_hole_creation_that_reaches_no_mesh_warns(stage_path: Path, tmp_path: Pa
             assert f"crepuscular-usd: warning: hole creation is on, but {warning}" in err, err
 
 
-def test_a_sun_disc_wider_than_the_sun_s_warns(stage_path: Path, tmp_path: Path) -> None:
+def test_a_sun_disc_wider_than_the_sun_s_softens_the_shafts(
+    stage_path: Path, tmp_path: Path
+) -> None:
     status, err = run(*render_args(stage_path, tmp_path / "out", "-f", "1"))
     assert status == 0, err
     assert "disc" not in err, err
@@ -158,7 +160,7 @@ def test_a_sun_disc_wider_than_the_sun_s_warns(stage_path: Path, tmp_path: Path)
     assert stage.GetRootLayer().Save()
     status, err = run(*render_args(stage_path, tmp_path / "out", "-f", "1"))
     assert status == 0, err
-    warning = "crepuscular-usd: warning: the 4.0° disc of /World/Sun is not used"
+    warning = "crepuscular-usd: warning: the 4.0° disc of /World/Sun softens the shafts: 16"
     assert warning in err, err
 
 

@@ -1390,3 +1390,13 @@ def test_distant_light_exposure_color_temperature_angle_and_visibility(tmp_path:
     # The schema's intensity scale (what Blender's exporter divides a sun's strength by).
     stage.GetPrimAtPath("/World/Sun").GetAttribute("crepuscular:intensityScale").Set(4.0)
     assert reader.read(Usd.TimeCode(1)).sun["strength"] == pytest.approx(4 * 2.0 * 2**1.5)
+    # And its angle scale (Blender's exporter writes half a sun's angle); a disc wider than
+    # the real sun's softens the shafts over several directions, a point sun takes one.
+    frame = reader.read(Usd.TimeCode(1))
+    assert frame.settings["sun_disc_samples"] == crepuscular.SUN_DISC_SAMPLES
+    light.GetAngleAttr().Set(0.25)
+    assert reader.read(Usd.TimeCode(1)).settings["sun_disc_samples"] == 1
+    stage.GetPrimAtPath("/World/Sun").GetAttribute("crepuscular:angleScale").Set(4.0)
+    frame = reader.read(Usd.TimeCode(1))
+    assert frame.sun["angular_diameter"] == pytest.approx(np.radians(1.0))
+    assert frame.settings["sun_disc_samples"] == crepuscular.SUN_DISC_SAMPLES

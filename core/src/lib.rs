@@ -37,6 +37,7 @@ pub mod slice_reach;
 mod spans;
 mod spare;
 pub mod style;
+pub mod sun_disc;
 mod total_order;
 pub mod transfer_function;
 pub mod uniformity;

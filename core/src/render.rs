@@ -310,11 +310,12 @@ pub fn render(frame: &Frame, control: &RenderControl) -> Result<Layers> {
 /// [`render`], also reporting how long each stage took. Runs on the backend that
 /// `render.backend` selects; a Vulkan failure falls back to the CPU with one message on
 /// standard error. A medium with coloured extinction takes a pass per distinct channel
-/// ([`crate::channels`]).
+/// ([`crate::channels`]), and a sun disc a pass per direction over it
+/// ([`crate::sun_disc`]).
 pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
     // Once a pass falls back, the frame's other passes go straight to the CPU: one message.
     let fell_back = std::cell::Cell::new(false);
-    crate::channels::by_channel(frame, control, |frame, control| {
+    let render_pass = |frame: &Frame, control: &RenderControl| {
         let device = match fell_back.get() {
             true => None,
             false => crate::backend::vulkan_device(frame.settings.backend),
@@ -330,12 +331,17 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
             }
         }
         render_grey_cpu(frame, control)
+    };
+    crate::channels::by_channel(frame, control, |frame, control| {
+        crate::sun_disc::by_sun_direction(frame, control, render_pass)
     })
 }
 
 /// [`render_timed`] on the CPU backend, the oracle.
 pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
-    crate::channels::by_channel(frame, control, render_grey_cpu)
+    crate::channels::by_channel(frame, control, |frame, control| {
+        crate::sun_disc::by_sun_direction(frame, control, render_grey_cpu)
+    })
 }
 
 /// [`render_timed_cpu`] of a frame whose medium has one extinction.

@@ -150,7 +150,8 @@ pub struct Sun {
     /// Irradiance on a surface facing the sun, in W/m² as Blender's sun strength.
     #[serde(default = "one")]
     pub strength: f32,
-    /// Apparent diameter of the sun disk in radians (stored; soft shadows come later).
+    /// Apparent diameter of the sun disk in radians; shafts soften over it with
+    /// `render.sun_disc_samples` above 1 ([`crate::sun_disc`]).
     #[serde(default = "default_sun_angle")]
     pub angular_diameter: f32,
 }
@@ -419,6 +420,11 @@ pub struct RenderSettings {
     /// Where the frame is computed: `auto` (a GPU if there is one), `cpu` or `vulkan`.
     #[serde(skip_serializing_if = "Backend::is_auto")]
     pub backend: Backend,
+    /// Directions spread over the sun's disc (`sun.angular_diameter`) whose frames are
+    /// averaged, so that shafts soften as under a path tracer's disc
+    /// ([`crate::sun_disc`]); 1 keeps the hard shafts of a point sun.
+    #[serde(skip_serializing_if = "crate::sun_disc::is_point_sun")]
+    pub sun_disc_samples: u32,
 }
 
 /// Whether the prefiltered method integrates exactly the stretch before each ray's end
@@ -557,6 +563,7 @@ impl Default for RenderSettings {
             basis_storage: BasisStorage::default(),
             rectification: Rectification::default(),
             backend: Backend::default(),
+            sun_disc_samples: 1,
         }
     }
 }
@@ -884,6 +891,16 @@ impl RenderSettings {
                 format!(
                     "{} is not an even number from {MIN_BASES} to {MAX_BASES}",
                     self.bases
+                ),
+            ));
+        }
+        if !(1..=crate::sun_disc::MAX_SUN_DISC_SAMPLES).contains(&self.sun_disc_samples) {
+            return Err(Error::invalid(
+                "render.sun_disc_samples",
+                format!(
+                    "{} is not a count from 1 to {}",
+                    self.sun_disc_samples,
+                    crate::sun_disc::MAX_SUN_DISC_SAMPLES
                 ),
             ));
         }

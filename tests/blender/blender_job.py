@@ -279,6 +279,19 @@ def job_closures_fidelity(spec: dict[str, Any], out: Path) -> None:
         assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
 
 
+def job_disc_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene under a sun of an 8° disc, whose penumbrae blur the shafts
+    through the roof's slot: Cycles, our layers (reference and default method), and ours
+    under a point sun (the disc set to 0°)."""
+    scene = fog_scene(spec)
+    sun = scene.objects["Sun"]
+    sun.data.angle = math.radians(8.0)
+    settings = _cycles_then_ours(scene, out)
+    settings.method = "reference"
+    sun.data.angle = 0.0
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "point.exr")) == {"FINISHED"}
+
+
 def job_particle_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of legacy particle hair (an emitter at the
     roof's edge, not rendered, growing 60 hairs 10 long across the box, of radius 6 cm at
@@ -646,6 +659,7 @@ JOBS = {
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
     "closures_fidelity": job_closures_fidelity,
+    "disc_fidelity": job_disc_fidelity,
     "particle_hair_fidelity": job_particle_hair_fidelity,
     "visibility_fidelity": job_visibility_fidelity,
     "composite": job_composite,

@@ -1286,16 +1286,24 @@ def test_a_fog_object_left_out_of_light_linking_is_named(addon: ModuleType) -> N
     assert "include the fog object in the receiver collection" in note
 
 
-def test_a_sun_disc_wider_than_the_sun_s_says_it_is_not_used(addon: ModuleType) -> None:
+def test_a_sun_disc_wider_than_the_sun_s_softens_the_shafts(addon: ModuleType) -> None:
+    """Blender's default sun (0.526°) renders as a point; a wider disc takes
+    `crepuscular.SUN_DISC_SAMPLES` directions over it (the preview fewer), with a note."""
     scene = _basic_scene()
     sun = scene.objects["Sun"]
     sun.data.angle = bpy.types.SunLight.bl_rna.properties["angle"].default
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    assert not [n for n in addon.export.frame_inputs(scene, depsgraph).notes if "disc" in n]
+    inputs = addon.export.frame_inputs(scene, depsgraph)
+    assert not [n for n in inputs.notes if "disc" in n]
+    assert inputs.kwargs["settings"]["sun_disc_samples"] == 1
     sun.data.angle = math.radians(4.0)
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    (note,) = [n for n in addon.export.frame_inputs(scene, depsgraph).notes if "disc" in n]
-    assert note.startswith("the 4.0° disc of 'Sun' is not used")
+    inputs = addon.export.frame_inputs(scene, depsgraph)
+    (note,) = [n for n in inputs.notes if "disc" in n]
+    assert note.startswith("the 4.0° disc of 'Sun' softens the shafts: 16 directions")
+    assert inputs.kwargs["settings"]["sun_disc_samples"] == crepuscular.SUN_DISC_SAMPLES
+    preview = addon.export.frame_inputs(scene, depsgraph, preview=True)
+    assert preview.kwargs["settings"]["sun_disc_samples"] == addon.export.PREVIEW_DISC_SAMPLES
 
 
 def test_layer_files_take_the_scenes_exr_codec(addon: ModuleType, tmp_path: Path) -> None:

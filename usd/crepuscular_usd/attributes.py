@@ -59,6 +59,7 @@ ATTRIBUTES: dict[str, Attribute] = {
     "crepuscular:medium:anisotropy": Attribute("float", ("medium", "anisotropy")),
     "crepuscular:medium:phase": Attribute("token", ("medium", "phase")),
     "crepuscular:intensityScale": Attribute("float", ("sun", "intensity_scale")),
+    "crepuscular:angleScale": Attribute("float", ("sun", "angle_scale")),
     "crepuscular:method": Attribute("token", ("render", "method")),
     "crepuscular:shadowMapSize": Attribute("int", ("render", "shadow_map_size")),
     "crepuscular:maxDistance": Attribute("float", ("render", "max_distance"), 1),

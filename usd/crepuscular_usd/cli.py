@@ -303,11 +303,13 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 for message in [*sorted(invalid), *frame.geometry.notes]:
                     _warn(err, message)
                 disc = frame.sun["angular_diameter"]
-                if disc > crepuscular.SUN_DISC_AS_POINT:
+                samples = frame.settings["sun_disc_samples"]
+                if samples > 1:
                     _warn(
                         err,
                         f"the {math.degrees(disc):.1f}° disc of {reader.light_prim.GetPath()} "
-                        "is not used: shafts keep hard edges",
+                        f"softens the shafts: {samples} directions over it, each a frame's "
+                        "scattering",
                     )
                 holes = frame.style.get("holes")
                 if holes is not None and not holes["objects"]:

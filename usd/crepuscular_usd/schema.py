@@ -133,7 +133,7 @@ class LightSettings:
     """What the schema on a light says at one time code, in renderer units."""
 
     medium: dict[str, Any]
-    #: What the schema adds to the light's own attributes: `intensity_scale`.
+    #: What the schema adds to the light's own attributes: `intensity_scale`, `angle_scale`.
     sun: dict[str, Any]
     render: dict[str, Any]
     style: dict[str, Any]

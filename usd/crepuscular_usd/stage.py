@@ -225,7 +225,11 @@ class StageReader:
             collector = GeometryCollector(self.stage, self.core_from_stage, skip=skip)
             self._collectors[extent_path] = collector
         camera = self.camera(time)
-        sun = self.sun(time, intensity_scale=light.sun["intensity_scale"])
+        sun = self.sun(
+            time,
+            intensity_scale=light.sun["intensity_scale"],
+            angle_scale=light.sun["angle_scale"],
+        )
         geometry = collector.collect(
             time,
             np.asarray(camera["world_from_camera"][12:15]),
@@ -248,7 +252,10 @@ class StageReader:
             camera=camera,
             sun=sun,
             medium=medium,
-            settings=light.render,
+            settings={
+                **light.render,
+                "sun_disc_samples": crepuscular.sun_disc_samples(sun["angular_diameter"]),
+            },
             style=style,
             light_settings=light,
         )
@@ -341,9 +348,11 @@ class StageReader:
             "height": height,
         }
 
-    def sun(self, time: Usd.TimeCode, *, intensity_scale: float = 1.0) -> dict[str, Any]:
+    def sun(
+        self, time: Usd.TimeCode, *, intensity_scale: float = 1.0, angle_scale: float = 1.0
+    ) -> dict[str, Any]:
         """Direction, colour, strength and angle of the light at `time`; `intensity_scale`
-        is the schema's `crepuscular:intensityScale`."""
+        and `angle_scale` are the schema's `crepuscular:intensityScale` and `:angleScale`."""
         light = UsdLux.DistantLight(self.light_prim)
         where = str(self.light_prim.GetPath())
         matrix = UsdGeom.Xformable(self.light_prim).ComputeLocalToWorldTransform(time)
@@ -366,9 +375,14 @@ class StageReader:
             raise StageError(
                 f"light {where}: intensity x 2^exposure x crepuscular:intensityScale is {strength}"
             )
+        diameter = math.radians(float(light.GetAngleAttr().Get(time))) * angle_scale
+        if not (math.isfinite(diameter) and diameter >= 0):
+            raise StageError(
+                f"light {where}: inputs:angle x crepuscular:angleScale is {math.degrees(diameter)}°"
+            )
         return {
             "direction": [float(v) for v in direction / norm],
             "color": [float(v) for v in color],
             "strength": strength,
-            "angular_diameter": math.radians(float(light.GetAngleAttr().Get(time))),
+            "angular_diameter": diameter,
         }
