@@ -29,7 +29,8 @@ and `--points` a geometry-nodes point cloud of 20 to 300 black points of random 
 and in the box, which it draws as spheres (`scene.json` carries both as meshes).
 `--closures` builds each fog of several volume closures: an Add or Mix Shader of it and a
 Volume Absorption, or Volume Coefficients. Views that see no fog print as black. A sun's
-disc is left at 0° (a point sun).
+disc is left at 0° (a point sun), or with `--disc` drawn from 1° to 10°, which the extension
+softens over `crepuscular.SUN_DISC_SAMPLES` directions.
 """
 
 from __future__ import annotations
@@ -218,6 +219,7 @@ def build_case(
     hair: bool = False,
     points: bool = False,
     closures: bool = False,
+    disc: bool = False,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
     blender_scenes.reset()
@@ -251,6 +253,9 @@ def build_case(
     )
     sun = blender_scenes.add_sun(scene, travel, strength=3.0, enabled=False)
     labels = [fog_label, f"sun {math.degrees(elevation):.0f}°"]
+    if disc:
+        sun.data.angle = math.radians(rng.uniform(1.0, 10.0))
+        labels.append(f"disc {math.degrees(sun.data.angle):.1f}°")
     if cutouts:
         labels.append(f"{add_cut_cards(rng, scene, centre, half)} cut cards")
     if hair:
@@ -421,6 +426,7 @@ def main() -> int:
     parser.add_argument(
         "--closures", action="store_true", help="fog of several volume closures (see above)"
     )
+    parser.add_argument("--disc", action="store_true", help="a sun disc of 1 to 10 degrees")
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -439,6 +445,7 @@ def main() -> int:
             args.hair,
             args.points,
             args.closures,
+            args.disc,
         )
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)
