@@ -118,15 +118,22 @@ class _Layout:
             int(triangle_counts.sum()),
         )
 
-    def by_level(self) -> list[tuple[_UnitSphere, npt.NDArray[np.int64], npt.NDArray[np.int64]]]:
-        """Per sphere in use: it, its points, and the output rows of their triangles."""
-        found = []
-        for level in np.unique(self.levels):
-            sphere = _SPHERES[level]
-            points = np.flatnonzero(self.levels == level)
-            rows = self.first_triangle[points, None] + np.arange(len(sphere.faces))
-            found.append((sphere, points, rows))
-        return found
+    def by_level(self) -> list[tuple[_UnitSphere, npt.NDArray[np.int64]]]:
+        """Per sphere in use: it, and its points."""
+        return [
+            (_SPHERES[level], np.flatnonzero(self.levels == level))
+            for level in np.unique(self.levels)
+        ]
+
+
+def _rows(
+    starts: npt.NDArray[np.int64], points: npt.NDArray[np.int64], count: int
+) -> slice | npt.NDArray[np.int64]:
+    """The output rows of `points`' `count` items each, from their `starts`: every row,
+    in order, where the points are all the points (one sphere for all)."""
+    if len(points) == len(starts):
+        return slice(None)
+    return (starts[points, None] + np.arange(count)).reshape(-1)
 
 
 def point_spheres(
@@ -142,16 +149,11 @@ def point_spheres(
     layout = _Layout.of(sizes)
     spheres = np.empty((layout.vertices, 3), dtype=np.float32)
     triangles = np.empty((layout.triangles, 3), dtype=np.uint32)
-    for sphere, points, rows in layout.by_level():
+    for sphere, points in layout.by_level():
         placed = centres[points, None] + sizes[points, None, None] * sphere.vertices[None]
         faces = sphere.faces[None] + layout.first_vertex[points, None, None]
-        if len(points) == len(sizes):  # one sphere for all: in order already
-            spheres[:] = placed.reshape(-1, 3)
-            triangles[:] = faces.reshape(-1, 3)
-            break
-        vertex_rows = layout.first_vertex[points, None] + np.arange(len(sphere.vertices))
-        spheres[vertex_rows.reshape(-1)] = placed.reshape(-1, 3)
-        triangles[rows.reshape(-1)] = faces.reshape(-1, 3)
+        spheres[_rows(layout.first_vertex, points, len(sphere.vertices))] = placed.reshape(-1, 3)
+        triangles[_rows(layout.first_triangle, points, len(sphere.faces))] = faces.reshape(-1, 3)
     return spheres, triangles
 
 
@@ -185,7 +187,7 @@ def point_sphere_visibility(
     eyes = None if eye is None else _points(eye, count, "eye", each="point")[keep]
     layout = _Layout.of(sizes)
     flags = np.empty(layout.triangles, dtype=np.uint8)
-    for sphere, points, rows in layout.by_level():
+    for sphere, points in layout.by_level():
         normals = sphere.normals.T
         blocks = suns[points] @ normals > 0
         if views is not None:
@@ -195,7 +197,7 @@ def point_sphere_visibility(
             offsets = (centres[points] - eyes[points]) @ normals
             seen = offsets + sizes[points, None] * sphere.reach[None] < 0
         both = np.where(blocks, BLOCKS_SUN, 0) | np.where(seen, SEEN_BY_CAMERA, 0)
-        flags[rows.reshape(-1)] = both.reshape(-1)
+        flags[_rows(layout.first_triangle, points, len(sphere.faces))] = both.reshape(-1)
     return flags
 
 
