@@ -2558,7 +2558,13 @@ fn border_rays(
             }
             // Slice j is read by the rays between j − 1 and j + 1.
             let (lowest, highest) = (slice.min(other), slice.max(other));
-            let (first, last) = (lowest.floor() as i64, highest.floor() as i64 + 1);
+            // Off a map that does not wrap, coordinates may lie far past its ends (a
+            // view billions of metres wide), whose slices are its end slices.
+            let within = |k: i64| if wraps { k } else { k.clamp(-1, slices as i64) };
+            let (first, last) = (
+                within(lowest.floor() as i64),
+                within(highest.floor() as i64 + 1),
+            );
             for j in (first..=last).step_by(2) {
                 rays.push(([slice_of(j), slice_of((j + 1).min(last))], ray));
             }
