@@ -401,10 +401,11 @@ def test_bad_stage_content_exit_codes_and_messages(stage_path: Path, tmp_path: P
         assert message in err, err
 
     light.GetAttribute("crepuscular:method").Set("fastest")
-    check("render.method")
+    check("/World/Sun.crepuscular:method: 'fastest' is not one of reference, minmax, prefiltered")
     light.GetAttribute("crepuscular:method").Set("reference")
     light.GetAttribute("crepuscular:medium:anisotropy").Set(1.5)
-    check("medium.anisotropy")
+    # The renderer's own checks are named by the attribute that fed them.
+    check("frame 1: /World/Sun.crepuscular:medium:anisotropy: invalid medium.anisotropy")
     light.GetAttribute("crepuscular:medium:anisotropy").Set(0.0)
     light.GetRelationship("crepuscular:mediumExtent").SetTargets([Sdf.Path("/World/NoFog")])
     check("crepuscular:mediumExtent targets /World/NoFog, which does not exist")

@@ -173,8 +173,12 @@ fn fit(camera: &CameraModel, sun: &Sun, medium: &Medium, max_distance: f64, size
                 light.transform_point3(cube.transform_point3(corner))
             })
             .collect();
-        let box_bounds = Bounds::of(&corners);
-        bounds = bounds.intersect(&box_bounds).unwrap_or(box_bounds);
+        // A box that no view ray reaches leaves the frame without fog: the frustum's
+        // bounds then, not the box's, which may lie too far off for the map's matrix (a box
+        // 10³⁰ m away overflowed it).
+        if let Some(both) = bounds.intersect(&Bounds::of(&corners)) {
+            bounds = both;
+        }
     }
     // A texel of margin so that rays on the frustum's boundary still sample inside.
     let extent = (bounds.max - bounds.min).max(DVec3::splat(1e-6));

@@ -346,3 +346,15 @@ fn views_billions_of_metres_wide_render() {
         assert!(layers.volume.iter().all(|v| v.is_finite()));
     }
 }
+
+/// Found by the mutations: a box of fog 10³⁰ m away, which no view ray reaches, fitted the
+/// shadow map to itself, and the map's matrix overflowed. The frame has no fog.
+#[test]
+fn a_box_of_fog_far_off_renders_no_fog() {
+    let mut scene = box_and_orthographic();
+    scene.medium.extent = Extent::Box {
+        world_from_cube: Mat4::from_translation(glam::Vec3::splat(1e30)),
+    };
+    let layers = render_scene(&scene, &RenderControl::new()).unwrap();
+    assert!(layers.volume.iter().all(|&v| v == 0.0));
+}

@@ -348,10 +348,13 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
                 )
             except crepuscular.InvalidInputError as error:
-                field = f" ({error.field})" if getattr(error, "field", None) else ""
-                raise CommandError(
-                    f"{label}: the renderer rejected the frame{field}: {error}"
-                ) from error
+                field = getattr(error, "field", None)
+                source = reader.source_of(field) if field else None
+                if source:
+                    where = f"{source}: "
+                else:
+                    where = f"the renderer rejected the frame{f' ({field})' if field else ''}: "
+                raise CommandError(f"{label}: {where}{error}") from error
             timings["render"] += time.perf_counter() - started
             out_path = _frame_path(frame_args.formats["out"], time_code)
             writer.submit(

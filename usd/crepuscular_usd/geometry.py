@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol
+from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol
 
 import crepuscular
 from crepuscular_usd.cutouts import MaskTable, corner_uvs, face_masks
@@ -540,7 +540,11 @@ class GeometryCollector:
                 continue
             if prim.IsA(UsdGeom.PointInstancer):
                 prims.PruneChildren()
-                placed = self._point_instancer(prim, time, xforms, core_row, unsupported)
+                try:
+                    placed = self._point_instancer(prim, time, xforms, core_row, unsupported)
+                except Tf.ErrorException as error:
+                    invalid.append(f"{prim.GetPath()}: USD: {tf_message(error)}")
+                    continue
                 if placed is not None:
                     chunks.append(placed[0])
                     instanced[prim.GetPath()] = placed[1]
@@ -555,7 +559,11 @@ class GeometryCollector:
                 except MeshError as error:
                     invalid.append(str(error))
                     continue
-                world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
+                try:
+                    world_row = row_matrix(xforms.GetLocalToWorldTransform(space)) @ core_row
+                except Tf.ErrorException as error:
+                    invalid.append(f"{prim.GetPath()}: its transform: USD: {tf_message(error)}")
+                    continue
                 [(local, _)] = self._view_groups(local, world_row[None])
                 placed_points = _transform(local.points if local.per_view else points, world_row)
                 chunk = _Chunk(
@@ -573,6 +581,7 @@ class GeometryCollector:
                 continue
             self._count_unsupported(prim, unsupported)
         offset = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+        chunks = _finite_chunks(chunks, invalid)
         geometry = _assemble(chunks, instanced, unsupported, invalid, offset)
         geometry.visibility = _visibility(chunks, shadow_link)
         if geometry.triangle_masks is not None:
@@ -916,6 +925,34 @@ def _visibility(
         return None
     flags = np.concatenate(parts)
     return None if (flags == both).all() else flags
+
+
+def tf_message(error: Exception) -> str:
+    """The messages of a Tf.ErrorException without USD's source locations."""
+    messages = []
+    for arg in error.args or (str(error),):
+        text = str(arg).strip()
+        # "Error in 'function' at line N in file F : 'message'"
+        head, sep, quoted = text.partition(" : '")
+        messages.append(" ".join((quoted.rstrip("'").strip() if sep else head).split()))
+    return "; ".join(m for m in messages if m) or type(error).__name__
+
+
+def _finite_chunks(chunks: list[_Chunk], invalid: list[str]) -> list[_Chunk]:
+    """The chunks whose placed points are all finite; the others named in `invalid`. NaN or
+    infinite points (from points, widths, radii, transforms or instancer attributes) would
+    otherwise fail the whole frame without naming their prim."""
+    finite = []
+    for chunk in chunks:
+        bad = int((~np.isfinite(chunk.points).all(axis=1)).sum())
+        if bad:
+            invalid.append(
+                f"{chunk.path}: {bad} of its {len(chunk.points)} placed points are not finite "
+                "(NaN or infinite points, widths, radii, transforms or instance attributes)"
+            )
+        else:
+            finite.append(chunk)
+    return finite
 
 
 def _transform(points: F64, world_row: F64) -> F64:

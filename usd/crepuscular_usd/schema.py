@@ -10,6 +10,7 @@ units and converted to metres here.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -61,6 +62,12 @@ def _definition() -> Usd.PrimDefinition:
     if not definition:
         raise RuntimeError(f"{API_NAME} is not registered")
     return definition
+
+
+@functools.cache
+def _allowed_tokens(name: str) -> tuple[str, ...]:
+    """The tokens the schema allows for attribute `name`; empty where it lists none."""
+    return tuple(_definition().GetPropertyMetadata(name, "allowedTokens") or ())
 
 
 def fallback(name: str) -> Any:
@@ -214,6 +221,13 @@ def read_light_settings(
     groups: dict[str, dict[str, Any]] = {"medium": {}, "sun": {}, "render": {}, "style": {}}
     for name, spec in FIELDS.items():
         raw, authored = _authored_or_fallback(prim, name, time, has_api)
+        allowed = _allowed_tokens(name)
+        if allowed and isinstance(raw, str) and raw not in allowed:
+            raise SchemaError(
+                f"{prim.GetPath()}.{name}: {raw!r} is not one of {', '.join(allowed)}"
+            )
+        if isinstance(raw, int) and not isinstance(raw, bool) and raw < 0:
+            raise SchemaError(f"{prim.GetPath()}.{name}: {raw} is negative")
         try:
             value = spec.convert(raw) if spec.convert else raw
         except (TypeError, ValueError) as error:

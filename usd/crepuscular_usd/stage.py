@@ -14,6 +14,9 @@ the same as Blender's USD importer. Cameras map exactly:
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,11 +25,13 @@ import numpy.typing as npt
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdLux
 
 import crepuscular
+from crepuscular_usd.attributes import ATTRIBUTES, MEDIUM_EXTENT, TF_ASSET, TF_JSON
 from crepuscular_usd.geometry import (
     GeometryCollector,
     SceneGeometry,
     row_matrix,
     sun_and_camera,
+    tf_message,
 )
 from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
 
@@ -34,20 +39,45 @@ __all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage"
 
 F64 = npt.NDArray[np.float64]
 
+#: The light's and camera's USD properties behind the renderer's other fields that they
+#: feed: the schema's attributes name their own ([`ATTRIBUTES`]).
+LIGHT_SOURCES = {
+    "sun.color": "inputs:color (with inputs:colorTemperature)",
+    "sun.strength": "inputs:intensity (with inputs:exposure)",
+    "sun.angular_diameter": "inputs:angle",
+    "sun.direction": "its transform",
+    "medium.extent": MEDIUM_EXTENT,
+    "style.tf": f"{TF_JSON} or {TF_ASSET}",
+}
+CAMERA_SOURCES = {
+    "camera.projection.focal_length": "focalLength",
+    "camera.projection.sensor_width": "horizontalAperture",
+    "camera.projection.sensor_height": "verticalAperture",
+    "camera.projection.ortho_scale": "horizontalAperture and verticalAperture",
+    "camera.projection.shift_x": "horizontalApertureOffset",
+    "camera.projection.shift_y": "verticalApertureOffset",
+    "camera.clip_start": "clippingRange",
+    "camera.clip_end": "clippingRange",
+    "camera.world_from_camera": "its transform",
+}
+
+#: A side derived from the camera's aperture aspect beyond this is no image size at all
+#: (the renderer names sides beyond its own, smaller limit).
+MAX_DERIVED_SIDE = 1 << 20
+
 
 class StageError(ValueError):
     """A stage, camera or light that cannot be rendered; the message says which and why."""
 
 
-def tf_message(error: Exception) -> str:
-    """The messages of a Tf.ErrorException without USD's source locations."""
-    messages = []
-    for arg in error.args or (str(error),):
-        text = str(arg).strip()
-        # "Error in 'function' at line N in file F : 'message'"
-        head, sep, quoted = text.partition(" : '")
-        messages.append(" ".join((quoted.rstrip("'").strip() if sep else head).split()))
-    return "; ".join(m for m in messages if m) or type(error).__name__
+@contextmanager
+def _naming(what: str) -> Iterator[None]:
+    """Turns USD's errors in the block into a `StageError` that begins with `what`: USD's
+    own, for an xformOpOrder of no op, name no prim."""
+    try:
+        yield
+    except Tf.ErrorException as error:
+        raise StageError(f"{what}: USD: {tf_message(error)}") from error
 
 
 def open_stage(path: str) -> Usd.Stage:
@@ -167,6 +197,23 @@ class StageReader:
         self._light_link = _membership(light_api.GetLightLinkCollectionAPI())
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
 
+    def source_of(self, field: str) -> str | None:
+        """The USD property behind the renderer's scene field `field` (as its invalid-input
+        errors name it, `medium.albedo[0]`), for messages that a stage's author can act on;
+        None for fields of no one property (the meshes', the image size)."""
+        path = re.sub(r"\[\d+\]", "", field)
+        light, camera = self.light_prim.GetPath(), self.camera_prim.GetPath()
+        for name, attribute in ATTRIBUTES.items():
+            target = ".".join(attribute.target)
+            if target and (path == target or path.startswith(target + ".")):
+                return f"{light}.{name}"
+        for prefix, source in LIGHT_SOURCES.items():
+            if path == prefix or path.startswith(prefix + "."):
+                return f"{light} {source}"
+        if path in CAMERA_SOURCES:
+            return f"{camera} {CAMERA_SOURCES[path]}"
+        return None
+
     # --- prims ----------------------------------------------------------------------
 
     def _find_camera(self, path: str | None) -> Usd.Prim:
@@ -279,7 +326,8 @@ class StageReader:
             return {"kind": "unbounded"}
         prim = light.extent_prim
         local = box_from_extent_prim(prim, time)
-        world = row_matrix(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)).T
+        with _naming(f"medium extent {prim.GetPath()}: its transform"):
+            world = row_matrix(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)).T
         return {
             "kind": "box",
             "world_from_cube": _column_major(self.core_from_stage @ world @ local),
@@ -296,13 +344,21 @@ class StageReader:
 
     def camera(self, time: Usd.TimeCode) -> dict[str, Any]:
         where = str(self.camera_prim.GetPath())
-        camera = UsdGeom.Camera(self.camera_prim).GetCamera(time)
+        with _naming(f"camera {where}"):
+            camera = UsdGeom.Camera(self.camera_prim).GetCamera(time)
         h_aperture, v_aperture = camera.horizontalAperture, camera.verticalAperture
-        if not (h_aperture > 0 and v_aperture > 0):
+        if not (0 < h_aperture < math.inf and 0 < v_aperture < math.inf):
             raise StageError(
-                f"camera {where}: apertures must be positive, got {h_aperture} x {v_aperture}"
+                f"camera {where}: apertures must be positive and finite, got {h_aperture} x "
+                f"{v_aperture}"
             )
         width, height = self.resolution(h_aperture / v_aperture)
+        derived = not (self._width and self._height)
+        if derived and max(width, height) > MAX_DERIVED_SIDE:
+            raise StageError(
+                f"camera {where}: its apertures {h_aperture} x {v_aperture} give a {width} x "
+                f"{height} image; give both --width and --height"
+            )
         # Fit the aperture inside the image: the side whose aspect is tighter wins.
         vertical = width / height > h_aperture / v_aperture
         fitted = v_aperture if vertical else h_aperture
@@ -355,7 +411,8 @@ class StageReader:
         and `angle_scale` are the schema's `crepuscular:intensityScale` and `:angleScale`."""
         light = UsdLux.DistantLight(self.light_prim)
         where = str(self.light_prim.GetPath())
-        matrix = UsdGeom.Xformable(self.light_prim).ComputeLocalToWorldTransform(time)
+        with _naming(f"light {where}: its transform"):
+            matrix = UsdGeom.Xformable(self.light_prim).ComputeLocalToWorldTransform(time)
         travel = matrix.TransformDir(Gf.Vec3d(0, 0, -1))
         direction = self.core_from_stage[:3, :3] @ np.array(travel)
         norm = float(np.linalg.norm(direction))
