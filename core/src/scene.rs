@@ -775,6 +775,18 @@ impl Sun {
         check_color("sun.color", self.color)?;
         check_non_negative("sun.strength", self.strength)?;
         check_non_negative("sun.angular_diameter", self.angular_diameter)?;
+        // A disc wider than half the sky has no directions to spread over (USD's angle is
+        // unbounded; a 10³⁰° disc rendered).
+        if self.angular_diameter > std::f32::consts::PI {
+            return Err(Error::invalid(
+                "sun.angular_diameter",
+                format!(
+                    "{} rad ({:.1}°) is wider than the sky; at most π (180°)",
+                    self.angular_diameter,
+                    self.angular_diameter.to_degrees()
+                ),
+            ));
+        }
         Ok(())
     }
 }

@@ -118,6 +118,7 @@ fn degenerate_light_and_medium_are_named() {
     );
     check(|s| s.medium.extinction = -1.0, "medium.extinction");
     check(|s| s.medium.anisotropy = 1.0, "medium.anisotropy");
+    check(|s| s.sun.angular_diameter = 3.2, "sun.angular_diameter");
 }
 
 #[test]
