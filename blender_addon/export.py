@@ -130,6 +130,15 @@ class FrameInputs:
     sun: str
     notes: list[str]
     geometry: Geometry
+    #: What in Blender feeds each part of the scene description ("medium", "render" ...),
+    #: for the renderer's errors: `source_of`.
+    sources: dict[str, str] = field(default_factory=dict)
+
+    def source_of(self, field_path: str) -> str | None:
+        """The Blender data behind the renderer's scene field `field_path` (as its
+        invalid-input errors name it), or None."""
+        head = field_path.split(".")[0].split("[")[0]
+        return self.sources.get(head)
 
 
 def mesh_arrays(mesh: bpy.types.Mesh) -> MeshArrays:
@@ -607,6 +616,17 @@ def export_geometry(
         stack = np.array(matrices, dtype=np.float64).reshape(count, 4, 4)
         world = np.einsum("kij,nj->kni", stack[:, :3, :3], arrays.positions.astype(np.float64))
         world += stack[:, None, :3, 3] - offset
+        # NaN or infinite vertices or transforms would fail the whole frame, naming no
+        # object: those placements are left out and named.
+        finite = np.isfinite(world).all(axis=(1, 2))
+        if not finite.all():
+            table.notes.append(
+                f"object '{_name_of(names, object_id)}': {int((~finite).sum())} of its {count} "
+                "placements have NaN or infinite points or transforms; left out"
+            )
+            world, count = world[finite], int(finite.sum())
+            if count == 0:
+                continue
         offsets = base + vertices * np.arange(count, dtype=np.uint32)
         positions.append(world.reshape(-1, 3).astype(np.float32))
         triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
@@ -1104,7 +1124,19 @@ def frame_inputs(
             "masks": geometry.masks,
         }
     notes += geometry.notes
-    return FrameInputs(kwargs, sun.name, notes, geometry)
+    lamp = f"the Stylized Shafts settings of '{sun.name}'"
+    sources = {
+        "camera": f"camera '{scene.camera.name}'",
+        "sun": f"sun '{sun.name}'",
+        "medium": (
+            f"fog object '{fog.name}' (its volume shader and box)"
+            if fog is not None
+            else "the scene's Stylized Shafts medium"
+        ),
+        "render": lamp,
+        "style": lamp,
+    }
+    return FrameInputs(kwargs, sun.name, notes, geometry, sources)
 
 
 def all_frame_inputs(
@@ -1145,9 +1177,16 @@ def render_suns(
         def scaled(fraction: float) -> object:
             return progress((index + fraction) / len(inputs))
 
-        return crepuscular.render_arrays(
-            **inputs[index].kwargs, progress=None if progress is None else scaled
-        )
+        try:
+            return crepuscular.render_arrays(
+                **inputs[index].kwargs, progress=None if progress is None else scaled
+            )
+        except crepuscular.InvalidInputError as error:
+            field_path = getattr(error, "field", None)
+            source = inputs[index].source_of(field_path) if field_path else None
+            if source is None:
+                raise
+            raise ExportError(f"{source}: {error}") from error
 
     first = render(0)
     volume = np.array(first.volume, dtype=np.float32)

@@ -1042,7 +1042,13 @@ pub(crate) fn check_matrix(field: &str, matrix: &Mat4) -> Result<()> {
         return Err(Error::invalid(field, "contains NaN or infinity"));
     }
     let det = matrix.determinant();
-    if !det.is_finite() || det.abs() < 1e-20 {
+    if !det.is_finite() {
+        return Err(Error::invalid(
+            field,
+            format!("scales space beyond floats (determinant {det})"),
+        ));
+    }
+    if det.abs() < 1e-20 {
         return Err(Error::invalid(field, "is singular (determinant is zero)"));
     }
     Ok(())

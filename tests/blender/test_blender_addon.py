@@ -1229,8 +1229,22 @@ def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> Non
     sun = scene.objects["Sun"].data.crepuscular
     sun.enabled = True
     sun.method, sun.bases = "prefiltered", 5
-    with pytest.raises(RuntimeError, match=r"render\.bases"):
+    # The renderer's checks are named by the Blender data that fed them.
+    with pytest.raises(RuntimeError, match=r"Stylized Shafts settings of 'Sun': .*render\.bases"):
         bpy.ops.crepuscular.render_layers(filepath=path)
+    sun.method = "minmax"
+    scene.objects["Sun"].data.energy = math.nan
+    with pytest.raises(RuntimeError, match=r"sun 'Sun': invalid sun\.strength: nan"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    scene.objects["Sun"].data.energy = 3.0
+    scene.camera.data.clip_start, scene.camera.data.clip_end = 50.0, 1.0
+    with pytest.raises(RuntimeError, match=r"camera 'Camera': invalid camera\.clip_end"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    scene.camera.data.clip_start, scene.camera.data.clip_end = 0.1, 100.0
+    scene.crepuscular.extinction = math.nan
+    with pytest.raises(RuntimeError, match=r"the scene's Stylized Shafts medium: .*extinction"):
+        bpy.ops.crepuscular.render_layers(filepath=path)
+    scene.crepuscular.extinction = 0.1
     sun.method = "minmax"
     scene.render.resolution_x = 20000
     with pytest.raises(RuntimeError, match=r"camera\.width"):
@@ -1244,6 +1258,29 @@ def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> Non
     with pytest.raises(RuntimeError, match="pano"):
         bpy.ops.crepuscular.render_layers(filepath=path)
     assert not os.path.exists(path)
+
+
+def test_objects_with_nan_or_infinite_points_are_left_out_and_named(
+    addon: ModuleType, tmp_path: Path
+) -> None:
+    """A NaN vertex or location failed the whole frame as `positions[k]`, naming no
+    object: such placements are left out with a note, and the rest renders."""
+    scene = _basic_scene()
+    clean = tmp_path / "clean.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(clean)) == {"FINISHED"}
+    mesh = bpy.data.meshes.new("Broken")
+    mesh.from_pydata([(0, 0, 1), (1, 0, 1), (0, 1, 1)], [], [[0, 1, 2]])
+    mesh.vertices[0].co = (math.nan, 0.0, 1.0)
+    scene.collection.objects.link(bpy.data.objects.new("Broken", mesh))
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    notes = addon.export.frame_inputs(scene, depsgraph).notes
+    assert (
+        "object 'Broken': 1 of its 1 placements have NaN or infinite points or transforms; "
+        "left out" in notes
+    )
+    broken = tmp_path / "broken.exr"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(broken)) == {"FINISHED"}
+    np.testing.assert_array_equal(volume_of(broken), volume_of(clean))
 
 
 def test_hole_creation_without_objects_that_take_holes_says_so(addon: ModuleType) -> None:
