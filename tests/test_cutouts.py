@@ -128,12 +128,16 @@ def test_bad_cutouts_are_named() -> None:
         ({"masks": [AlphaMask(np.ones(4))]}, "masks[0]", "(height, width)"),
         ({"masks": [AlphaMask(np.full((2, 2), np.nan))]}, "masks[0]", "not finite"),
         ({"masks": [AlphaMask(np.ones((0, 2)))]}, "masks[0]", "empty"),
+        # Masks that no triangle reads were ignored, whatever they held.
+        ({"uvs": None, "triangle_masks": None}, "masks", "need uvs and triangle_masks"),
     ]
     for change, field, words in cases:
         with pytest.raises(InvalidInputError) as caught:
             render_arrays(**{**arrays, **change})
         assert caught.value.field.startswith(field), (change, caught.value)
         assert words in str(caught.value), (change, caught.value)
+    with pytest.raises(TypeError, match=r"masks\[1\] must be a crepuscular\.AlphaMask, got str"):
+        render_arrays(**{**arrays, "masks": [AlphaMask(STRIPES), "x"]})
 
 
 def test_cut_frames_on_vulkan_match_the_cpu(capfd: pytest.CaptureFixture[str]) -> None:

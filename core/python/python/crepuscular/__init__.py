@@ -198,6 +198,13 @@ class AlphaMask:
     threshold: float = 0.5
 
 
+def _alpha_mask(mask: object, index: int) -> AlphaMask:
+    if not isinstance(mask, AlphaMask):
+        kind = type(mask).__name__
+        raise TypeError(f"masks[{index}] must be a crepuscular.AlphaMask, got {kind}")
+    return mask
+
+
 def render_arrays(
     *,
     positions: npt.ArrayLike,
@@ -242,6 +249,11 @@ def render_arrays(
     triangle_rows = _convert.index_rows(triangles, "triangles")
     position_rows = _convert.float_rows(positions, "positions")
     cutouts: dict[str, Any] = {}
+    if len(masks) and triangle_masks is None:
+        # Masks no triangle reads were ignored, whatever they held.
+        raise _convert.invalid(
+            "masks", "alpha masks need uvs and triangle_masks to say which triangles they cut"
+        )
     if uvs is not None or triangle_masks is not None:
         if uvs is None or triangle_masks is None:
             raise _convert.invalid(
@@ -251,7 +263,7 @@ def render_arrays(
             "uvs": _convert.uv_rows(uvs, len(position_rows)),
             "triangle_masks": _convert.triangle_masks(triangle_masks, len(triangle_rows)),
             "masks": [
-                (_convert.alpha_mask(mask.alpha, k), float(mask.threshold))
+                (_convert.alpha_mask(_alpha_mask(mask, k).alpha, k), float(mask.threshold))
                 for k, mask in enumerate(masks)
             ],
         }
