@@ -23,6 +23,9 @@ from crepuscular_usd.cli import main
 
 NAN = math.nan
 
+# Bad values are named once, by the step: not also by numpy on their way there.
+pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
+
 
 def _rich_stage(path: Path) -> Usd.Stage:
     stage = author_stage(str(path), build_scene(steps=16, shadow_map_size=64), method="prefiltered")

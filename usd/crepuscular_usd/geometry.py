@@ -519,6 +519,18 @@ class GeometryCollector:
         (a mesh, an instance proxy, a PointInstancer) that `shadow_link`, the light's
         shadow-linking collection, leaves out do not block the sun, and still hide the fog
         from the camera."""
+        # NaN or infinite points, widths and transforms are named and left out
+        # (`_finite_chunks`); numpy's warnings about them on the way add only noise.
+        with np.errstate(invalid="ignore", over="ignore"):
+            return self._collect(time, origin, seen, shadow_link)
+
+    def _collect(
+        self,
+        time: Usd.TimeCode,
+        origin: F64 | None,
+        seen: _SunAndCamera | None,
+        shadow_link: Usd.CollectionMembershipQuery | None,
+    ) -> SceneGeometry:
         self._seen = seen
         if len(self._drawn_for_views) > 4096:
             self._drawn_for_views.clear()
