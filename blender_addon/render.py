@@ -109,6 +109,12 @@ def render_layers(
     height, width = depth.shape
     for entry in inputs[1:]:
         inputs[0].notes.extend(note for note in entry.notes if note not in inputs[0].notes)
+    fog = scene.crepuscular.fog_object
+    if fog is not None and crepuscular.fog_box_unreached(inputs[0].kwargs["medium"], volume):
+        inputs[0].notes.append(
+            f"no view ray reaches fog object '{fog.name}': the frame has no fog (is it out of "
+            "view, behind a surface or past Max Distance?)"
+        )
     return crepuscular.Layers(width, height, volume, visibility, depth), inputs[0]
 
 

@@ -1045,3 +1045,25 @@ def test_strand_ribbons_lie_across_the_sun_and_the_camera() -> None:
     ):
         with pytest.raises(ValueError, match=words):
             crepuscular.strand_ribbons(strand, [4], radii, **bad)
+
+
+def test_fog_box_unreached_tells_a_box_no_view_ray_crosses() -> None:
+    """A box of fog out of view leaves every alpha at 0, which hosts name; a box in view,
+    unbounded fog and a box of clear air do not count."""
+    scene = crepuscular.builtin_scene("plane")
+    scene["camera"]["width"], scene["camera"]["height"] = 48, 27
+    scene["render"]["shadow_map_size"] = 128
+
+    def box_at(x: float) -> dict[str, Any]:
+        return {"kind": "box", "world_from_cube": [4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 4, 0, x, 0, 2, 1]}
+
+    for extent, extinction, unreached in [
+        (box_at(0.0), 0.1, False),
+        (box_at(1e4), 0.1, True),
+        (box_at(1e4), 0.0, False),
+        ({"kind": "unbounded"}, 0.1, False),
+    ]:
+        scene["medium"] |= {"extent": extent, "extinction": extinction}
+        layers = render(scene)
+        assert (layers.volume[..., 3].max() == 0) == (unreached or extinction == 0)
+        assert crepuscular.fog_box_unreached(scene["medium"], layers.volume) == unreached

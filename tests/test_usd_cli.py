@@ -487,3 +487,20 @@ def test_without_frames_renders_the_start_time_code(stage_path: Path, tmp_path: 
     product = UsdRender.Product(layer.GetPrimAtPath("/Render/Products/shafts"))
     assert product.GetProductNameAttr().Get() == "./still.exr"
     assert product.GetProductNameAttr().GetTimeSamples() == []
+
+
+def test_a_fog_box_no_view_ray_reaches_is_named(stage_path: Path, tmp_path: Path) -> None:
+    stage = Usd.Stage.Open(str(stage_path))
+    fog = UsdGeom.Cube.Define(stage, "/World/Fog")
+    fog.CreateSizeAttr(6.0)
+    where = fog.AddTranslateOp()
+    light = stage.GetPrimAtPath("/World/Sun")
+    light.GetRelationship("crepuscular:mediumExtent").SetTargets([fog.GetPath()])
+    warning = "no view ray reaches the fog box /World/Fog: the frame has no fog"
+    for offset, named in ((Gf.Vec3d(0.0, 1.0, 0.0), False), (Gf.Vec3d(0.0, 1.0, 1e4), True)):
+        assert where.Set(offset)
+        assert stage.GetRootLayer().Save()
+        status, err = run(*render_args(stage_path, tmp_path / "o", "--frames", "1-2"))
+        assert status == 0, err
+        # Once per run, not per frame.
+        assert err.count(warning) == (1 if named else 0), err

@@ -954,6 +954,21 @@ def test_fog_shaders_of_several_closures_sum_as_cycles_sums_them(addon: ModuleTy
         medium()
 
 
+def test_a_fog_object_no_view_ray_reaches_is_named(addon: ModuleType) -> None:
+    scene = _basic_scene()
+    material = blender_scenes.volume_material("scatter", Density=0.2)
+    fog = blender_scenes.add_fog_box(scene, np.diag([4.0, 4.0, 4.0, 1.0]), material)
+    scene.crepuscular.medium_source = "fog_object"
+    scene.crepuscular.fog_object = fog
+    note = "no view ray reaches fog object 'Fog': the frame has no fog"
+    for location, named in (((0.0, 0.0, 2.0), False), ((0.0, 1e4, 2.0), True)):
+        fog.location = location
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        layers, inputs = addon.render.render_layers(scene, depsgraph)
+        assert (layers.volume[..., 3].max() == 0) == named
+        assert any(n.startswith(note) for n in inputs.notes) == named, inputs.notes
+
+
 def test_fog_objects_that_cannot_map_are_named(addon: ModuleType) -> None:
     scene = bpy.context.scene
     material = blender_scenes.volume_material("scatter", Density=1.0)

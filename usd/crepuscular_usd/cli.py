@@ -285,6 +285,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
     timings = {"read": 0.0, "render": 0.0}
     loop_started = time.perf_counter()
     writer = _Writer()
+    warned_unreached: set[Sdf.Path] = set()
     try:
         for index, time_code in enumerate(time_codes):
             label = "default time" if time_code.IsDefault() else f"frame {time_code.GetValue():g}"
@@ -356,6 +357,16 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     where = f"the renderer rejected the frame{f' ({field})' if field else ''}: "
                 raise CommandError(f"{label}: {where}{error}") from error
             timings["render"] += time.perf_counter() - started
+            extent = frame.light_settings.extent_prim
+            unreached = crepuscular.fog_box_unreached(kwargs["medium"], layers.volume)
+            if unreached and extent is not None and extent.GetPath() not in warned_unreached:
+                warned_unreached.add(extent.GetPath())
+                _warn(
+                    err,
+                    f"{label}: no view ray reaches the fog box {extent.GetPath()}: the frame "
+                    "has no fog (is it out of view, behind a surface or past "
+                    "crepuscular:maxDistance?)",
+                )
             out_path = _frame_path(frame_args.formats["out"], time_code)
             writer.submit(
                 lambda p=out_path, lay=layers: crepuscular.write_exr(

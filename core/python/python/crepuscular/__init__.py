@@ -72,6 +72,7 @@ __all__ = [
     "builtin_scene",
     "builtin_scene_names",
     "composite",
+    "fog_box_unreached",
     "load_style",
     "point_sphere_visibility",
     "point_spheres",
@@ -106,6 +107,17 @@ SUN_DISC_AS_POINT: float = math.radians(0.6)
 #: disc's exact share on average (64 directions: 0.9%; a point sun: 21%). Each direction
 #: costs a frame's scattering.
 SUN_DISC_SAMPLES: int = 16
+
+
+def fog_box_unreached(medium: Mapping[str, Any], volume: npt.ArrayLike) -> bool:
+    """Whether `medium` (a scene description's member) is a box of fog that attenuates
+    light and that no view ray of the frame whose `volume` layer (H, W, 4) this is crossed:
+    every alpha 0. The box is then out of view, behind surfaces or past the maximum
+    distance, which a host should say, as the frame shows no fog at all."""
+    extent = medium.get("extent") or {}
+    densest = max([medium.get("extinction", 0.0), *(medium.get("channel_extinction") or [])])
+    alpha = np.asarray(volume)[..., 3]
+    return extent.get("kind") == "box" and densest > 0 and not alpha.any()
 
 
 def sun_disc_samples(angular_diameter: float) -> int:
