@@ -792,6 +792,19 @@ impl Sun {
 }
 
 impl Medium {
+    /// Whether this is a box of fog that attenuates light and that no view ray of the frame
+    /// rendered into `layers` crossed (every alpha 0): the box is out of view, behind
+    /// surfaces or past the maximum distance, which a user should be told, as the frame
+    /// shows no fog at all.
+    pub fn box_unreached(&self, layers: &crate::Layers) -> bool {
+        let densest = self
+            .channel_extinction
+            .map_or(self.extinction, |c| c.max_element().max(self.extinction));
+        matches!(self.extent, Extent::Box { .. })
+            && densest > 0.0
+            && layers.volume.chunks_exact(4).all(|rgba| rgba[3] == 0.0)
+    }
+
     pub fn validate(&self) -> Result<()> {
         check_non_negative("medium.extinction", self.extinction)?;
         if let Some(channels) = self.channel_extinction {

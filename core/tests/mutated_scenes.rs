@@ -357,4 +357,43 @@ fn a_box_of_fog_far_off_renders_no_fog() {
     };
     let layers = render_scene(&scene, &RenderControl::new()).unwrap();
     assert!(layers.volume.iter().all(|&v| v == 0.0));
+    // Which the hosts name; a box in view, or of clear air, they do not.
+    assert!(scene.medium.box_unreached(&layers));
+    let seen = box_and_orthographic();
+    let layers = render_scene(&seen, &RenderControl::new()).unwrap();
+    assert!(!seen.medium.box_unreached(&layers));
+    scene.medium.extinction = 0.0;
+    let layers = render_scene(&scene, &RenderControl::new()).unwrap();
+    assert!(!scene.medium.box_unreached(&layers));
+}
+
+/// `crepuscular render` says so when no view ray reaches the fog box, and only then.
+#[test]
+fn the_cli_warns_of_a_fog_box_no_view_ray_reaches() {
+    let folder = std::env::temp_dir().join(format!("crepuscular-unreached-{}", std::process::id()));
+    std::fs::create_dir_all(&folder).unwrap();
+    let mut far = box_and_orthographic();
+    far.medium.extent = Extent::Box {
+        world_from_cube: Mat4::from_translation(glam::Vec3::splat(1e30)),
+    };
+    for (scene, warned) in [(box_and_orthographic(), false), (far, true)] {
+        let path = folder.join("scene.json");
+        std::fs::write(&path, scene.to_json()).unwrap();
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_crepuscular"))
+            .arg("render")
+            .arg("--scene")
+            .arg(&path)
+            .arg("--out")
+            .arg(folder.join("out.exr"))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(output.status.success(), "{stderr}");
+        assert_eq!(
+            stderr.contains("no view ray reaches medium.extent's box"),
+            warned,
+            "{stderr}"
+        );
+    }
+    std::fs::remove_dir_all(&folder).unwrap();
 }

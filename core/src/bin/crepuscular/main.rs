@@ -282,6 +282,12 @@ fn run_render(args: &RenderArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let layers = render_with_progress(&scene, &args.scene)?;
     let elapsed = started.elapsed();
+    if scene.medium.box_unreached(&layers) {
+        eprintln!(
+            "crepuscular: warning: no view ray reaches medium.extent's box: the frame has no \
+             fog (is it out of view, behind a surface or past render.max_distance?)"
+        );
+    }
     write_layers(
         &args.out,
         &layers,
