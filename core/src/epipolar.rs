@@ -787,6 +787,12 @@ impl EpipolarMap {
         }
     }
 
+    /// Whole slice index `k` brought within a slice of the map's ends where the map does
+    /// not wrap ([`bounded_slice_index`]).
+    pub fn bounded_slice_index(&self, k: i64) -> i64 {
+        bounded_slice_index(k, self.slices, self.wraps_around())
+    }
+
     /// The two slices to blend for a fractional slice coordinate, with their weights.
     pub fn neighbours(&self, slice: f64) -> [(u32, f64); 2] {
         let last = self.slices - 1;
@@ -1116,6 +1122,19 @@ fn extent(points: &[DVec2], axis: DVec2) -> (f64, f64) {
             let d = p.dot(axis);
             (lo.min(d), hi.max(d))
         })
+}
+
+/// Whole slice index `k` of a map of `slices` brought within [−1, `slices`] where the map
+/// does not `wrap`: off such a map, coordinates may lie far past its ends (a view billions
+/// of metres wide), and every index past an end reads its end slice
+/// ([`EpipolarMap::slice_of`]), so that loops over the indices between two coordinates
+/// stay as short as the map. Indices of a wrapping map are left as they are.
+pub fn bounded_slice_index(k: i64, slices: u32, wraps: bool) -> i64 {
+    if wraps {
+        k
+    } else {
+        k.clamp(-1, slices as i64)
+    }
 }
 
 /// What unit tests of the rectified methods start from.

@@ -38,7 +38,7 @@ use rayon::prelude::*;
 
 use crate::basis_kernels::{padded, BandRead, BasisValue, Kernels};
 use crate::camera::{CameraModel, Ray};
-use crate::epipolar::{EpipolarMap, RaySlice};
+use crate::epipolar::{bounded_slice_index, EpipolarMap, RaySlice};
 use crate::error::{Error, Result, Sizing};
 use crate::reference::{integral_exp, medium_segment, weighted_visibility, BoxMedium, RaySample};
 use crate::scene::{BasisStorage, ExactRayEnds, Extent, Medium, RenderSettings, Sun};
@@ -2558,9 +2558,7 @@ fn border_rays(
             }
             // Slice j is read by the rays between j − 1 and j + 1.
             let (lowest, highest) = (slice.min(other), slice.max(other));
-            // Off a map that does not wrap, coordinates may lie far past its ends (a
-            // view billions of metres wide), whose slices are its end slices.
-            let within = |k: i64| if wraps { k } else { k.clamp(-1, slices as i64) };
+            let within = |k: i64| bounded_slice_index(k, slices, wraps);
             let (first, last) = (
                 within(lowest.floor() as i64),
                 within(highest.floor() as i64 + 1),

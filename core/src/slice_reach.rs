@@ -209,14 +209,11 @@ fn block_reach(map: &EpipolarMap, corners: &[&Corner; 4], end: f64) -> (f64, i64
     // may put an inner ray a hair outside its corners'.
     let first = (reference + low).floor() as i64 - 1;
     let last = (reference + high).floor() as i64 + 2;
-    // Off a map that does not wrap, coordinates may lie far past its ends (a view
-    // billions of metres wide), whose slices are its end slices.
-    if map.wraps_around() {
-        (s_max, first, last)
-    } else {
-        let within = |k: i64| k.clamp(-1, map.slices as i64);
-        (s_max, within(first), within(last))
-    }
+    (
+        s_max,
+        map.bounded_slice_index(first),
+        map.bounded_slice_index(last),
+    )
 }
 
 #[cfg(test)]

@@ -358,8 +358,11 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 raise CommandError(f"{label}: {where}{error}") from error
             timings["render"] += time.perf_counter() - started
             extent = frame.light_settings.extent_prim
-            unreached = crepuscular.fog_box_unreached(kwargs["medium"], layers.volume)
-            if unreached and extent is not None and extent.GetPath() not in warned_unreached:
+            if (
+                extent is not None
+                and extent.GetPath() not in warned_unreached
+                and crepuscular.fog_box_unreached(kwargs["medium"], layers.volume)
+            ):
                 warned_unreached.add(extent.GetPath())
                 _warn(
                     err,
