@@ -350,6 +350,41 @@ def test_an_unusable_mesh_is_named_and_the_rest_renders(tmp_path: Path) -> None:
     assert len(list((tmp_path / "o").iterdir())) == 1
 
 
+def test_a_mesh_animated_into_nan_is_named_at_its_frame(tmp_path: Path) -> None:
+    """An occluder whose points are NaN at frame 2 of 3 is left out of that frame alone,
+    with a warning that names the frame; before, it vanished from it unsaid."""
+    path = tmp_path / "shot.usda"
+    stage = author_stage(str(path), build_scene(**SMALL))
+    points = stage.GetPrimAtPath("/World/occluder").GetAttribute("points")
+    authored = points.Get()
+    broken = [Gf.Vec3f(float("nan"))] * len(authored)
+    for frame, value in ((1.0, authored), (2.0, broken), (3.0, authored)):
+        assert points.Set(value, frame)
+    assert stage.GetRootLayer().Save()
+    out = tmp_path / "o"
+    status, err = run(*render_args(path, out, "--frames", "1-3", "--height", "36"))
+    assert status == 0, err
+    warnings = [line for line in err.splitlines() if "warning" in line]
+    assert warnings == [
+        f"crepuscular-usd: warning: frame 2: /World/occluder: {len(authored)} of its "
+        f"{len(authored)} placed points are not finite (NaN or infinite points, widths, radii, "
+        "transforms or instance attributes)"
+    ], err
+    # Frame 2 is the frame without the occluder; the others keep it.
+    assert stage.GetPrimAtPath("/World/occluder").SetActive(False)
+    assert stage.GetRootLayer().Export(str(tmp_path / "without.usda"))
+    status, err = run(
+        *render_args(tmp_path / "without.usda", tmp_path / "w", "--frames", "2", "--height", "36")
+    )
+    assert status == 0, err
+    frames = [crepuscular.read_exr(out / f"shafts.{frame:04d}.exr") for frame in (1, 2, 3)]
+    without = crepuscular.read_exr(tmp_path / "w" / "shafts.0002.exr")
+    for name, plane in without.items():
+        np.testing.assert_array_equal(frames[1][name], plane, err_msg=name)
+        np.testing.assert_array_equal(frames[0][name], frames[2][name], err_msg=name)
+    assert not np.array_equal(frames[0]["volume.R"], frames[1]["volume.R"])
+
+
 # --- bad input ----------------------------------------------------------------------------
 
 

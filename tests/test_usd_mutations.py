@@ -2,14 +2,14 @@
 points, an instancer, a sphere and every style set, replaced in turn by zeros, negatives,
 NaN, huge values, empty or short arrays, unknown tokens and broken xformOpOrders, must
 render to finite layers or end `crepuscular-usd` with one line that names the prim or
-property to fix. Nothing may escape as a Python exception, as it would end a render farm's
-job with a traceback."""
+property to fix (and the frame, where the bad value is one sample of an animation). Nothing
+may escape as a Python exception, as it would end a render farm's job with a traceback."""
 
 from __future__ import annotations
 
 import io
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -114,38 +114,57 @@ def _targets(stage: Usd.Stage) -> Iterator[tuple[str, str]]:
                 yield str(prim.GetPath()), attribute.GetName()
 
 
-@pytest.mark.parametrize("prim_name", ["Sun", "Camera", "meshes", "others"])
-def test_mutated_stages_render_or_say_what_is_wrong(tmp_path: Path, prim_name: str) -> None:
-    path = tmp_path / "shot.usda"
-    stage = _rich_stage(path)
-    layer = stage.GetRootLayer()
-    pristine = layer.ExportToString()
-    out = tmp_path / "out" / "shafts.####.exr"
-    argv = ["render", str(path), "--out", str(out), "-f", "1", "--width", "24", "-q"]
-    argv += ["--camera", "/World/Camera", "--light", "/World/Sun"]
+def _chosen(prim_name: str) -> Callable[[str], bool]:
+    """Whether a prim's path is in the named group of the stage's prims."""
     groups = {
         "Sun": ["/World/Sun"],
         "Camera": ["/World/Camera"],
         "meshes": ["/World/ground", "/World/occluder"],
     }
-    chosen = lambda p: (  # noqa: E731
-        p in groups[prim_name]
-        if prim_name in groups
-        else not any(p in paths for paths in groups.values())
-    )
+    if prim_name in groups:
+        return lambda path: path in groups[prim_name]
+    return lambda path: not any(path in paths for paths in groups.values())
+
+
+def _mutations_fail(tmp_path: Path, prim_name: str, *, animated: bool) -> list[str]:
+    """Renders the stage once per mutation of each attribute of the group's prims: set as
+    its value, or `animated` as its sample at frame 2 of 3, the others as authored. Returns
+    what went wrong: a render that is not finite, an exception, or an error that names no
+    prim or property (nor the frame, when animated). Of an animated range, the frames
+    before a failing one must still be written."""
+    path = tmp_path / "shot.usda"
+    stage = _rich_stage(path)
+    layer = stage.GetRootLayer()
+    pristine = layer.ExportToString()
+    out = tmp_path / "out" / "shafts.####.exr"
+    frames = ["1", "2", "3"] if animated else ["1"]
+    argv = ["render", str(path), "--out", str(out), "-f", f"{frames[0]}-{frames[-1]}"]
+    argv += ["--width", "24", "-q", "--camera", "/World/Camera", "--light", "/World/Sun"]
+    chosen = _chosen(prim_name)
     failures = []
     tried = rendered = 0
     for prim_path, name in list(_targets(stage)):
         if not chosen(prim_path):
             continue
-        for replacement in list(_replacements(stage.GetPrimAtPath(prim_path).GetAttribute(name))):
+        attribute = stage.GetPrimAtPath(prim_path).GetAttribute(name)
+        if animated and attribute.GetVariability() == Sdf.VariabilityUniform:
+            continue
+        for replacement in list(_replacements(attribute)):
             assert layer.ImportFromString(pristine)
             attribute = stage.GetPrimAtPath(prim_path).GetAttribute(name)
             what = f"{prim_path}.{name} = {replacement!r}"[:160]
-            if not attribute.Set(replacement):
+            if animated:
+                authored = attribute.Get()
+                samples = {1.0: authored, 2.0: replacement, 3.0: authored}
+                ok = all(attribute.Set(value, time) for time, value in samples.items())
+            else:
+                ok = attribute.Set(replacement)
+            if not ok:
                 failures.append(f"{what}: could not be authored")
                 continue
             assert layer.Save()
+            for written in out.parent.glob("*.exr"):
+                written.unlink()
             tried += 1
             err = io.StringIO()
             try:
@@ -154,17 +173,37 @@ def test_mutated_stages_render_or_say_what_is_wrong(tmp_path: Path, prim_name: s
                 failures.append(f"{what}: raised {type(error).__name__}: {error}")
                 continue
             lines = [line for line in err.getvalue().splitlines() if "error" in line]
+            written = sorted(p.name for p in out.parent.glob("*.exr"))
             if status == 0:
                 rendered += 1
-                layers = crepuscular.read_exr(out.parent / "shafts.0001.exr")
-                if not all(np.isfinite(channel).all() for channel in layers.values()):
-                    failures.append(f"{what}: rendered non-finite layers")
+                if written != [f"shafts.{int(f):04d}.exr" for f in frames]:
+                    failures.append(f"{what}: rendered, but wrote {written}")
+                for frame in written:
+                    layers = crepuscular.read_exr(out.parent / frame)
+                    if not all(np.isfinite(channel).all() for channel in layers.values()):
+                        failures.append(f"{what}: rendered non-finite layers")
             elif status != 1 or len(lines) != 1 or "Traceback" in err.getvalue():
                 failures.append(f"{what}: status {status}, {err.getvalue()!r}")
             elif "/World/" not in lines[0]:
                 # The message must lead to what to fix: a prim or one of its properties.
                 failures.append(f"{what}: names no prim: {lines[0]!r}")
+            elif animated and ("frame 2: " not in lines[0] or written != ["shafts.0001.exr"]):
+                failures.append(f"{what}: wrote {written}, and said {lines[0]!r}")
     assert layer.ImportFromString(pristine)
-    assert not failures, "\n".join(failures)
     assert tried > 0
     assert rendered > 0
+    return failures
+
+
+@pytest.mark.parametrize("prim_name", ["Sun", "Camera", "meshes", "others"])
+def test_mutated_stages_render_or_say_what_is_wrong(tmp_path: Path, prim_name: str) -> None:
+    failures = _mutations_fail(tmp_path, prim_name, animated=False)
+    assert not failures, "\n".join(failures)
+
+
+@pytest.mark.parametrize("prim_name", ["Sun", "Camera", "meshes", "others"])
+def test_a_mutation_at_one_frame_is_named_with_its_frame(tmp_path: Path, prim_name: str) -> None:
+    """A farm renders ranges of an animated stage: a value wrong at frame 2 must say so,
+    and frame 1 must be on disk."""
+    failures = _mutations_fail(tmp_path, prim_name, animated=True)
+    assert not failures, "\n".join(failures)

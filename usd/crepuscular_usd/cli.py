@@ -19,8 +19,9 @@ import os
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TextIO
 
 import numpy as np
@@ -223,6 +224,18 @@ def _warn(stream: TextIO, message: str) -> None:
     stream.write(f"{PROG}: warning: {message}\n")
 
 
+@contextmanager
+def _naming_frame(label: str) -> Iterator[None]:
+    """Begins the errors of reading and rendering one frame with `label`: an animated
+    attribute may be wrong at one frame of a hundred."""
+    try:
+        yield
+    except (StageError, SchemaError, MeshError, crepuscular.CrepuscularError) as error:
+        raise CommandError(f"{label}: {error}") from error
+    except Tf.ErrorException as error:
+        raise CommandError(f"{label}: USD: {tf_message(error)}") from error
+
+
 def _render(args: argparse.Namespace, err: TextIO) -> int:
     if args.comp and not args.beauty:
         raise UsageError("--comp needs --beauty")
@@ -280,8 +293,8 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
         },
     )
     progress = Progress(len(time_codes), err, enabled=not args.quiet)
-    skipped: Counter[str] = Counter()
-    invalid: set[str] = set()
+    # Each left-out prim or unmapped material is named once, at the first frame it is.
+    named: set[str] = set()
     timings = {"read": 0.0, "render": 0.0}
     loop_started = time.perf_counter()
     writer = _Writer()
@@ -291,18 +304,23 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
             label = "default time" if time_code.IsDefault() else f"frame {time_code.GetValue():g}"
             progress.update(index, 0.0, label)
             started = time.perf_counter()
-            frame = reader.read(time_code)
+            with _naming_frame(label):
+                frame = reader.read(time_code)
             timings["read"] += time.perf_counter() - started
+            invalid = set(frame.geometry.invalid)
             if index == 0:
                 skipped = frame.geometry.unsupported
-                invalid = set(frame.geometry.invalid)
                 if skipped or invalid:
                     parts = [f"{count} {kind}" for kind, count in sorted(skipped.items())]
                     parts += [f"{len(invalid)} invalid Mesh"] if invalid else []
                     count = sum(skipped.values()) + len(invalid)
                     _warn(err, f"skipped {count} unsupported prims: {', '.join(parts)}")
-                for message in [*sorted(invalid), *frame.geometry.notes]:
-                    _warn(err, message)
+            for message in [*sorted(invalid), *frame.geometry.notes]:
+                if message not in named:
+                    named.add(message)
+                    # A prim animated into NaN at one frame would vanish from it unsaid.
+                    _warn(err, message if index == 0 else f"{label}: {message}")
+            if index == 0:
                 disc = frame.sun["angular_diameter"]
                 samples = frame.settings["sun_disc_samples"]
                 if samples > 1:
@@ -344,18 +362,20 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     kwargs["depth_kind"] = kind
                 record.beauties[key] = beauty_path
             started = time.perf_counter()
-            try:
-                layers = crepuscular.render_arrays(
-                    **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
-                )
-            except crepuscular.InvalidInputError as error:
-                field = getattr(error, "field", None)
-                source = reader.source_of(field) if field else None
-                if source:
-                    where = f"{source}: "
-                else:
-                    where = f"the renderer rejected the frame{f' ({field})' if field else ''}: "
-                raise CommandError(f"{label}: {where}{error}") from error
+            with _naming_frame(label):
+                try:
+                    layers = crepuscular.render_arrays(
+                        **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
+                    )
+                except crepuscular.InvalidInputError as error:
+                    field = getattr(error, "field", None)
+                    source = reader.source_of(field) if field else None
+                    if source:
+                        where = f"{source}: "
+                    else:
+                        field_named = f" ({field})" if field else ""
+                        where = f"the renderer rejected the frame{field_named}: "
+                    raise CommandError(f"{label}: {where}{error}") from error
             timings["render"] += time.perf_counter() - started
             extent = frame.light_settings.extent_prim
             if (
@@ -391,6 +411,14 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 record.composites[key] = comp_path
             record.resolution = (layers.width, layers.height)
             record.settings[key] = frame.settings_record()
+    except Exception as error:
+        # The frames rendered before the failure are still written: a farm's retry of the
+        # range then starts where it failed.
+        try:
+            writer.close()
+        except CommandError as write_error:
+            raise CommandError(f"{error}; and {write_error}") from error
+        raise
     except BaseException:
         writer.abandon()
         raise
