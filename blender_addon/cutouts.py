@@ -8,7 +8,7 @@ Texture's Alpha (or Color), and a Mix Shader between a Transparent BSDF and anot
 whose factor is an Image Texture's Alpha (or Color). A constant Alpha or factor, or a
 Transparent BSDF alone, is one alpha everywhere, clipped as masks are. The texture's
 coordinates are its UV Map node's map, or the mesh's default (active render) map when
-nothing feeds its Vector.
+nothing feeds its Vector. Links are followed through reroutes, muted nodes and node groups.
 
 The core clips at alpha 0.5, where Cycles lets each shadow ray through by the alpha: the
 same for the nearly binary masks of cutouts, and within their filtered edges otherwise.
@@ -18,16 +18,15 @@ Any other use of transparency leaves the material opaque, and a note says which.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import bpy
 import numpy as np
 
 import crepuscular
 
-#: Rec. 709 luminance weights: Cycles' colour-to-value conversion in Blender's default
-#: scene-linear space.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+from . import node_links
+
+LUMINANCE = node_links.LUMINANCE.astype(np.float32)
 #: Where the core cuts: alpha below this lets light and sight through.
 THRESHOLD = 0.5
 
@@ -50,38 +49,43 @@ class MaskSource:
 
 def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
     """The mask a material cuts with, or None; and a note where its transparency is of a
-    kind this cannot map (the material then stays opaque)."""
+    kind this cannot map (the material then stays opaque). Links are followed through
+    reroutes, muted nodes and node groups (`node_links`)."""
     if material is None or material.node_tree is None:
         return None, None
     output = material.node_tree.get_output_node("CYCLES")
-    if output is None or not output.inputs["Surface"].is_linked:
+    if output is None:
         return None, None
-    shader = output.inputs["Surface"].links[0].from_node
+    surface = node_links.traced(output.inputs["Surface"])
+    if not surface.is_linked:
+        return None, None
+    shader, groups = surface.node, surface.groups
     where = f"material '{material.name}'"
     if shader.bl_idname == "ShaderNodeBsdfPrincipled":
-        alpha = shader.inputs["Alpha"]
-        if not alpha.is_linked:
-            return _constant_source(float(alpha.default_value), where)
-        return _image_source(alpha.links[0], invert=False, where=where)
+        alpha = node_links.traced(shader.inputs["Alpha"], groups)
+        if alpha.is_constant:
+            value = node_links.constant(shader, "Alpha", groups, where)
+            return _constant_source(float(value), where)
+        return _image_source(alpha, invert=False, where=where)
     if shader.bl_idname == "ShaderNodeBsdfTransparent":
-        color = shader.inputs["Color"]
-        if color.is_linked:
+        if not node_links.traced(shader.inputs["Color"], groups).is_constant:
             return None, f"{where}: its Transparent BSDF's Color is linked; it casts as opaque"
-        return _constant_source(1.0 - float(np.array(color.default_value[:3]) @ LUMINANCE), where)
+        rgb = np.array(node_links.constant(shader, "Color", groups, where)[:3])
+        return _constant_source(1.0 - float(rgb @ LUMINANCE), where)
     if shader.bl_idname == "ShaderNodeMixShader":
-        factor, first, second = shader.inputs[0], shader.inputs[1], shader.inputs[2]
+        factor, first, second = (node_links.traced(socket, groups) for socket in shader.inputs[:3])
         transparent = [
-            socket.is_linked and socket.links[0].from_node.bl_idname == "ShaderNodeBsdfTransparent"
-            for socket in (first, second)
+            shaded.is_linked and shaded.node.bl_idname == "ShaderNodeBsdfTransparent"
+            for shaded in (first, second)
         ]
         if not any(transparent):
             return None, None
-        if not factor.is_linked:
-            fac = min(max(float(factor.default_value), 0.0), 1.0)
+        if factor.is_constant:
+            fac = min(max(float(node_links.constant(shader, "Fac", groups, where)), 0.0), 1.0)
             return _constant_source(1.0 - fac if transparent[1] else fac, where)
         # The factor blends towards the second input: it is the alpha where the first is
         # the Transparent BSDF, and the transparency where the second is.
-        return _image_source(factor.links[0], invert=transparent[1], where=where)
+        return _image_source(factor, invert=transparent[1], where=where)
     return None, None
 
 
@@ -102,25 +106,25 @@ def _constant_source(alpha: float, where: str) -> tuple[MaskSource | None, str |
     return MaskSource("", "", "alpha", invert=False, constant=alpha), note
 
 
-def _image_source(link: Any, *, invert: bool, where: str) -> tuple[MaskSource | None, str | None]:
-    node = link.from_node
+def _image_source(
+    source: node_links.Traced, *, invert: bool, where: str
+) -> tuple[MaskSource | None, str | None]:
+    node = source.node
     if node.bl_idname != "ShaderNodeTexImage" or node.image is None:
         return None, f"{where}: its alpha is not an Image Texture's; it casts as opaque"
-    channel = {"Alpha": "alpha", "Color": "luminance"}.get(link.from_socket.name)
+    channel = {"Alpha": "alpha", "Color": "luminance"}.get(source.socket.name)
     if channel is None:
-        return None, f"{where}: its alpha comes from '{link.from_socket.name}'; it casts as opaque"
-    vector = node.inputs["Vector"]
+        return None, f"{where}: its alpha comes from '{source.socket.name}'; it casts as opaque"
+    vector = node_links.traced(node.inputs["Vector"], source.groups)
     uv_map = ""
     if vector.is_linked:
-        source = vector.links[0]
-        if source.from_node.bl_idname == "ShaderNodeUVMap":
-            uv_map = source.from_node.uv_map
-        elif not (
-            source.from_node.bl_idname == "ShaderNodeTexCoord" and source.from_socket.name == "UV"
-        ):
+        mapping = vector.node
+        if mapping.bl_idname == "ShaderNodeUVMap":
+            uv_map = mapping.uv_map
+        elif not (mapping.bl_idname == "ShaderNodeTexCoord" and vector.socket.name == "UV"):
             return None, (
                 f"{where}: image '{node.image.name}' is mapped by "
-                f"'{source.from_node.name}', not a UV map; it casts as opaque"
+                f"'{mapping.name}', not a UV map; it casts as opaque"
             )
     return MaskSource(node.image.name_full, uv_map, channel, invert), None
 

@@ -20,6 +20,7 @@ import numpy as np
 
 import crepuscular
 
+from . import node_links
 from .cutouts import MaskSource, MaskTable
 
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
@@ -46,8 +47,7 @@ VOLUME_SHADERS = {
 #: Directions over a wide sun's disc in the viewport preview (renders take
 #: `crepuscular.SUN_DISC_SAMPLES`): its penumbrae in four steps, at a quarter of the cost.
 PREVIEW_DISC_SAMPLES = 4
-#: Rec. 709 luminance weights, as Blender's default scene-linear space.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+LUMINANCE = node_links.LUMINANCE
 
 
 class ExportError(ValueError):
@@ -829,13 +829,13 @@ def sun_dict(sun: bpy.types.Object) -> dict[str, Any]:
     }
 
 
-def _constant(node: bpy.types.Node, name: str, where: str) -> Any:
-    socket = node.inputs[name]
-    if socket.is_linked:
-        raise ExportError(
-            f"{where}: input '{name}' of '{node.name}' must be a constant, not linked"
-        )
-    return socket.default_value
+def _constant(
+    node: bpy.types.Node, name: str, groups: tuple[bpy.types.Node, ...], where: str
+) -> Any:
+    try:
+        return node_links.constant(node, name, groups, where)
+    except node_links.NodeLinkError as error:
+        raise ExportError(str(error)) from error
 
 
 @dataclass
@@ -849,33 +849,36 @@ class _VolumeClosure:
 
 
 def _volume_closures(
-    socket: bpy.types.NodeSocket, weight: float, where: str, notes: list[str]
+    socket: bpy.types.NodeSocket,
+    weight: float,
+    where: str,
+    notes: list[str],
+    groups: tuple[bpy.types.Node, ...] = (),
 ) -> list[_VolumeClosure]:
-    """The closures reaching the shader input `socket`, scaled by `weight`, as Cycles
-    builds them: Volume Scatter σs = σt = color·density; Volume Absorption σt =
-    (1 − color)·density; Principled Volume σs = color·density and σt = (color + (1 −
-    color)(1 − √absorption))·density; Volume Coefficients σs = its scatter coefficients and
-    σt = those plus its absorption coefficients; Add Shader sums its inputs, Mix Shader
-    weights them by 1 − Fac and Fac; emission is left out with a note. Other nodes, and
-    inputs that are linked, are named."""
-    if not socket.is_linked or weight == 0:
+    """The closures reaching the shader input `socket` (of a node nested in the group
+    nodes `groups`), scaled by `weight`, as Cycles builds them: Volume Scatter σs = σt =
+    color·density; Volume Absorption σt = (1 − color)·density; Principled Volume σs =
+    color·density and σt = (color + (1 − color)(1 − √absorption))·density; Volume
+    Coefficients σs = its scatter coefficients and σt = those plus its absorption
+    coefficients; Add Shader sums its inputs, Mix Shader weights them by 1 − Fac and Fac;
+    emission is left out with a note. Links are followed through reroutes, muted nodes and
+    node groups (`node_links`). Other nodes, and inputs fed by other than constants, are
+    named."""
+    source = node_links.traced(socket, groups)
+    if not source.is_linked or weight == 0:
         return []
-    node = socket.links[0].from_node
-    while node.bl_idname == "NodeReroute":
-        if not node.inputs[0].is_linked:
-            return []
-        node = node.inputs[0].links[0].from_node
+    node, groups = source.node, source.groups
     kind = node.bl_idname
     if kind == "ShaderNodeAddShader":
         return [
             closure
             for shader in node.inputs[:2]
-            for closure in _volume_closures(shader, weight, where, notes)
+            for closure in _volume_closures(shader, weight, where, notes, groups)
         ]
     if kind == "ShaderNodeMixShader":
-        fac = min(max(float(_constant(node, "Fac", where)), 0.0), 1.0)
-        first = _volume_closures(node.inputs[1], weight * (1 - fac), where, notes)
-        return first + _volume_closures(node.inputs[2], weight * fac, where, notes)
+        fac = min(max(float(_constant(node, "Fac", groups, where)), 0.0), 1.0)
+        first = _volume_closures(node.inputs[1], weight * (1 - fac), where, notes, groups)
+        return first + _volume_closures(node.inputs[2], weight * fac, where, notes, groups)
     if kind == "ShaderNodeEmission":
         notes.append(f"'{node.name}' is ignored: shafts have no emission")
         return []
@@ -889,24 +892,30 @@ def _volume_closures(
     if phase != "HENYEY_GREENSTEIN":
         raise ExportError(f"{where}: phase '{phase}' is not supported (Henyey-Greenstein)")
     if kind == "ShaderNodeVolumeCoefficients":
-        absorbing = np.array(_constant(node, "Absorption Coefficients", where), dtype=np.float64)
-        scattering = np.maximum(np.array(_constant(node, "Scatter Coefficients", where)), 0)
-        if np.any(np.array(_constant(node, "Emission Coefficients", where)) != 0):
+        absorbing = np.array(
+            _constant(node, "Absorption Coefficients", groups, where), dtype=np.float64
+        )
+        scattering = np.maximum(np.array(_constant(node, "Scatter Coefficients", groups, where)), 0)
+        if np.any(np.array(_constant(node, "Emission Coefficients", groups, where)) != 0):
             notes.append(f"the emission of '{node.name}' is ignored: shafts have no emission")
         scattering = scattering * weight
         extinction = scattering + np.maximum(absorbing, 0) * weight
-        return [_VolumeClosure(scattering, extinction, float(_constant(node, "Anisotropy", where)))]
-    color = np.maximum(np.array(_constant(node, "Color", where)[:3], dtype=np.float64), 0)
-    density = max(float(_constant(node, "Density", where)), 0.0) * weight
+        return [
+            _VolumeClosure(
+                scattering, extinction, float(_constant(node, "Anisotropy", groups, where))
+            )
+        ]
+    color = np.maximum(np.array(_constant(node, "Color", groups, where)[:3], dtype=np.float64), 0)
+    density = max(float(_constant(node, "Density", groups, where)), 0.0) * weight
     if kind == "ShaderNodeVolumeAbsorption":
         return [_VolumeClosure(np.zeros(3), np.maximum(1 - color, 0) * density)]
-    anisotropy = float(_constant(node, "Anisotropy", where))
+    anisotropy = float(_constant(node, "Anisotropy", groups, where))
     if kind == "ShaderNodeVolumeScatter":
         return [_VolumeClosure(color * density, color * density, anisotropy)]
-    absorption = np.array(_constant(node, "Absorption Color", where)[:3], dtype=np.float64)
+    absorption = np.array(_constant(node, "Absorption Color", groups, where)[:3], dtype=np.float64)
     absorbed = np.maximum(1 - color, 0) * np.maximum(1 - np.sqrt(np.maximum(absorption, 0)), 0)
     for name in ("Emission Strength", "Blackbody Intensity"):
-        if float(_constant(node, name, where)) != 0:
+        if float(_constant(node, name, groups, where)) != 0:
             notes.append(f"{name} of '{node.name}' is ignored: shafts have no emission")
     return [_VolumeClosure(color * density, (color + absorbed) * density, anisotropy)]
 
@@ -963,7 +972,7 @@ def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[d
     if material is None or material.node_tree is None:
         raise ExportError(f"{where}: needs a material with a volume shader")
     output = material.node_tree.get_output_node("CYCLES")
-    if output is None or not output.inputs["Volume"].is_linked:
+    if output is None or not node_links.traced(output.inputs["Volume"]).is_linked:
         raise ExportError(f"{where}: material '{material.name}' has no Volume output link")
     where = f"{where}, material '{material.name}'"
     notes: list[str] = []

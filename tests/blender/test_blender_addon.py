@@ -576,6 +576,43 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     assert geometry.notes == []
 
 
+def test_cut_materials_inside_node_groups_export_their_masks(addon: ModuleType) -> None:
+    """A leaf material as asset libraries wrap it: the Principled BSDF inside a node
+    group whose Alpha input is exposed and fed by the Image Texture outside, through a
+    reroute. It cuts with the image's alpha, as the same material without the group does;
+    a Value node into the exposed Alpha is one alpha everywhere."""
+    scene = bpy.context.scene
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    group = _node_group("Leaf Shader", {"Alpha": "NodeSocketFloat"}, "BSDF")
+    bsdf = group.nodes.new("ShaderNodeBsdfPrincipled")
+    group.links.new(group.nodes["Group Input"].outputs["Alpha"], bsdf.inputs["Alpha"])
+    group.links.new(bsdf.outputs[0], group.nodes["Group Output"].inputs["BSDF"])
+    material = bpy.data.materials.new("Grouped Leaf")
+    tree = material.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    shader = tree.nodes.new("ShaderNodeGroup")
+    shader.node_tree = group
+    texture = tree.nodes.new("ShaderNodeTexImage")
+    texture.image = image
+    reroute = tree.nodes.new("NodeReroute")
+    tree.links.new(texture.outputs["Alpha"], reroute.inputs[0])
+    tree.links.new(reroute.outputs[0], shader.inputs["Alpha"])
+    tree.links.new(shader.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    blender_scenes.add_card(
+        scene, "Card", [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)], material, 3.0
+    )
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    pixels = np.array(image.pixels[:], dtype=np.float32).reshape(16, 16, 4)
+    assert len(geometry.masks) == 1
+    np.testing.assert_array_equal(np.asarray(geometry.masks[0].alpha), pixels[..., 3])
+    assert geometry.notes == []
+    value = tree.nodes.new("ShaderNodeValue")
+    value.outputs[0].default_value = 0.2
+    tree.links.new(value.outputs[0], shader.inputs["Alpha"])
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    np.testing.assert_allclose(np.asarray(geometry.masks[0].alpha), [[0.2]])
+
+
 def test_a_clear_card_neither_casts_nor_hides_the_fog(addon: ModuleType, tmp_path: Path) -> None:
     """A card whose surface is a Transparent BSDF alone (no UV map) renders as if it were
     not there, as in Cycles; made half opaque (alpha 0.6) it casts as an opaque card."""
@@ -951,6 +988,118 @@ def test_fog_shaders_of_several_closures_sum_as_cycles_sums_them(addon: ModuleTy
     add = next(node for node in nodes if node.bl_idname == "ShaderNodeAddShader")
     material.node_tree.links.new(diffuse.outputs[0], add.inputs[1])
     with pytest.raises(addon.export.ExportError, match="ShaderNodeBsdfDiffuse"):
+        medium()
+
+
+def _node_group(name: str, inputs: dict[str, str], output: str) -> bpy.types.NodeTree:
+    """A shader node group with the interface `inputs` (name: socket type) and one output,
+    its Group Input and Group Output nodes made."""
+    group = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    group.nodes.new("NodeGroupInput")
+    group.nodes.new("NodeGroupOutput")
+    for socket, kind in inputs.items():
+        group.interface.new_socket(socket, in_out="INPUT", socket_type=kind)
+    group.interface.new_socket(output, in_out="OUTPUT", socket_type="NodeSocketShader")
+    return group
+
+
+def test_fog_shaders_are_followed_through_groups_reroutes_and_muted_nodes(
+    addon: ModuleType,
+) -> None:
+    """A fog preset as asset libraries ship it: a Principled Volume inside a node group
+    inside another, its Density and Color exposed, the density driven by a Value node and
+    the colour from the outer group's own socket; reached through a reroute and a muted
+    Add Shader (which passes its first input), beside a muted Volume Scatter (which adds
+    nothing). It maps exactly as the same Principled Volume alone does, as Cycles compiles
+    it. An RGB node feeding the density is converted to its luminance, as Blender does."""
+    scene = bpy.context.scene
+    plain = blender_scenes.volume_material(
+        "principled",
+        Density=0.7,
+        Color=(0.8, 0.6, 0.4, 1.0),
+        Anisotropy=0.25,
+        **{"Absorption Color": (0.2, 0.3, 0.9, 1.0)},
+    )
+    blender_scenes.add_fog_box(scene, np.eye(4), plain)
+
+    def medium() -> tuple[dict[str, Any], list[str]]:
+        return addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+
+    expected, expected_notes = medium()
+    inner = _node_group(
+        "Fog Core", {"Density": "NodeSocketFloat", "Tint": "NodeSocketColor"}, "Volume"
+    )
+    principled = inner.nodes.new("ShaderNodeVolumePrincipled")
+    principled.inputs["Anisotropy"].default_value = 0.25
+    principled.inputs["Absorption Color"].default_value = (0.2, 0.3, 0.9, 1.0)
+    core_in, core_out = inner.nodes["Group Input"], inner.nodes["Group Output"]
+    inner.links.new(core_in.outputs["Density"], principled.inputs["Density"])
+    inner.links.new(core_in.outputs["Tint"], principled.inputs["Color"])
+    inner.links.new(principled.outputs[0], core_out.inputs["Volume"])
+    outer = _node_group(
+        "Fog Preset", {"Density": "NodeSocketFloat", "Tint": "NodeSocketColor"}, "Volume"
+    )
+    core = outer.nodes.new("ShaderNodeGroup")
+    core.node_tree = inner
+    preset_in, preset_out = outer.nodes["Group Input"], outer.nodes["Group Output"]
+    outer.links.new(preset_in.outputs["Density"], core.inputs["Density"])
+    outer.links.new(preset_in.outputs["Tint"], core.inputs["Tint"])
+    outer.links.new(core.outputs[0], preset_out.inputs["Volume"])
+
+    material = bpy.data.materials.new("Fog Preset")
+    tree = material.node_tree
+    for node in list(tree.nodes):
+        if node.bl_idname != "ShaderNodeOutputMaterial":
+            tree.nodes.remove(node)
+    preset = tree.nodes.new("ShaderNodeGroup")
+    preset.node_tree = outer
+    preset.inputs["Tint"].default_value = (0.8, 0.6, 0.4, 1.0)
+    density = tree.nodes.new("ShaderNodeValue")
+    density.outputs[0].default_value = 0.7
+    tree.links.new(density.outputs[0], preset.inputs["Density"])
+    muted_add = tree.nodes.new("ShaderNodeAddShader")
+    muted_add.mute = True
+    ignored = tree.nodes.new("ShaderNodeVolumeScatter")
+    ignored.mute = True
+    ignored.inputs["Density"].default_value = 5.0
+    tree.links.new(preset.outputs[0], muted_add.inputs[0])
+    tree.links.new(ignored.outputs[0], muted_add.inputs[1])
+    reroute = tree.nodes.new("NodeReroute")
+    tree.links.new(muted_add.outputs[0], reroute.inputs[0])
+    output = tree.nodes["Material Output"]
+    tree.links.new(reroute.outputs[0], output.inputs["Volume"])
+    scene.crepuscular.fog_object.data.materials[0] = material
+    found, notes = medium()
+    assert found.keys() == expected.keys()
+    for key, value in expected.items():
+        assert found[key] == (value if key == "extent" else pytest.approx(value)), key
+    assert notes == expected_notes
+
+    # The muted Add Shader passes its first input alone; unmuted, it sums the scatter's
+    # closure (σt 0.8 · 5 more in every channel) too.
+    ignored.mute = False
+    assert medium()[0]["extinction"] == pytest.approx(expected["extinction"])
+    muted_add.mute = False
+    assert medium()[0]["extinction"] == pytest.approx(expected["extinction"] + 4.0)
+    muted_add.mute = True
+    # A muted link is no link: the fog has no closure and the material no volume.
+    tree.links.remove(output.inputs["Volume"].links[0])
+    link = tree.links.new(reroute.outputs[0], output.inputs["Volume"])
+    link.is_muted = True
+    with pytest.raises(addon.export.ExportError, match="no Volume output link"):
+        medium()
+    link.is_muted = False
+    # An RGB node into the float socket reads as its luminance.
+    rgb = tree.nodes.new("ShaderNodeRGB")
+    rgb.outputs[0].default_value = (0.5, 1.0, 0.0, 1.0)
+    tree.links.new(rgb.outputs[0], preset.inputs["Density"])
+    found, _ = medium()
+    luminance = 0.2126 * 0.5 + 0.7152 * 1.0
+    assert found["extinction"] == pytest.approx(expected["extinction"] / 0.7 * luminance)
+    # A texture is not a constant: named, with the node that feeds it.
+    noise = tree.nodes.new("ShaderNodeTexNoise")
+    tree.links.new(noise.outputs["Fac"], preset.inputs["Density"])
+    with pytest.raises(addon.export.ExportError, match=r"'Density'.*'Noise Texture'"):
         medium()
 
 
