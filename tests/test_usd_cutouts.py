@@ -240,6 +240,80 @@ def test_a_constant_opacity_is_cut_as_a_mask(tmp_path: Path) -> None:
     assert _mean_relative(solid.volume, bare.volume) > 0.01
 
 
+def _interface_material(stage: Usd.Stage, path: str, file: str) -> UsdShade.Material:
+    """`_cut_material` as material libraries author it (and Pixar's UsdPreviewSurface
+    tutorial): the texture and its primvar reader inside a NodeGraph whose output feeds the
+    opacity, the file, the primvar's name and the threshold given by the material's
+    interface inputs."""
+    material = UsdShade.Material.Define(stage, path)
+    surface = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    graph = UsdShade.NodeGraph.Define(stage, f"{path}/Cutout")
+    texture = UsdShade.Shader.Define(stage, f"{path}/Cutout/Alpha")
+    texture.CreateIdAttr("UsdUVTexture")
+    reader = UsdShade.Shader.Define(stage, f"{path}/Cutout/St")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    interface = {
+        "file": (Sdf.ValueTypeNames.Asset, file),
+        "frame:stPrimvarName": (Sdf.ValueTypeNames.Token, "st"),
+        "cut": (Sdf.ValueTypeNames.Float, 0.5),
+    }
+    for name, (kind, value) in interface.items():
+        assert material.CreateInput(name, kind).Set(value)
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).ConnectToSource(material.GetInput("file"))
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).ConnectToSource(
+        material.GetInput("frame:stPrimvarName")
+    )
+    texture.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        reader.ConnectableAPI(), "result"
+    )
+    alpha = graph.CreateOutput("alpha", Sdf.ValueTypeNames.Float)
+    alpha.ConnectToSource(texture.CreateOutput("a", Sdf.ValueTypeNames.Float))
+    surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(alpha)
+    surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).ConnectToSource(
+        material.GetInput("cut")
+    )
+    return material
+
+
+def test_a_node_graph_and_interface_inputs_cut_as_the_plain_material(tmp_path: Path) -> None:
+    """The texture behind a NodeGraph, its file, primvar name and threshold on the
+    material's interface: the card cuts exactly as with `_cut_material` (before, it cast
+    as opaque with a note). A constant opacity on the interface is one value everywhere."""
+    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    layers = {}
+    for name, build in (("plain", _cut_material), ("graph", _interface_material)):
+        stage = _stage(tmp_path, name)
+        card = _quad(stage, "/World/Card", -2, 2)
+        _card_uvs(card)
+        UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
+            build(stage, "/World/Looks/Leaf", file)
+        )
+        frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(
+            Usd.TimeCode.Default()
+        )
+        assert frame.geometry.notes == [], name
+        assert len(frame.geometry.masks) == 1, name
+        assert frame.geometry.masks[0].threshold == 0.5
+        layers[name] = crepuscular.render_arrays(**frame.render_kwargs())
+    for plane in ("volume", "visibility", "depth"):
+        np.testing.assert_array_equal(
+            getattr(layers["graph"], plane), getattr(layers["plain"], plane), err_msg=plane
+        )
+    # (Without the interface's primvar name, every corner would read texel (0, 0).)
+    material = UsdShade.Material(stage.GetPrimAtPath("/World/Looks/Leaf"))
+    # A constant opacity given by the interface, below the threshold: a 1x1 mask.
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Surface"))
+    opacity = surface.GetInput("opacity")
+    assert opacity.DisconnectSource()
+    assert material.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.2)
+    assert opacity.ConnectToSource(material.GetInput("opacity"))
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    assert len(frame.geometry.masks) == 1
+    np.testing.assert_allclose(np.asarray(frame.geometry.masks[0].alpha), [[0.2]])
+
+
 def test_a_usdz_packages_texture_cuts_and_a_broken_one_is_named(tmp_path: Path) -> None:
     """Textures inside a .usdz package are read through USD's resolver; a file that is not
     an image is named and its card casts as opaque."""

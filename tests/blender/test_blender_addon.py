@@ -1076,7 +1076,7 @@ def test_fog_shaders_are_followed_through_groups_reroutes_and_muted_nodes(
     assert notes == expected_notes
 
     # The muted Add Shader passes its first input alone; unmuted, it sums the scatter's
-    # closure (σt 0.8 · 5 more in every channel) too.
+    # closure (sigma_t 0.8 x 5 more in every channel) too.
     ignored.mute = False
     assert medium()[0]["extinction"] == pytest.approx(expected["extinction"])
     muted_add.mute = False

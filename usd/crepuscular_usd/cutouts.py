@@ -10,10 +10,11 @@ colour channel is decoded from sRGB where its `sourceColorSpace` says (or, on `a
 renderer lets a shadow ray through by the opacity itself, which for the nearly binary masks
 of cutouts is the same. Textures are PNG, JPEG, TGA, TIFF or BMP (read with Pillow) or EXR.
 
-A constant opacity is one value everywhere, cut the same way (below the cut, the surface
-neither casts nor hides the fog). Anything else that makes a surface transparent (another
-shader, UDIM tiles, a transformed texture coordinate) leaves it opaque, with a note that
-names it.
+Inputs are read as USD's renderers resolve them: through NodeGraphs, and from the
+material's interface inputs they are connected to. A constant opacity is one value
+everywhere, cut the same way (below the cut, the surface neither casts nor hides the fog).
+Anything else that makes a surface transparent (another shader, UDIM tiles, a transformed
+texture coordinate) leaves it opaque, with a note that names it.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import io
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -84,19 +86,18 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         return None, None
     where = f"material {material.GetPath()}"
     opacity = shader.GetInput("opacity")
-    threshold_input = shader.GetInput("opacityThreshold")
-    threshold = float(threshold_input.Get() or 0.0) if threshold_input else 0.0
+    threshold = float(_value(shader.GetInput("opacityThreshold")) or 0.0)
     cut = threshold if threshold > 0.0 else DEFAULT_THRESHOLD
-    if not opacity or not opacity.HasConnectedSource():
-        value = opacity.Get() if opacity else None
+    produced = _source_output(opacity)
+    if produced is None:
+        value = _value(opacity)
         if value is None or value >= 1.0:
             return None, None
         return _constant_source(float(value), cut, threshold > 0.0, where)
-    source, output, _ = opacity.GetConnectedSource()
-    texture = UsdShade.Shader(source.GetPrim())
+    texture, output = produced
     if texture.GetIdAttr().Get() != "UsdUVTexture" or output not in _CHANNELS:
         return None, f"{where}: its opacity is not a UsdUVTexture's channel; it casts as opaque"
-    asset = texture.GetInput("file").Get() if texture.GetInput("file") else None
+    asset = _value(texture.GetInput("file"))
     if asset is None or "<UDIM>" in asset.path:
         return None, f"{where}: its opacity texture has no file or is tiled; it casts as opaque"
     if not asset.resolvedPath:
@@ -107,8 +108,7 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
     channel = _CHANNELS[output]
     scale = _float4(texture, "scale", 1.0)[channel]
     bias = _float4(texture, "bias", 0.0)[channel]
-    space_input = texture.GetInput("sourceColorSpace")
-    space = (space_input.Get() if space_input else None) or "auto"
+    space = _value(texture.GetInput("sourceColorSpace")) or "auto"
     srgb = output != "a" and (
         space == "sRGB" or (space == "auto" and not asset.resolvedPath.lower().endswith(".exr"))
     )
@@ -116,6 +116,39 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         asset.resolvedPath, output, float(scale), float(bias), srgb, cut, primvar
     )
     return source_record, None
+
+
+def _producer(shader_input: UsdShade.Input | None) -> Usd.Attribute | None:
+    """The attribute that gives `shader_input` its value: a shader's output or an authored
+    input, through NodeGraphs and the material's interface inputs, as USD's own
+    renderers resolve it (the Pixar tutorial's primvar reader takes its varname from the
+    material's `inputs:frame:stPrimvarName`); None where none is authored."""
+    if not shader_input:
+        return None
+    attributes = shader_input.GetValueProducingAttributes()
+    return attributes[0] if attributes else None
+
+
+def _source_output(shader_input: UsdShade.Input | None) -> tuple[UsdShade.Shader, str] | None:
+    """The shader and output name `shader_input` is computed by, or None where a value
+    (or nothing) gives it."""
+    attribute = _producer(shader_input)
+    if attribute is None:
+        return None
+    name, kind = UsdShade.Utils.GetBaseNameAndType(attribute.GetName())
+    if kind != UsdShade.AttributeType.Output:
+        return None
+    return UsdShade.Shader(attribute.GetPrim()), name
+
+
+def _value(shader_input: UsdShade.Input | None) -> Any:
+    """`shader_input`'s value: its own or an interface input's it is connected to; None
+    where none is authored or a shader computes it."""
+    attribute = _producer(shader_input)
+    if attribute is None:
+        return None
+    _, kind = UsdShade.Utils.GetBaseNameAndType(attribute.GetName())
+    return None if kind == UsdShade.AttributeType.Output else attribute.Get()
 
 
 def _constant_source(
@@ -139,22 +172,20 @@ def _constant_source(
 
 
 def _primvar(texture: UsdShade.Shader, where: str) -> tuple[str, str | None]:
-    st = texture.GetInput("st")
-    if not st or not st.HasConnectedSource():
+    produced = _source_output(texture.GetInput("st"))
+    if produced is None:
         return "", None
-    source, _, _ = st.GetConnectedSource()
-    reader = UsdShade.Shader(source.GetPrim())
+    reader, _ = produced
     if reader.GetIdAttr().Get() != "UsdPrimvarReader_float2":
         return "", (
             f"{where}: its texture coordinates come from {reader.GetPath()}, not a primvar "
             "reader; it casts as opaque"
         )
-    varname = reader.GetInput("varname")
-    return str(varname.Get() or "") if varname else "", None
+    return str(_value(reader.GetInput("varname")) or ""), None
 
 
 def _float4(shader: UsdShade.Shader, name: str, fallback: float) -> tuple[float, ...]:
-    value = shader.GetInput(name).Get() if shader.GetInput(name) else None
+    value = _value(shader.GetInput(name))
     return tuple(value) if value is not None else (fallback,) * 4
 
 
