@@ -30,7 +30,10 @@ and in the box, which it draws as spheres (`scene.json` carries both as meshes).
 `--closures` builds each fog of several volume closures: an Add or Mix Shader of it and a
 Volume Absorption, or Volume Coefficients. Views that see no fog print as black. A sun's
 disc is left at 0° (a point sun), or with `--disc` drawn from 1° to 10°, which the extension
-softens over `crepuscular.SUN_DISC_SAMPLES` directions.
+softens over `crepuscular.SUN_DISC_SAMPLES` directions. `--grouped` rebuilds the fog's and
+the cards' materials inside node groups, as asset libraries ship them, with inputs exposed
+and given outside by sockets, Value and RGB nodes, and reached through reroutes and muted
+Add Shaders (the same scenes as without it, seed for seed).
 """
 
 from __future__ import annotations
@@ -220,8 +223,12 @@ def build_case(
     points: bool = False,
     closures: bool = False,
     disc: bool = False,
+    grouping: random.Random | None = None,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
-    """A random scene (see the module's doc); returns it, its sun and a one-line summary."""
+    """A random scene (see the module's doc); returns it, its sun and a one-line summary.
+    With `grouping`, a generator of its own, its materials are rebuilt inside node groups
+    (`blender_scenes.wrap_in_group`) after the scene is drawn, so that the scene is the
+    one drawn without."""
     blender_scenes.reset()
     scene = bpy.context.scene
     blender_scenes.setup_cycles(scene, width=width, height=height, samples=samples)
@@ -313,6 +320,16 @@ def build_case(
         camera.data.type = "ORTHO"
         camera.data.ortho_scale = rng.uniform(1.0, 2.5) * 2 * float(np.max(half))
         labels.append("orthographic")
+    if grouping is not None:
+        fog_and_cards = [material] + [
+            slot.material
+            for obj in scene.objects
+            if obj.name.startswith("card_")
+            for slot in obj.material_slots
+        ]
+        for wrapped in fog_and_cards:
+            blender_scenes.wrap_in_group(wrapped, grouping)
+        labels.append("grouped")
     return scene, sun, " ".join(labels)
 
 
@@ -427,6 +444,9 @@ def main() -> int:
         "--closures", action="store_true", help="fog of several volume closures (see above)"
     )
     parser.add_argument("--disc", action="store_true", help="a sun disc of 1 to 10 degrees")
+    parser.add_argument(
+        "--grouped", action="store_true", help="materials rebuilt inside node groups (see above)"
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -446,6 +466,7 @@ def main() -> int:
             args.points,
             args.closures,
             args.disc,
+            random.Random(f"{args.seed} {case} grouping") if args.grouped else None,
         )
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)

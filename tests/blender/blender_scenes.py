@@ -489,3 +489,104 @@ def add_card(scene: Any, name: str, corners: Any, material: Any, repeats: float)
     for loop, uv in zip(card.data.loops, ((0, 0), (repeats, 0), (repeats, 1), (0, 1)), strict=True):
         layer.uv[loop.index].vector = uv
     return card
+
+
+#: Node properties that say what a node computes, copied when its graph is rebuilt.
+NODE_PROPERTIES = ("phase", "image", "interpolation", "extension", "projection", "uv_map")
+
+
+def _socket(sockets: Any, identifier: str) -> Any:
+    return next(socket for socket in sockets if socket.identifier == identifier)
+
+
+def wrap_in_group(material: Any, rng: Any) -> Any:
+    """Rebuilds `material`'s shader graph inside a node group, as asset libraries ship
+    materials, which Cycles renders alike: the group's outputs feed the material output
+    (through a reroute, or a muted Add Shader that passes its first input and drops a
+    dense Volume Scatter or a Diffuse BSDF at its second); about half of the graph's
+    unlinked value and colour inputs are exposed on the group and given there by the
+    group node's own socket, a Value or RGB node, through a reroute or not (a grey colour
+    sometimes as a value, which Blender converts). `rng` is a `random.Random`. Returns
+    the group."""
+    import bpy
+
+    tree = material.node_tree
+    output = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
+    originals = [node for node in tree.nodes if node != output]
+    group = bpy.data.node_groups.new(f"{material.name} group", "ShaderNodeTree")
+    group_in = group.nodes.new("NodeGroupInput")
+    group_out = group.nodes.new("NodeGroupOutput")
+    copies = {}
+    for node in originals:
+        copy = group.nodes.new(node.bl_idname)
+        for name in NODE_PROPERTIES:
+            if hasattr(node, name):
+                setattr(copy, name, getattr(node, name))
+        for socket in node.inputs:
+            if hasattr(socket, "default_value"):
+                _socket(copy.inputs, socket.identifier).default_value = socket.default_value
+        copies[node.name] = copy
+    outputs = []
+    for link in tree.links:
+        source = _socket(copies[link.from_node.name].outputs, link.from_socket.identifier)
+        if link.to_node == output:
+            outputs.append((link.to_socket.name, source))
+        else:
+            target = _socket(copies[link.to_node.name].inputs, link.to_socket.identifier)
+            group.links.new(source, target)
+    for name, source in outputs:
+        group.interface.new_socket(name, in_out="OUTPUT", socket_type="NodeSocketShader")
+        group.links.new(source, group_out.inputs[name])
+    exposed = []
+    for copy in copies.values():
+        for socket in copy.inputs:
+            kind = socket.type
+            if socket.is_linked or not socket.enabled or kind not in ("VALUE", "RGBA"):
+                continue
+            if rng.random() < 0.5:
+                continue
+            value = socket.default_value if kind == "VALUE" else tuple(socket.default_value)
+            if kind == "RGBA" and value[0] == value[1] == value[2] and rng.random() < 0.5:
+                kind, value = "VALUE", value[0]
+            name = f"{copy.name} {socket.identifier}"
+            interface = "NodeSocketFloat" if kind == "VALUE" else "NodeSocketColor"
+            group.interface.new_socket(name, in_out="INPUT", socket_type=interface)
+            group.links.new(group_in.outputs[name], socket)
+            exposed.append((name, kind, value))
+    for node in originals:
+        tree.nodes.remove(node)
+    wrapper = tree.nodes.new("ShaderNodeGroup")
+    wrapper.node_tree = group
+    for name, kind, value in exposed:
+        socket = wrapper.inputs[name]
+        choice = rng.choice(["socket", "node", "node via reroute"])
+        if choice == "socket":
+            socket.default_value = value
+            continue
+        constant = tree.nodes.new("ShaderNodeValue" if kind == "VALUE" else "ShaderNodeRGB")
+        constant.outputs[0].default_value = value
+        source = constant.outputs[0]
+        if choice == "node via reroute":
+            reroute = tree.nodes.new("NodeReroute")
+            tree.links.new(source, reroute.inputs[0])
+            source = reroute.outputs[0]
+        tree.links.new(source, socket)
+    for name, _ in outputs:
+        source = wrapper.outputs[name]
+        if rng.random() < 0.5:
+            reroute = tree.nodes.new("NodeReroute")
+            tree.links.new(source, reroute.inputs[0])
+            source = reroute.outputs[0]
+        else:
+            passing = tree.nodes.new("ShaderNodeAddShader")
+            dropped = tree.nodes.new(
+                "ShaderNodeVolumeScatter" if name == "Volume" else "ShaderNodeBsdfDiffuse"
+            )
+            if name == "Volume":
+                dropped.inputs["Density"].default_value = 10.0
+            tree.links.new(source, passing.inputs[0])
+            tree.links.new(dropped.outputs[0], passing.inputs[1])
+            passing.mute = True
+            source = passing.outputs[0]
+        tree.links.new(source, output.inputs[name])
+    return group

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import random
 import subprocess
 import sys
 import time
@@ -1101,6 +1102,51 @@ def test_fog_shaders_are_followed_through_groups_reroutes_and_muted_nodes(
     tree.links.new(noise.outputs["Fac"], preset.inputs["Density"])
     with pytest.raises(addon.export.ExportError, match=r"'Density'.*'Noise Texture'"):
         medium()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_materials_rebuilt_inside_node_groups_map_as_before(addon: ModuleType, seed: int) -> None:
+    """Fog materials of one or several closures and cutout materials, rebuilt inside node
+    groups with random inputs exposed and given outside (`wrap_in_group`), map exactly as
+    before: the same medium, and the same mask."""
+    rng = random.Random(seed)
+    scene = bpy.context.scene
+    fogs = [
+        blender_scenes.volume_material(
+            "principled",
+            Density=0.4,
+            Color=(0.7, 0.7, 0.7, 1.0),
+            Anisotropy=0.3,
+            **{"Absorption Color": (0.5, 0.5, 0.5, 1.0)},
+        ),
+        blender_scenes.volume_graph(
+            "mix",
+            [("scatter", {"Color": (0.9, 0.6, 0.3, 1.0), "Density": 0.5, "Anisotropy": 0.2})],
+            [("absorption", {"Color": (0.4, 0.4, 0.4, 1.0), "Density": 0.3})],
+            fac=0.3,
+        ),
+        blender_scenes.volume_graph(
+            "add",
+            [("coefficients", {"Scatter Coefficients": (0.2, 0.3, 0.4), "Anisotropy": 0.5})],
+            [("emission", {"Strength": 0.0})],
+        ),
+    ]
+    fog = blender_scenes.add_fog_box(scene, np.eye(4), fogs[0])
+    for material in fogs:
+        fog.data.materials[0] = material
+        before = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+        blender_scenes.wrap_in_group(material, rng)
+        after = addon.export.medium_dict(scene, bpy.context.evaluated_depsgraph_get())
+        assert after[1] == before[1], material.name
+        for key, value in before[0].items():
+            expected = value if key == "extent" else pytest.approx(value, rel=1e-6)
+            assert after[0][key] == expected, (material.name, key)
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    for kind in ("principled", "mix"):
+        material = blender_scenes.cutout_material(image, kind)
+        before = addon.cutouts.material_mask(material)
+        blender_scenes.wrap_in_group(material, rng)
+        assert addon.cutouts.material_mask(material) == before, kind
 
 
 def test_a_fog_object_no_view_ray_reaches_is_named(addon: ModuleType) -> None:
