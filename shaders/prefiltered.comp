@@ -382,12 +382,13 @@ uint look_up(vec4 located, float key, float x0, float x1, bool measure_blur,
                 w_start += start_fraction * (weight[first_row + start_lower + 1u] - w_start);
             }
             float dw = w_end - w_start;
-            if (!(dw > 0.0)) {
-                return AVERAGE_OFF_THE_MAP;
-            }
-            // prefiltered.rs: CONDITION_LIMIT.
+            // prefiltered.rs: CONDITION_LIMIT; first, as a stretch past the weights' depth
+            // cap holds no weight either.
             if (w_start > 100.0 * dw) {
                 return AVERAGE_IMPRECISE;
+            }
+            if (!(dw > 0.0)) {
+                return AVERAGE_OFF_THE_MAP;
             }
             float scale = share * band_share / dw;
             // Two ends × two boundaries, in fixed slots (factor 0 when unused) so that the
