@@ -57,8 +57,10 @@ def _link(socket: bpy.types.NodeSocket) -> bpy.types.NodeLink | None:
     return None
 
 
-def _by_identifier(sockets: bpy.types.bpy_prop_collection, identifier: str) -> bpy.types.NodeSocket:
-    return next(socket for socket in sockets if socket.identifier == identifier)
+def _by_identifier(
+    sockets: bpy.types.bpy_prop_collection, identifier: str
+) -> bpy.types.NodeSocket | None:
+    return next((socket for socket in sockets if socket.identifier == identifier), None)
 
 
 def _group_output(tree: bpy.types.NodeTree | None) -> bpy.types.Node | None:
@@ -86,16 +88,18 @@ def traced(socket: bpy.types.NodeSocket, groups: tuple[bpy.types.Node, ...] = ()
                 return Traced(socket, groups)
             socket = passing[0].from_socket
         elif node.bl_idname == "NodeGroupInput":
-            if not groups:
+            # Out to the group node's own socket; unlinked at the top level, or where the
+            # group node lacks the socket (an interface edited since).
+            outer = _by_identifier(groups[-1].inputs, source.identifier) if groups else None
+            if outer is None:
                 return Traced(socket, groups)
-            socket = _by_identifier(groups[-1].inputs, source.identifier)
-            groups = groups[:-1]
+            socket, groups = outer, groups[:-1]
         elif node.bl_idname == "ShaderNodeGroup":
             output = _group_output(node.node_tree)
-            if output is None:
+            inner = _by_identifier(output.inputs, source.identifier) if output else None
+            if inner is None:
                 return Traced(socket, groups)
-            socket = _by_identifier(output.inputs, source.identifier)
-            groups = (*groups, node)
+            socket, groups = inner, (*groups, node)
         else:
             return Traced(source, groups)
 
