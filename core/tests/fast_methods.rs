@@ -572,9 +572,8 @@ fn rays_too_far_along_a_slice_are_integrated_exactly() {
 /// lookup ends there, and one that starts there is walked.
 #[test]
 fn rays_starting_along_a_slice_take_no_weight_past_its_depth_cap() {
-    let mut scene = builtin_scene("plane").expect("built-in scene");
-    scene.camera = Camera {
-        world_from_camera: Mat4::from_cols_array(&[
+    let scene = fuzzed_plane(
+        [
             0.435_738_66,
             0.900_073_2,
             0.0,
@@ -591,23 +590,42 @@ fn rays_starting_along_a_slice_take_no_weight_past_its_depth_cap() {
             -7.001_888,
             1.562_632,
             1.0,
-        ]),
-        projection: Projection::orthographic(19.980_977),
-        clip_start: 0.1,
-        clip_end: 1000.0,
-        width: 2 * WIDTH,
-        height: 2 * HEIGHT,
-    };
-    scene.sun.direction = Vec3::new(0.485_342, -0.506_192_85, -0.712_889_86);
-    scene.medium.extinction = 0.6;
-    scene.medium.anisotropy = 0.201_141;
-    scene.render.max_distance = 70.0;
+        ],
+        Projection::orthographic(19.980_977),
+        Vec3::new(0.485_342, -0.506_192_85, -0.712_889_86),
+        (0.6, 0.201_141),
+    );
     let reference = render_with(&scene, Method::Reference, 4096);
     assert_fast_methods_match(
         "plane orthographic under its roof at σ = 0.6:",
         &scene,
         &reference,
     );
+}
+
+/// `plane` at twice the tests' size seen from `world_from_camera` (column-major) through
+/// `projection`, lit along `sun`, in open fog of (extinction, anisotropy) out to 70 m:
+/// the fuzzed views.
+fn fuzzed_plane(
+    world_from_camera: [f32; 16],
+    projection: Projection,
+    sun: Vec3,
+    (extinction, anisotropy): (f32, f32),
+) -> Scene {
+    let mut scene = builtin_scene("plane").expect("built-in scene");
+    scene.camera = Camera {
+        world_from_camera: Mat4::from_cols_array(&world_from_camera),
+        projection,
+        clip_start: 0.1,
+        clip_end: 1000.0,
+        width: 2 * WIDTH,
+        height: 2 * HEIGHT,
+    };
+    scene.sun.direction = sun;
+    scene.medium.extinction = extinction;
+    scene.medium.anisotropy = anisotropy;
+    scene.render.max_distance = 70.0;
+    scene
 }
 
 /// Dense fog seen towards the sun: a ray's light comes from its first optical depth or
@@ -642,9 +660,8 @@ fn rays_in_dense_fog_count_only_their_first_optical_depth() {
 /// with 4,096 at 1152×648); 1.4–1.5% now, as with the default's 1,024.
 #[test]
 fn slices_thinner_than_the_sampling_keep_their_keys() {
-    let mut scene = builtin_scene("plane").expect("built-in scene");
-    scene.camera = Camera {
-        world_from_camera: Mat4::from_cols_array(&[
+    let mut scene = fuzzed_plane(
+        [
             0.973_901_7,
             0.226_970_27,
             0.0,
@@ -661,17 +678,11 @@ fn slices_thinner_than_the_sampling_keep_their_keys() {
             -4.833_460_5,
             2.290_027_4,
             1.0,
-        ]),
-        projection: Projection::pinhole(50.0),
-        clip_start: 0.1,
-        clip_end: 1000.0,
-        width: 2 * WIDTH,
-        height: 2 * HEIGHT,
-    };
-    scene.sun.direction = Vec3::new(-0.668_568_6, 0.534_366_9, -0.517_173_1);
-    scene.medium.extinction = 0.6;
-    scene.medium.anisotropy = -0.463_120_5;
-    scene.render.max_distance = 70.0;
+        ],
+        Projection::pinhole(50.0),
+        Vec3::new(-0.668_568_6, 0.534_366_9, -0.517_173_1),
+        (0.6, -0.463_120_5),
+    );
     scene.render.supersampling = 2;
     scene.render.near_plane_correction = false;
     let reference = render_with(&scene, Method::Reference, 4096);
