@@ -2265,6 +2265,10 @@ fn band_weights(
 ) {
     weight[0] = 0.0;
     let samples = map.samples as usize;
+    // No sample lies before the map's first: weights decaying from there instead of from
+    // an origin before it are all scaled alike, which lookups divide out, and the first
+    // samples never lie past the depth cap, where samples weigh nothing.
+    let origin = origin.max(map.sample_interval(0).0);
     let depth_of = |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
     // Before the origin, every sample keeps the weight it would have at the cap.
     let flat_per_s = (-MAX_REFERENCE_DEPTH).exp() * extinction / rate;
@@ -3429,7 +3433,8 @@ mod tests {
     /// tested every sample for it, bit for bit, and so do the per-row scales and
     /// cumulative weights summed from them: slices' origins before, inside and past the
     /// map, references slow and fast, media thin and dense, and one so thin that each
-    /// step's factor rounds to 1 (every stepped sample then takes the flat weight).
+    /// step's factor rounds to 1 (every stepped sample then takes the flat weight). Every
+    /// band weighs its first sample, and none past the depth cap.
     #[test]
     fn band_weights_match_testing_every_sample() {
         fn weights_testing_each(
@@ -3440,6 +3445,7 @@ mod tests {
             count: usize,
         ) -> Vec<f64> {
             let samples = map.samples as usize;
+            let origin = origin.max(map.sample_interval(0).0);
             let depth_of =
                 |s: f64| (extinction * ((s - origin) / rate).max(0.0)).min(MAX_REFERENCE_DEPTH);
             let flat_per_s = (-MAX_REFERENCE_DEPTH).exp() * extinction / rate;
@@ -3465,8 +3471,10 @@ mod tests {
                     };
                     let w = if after < before {
                         before - after
-                    } else {
+                    } else if depth_of(s0) < MAX_REFERENCE_DEPTH {
                         flat_per_s * (s1 - s0)
+                    } else {
+                        0.0
                     };
                     s0 = s1;
                     before = after;
@@ -3508,6 +3516,20 @@ mod tests {
                         .zip(&expected)
                         .all(|(a, b)| a.to_bits() == (*b as f32).to_bits());
                     assert!(same, "origin {origin} rate {rate} σ {extinction}");
+                    assert!(
+                        weights[0] > 0.0,
+                        "origin {origin} rate {rate} σ {extinction}"
+                    );
+                    if extinction > 0.0 {
+                        let start = origin.max(first);
+                        let past_cap = (0..samples).find(|&i| {
+                            extinction * (map.sample_interval(i).0 - start) / rate
+                                >= MAX_REFERENCE_DEPTH
+                        });
+                        if let Some(i) = past_cap {
+                            assert!(weights[i..].iter().all(|&w| w == 0.0), "σ {extinction}");
+                        }
+                    }
                     let mut total = 0.0f64;
                     let (mut expected_scales, mut expected_cumulative) = (vec![], vec![0.0f32]);
                     for pair in expected.chunks_exact(SAMPLES_PER_ROW) {
