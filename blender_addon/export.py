@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -52,6 +53,11 @@ LUMINANCE = node_links.LUMINANCE
 
 class ExportError(ValueError):
     """The scene cannot be exported; the message names the object or setting at fault."""
+
+
+class NonFiniteGeometry(ValueError):
+    """Strand or point positions or radii that are NaN or infinite: the object is left out
+    of the frame and named in a note, as an object with NaN vertices is."""
 
 
 @dataclass
@@ -183,6 +189,8 @@ def _strand_arrays(
     points: np.ndarray, counts: np.ndarray, radii: np.ndarray, seen: SunAndCamera | None
 ) -> MeshArrays:
     """Strands as ribbons for the sun and camera of `seen`, or as tubes without."""
+    if not (np.isfinite(points).all() and np.isfinite(radii).all()):
+        raise NonFiniteGeometry("NaN or infinite strand points or radii")
     steps = crepuscular.CATMULL_ROM_STEPS
     if seen is None:
         return MeshArrays(*crepuscular.strand_tubes(points, counts, radii, catmull_rom=steps))
@@ -210,6 +218,8 @@ def pointcloud_arrays(
         radii = np.empty(count, dtype=np.float32)
         radius.data.foreach_get("value", radii)
     centres = positions.reshape(-1, 3)
+    if not (np.isfinite(centres).all() and np.isfinite(radii).all()):
+        raise NonFiniteGeometry("NaN or infinite point positions or radii")
     spheres = MeshArrays(*crepuscular.point_spheres(centres, radii))
     if seen is not None:
         spheres.visibility = crepuscular.point_sphere_visibility(
@@ -567,8 +577,16 @@ def export_geometry(
         if hair:
             hair_key: _MeshKey = (obj.as_pointer(), "hair", None, seen_key)
             if hair_key not in meshes:
-                meshes[hair_key] = particle_hair_arrays(obj, render_mode, local_seen)
-            if len(meshes[hair_key].triangles):
+                meshes[hair_key] = _finite_or_named(
+                    f"the particle hair of object '{obj.name}'",
+                    table.notes,
+                    particle_hair_arrays,
+                    obj,
+                    render_mode,
+                    local_seen,
+                )
+            hair_arrays = meshes[hair_key]
+            if hair_arrays is not None and len(hair_arrays.triangles):
                 groups.setdefault((hair_key, object_id, flags, None), []).append(
                     instance.matrix_world.copy()
                 )
@@ -585,7 +603,15 @@ def export_geometry(
             seen_key if obj.type in SEEN_TYPES else None,
         )
         if mesh_key not in meshes:
-            meshes[mesh_key] = _object_arrays(obj, cache, mesh_key[2], local_seen)
+            meshes[mesh_key] = _finite_or_named(
+                f"object '{obj.name}'",
+                table.notes,
+                _object_arrays,
+                obj,
+                cache,
+                mesh_key[2],
+                local_seen,
+            )
         arrays = meshes[mesh_key]
         if arrays is None or len(arrays.triangles) == 0:
             continue
@@ -674,6 +700,20 @@ def export_geometry(
         except ValueError as error:
             raise ExportError(f"alpha cutout: {error}") from error
     return geometry
+
+
+def _finite_or_named(
+    what: str, notes: list[str], build: Callable[..., MeshArrays | None], *args: Any
+) -> MeshArrays | None:
+    """`build(*args)`'s arrays, or None with a note naming `what` where its strands or
+    points are not finite."""
+    try:
+        return build(*args)
+    except NonFiniteGeometry as error:
+        note = f"{what}: {error}; left out"
+        if note not in notes:
+            notes.append(note)
+        return None
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,168 @@
+"""A scene of every kind the add-on reads (a fog box, a roof, hair, a point cloud, a
+camera and a sun), mutated one thing at a time as artists' scenes go wrong: zero, NaN and
+huge transforms, NaN or negative shader inputs, emptied or missing data, modifiers that
+break the fog box or multiply the roof, extreme cameras and resolutions. Each frame must
+render to finite layers, or fail with one of the add-on's own errors that names the
+Blender data to fix. Any other exception would reach the artist as a traceback. Objects
+with NaN or infinite geometry are left out, and a note names them."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import blender_scenes  # noqa: E402
+
+NAN = math.nan
+
+
+def _rich_scene() -> dict[str, Any]:
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = 32, 18
+    scene.render.resolution_percentage = 100
+    camera = blender_scenes.add_camera(
+        scene, blender_scenes.look_at((0, -12, 3), (0, 0, 2)), lens=35
+    )
+    sun = blender_scenes.add_sun(scene, (0.2, 0.3, -1.0))
+    sun.data.crepuscular.shadow_map_size = 128
+    sun.data.crepuscular.edge_samples = 1
+    roof = blender_scenes.add_quad(scene, "Roof", [(-4, -4, 6), (4, -4, 6), (4, 4, 6), (-4, 4, 6)])
+    fog_material = blender_scenes.volume_material(
+        "principled", Density=0.2, Color=(0.8, 0.8, 0.8, 1.0), Anisotropy=0.3
+    )
+    fog = blender_scenes.add_fog_box(scene, np.diag([5.0, 5.0, 4.0, 1.0]), fog_material)
+    fog.location = (0.0, 0.0, 3.0)
+    strands = [np.array([(x, 1.0, 2.0), (x, 1.5, 3.0), (x, 2.0, 3.5)]) for x in (-1, 0, 1)]
+    hair = blender_scenes.add_hair(scene, "Hair", strands, 0.05)
+    dust = blender_scenes.add_point_cloud(
+        scene, "Dust", [(-1.0, 0.0, 2.0), (1.0, 0.5, 3.0)], [0.2, 0.3]
+    )
+    return {
+        "scene": scene,
+        "camera": camera,
+        "sun": sun,
+        "roof": roof,
+        "fog": fog,
+        "fog_shader": fog_material.node_tree.nodes["Principled Volume"],
+        "hair": hair,
+        "dust": dust,
+    }
+
+
+def _set_attribute(obj: Any, name: str, index: int, value: Any) -> None:
+    obj.data.attributes[name].data[index].value = value
+
+
+def _modifier(obj: Any, kind: str, **settings: Any) -> None:
+    modifier = obj.modifiers.new(kind.title(), kind)
+    for name, value in settings.items():
+        setattr(modifier, name, value)
+
+
+def _points_modifier(obj: Any) -> None:
+    """A geometry-nodes modifier that turns the roof's vertices into points."""
+    group = bpy.data.node_groups.new("To Points", "GeometryNodeTree")
+    group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    nodes, links = group.nodes, group.links
+    to_points = nodes.new("GeometryNodeMeshToPoints")
+    to_points.inputs["Radius"].default_value = 0.5
+    links.new(nodes.new("NodeGroupInput").outputs[0], to_points.inputs["Mesh"])
+    links.new(to_points.outputs["Points"], nodes.new("NodeGroupOutput").inputs[0])
+    modifier = obj.modifiers.new("To Points", "NODES")
+    modifier.node_group = group
+
+
+MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
+    "fog scaled to zero": lambda s: setattr(s["fog"], "scale", (0.0, 0.0, 0.0)),
+    "fog scaled by 1e30": lambda s: setattr(s["fog"], "scale", (1e30, 1e30, 1e30)),
+    "fog at NaN": lambda s: setattr(s["fog"], "location", (NAN, NAN, NAN)),
+    "fog 1e30 m away": lambda s: setattr(s["fog"], "location", (1e30, 0.0, 0.0)),
+    "fog density NaN": lambda s: setattr(s["fog_shader"].inputs["Density"], "default_value", NAN),
+    "fog density infinite": lambda s: setattr(
+        s["fog_shader"].inputs["Density"], "default_value", math.inf
+    ),
+    "fog density negative": lambda s: setattr(
+        s["fog_shader"].inputs["Density"], "default_value", -1.0
+    ),
+    "fog anisotropy 1": lambda s: setattr(
+        s["fog_shader"].inputs["Anisotropy"], "default_value", 1.0
+    ),
+    "fog colour NaN": lambda s: setattr(
+        s["fog_shader"].inputs["Color"], "default_value", (NAN, NAN, NAN, 1.0)
+    ),
+    "fog without material": lambda s: s["fog"].data.materials.clear(),
+    "fog mesh emptied": lambda s: s["fog"].data.clear_geometry(),
+    "fog arrayed": lambda s: _modifier(s["fog"], "ARRAY", count=3),
+    "fog removed": lambda s: bpy.data.objects.remove(s["fog"]),
+    "roof vertex NaN": lambda s: setattr(s["roof"].data.vertices[0], "co", (NAN, 0.0, 6.0)),
+    "roof scaled to zero": lambda s: setattr(s["roof"], "scale", (0.0, 0.0, 0.0)),
+    "roof arrayed and subdivided": lambda s: (
+        _modifier(s["roof"], "ARRAY", count=40),
+        _modifier(s["roof"], "SUBSURF", levels=2, render_levels=2),
+    ),
+    "roof solidified": lambda s: _modifier(s["roof"], "SOLIDIFY", thickness=0.3),
+    "roof as geometry-nodes points": lambda s: _points_modifier(s["roof"]),
+    "hair point NaN": lambda s: setattr(s["hair"].data.points[0], "position", (NAN, 0, 0)),
+    "hair radius infinite": lambda s: _set_attribute(s["hair"], "radius", 0, math.inf),
+    "dust radius NaN": lambda s: _set_attribute(s["dust"], "radius", 0, NAN),
+    "dust radius zero": lambda s: _set_attribute(s["dust"], "radius", 1, 0.0),
+    "camera at NaN": lambda s: setattr(s["camera"], "location", (NAN, NAN, NAN)),
+    "camera lens 1 mm": lambda s: setattr(s["camera"].data, "lens", 1.0),
+    "camera shifted by 10": lambda s: setattr(s["camera"].data, "shift_x", 10.0),
+    "camera clipping 1e-6 to 1e6": lambda s: (
+        setattr(s["camera"].data, "clip_start", 1e-6),
+        setattr(s["camera"].data, "clip_end", 1e6),
+    ),
+    "camera orthographic 1e-6 wide": lambda s: (
+        setattr(s["camera"].data, "type", "ORTHO"),
+        setattr(s["camera"].data, "ortho_scale", 1e-6),
+    ),
+    "camera inside the roof's plane": lambda s: setattr(s["camera"], "location", (0, 0, 6)),
+    "sun strength infinite": lambda s: setattr(s["sun"].data, "energy", math.inf),
+    "sun rotated by NaN": lambda s: setattr(s["sun"], "rotation_euler", (NAN, 0.0, 0.0)),
+    "sun disc of 180°": lambda s: setattr(s["sun"].data, "angle", math.pi),
+    "sun pointing up": lambda s: setattr(s["sun"], "rotation_euler", (math.pi, 0.0, 0.0)),
+    "resolution 1 by 1": lambda s: (
+        setattr(s["scene"].render, "resolution_x", 1),
+        setattr(s["scene"].render, "resolution_y", 1),
+    ),
+    "resolution at 1%": lambda s: setattr(s["scene"].render, "resolution_percentage", 1),
+}
+
+#: What an error may name as the data to fix: objects and data by name, or a setting.
+NAMED = ("'Fog'", "'Roof'", "'Hair'", "'Dust'", "'Camera'", "'Sun'", "fog_object", "render.")
+
+#: Mutations that leave an object out of the frame, and how its note begins.
+LEFT_OUT = {
+    "roof vertex NaN": "object 'Roof'",
+    "hair point NaN": "object 'Hair': NaN or infinite strand points or radii",
+    "hair radius infinite": "object 'Hair': NaN or infinite strand points or radii",
+    "dust radius NaN": "object 'Dust': NaN or infinite point positions or radii",
+}
+
+
+@pytest.mark.parametrize("mutation", MUTATIONS)
+def test_a_mutated_scene_renders_or_names_what_is_wrong(addon: ModuleType, mutation: str) -> None:
+    things = _rich_scene()
+    MUTATIONS[mutation](things)
+    scene = things["scene"]
+    try:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        layers, inputs = addon.render.render_layers(scene, depsgraph)
+    except addon.render.USER_ERRORS as error:
+        message = str(error)
+        assert any(name in message for name in NAMED), f"{mutation}: names nothing: {message}"
+        assert mutation not in LEFT_OUT, f"{mutation}: failed the frame: {message}"
+        return
+    for name in ("volume", "visibility", "depth"):
+        assert np.isfinite(np.asarray(getattr(layers, name))).all(), f"{mutation}: {name}"
+    if mutation in LEFT_OUT:
+        assert any(note.startswith(LEFT_OUT[mutation]) for note in inputs.notes), inputs.notes
