@@ -64,13 +64,13 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
     if shader.bl_idname == "ShaderNodeBsdfPrincipled":
         alpha = node_links.traced(shader.inputs["Alpha"], groups)
         if alpha.is_constant:
-            value = node_links.constant(shader, "Alpha", groups, where)
-            return _constant_source(float(value), where)
+            return _constant_source(float(alpha.value("VALUE")), where)
         return _image_source(alpha, invert=False, where=where)
     if shader.bl_idname == "ShaderNodeBsdfTransparent":
-        if not node_links.traced(shader.inputs["Color"], groups).is_constant:
+        color = node_links.traced(shader.inputs["Color"], groups)
+        if not color.is_constant:
             return None, f"{where}: its Transparent BSDF's Color is linked; it casts as opaque"
-        rgb = np.array(node_links.constant(shader, "Color", groups, where)[:3])
+        rgb = np.array(color.value("RGBA")[:3])
         return _constant_source(1.0 - float(rgb @ LUMINANCE), where)
     if shader.bl_idname == "ShaderNodeMixShader":
         factor, first, second = (node_links.traced(socket, groups) for socket in shader.inputs[:3])
@@ -81,7 +81,7 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
         if not any(transparent):
             return None, None
         if factor.is_constant:
-            fac = min(max(float(node_links.constant(shader, "Fac", groups, where)), 0.0), 1.0)
+            fac = min(max(float(factor.value("VALUE")), 0.0), 1.0)
             return _constant_source(1.0 - fac if transparent[1] else fac, where)
         # The factor blends towards the second input: it is the alpha where the first is
         # the Transparent BSDF, and the transparency where the second is.

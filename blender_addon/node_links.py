@@ -49,6 +49,11 @@ class Traced:
         """Whether the value is one everywhere: the input's own, or a Value or RGB node's."""
         return not self.is_linked or self.node.bl_idname in CONSTANT_NODES
 
+    def value(self, as_type: str) -> Any:
+        """A constant's value as a socket of `as_type` reads it ("VALUE", "RGBA" or
+        "VECTOR"; `_converted`)."""
+        return _converted(self.socket.default_value, self.socket.type, as_type)
+
 
 def _link(socket: bpy.types.NodeSocket) -> bpy.types.NodeLink | None:
     for link in socket.links:
@@ -132,4 +137,4 @@ def constant(
             f"{where}: input '{name}' of '{node.name}' must be a constant (its own value, a "
             f"group input's, or a Value or RGB node's), not linked from '{source.node.name}'"
         )
-    return _converted(source.socket.default_value, source.socket.type, socket.type)
+    return source.value(socket.type)

@@ -1936,9 +1936,8 @@ pub fn is_along_the_light(direction: DVec3, light_travel: DVec3) -> bool {
 /// starts where its bands' transmittance weights have decayed: differences of stored
 /// prefix sums there are mostly snorm16 rounding, and past the weights' depth cap
 /// (`MAX_REFERENCE_DEPTH`) there are none. An orthographic camera's rays start all along
-/// their slices, and in
-/// a dense medium (σ = 0.6 /m) a limit of 10³ left colonnade 17% off, 10² took it to
-/// 0.3%, and 10 walked so many rays that the frame took 5× as long.
+/// their slices, and in a dense medium (σ = 0.6 /m) a limit of 10³ left colonnade 17%
+/// off, 10² took it to 0.3%, and 10 walked so many rays that the frame took 5× as long.
 pub const CONDITION_LIMIT: f64 = 100.0;
 
 /// Looked-up visibility below which the ray is declined and integrated exactly instead,

@@ -224,11 +224,20 @@ def _warn(stream: TextIO, message: str) -> None:
 
 
 @contextmanager
-def _naming_frame(label: str) -> Iterator[None]:
+def _naming_frame(label: str, reader: StageReader) -> Iterator[None]:
     """Begins the errors of reading and rendering one frame with `label`: an animated
-    attribute may be wrong at one frame of a hundred."""
+    attribute may be wrong at one frame of a hundred. The renderer's range checks are
+    named by the attribute that fed them (`StageReader.source_of`)."""
     try:
         yield
+    except crepuscular.InvalidInputError as error:
+        field = getattr(error, "field", None)
+        source = reader.source_of(field) if field else None
+        if source:
+            where = f"{source}: "
+        else:
+            where = f"the renderer rejected the frame{f' ({field})' if field else ''}: "
+        raise CommandError(f"{label}: {where}{error}") from error
     except (StageError, SchemaError, MeshError, crepuscular.CrepuscularError) as error:
         raise CommandError(f"{label}: {error}") from error
     except Tf.ErrorException as error:
@@ -303,7 +312,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
             label = "default time" if time_code.IsDefault() else f"frame {time_code.GetValue():g}"
             progress.update(index, 0.0, label)
             started = time.perf_counter()
-            with _naming_frame(label):
+            with _naming_frame(label, reader):
                 frame = reader.read(time_code)
             timings["read"] += time.perf_counter() - started
             invalid = set(frame.geometry.invalid)
@@ -361,20 +370,10 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     kwargs["depth_kind"] = kind
                 record.beauties[key] = beauty_path
             started = time.perf_counter()
-            with _naming_frame(label):
-                try:
-                    layers = crepuscular.render_arrays(
-                        **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
-                    )
-                except crepuscular.InvalidInputError as error:
-                    field = getattr(error, "field", None)
-                    source = reader.source_of(field) if field else None
-                    if source:
-                        where = f"{source}: "
-                    else:
-                        field_named = f" ({field})" if field else ""
-                        where = f"the renderer rejected the frame{field_named}: "
-                    raise CommandError(f"{label}: {where}{error}") from error
+            with _naming_frame(label, reader):
+                layers = crepuscular.render_arrays(
+                    **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
+                )
             timings["render"] += time.perf_counter() - started
             extent = frame.light_settings.extent_prim
             if (
