@@ -6,7 +6,8 @@ camera's depth.
 Recognised, as artists build them for Cycles: a Principled BSDF whose Alpha is an Image
 Texture's Alpha (or Color), and a Mix Shader between a Transparent BSDF and another shader
 whose factor is an Image Texture's Alpha (or Color). A constant Alpha or factor, or a
-Transparent BSDF alone, is one alpha everywhere, clipped as masks are. The texture's
+Transparent BSDF alone, is one alpha everywhere, clipped as masks are; a material with a
+Volume shader and no Surface one is alpha 0, as Cycles draws no surface there. The texture's
 coordinates are its UV Map node's map, or the mesh's default (active render) map when
 nothing feeds its Vector. Links are followed through reroutes, muted nodes and node groups.
 
@@ -57,10 +58,17 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
     if output is None:
         return None, None
     surface = node_links.traced(output.inputs["Surface"])
-    if not surface.is_linked:
-        return None, None
-    shader, groups = surface.node, surface.groups
     where = f"material '{material.name}'"
+    if not surface.is_linked:
+        if not node_links.traced(output.inputs["Volume"]).is_linked:
+            return None, None
+        # Cycles draws no surface where a material has only a volume: its faces bound the
+        # volume and let light and sight through.
+        return MaskSource("", "", "alpha", invert=False, constant=0.0), (
+            f"{where}: only a volume shader: its faces neither cast nor hide the fog, and "
+            "its volume is not rendered (the medium is the scene's Medium setting)"
+        )
+    shader, groups = surface.node, surface.groups
     if shader.bl_idname == "ShaderNodeBsdfPrincipled":
         alpha = node_links.traced(shader.inputs["Alpha"], groups)
         if alpha.is_constant:

@@ -557,6 +557,13 @@ def export_geometry(
     groups: dict[tuple[_MeshKey, int, int, _SlotCuts | None], list[Any]] = {}
     for instance in depsgraph.object_instances:
         obj = instance.object
+        if obj.type == "VOLUME" and (render_mode or not _hidden_in_render(obj.original)):
+            note = (
+                f"object '{obj.name}' is a Volume object: its grids are not rendered (the "
+                "medium is the scene's Medium setting)"
+            )
+            if note not in table.notes:
+                table.notes.append(note)
         if obj.type not in GEOMETRY_TYPES:
             continue
         parent = instance.parent if instance.is_instance else None

@@ -646,6 +646,44 @@ def test_a_clear_card_neither_casts_nor_hides_the_fog(addon: ModuleType, tmp_pat
         np.testing.assert_array_equal(channel, solid[name], err_msg=name)
 
 
+def test_a_volume_only_object_is_no_surface(addon: ModuleType, tmp_path: Path) -> None:
+    """A box whose material has a Volume shader and no Surface one (a second fog box, a
+    smoke domain) is no surface in Cycles: the camera sees into it and the sun shines
+    through it, as through the fog object. Left in the scene while the medium is the
+    Custom one, it renders as if it were not there, with a note, as does a Volume object;
+    a material with neither shader is an opaque black surface in Cycles, and casts."""
+    scene = _basic_scene()
+    ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
+    blender_scenes.add_quad(scene, "Ground", ground, blender_scenes.black_material(0.0))
+
+    def layers(name: str) -> dict[str, np.ndarray]:
+        path = tmp_path / f"{name}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
+        return crepuscular.read_exr(path)
+
+    bare = layers("bare")
+    smoke = bpy.data.materials.new("Smoke")
+    tree = smoke.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    volume = tree.nodes.new("ShaderNodeVolumePrincipled")
+    tree.links.new(volume.outputs[0], tree.nodes["Material Output"].inputs["Volume"])
+    placed = np.diag([3.0, 3.0, 2.0, 1.0])
+    placed[2, 3] = 3.0
+    blender_scenes.add_fog_box(scene, placed, smoke)
+    scene.crepuscular.medium_source = "custom"
+    for name, channel in layers("volume only").items():
+        np.testing.assert_array_equal(channel, bare[name], err_msg=name)
+    # A Volume object (an OpenVDB grid), which Cycles renders, is named as left out.
+    bpy.ops.object.volume_add(location=(0.0, 6.0, 2.0))
+    bpy.context.active_object.name = "Cloud"
+    inputs = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get())
+    assert any("material 'Smoke': only a volume shader" in note for note in inputs.notes)
+    assert any("object 'Cloud' is a Volume object" in note for note in inputs.notes)
+    tree.links.remove(tree.nodes["Material Output"].inputs["Volume"].links[0])
+    empty = layers("no shader")
+    assert np.abs(empty["depth"] - bare["depth"]).max() > 1.0
+
+
 def _turned_and_seen(addon: ModuleType, obj: Any) -> tuple[np.ndarray, np.ndarray, Any]:
     """Turns and scales `obj`; returns a sun direction, a pinhole's eye and the add-on's
     `SunAndCamera` of both."""
