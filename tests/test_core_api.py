@@ -1018,7 +1018,9 @@ def test_strand_ribbons_lie_across_the_sun_and_the_camera() -> None:
     """`strand_ribbons`: per strand, a ribbon for the sun's shadow map and one for the
     camera's depth (flagged so), each reaching the radius either side of the strand across
     both the strand and its view, so that each view sees the strand's exact width and ends;
-    with `view`, an orthographic camera's."""
+    with `view`, an orthographic camera's. The camera's lies at the strand's axis, the sun's
+    `shadow_gap` radii past it along the sun's travel (Cycles' shadow begins there), which
+    moves it in depth alone: the sun sees the same outline."""
     strand = np.array([[0.0, 0.0, 0.0], [1.0, 0.2, 0.5], [2.0, 0.0, 1.0], [3.0, 0.3, 1.5]])
     radii = np.array([0.2, 0.15, 0.1, 0.05])
     sun = np.array([0.3, 0.2, -1.0]) / np.linalg.norm([0.3, 0.2, -1.0])
@@ -1027,12 +1029,19 @@ def test_strand_ribbons_lie_across_the_sun_and_the_camera() -> None:
     assert len(triangles) == 2 * 2 * 3
     assert flags.tolist() == [crepuscular.BLOCKS_SUN] * 6 + [crepuscular.SEEN_BY_CAMERA] * 6
     pairs = positions.astype(np.float64).reshape(2, 4, 2, 3)  # view, point, edge
-    for ribbon, toward in ((pairs[0], np.broadcast_to(sun, (4, 3))), (pairs[1], strand - eye)):
+    gap = crepuscular.STRAND_SHADOW_GAP * radii[:, None] * sun
+    for ribbon, toward, axis in (
+        (pairs[0], np.broadcast_to(sun, (4, 3)), strand + gap),
+        (pairs[1], strand - eye, strand),
+    ):
         centres = ribbon.mean(axis=1)
-        np.testing.assert_allclose(centres, strand, atol=1e-6)
+        np.testing.assert_allclose(centres, axis, atol=1e-6)
         half = ribbon[:, 1] - centres
         np.testing.assert_allclose(np.linalg.norm(half, axis=1), radii, rtol=1e-5)
         np.testing.assert_allclose(np.einsum("ij,ij->i", half, toward), 0.0, atol=1e-5)
+    at_axis, _, _ = crepuscular.strand_ribbons(strand, [4], radii, sun=sun, eye=eye, shadow_gap=0.0)
+    np.testing.assert_allclose(at_axis[:8], positions[:8] - np.repeat(gap, 2, axis=0), atol=1e-6)
+    np.testing.assert_array_equal(at_axis[8:], positions[8:])
     view = np.array([0.0, 1.0, 0.0])
     ortho, _, _ = crepuscular.strand_ribbons(strand, [4], radii, sun=sun, view=view)
     camera = ortho.astype(np.float64).reshape(2, 4, 2, 3)[1]
@@ -1042,6 +1051,8 @@ def test_strand_ribbons_lie_across_the_sun_and_the_camera() -> None:
         ({"sun": sun, "eye": eye, "view": view}, "eye"),
         ({"sun": [0.0, 0.0, 0.0], "eye": eye}, "sun"),
         ({"sun": sun, "eye": [np.inf, 0.0, 0.0]}, "eye"),
+        ({"sun": sun, "eye": eye, "shadow_gap": -1.0}, "shadow_gap"),
+        ({"sun": sun, "eye": eye, "shadow_gap": np.nan}, "shadow_gap"),
     ):
         with pytest.raises(ValueError, match=words):
             crepuscular.strand_ribbons(strand, [4], radii, **bad)

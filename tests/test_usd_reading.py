@@ -1048,7 +1048,7 @@ def test_a_skinned_mesh_whose_influences_do_not_fit_is_named(tmp_path: Path) -> 
 
 def test_basis_curves_cast_as_ribbons_of_their_widths(tmp_path: Path) -> None:
     """BasisCurves (hair, grass, wires) cast as ribbons along their points, one across the
-    sun and one across the camera, each reaching
+    sun (two radii past the strand along the sun) and one across the camera, each reaching
     half the point's width, with widths per point, per curve or one for all; widths that
     fit none of those, or none at all, are named."""
     stage = author_stage(str(tmp_path / "curves.usda"), build_scene(occluder=False, **SMALL))
@@ -1065,17 +1065,24 @@ def test_basis_curves_cast_as_ribbons_of_their_widths(tmp_path: Path) -> None:
     read = lambda: StageReader(stage, None, None, width=64).read(Usd.TimeCode.Default())  # noqa: E731
     for value, expected in (([0.2] * 12, 0.1), ([0.2], 0.1), ([0.1, 0.2, 0.3], None)):
         widths.Set(value)
-        geometry = read().geometry
+        frame = read()
+        geometry = frame.geometry
         assert not geometry.invalid
-        points = _points_of(geometry, "/World/Hair")
         # Catmull-Rom: each of a strand's 3 segments cut into CATMULL_ROM_STEPS.
         segments = 3 * 3 * crepuscular.CATMULL_ROM_STEPS
         assert len(geometry.triangles[geometry.object_ids == 2]) == segments * 2 * 2
-        x, z = points[:, 0], points[:, 2]
-        distance = np.hypot(x - np.round(x), z - 2.0)
-        if expected is None:  # per curve: half of 0.1, 0.2 and 0.3 by strand
-            expected = 0.05 * (np.round(x) + 1)
-        np.testing.assert_allclose(distance, expected, rtol=1e-5)
+        sun = np.asarray(frame.sun["direction"])
+        for flag in (crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA):
+            rows = (geometry.object_ids == 2) & (geometry.visibility == flag)
+            points = geometry.positions[np.unique(geometry.triangles[rows])] + geometry.origin
+            points = points.astype(np.float64)
+            x = points[:, 0]
+            radius = expected if expected is not None else 0.05 * (np.round(x) + 1)
+            if flag == crepuscular.BLOCKS_SUN:
+                points -= crepuscular.STRAND_SHADOW_GAP * np.multiply.outer(radius, sun)
+            x, z = points[:, 0], points[:, 2]
+            distance = np.hypot(x - np.round(x), z - 2.0)
+            np.testing.assert_allclose(distance, radius, rtol=1e-5)
     for value, words in (([0.2] * 5, "5 widths match neither"), ([], "no widths")):
         widths.Set(value)
         geometry = read().geometry

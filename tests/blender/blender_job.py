@@ -199,6 +199,46 @@ def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "bare.exr")) == {"FINISHED"}
 
 
+def job_strand_gap_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """One straight strand of radius 0.2 along x at z = 3 in a fog box, seen side-on by an
+    orthographic camera (2 m tall, looking along +y), under a sun straight above and one
+    30 degrees above the horizon across the strand: per sun, Cycles and our reference
+    layers with the strand (`cycles_{tilt}.exr`, `ours_{tilt}.exr`) and without it
+    (`bare_cycles_{tilt}.exr`, `bare_ours_{tilt}.exr`)."""
+    scene = bpy.context.scene
+    blender_scenes.setup_cycles(
+        scene, width=spec["width"], height=spec["height"], samples=spec["samples"]
+    )
+    scene.cycles.filter_width = 0.01
+    material = blender_scenes.volume_material("scatter", Color=(1, 1, 1, 1), Density=0.3)
+    fog = np.diag([4.0, 4.0, 3.0, 1.0])
+    fog[2, 3] = 3.0
+    blender_scenes.add_fog_box(scene, fog, material)
+    black = blender_scenes.black_material(0.0)
+    ground = [(-30, -30, -0.01), (30, -30, -0.01), (30, 30, -0.01), (-30, 30, -0.01)]
+    blender_scenes.add_quad(scene, "ground", ground, black)
+    x = np.linspace(-3.0, 3.0, 9)
+    strand = np.c_[x, np.zeros_like(x), np.full_like(x, 3.0)]
+    hair = blender_scenes.add_hair(scene, "strand", [strand], 0.2, black)
+    camera = blender_scenes.add_camera(scene, blender_scenes.look_at((0, -10, 3), (0, 0, 3)))
+    camera.data.type, camera.data.ortho_scale = "ORTHO", 2.0
+    camera.data.sensor_fit = "VERTICAL"
+    for tilt in (0, 60):
+        travel = (0.0, math.sin(math.radians(tilt)), -math.cos(math.radians(tilt)))
+        sun = blender_scenes.add_sun(scene, travel, strength=3.0, enabled=False)
+        settings = sun.data.crepuscular
+        settings.method, settings.steps, settings.shadow_map_size = "reference", 4096, 4096
+        settings.edge_samples = 1
+        for prefix, shown in (("", True), ("bare_", False)):
+            hair.hide_render = not shown
+            settings.enabled = False
+            _render(scene, out / f"{prefix}cycles_{tilt}.exr")
+            settings.enabled = True
+            path = str(out / f"{prefix}ours_{tilt}.exr")
+            assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
+        bpy.data.objects.remove(sun)
+
+
 def job_points_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of points (a geometry-nodes point cloud of
     random radii 0.12 to 0.4 on a jittered grid) instead of slats: Cycles, our layers
@@ -658,6 +698,7 @@ JOBS = {
     "cutout_fidelity": job_cutout_fidelity,
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
+    "strand_gap_fidelity": job_strand_gap_fidelity,
     "closures_fidelity": job_closures_fidelity,
     "disc_fidelity": job_disc_fidelity,
     "particle_hair_fidelity": job_particle_hair_fidelity,

@@ -718,7 +718,8 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     np.testing.assert_allclose(distance, radius, rtol=1e-5)
     # Seen by a sun and a camera (through a turned, scaled object), each strand is a
     # ribbon across each view, of the strand's width as it sees it: the sun's in the
-    # shadow map only, the camera's in its depth only.
+    # shadow map only, two radii past the strand along the sun, the camera's in its depth
+    # only, at the axis.
     sun, eye, seen = _turned_and_seen(addon, hair)
     ribbons = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get(), seen=seen)
     flags = ribbons.visibility
@@ -728,6 +729,8 @@ def test_hair_curves_export_as_tubes_of_their_radius(addon: ModuleType) -> None:
     for flag in (crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA):
         corners = ribbons.positions[ribbons.triangles[flags == flag]].astype(np.float64)
         edges = corners.reshape(-1, 3)
+        if flag == crepuscular.BLOCKS_SUN:
+            edges = edges - crepuscular.STRAND_SHADOW_GAP * width * sun
         # Strands run along y through x = 0, 1, 2 at z = 2 (object space): each edge vertex
         # is `width` from its strand's axis, across the strand and across the view.
         local = (edges - matrix[:3, 3]) @ np.linalg.inv(matrix[:3, :3]).T

@@ -23,6 +23,13 @@ TUBE_RADIUS = (math.pi / TUBE_SIDES) / math.sin(math.pi / TUBE_SIDES)
 #: random wavy strands against Cycles, drawing the control polygon instead put the shadows
 #: up to 0.9 points further off in 4x4-pixel blocks.
 CATMULL_ROM_STEPS = 4
+#: How far past a strand's axis its shadow begins, along the sun's travel, in radii
+#: (`strand_ribbons`): Cycles' round strands are Embree curves, which skip a curve's hits
+#: nearer a ray's start than twice the radius (measured at the axis point nearest the ray),
+#: so the fog within two radii of a strand on its side away from the sun lies in no shadow
+#: of it. Measured against Cycles under one straight strand, the shadow begins at 2r for a
+#: sun straight above and follows the same rule for a sun at 30 degrees.
+STRAND_SHADOW_GAP = 2.0
 
 
 def strand_tubes(
@@ -98,6 +105,7 @@ def strand_ribbons(
     eye: npt.ArrayLike | None = None,
     view: npt.ArrayLike | None = None,
     catmull_rom: int = 0,
+    shadow_gap: float = STRAND_SHADOW_GAP,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.uint8]]:
     """Strands as two flat ribbons each, one for the sun's shadow map and one for the
     camera's depth: returns (N, 3) float32 positions, (M, 3) uint32 triangles and (M,)
@@ -112,6 +120,11 @@ def strand_ribbons(
     ellipse at each end to any view its ends are not cut for; a ribbon piece is 2
     triangles per view against the tube's 32.
 
+    The sun's ribbon lies `shadow_gap` radii past the strand along the sun's travel
+    (`STRAND_SHADOW_GAP`, as Cycles casts; 0 puts it at the axis): its outline is the same, and
+    the strand's shadow begins there. The camera's lies at the axis, where Cycles' camera
+    rays stop on a round strand too.
+
     `sun` is the sun's travel direction; the camera is `eye`, a pinhole's position (each
     point's ribbon then faces it), or `view`, an orthographic camera's direction. Each
     may be one (3,) or one per strand (S, 3). A strand seen end-on has a ribbon of no
@@ -119,6 +132,8 @@ def strand_ribbons(
     `catmull_rom` are `strand_tubes`'."""
     if (eye is None) == (view is None):
         raise ValueError("give the camera as eye (a position) or view (a direction): one of them")
+    if not (math.isfinite(shadow_gap) and shadow_gap >= 0):
+        raise ValueError(f"shadow_gap must be finite and not negative, not {shadow_gap}")
     strand_count = len(np.asarray(counts).reshape(-1))
     suns = _directions(sun, strand_count, "sun")
     cameras = (
@@ -137,11 +152,12 @@ def strand_ribbons(
     first = np.flatnonzero(index + 1 < ends[strand])
     positions: list[npt.NDArray[np.float64]] = []
     triangles: list[npt.NDArray[np.int64]] = []
-    for direction in (suns[strand], seen_along):
+    sun_axis = points + shadow_gap * radii[:, None] * suns[strand]
+    for axis, direction in ((sun_axis, suns[strand]), (points, seen_along)):
         side = radii[:, None] * _unit(np.cross(tangents, direction))
         base = 2 * total * len(positions)
         # Vertex 2k is point k's one edge, 2k + 1 its other.
-        positions.append(np.stack([points - side, points + side], axis=1).reshape(-1, 3))
+        positions.append(np.stack([axis - side, axis + side], axis=1).reshape(-1, 3))
         a, b = base + 2 * first, base + 2 * first + 1
         c, d = a + 2, b + 2
         triangles.append(np.stack([np.c_[a, b, d], np.c_[a, d, c]], axis=1).reshape(-1, 3))
