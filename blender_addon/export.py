@@ -1049,6 +1049,21 @@ def fog_medium(fog: bpy.types.Object, depsgraph: bpy.types.Depsgraph) -> tuple[d
     }, notes
 
 
+def _unblurred_notes(scene: bpy.types.Scene) -> list[str]:
+    """Notes for what Cycles blurs and the layers do not: the camera's depth of field and
+    motion blur, which leave shafts sharp over a blurred beauty."""
+    notes = []
+    camera = scene.camera
+    if camera is not None and camera.type == "CAMERA" and camera.data.dof.use_dof:
+        notes.append(
+            f"camera '{camera.name}' has depth of field: the layers are in focus throughout "
+            "(defocus them by their depth layer to match the beauty)"
+        )
+    if scene.render.use_motion_blur:
+        notes.append("motion blur is on: the layers are rendered at the frame's instant")
+    return notes
+
+
 def medium_dict(
     scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph
 ) -> tuple[dict[str, Any], list[str]]:
@@ -1105,6 +1120,7 @@ def frame_inputs(
     notes: list[str] = []
     evaluated = sun.evaluated_get(depsgraph)
     camera = camera_dict(scene, depsgraph, divisor)
+    notes += _unblurred_notes(scene)
     medium, medium_notes = medium_dict(scene, depsgraph)
     notes += medium_notes
     fog = scene.crepuscular.fog_object if scene.crepuscular.medium_source == "fog_object" else None

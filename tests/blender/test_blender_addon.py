@@ -684,6 +684,25 @@ def test_a_volume_only_object_is_no_surface(addon: ModuleType, tmp_path: Path) -
     assert np.abs(empty["depth"] - bare["depth"]).max() > 1.0
 
 
+def test_depth_of_field_and_motion_blur_are_named(addon: ModuleType) -> None:
+    """Cycles blurs the beauty by the camera's depth of field and by motion blur; the
+    layers stay sharp, and a note says which, so that an artist defocuses or blurs them in
+    compositing. Neither is on in a new scene, which gets no such note."""
+    scene = _basic_scene()
+
+    def notes() -> list[str]:
+        return addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get()).notes
+
+    assert notes() == []
+    scene.camera.data.dof.use_dof = True
+    scene.render.use_motion_blur = True
+    assert notes() == [
+        "camera 'Camera' has depth of field: the layers are in focus throughout (defocus "
+        "them by their depth layer to match the beauty)",
+        "motion blur is on: the layers are rendered at the frame's instant",
+    ]
+
+
 def _turned_and_seen(addon: ModuleType, obj: Any) -> tuple[np.ndarray, np.ndarray, Any]:
     """Turns and scales `obj`; returns a sun direction, a pinhole's eye and the add-on's
     `SunAndCamera` of both."""
