@@ -11,6 +11,7 @@ import random
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
 from typing import Any
@@ -614,9 +615,9 @@ def test_cut_materials_inside_node_groups_export_their_masks(addon: ModuleType) 
     np.testing.assert_allclose(np.asarray(geometry.masks[0].alpha), [[0.2]])
 
 
-def test_a_clear_card_neither_casts_nor_hides_the_fog(addon: ModuleType, tmp_path: Path) -> None:
-    """A card whose surface is a Transparent BSDF alone (no UV map) renders as if it were
-    not there, as in Cycles; made half opaque (alpha 0.6) it casts as an opaque card."""
+def _grounded_scene(tmp_path: Path) -> tuple[Any, Callable[[str], dict[str, np.ndarray]]]:
+    """`_basic_scene` over a black ground, and a function that renders its layers through
+    the operator under a name and reads them back."""
     scene = _basic_scene()
     ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
     blender_scenes.add_quad(scene, "Ground", ground, blender_scenes.black_material(0.0))
@@ -626,6 +627,13 @@ def test_a_clear_card_neither_casts_nor_hides_the_fog(addon: ModuleType, tmp_pat
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
         return crepuscular.read_exr(path)
 
+    return scene, layers
+
+
+def test_a_clear_card_neither_casts_nor_hides_the_fog(addon: ModuleType, tmp_path: Path) -> None:
+    """A card whose surface is a Transparent BSDF alone (no UV map) renders as if it were
+    not there, as in Cycles; made half opaque (alpha 0.6) it casts as an opaque card."""
+    scene, layers = _grounded_scene(tmp_path)
     bare = layers("bare")
     clear = bpy.data.materials.new("Clear")
     tree = clear.node_tree
@@ -652,15 +660,7 @@ def test_a_volume_only_object_is_no_surface(addon: ModuleType, tmp_path: Path) -
     through it, as through the fog object. Left in the scene while the medium is the
     Custom one, it renders as if it were not there, with a note, as does a Volume object;
     a material with neither shader is an opaque black surface in Cycles, and casts."""
-    scene = _basic_scene()
-    ground = [(-30, -30, 0), (30, -30, 0), (30, 30, 0), (-30, 30, 0)]
-    blender_scenes.add_quad(scene, "Ground", ground, blender_scenes.black_material(0.0))
-
-    def layers(name: str) -> dict[str, np.ndarray]:
-        path = tmp_path / f"{name}.exr"
-        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
-        return crepuscular.read_exr(path)
-
+    scene, layers = _grounded_scene(tmp_path)
     bare = layers("bare")
     smoke = bpy.data.materials.new("Smoke")
     tree = smoke.node_tree
