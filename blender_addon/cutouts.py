@@ -18,6 +18,7 @@ Any other use of transparency leaves the material opaque, and a note says which.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import bpy
@@ -72,13 +73,17 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
     if shader.bl_idname == "ShaderNodeBsdfPrincipled":
         alpha = node_links.traced(shader.inputs["Alpha"], groups)
         if alpha.is_constant:
-            return _constant_source(float(alpha.value("VALUE")), where)
+            value = float(alpha.value("VALUE"))
+            return _constant_source(value, where, nan=math.isnan(value))
         return _image_source(alpha, invert=False, where=where)
     if shader.bl_idname == "ShaderNodeBsdfTransparent":
         color = node_links.traced(shader.inputs["Color"], groups)
         if not color.is_constant:
             return None, f"{where}: its Transparent BSDF's Color is linked; it casts as opaque"
-        rgb = np.array(color.value("RGBA")[:3])
+        rgb = np.array(color.value("RGBA")[:3], dtype=np.float64)
+        if not np.isfinite(rgb).all():
+            # Cycles drops a closure of NaN weight: the surface is then opaque black.
+            return None, f"{where}: its Transparent BSDF's Color is not finite; it casts as opaque"
         return _constant_source(1.0 - float(rgb @ LUMINANCE), where)
     if shader.bl_idname == "ShaderNodeMixShader":
         factor, first, second = (node_links.traced(socket, groups) for socket in shader.inputs[:3])
@@ -89,21 +94,36 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
         if not any(transparent):
             return None, None
         if factor.is_constant:
-            fac = min(max(float(factor.value("VALUE")), 0.0), 1.0)
-            return _constant_source(1.0 - fac if transparent[1] else fac, where)
+            value = float(factor.value("VALUE"))
+            fac = _saturated(value)
+            return _constant_source(
+                1.0 - fac if transparent[1] else fac, where, nan=math.isnan(value)
+            )
         # The factor blends towards the second input: it is the alpha where the first is
         # the Transparent BSDF, and the transparency where the second is.
         return _image_source(factor, invert=transparent[1], where=where)
     return None, None
 
 
-def _constant_source(alpha: float, where: str) -> tuple[MaskSource | None, str | None]:
+def _saturated(value: float) -> float:
+    """`value` clamped to [0, 1] as Cycles saturates an alpha or a mix factor: NaN is 0
+    (for a Mix Shader, its first input alone)."""
+    return 0.0 if math.isnan(value) else min(max(value, 0.0), 1.0)
+
+
+def _constant_source(
+    alpha: float, where: str, *, nan: bool = False
+) -> tuple[MaskSource | None, str | None]:
     """A material of one alpha everywhere, clipped at `THRESHOLD` as masks are: below it,
     a mask that cuts every triangle (it neither casts nor hides the fog), else opaque; a
-    note where the alpha is partial, since Cycles lets the rest through."""
-    alpha = min(max(alpha, 0.0), 1.0)
+    note where the alpha is partial, since Cycles lets the rest through, or where it came
+    from a NaN (`nan`), which Cycles reads as 0."""
+    alpha = _saturated(alpha)
     note = None
-    if 0.0 < alpha < 1.0:
+    if nan:
+        effect = "casts as opaque" if alpha >= THRESHOLD else "neither casts nor hides the fog"
+        note = f"{where}: its alpha or mix factor is NaN, which Cycles reads as 0: it {effect}"
+    elif 0.0 < alpha < 1.0:
         effect = "casts as opaque" if alpha >= THRESHOLD else "neither casts nor hides the fog"
         note = (
             f"{where}: its alpha {alpha:.2f} is clipped at {THRESHOLD}: it {effect} "
@@ -149,6 +169,8 @@ def mask_alpha(source: MaskSource) -> np.ndarray:
     image.pixels.foreach_get(pixels)
     rgba = pixels.reshape(height, width, 4)
     alpha = rgba[..., 3] if source.channel == "alpha" else rgba[..., :3] @ LUMINANCE
+    # Saturated as Cycles saturates an alpha or a mix factor: NaN is 0.
+    alpha = np.clip(np.nan_to_num(alpha, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     return np.ascontiguousarray(1.0 - alpha if source.invert else alpha, dtype=np.float32)
 
 

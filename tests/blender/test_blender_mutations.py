@@ -1,6 +1,7 @@
 """A scene of every kind the add-on reads (a fog box, a roof, hair, a point cloud, a
 camera and a sun), mutated one thing at a time as artists' scenes go wrong: zero, NaN and
-huge transforms, NaN or negative shader inputs, emptied or missing data, modifiers that
+huge transforms, NaN or negative shader inputs (the fog's, and a NaN alpha, mix factor or
+transparency on the roof's material), emptied or missing data, modifiers that
 break the fog box or multiply the roof, extreme cameras and resolutions. Each frame must
 render to finite layers, or fail with one of the add-on's own errors that names the
 Blender data to fix. Any other exception would reach the artist as a traceback. Objects
@@ -80,6 +81,25 @@ def _points_modifier(obj: Any) -> None:
     modifier.node_group = group
 
 
+def _roof_shader(things: dict[str, Any], kind: str) -> Any:
+    """A new material 'Leaf' on the roof whose surface is a node of `kind` (a Principled
+    BSDF, a Transparent BSDF, or a Mix Shader of a Transparent BSDF and a Principled BSDF,
+    in that order); returns that node."""
+    material = bpy.data.materials.new("Leaf")
+    things["roof"].data.materials.append(material)
+    tree = material.node_tree
+    principled = tree.nodes["Principled BSDF"]
+    if kind == "ShaderNodeBsdfPrincipled":
+        return principled
+    node = tree.nodes.new(kind)
+    if kind == "ShaderNodeMixShader":
+        transparent = tree.nodes.new("ShaderNodeBsdfTransparent")
+        tree.links.new(transparent.outputs[0], node.inputs[1])
+        tree.links.new(principled.outputs[0], node.inputs[2])
+    tree.links.new(node.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    return node
+
+
 MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
     "fog scaled to zero": lambda s: setattr(s["fog"], "scale", (0.0, 0.0, 0.0)),
     "fog scaled by 1e30": lambda s: setattr(s["fog"], "scale", (1e30, 1e30, 1e30)),
@@ -110,6 +130,17 @@ MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
     ),
     "roof solidified": lambda s: _modifier(s["roof"], "SOLIDIFY", thickness=0.3),
     "roof as geometry-nodes points": lambda s: _points_modifier(s["roof"]),
+    "roof alpha NaN": lambda s: setattr(
+        _roof_shader(s, "ShaderNodeBsdfPrincipled").inputs["Alpha"], "default_value", NAN
+    ),
+    "roof mix factor NaN": lambda s: setattr(
+        _roof_shader(s, "ShaderNodeMixShader").inputs[0], "default_value", NAN
+    ),
+    "roof transparency NaN": lambda s: setattr(
+        _roof_shader(s, "ShaderNodeBsdfTransparent").inputs["Color"],
+        "default_value",
+        (NAN, NAN, NAN, 1.0),
+    ),
     "hair point NaN": lambda s: setattr(s["hair"].data.points[0], "position", (NAN, 0, 0)),
     "hair radius infinite": lambda s: _set_attribute(s["hair"], "radius", 0, math.inf),
     "dust radius NaN": lambda s: _set_attribute(s["dust"], "radius", 0, NAN),
@@ -148,6 +179,17 @@ LEFT_OUT = {
     "dust radius NaN": "object 'Dust': NaN or infinite point positions or radii",
 }
 
+#: Mutations of the roof's material that Cycles renders as it reads a NaN (an alpha or a
+#: mix factor saturated to 0, a closure of NaN weight dropped), and the note that says so.
+NOTED = {
+    "roof alpha NaN": "material 'Leaf': its alpha or mix factor is NaN, which Cycles reads "
+    "as 0: it neither casts nor hides the fog",
+    "roof mix factor NaN": "material 'Leaf': its alpha or mix factor is NaN, which Cycles "
+    "reads as 0: it neither casts nor hides the fog",
+    "roof transparency NaN": "material 'Leaf': its Transparent BSDF's Color is not finite; "
+    "it casts as opaque",
+}
+
 
 @pytest.mark.parametrize("mutation", MUTATIONS)
 def test_a_mutated_scene_renders_or_names_what_is_wrong(addon: ModuleType, mutation: str) -> None:
@@ -160,9 +202,11 @@ def test_a_mutated_scene_renders_or_names_what_is_wrong(addon: ModuleType, mutat
     except addon.render.USER_ERRORS as error:
         message = str(error)
         assert any(name in message for name in NAMED), f"{mutation}: names nothing: {message}"
-        assert mutation not in LEFT_OUT, f"{mutation}: failed the frame: {message}"
+        assert mutation not in LEFT_OUT.keys() | NOTED.keys(), f"{mutation}: failed: {message}"
         return
     for name in ("volume", "visibility", "depth"):
         assert np.isfinite(np.asarray(getattr(layers, name))).all(), f"{mutation}: {name}"
     if mutation in LEFT_OUT:
         assert any(note.startswith(LEFT_OUT[mutation]) for note in inputs.notes), inputs.notes
+    if mutation in NOTED:
+        assert NOTED[mutation] in inputs.notes, inputs.notes
