@@ -9,10 +9,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from PIL import Image
 from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
 from scenes import build_scene
-from usd_helpers import author_stage
+from usd_helpers import author_stage, cut_material, write_alpha_png
 
 import crepuscular
 from crepuscular_usd import StageReader
@@ -21,14 +20,6 @@ from crepuscular_usd import StageReader
 #: [5/8, 6/8] and [7/8, 1].
 STRIPES = np.array([[0, 1, 0, 1, 0, 1, 0, 1]], dtype=np.float32)
 SOLID_U = [(1 / 8, 2 / 8), (3 / 8, 4 / 8), (5 / 8, 6 / 8), (7 / 8, 1.0)]
-
-
-def _write_png(path: Path, alpha: np.ndarray) -> str:
-    """An RGBA PNG whose alpha is `alpha`, rows top (v = 1) to bottom as files store them."""
-    rgba = np.zeros((*alpha.shape, 4), dtype=np.uint8)
-    rgba[..., 3] = np.round(alpha * 255).astype(np.uint8)
-    Image.fromarray(rgba).save(path)
-    return path.name
 
 
 def _stage(tmp_path: Path, name: str) -> Usd.Stage:
@@ -43,27 +34,6 @@ def _quad(stage: Usd.Stage, path: str, x0: float, x1: float, z0: float = -2, z1:
     mesh.CreateFaceVertexCountsAttr([4])
     mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
     return mesh
-
-
-def _cut_material(stage: Usd.Stage, path: str, file: str, **inputs: Any) -> UsdShade.Material:
-    material = UsdShade.Material.Define(stage, path)
-    surface = UsdShade.Shader.Define(stage, f"{path}/Surface")
-    surface.CreateIdAttr("UsdPreviewSurface")
-    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
-    texture = UsdShade.Shader.Define(stage, f"{path}/Alpha")
-    texture.CreateIdAttr("UsdUVTexture")
-    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
-    texture.CreateOutput(inputs.pop("channel", "a"), Sdf.ValueTypeNames.Float)
-    reader = UsdShade.Shader.Define(stage, f"{path}/St")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
-    texture.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
-        reader.ConnectableAPI(), "result"
-    )
-    opacity = surface.CreateInput("opacity", Sdf.ValueTypeNames.Float)
-    opacity.ConnectToSource(texture.ConnectableAPI(), texture.GetOutputs()[0].GetBaseName())
-    surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
-    return material
 
 
 def _card_uvs(mesh: UsdGeom.Mesh, interpolation: str = UsdGeom.Tokens.faceVarying) -> None:
@@ -101,9 +71,9 @@ def test_a_textured_opacity_cuts_the_card_as_its_solid_parts(
     stage = _stage(tmp_path, "cut")
     card = _quad(stage, "/World/Card", -2, 2)
     _card_uvs(card, interpolation)
-    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
     UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
-        _cut_material(stage, "/World/Looks/Leaf", file)
+        cut_material(stage, "/World/Looks/Leaf", file)
     )
     frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
     assert frame.geometry.notes == []
@@ -122,7 +92,7 @@ def test_rows_run_from_the_image_top_and_an_exr_reads_the_same(tmp_path: Path) -
     """A texture solid in its bottom row (v near 0, the card's -z edge) cuts the card to
     its -z half, from a PNG and from an EXR alike."""
     bottom_solid = np.array([[0.0], [1.0]], dtype=np.float32)  # file rows: top, bottom
-    png = _write_png(tmp_path / "bottom.png", bottom_solid)
+    png = write_alpha_png(tmp_path / "bottom.png", bottom_solid)
     exr = tmp_path / "bottom.exr"
     zeros = np.zeros_like(bottom_solid)
     crepuscular.write_exr_channels(exr, {"R": zeros, "G": zeros, "B": zeros, "A": bottom_solid})
@@ -133,7 +103,7 @@ def test_rows_run_from_the_image_top_and_an_exr_reads_the_same(tmp_path: Path) -
         stage = _stage(tmp_path, f"from_{file.replace('.', '_')}")
         card = _quad(stage, "/World/Card", -2, 2)
         _card_uvs(card)
-        material = _cut_material(stage, "/World/Looks/Leaf", file)
+        material = cut_material(stage, "/World/Looks/Leaf", file)
         UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
         assert _mean_relative(_render(stage).volume, expected.volume) < 1e-4, file
 
@@ -147,13 +117,13 @@ def test_a_subsets_material_cuts_its_faces_alone(tmp_path: Path) -> None:
     card.CreateFaceVertexCountsAttr([4, 4])
     card.CreateFaceVertexIndicesAttr([0, 1, 4, 5, 1, 2, 3, 4])
     _card_uvs(card)
-    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
     binding = UsdShade.MaterialBindingAPI.Apply(card.GetPrim())
     plain = UsdShade.Material.Define(stage, "/World/Looks/Plain")
     assert binding.Bind(plain)
     subset = binding.CreateMaterialBindSubset("leaves", Vt.IntArray([0]))
     UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(
-        _cut_material(stage, "/World/Looks/Leaf", file)
+        cut_material(stage, "/World/Looks/Leaf", file)
     )
     cut = _render(stage)
     reference = _stage(tmp_path, "subset_reference")
@@ -169,7 +139,7 @@ def test_unmappable_opacity_is_named_and_casts_as_opaque(
     stage = _stage(tmp_path, "notes")
     card = _quad(stage, "/World/Card", -2, 2)
     _card_uvs(card)
-    missing = _cut_material(stage, "/World/Looks/Missing", "no_such_file.png")
+    missing = cut_material(stage, "/World/Looks/Missing", "no_such_file.png")
     UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(missing)
     other = _quad(stage, "/World/Other", 3, 4)
     veil = UsdShade.Material.Define(stage, "/World/Looks/Veil")
@@ -241,7 +211,7 @@ def test_a_constant_opacity_is_cut_as_a_mask(tmp_path: Path) -> None:
 
 
 def _interface_material(stage: Usd.Stage, path: str, file: str) -> UsdShade.Material:
-    """`_cut_material` as material libraries author it (and Pixar's UsdPreviewSurface
+    """`cut_material` as material libraries author it (and Pixar's UsdPreviewSurface
     tutorial): the texture and its primvar reader inside a NodeGraph whose output feeds the
     opacity, the file, the primvar's name and the threshold given by the material's
     interface inputs."""
@@ -279,11 +249,11 @@ def _interface_material(stage: Usd.Stage, path: str, file: str) -> UsdShade.Mate
 
 def test_a_node_graph_and_interface_inputs_cut_as_the_plain_material(tmp_path: Path) -> None:
     """The texture behind a NodeGraph, its file, primvar name and threshold on the
-    material's interface: the card cuts exactly as with `_cut_material` (before, it cast
+    material's interface: the card cuts exactly as with `cut_material` (before, it cast
     as opaque with a note). A constant opacity on the interface is one value everywhere."""
-    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
     layers = {}
-    for name, build in (("plain", _cut_material), ("graph", _interface_material)):
+    for name, build in (("plain", cut_material), ("graph", _interface_material)):
         stage = _stage(tmp_path, name)
         card = _quad(stage, "/World/Card", -2, 2)
         _card_uvs(card)
@@ -322,9 +292,9 @@ def test_a_usdz_packages_texture_cuts_and_a_broken_one_is_named(tmp_path: Path) 
     stage = _stage(tmp_path, "packaged")
     card = _quad(stage, "/World/Card", -2, 2)
     _card_uvs(card)
-    file = _write_png(tmp_path / "stripes.png", STRIPES)
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
     UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
-        _cut_material(stage, "/World/Looks/Leaf", file)
+        cut_material(stage, "/World/Looks/Leaf", file)
     )
     stage.GetRootLayer().Save()
     package = tmp_path / "packaged.usdz"
@@ -338,7 +308,7 @@ def test_a_usdz_packages_texture_cuts_and_a_broken_one_is_named(tmp_path: Path) 
     card = _quad(stage, "/World/Card", -2, 2)
     _card_uvs(card)
     UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
-        _cut_material(stage, "/World/Looks/Leaf", "broken.png")
+        cut_material(stage, "/World/Looks/Leaf", "broken.png")
     )
     frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
     assert len(frame.geometry.notes) == 1

@@ -1,9 +1,10 @@
 """Stages mutated one attribute at a time: every authored value of a stage with fog, hair,
-points, an instancer, a sphere and every style set, replaced in turn by zeros, negatives,
-NaN, huge values, empty or short arrays, unknown tokens and broken xformOpOrders, must
-render to finite layers or end `crepuscular-usd` with one line that names the prim or
-property to fix (and the frame, where the bad value is one sample of an animation). Nothing
-may escape as a Python exception, as it would end a render farm's job with a traceback."""
+points, an instancer, a sphere, cut cards (a texture's alpha and a constant opacity) and
+every style set, replaced in turn by zeros, negatives, NaN, huge values, empty or short
+arrays, unknown tokens and broken xformOpOrders, must render to finite layers or end
+`crepuscular-usd` with one line that names the prim or property to fix (and the frame,
+where the bad value is one sample of an animation). Nothing may escape as a Python
+exception, as it would end a render farm's job with a traceback."""
 
 from __future__ import annotations
 
@@ -14,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 from scenes import build_scene
-from usd_helpers import author_stage
+from usd_helpers import author_stage, cut_material, write_alpha_png
 
 import crepuscular
 from crepuscular_usd.cli import main
@@ -64,6 +65,26 @@ def _rich_stage(path: Path) -> Usd.Stage:
     instancer.CreatePositionsAttr([Gf.Vec3f(-2.0, 2.5, 0.0), Gf.Vec3f(-2.0, 2.5, 1.0)])
     instancer.CreateOrientationsAttr(Vt.QuathArray([Gf.Quath(1.0), Gf.Quath(1.0)]))
     instancer.CreateScalesAttr([Gf.Vec3f(1.0), Gf.Vec3f(2.0)])
+    # A card cut by a texture's alpha, and one of a constant opacity.
+    stripes = np.array([[0, 1, 0, 1, 0, 1, 0, 1]], dtype=np.float32)
+    leaf = cut_material(
+        stage, "/World/Looks/Leaf", write_alpha_png(path.parent / "leaf.png", stripes)
+    )
+    veil = UsdShade.Material.Define(stage, "/World/Looks/Veil")
+    surface = UsdShade.Shader.Define(stage, "/World/Looks/Veil/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    surface.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.3)
+    veil.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    for name, x, material in (("Card", -1.0, leaf), ("Veiled", 1.5, veil)):
+        card = UsdGeom.Mesh.Define(stage, f"/World/{name}")
+        card.CreatePointsAttr([(x, 3, 0), (x + 1, 3, 0), (x + 1, 3, 2), (x, 3, 2)])
+        card.CreateFaceVertexCountsAttr([4])
+        card.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        st = UsdGeom.PrimvarsAPI(card).CreatePrimvar(
+            "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
+        )
+        st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+        UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
     assert stage.GetRootLayer().Save()
     return stage
 

@@ -8,10 +8,12 @@ that reading it back must give the same frame.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Gf, Usd, UsdGeom, UsdLux, UsdSkel
+from PIL import Image
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel
 
 import crepuscular_usd
 
@@ -206,3 +208,34 @@ def posed_strip(degrees: float) -> np.ndarray:
     weights_b = np.array([w[j.index(1)] if 1 in j else 0.0 for j, w in pairs])
     posed = rest * (1 - weights_b[:, None]) + on_b * weights_b[:, None]
     return posed + np.array([10.0, 0.0, 0.0])
+
+
+def write_alpha_png(path: Path, alpha: np.ndarray) -> str:
+    """An RGBA PNG whose alpha is `alpha`, rows top (v = 1) to bottom as files store them."""
+    rgba = np.zeros((*alpha.shape, 4), dtype=np.uint8)
+    rgba[..., 3] = np.round(alpha * 255).astype(np.uint8)
+    Image.fromarray(rgba).save(path)
+    return path.name
+
+
+def cut_material(stage: Usd.Stage, path: str, file: str, **inputs: Any) -> UsdShade.Material:
+    """A material whose UsdPreviewSurface takes its opacity from a UsdUVTexture of `file`
+    (its "a" output, or `channel`), read at the "st" primvar, cut at 0.5."""
+    material = UsdShade.Material.Define(stage, path)
+    surface = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    texture = UsdShade.Shader.Define(stage, f"{path}/Alpha")
+    texture.CreateIdAttr("UsdUVTexture")
+    texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    texture.CreateOutput(inputs.pop("channel", "a"), Sdf.ValueTypeNames.Float)
+    reader = UsdShade.Shader.Define(stage, f"{path}/St")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    texture.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        reader.ConnectableAPI(), "result"
+    )
+    opacity = surface.CreateInput("opacity", Sdf.ValueTypeNames.Float)
+    opacity.ConnectToSource(texture.ConnectableAPI(), texture.GetOutputs()[0].GetBaseName())
+    surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
+    return material

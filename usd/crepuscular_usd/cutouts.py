@@ -20,6 +20,7 @@ texture coordinate) leaves it opaque, with a note that names it.
 from __future__ import annotations
 
 import io
+import math
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,10 +88,14 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
     where = f"material {material.GetPath()}"
     opacity = shader.GetInput("opacity")
     threshold = float(_value(shader.GetInput("opacityThreshold")) or 0.0)
+    if not math.isfinite(threshold):
+        return None, f"{where}: its opacityThreshold is not finite; it casts as opaque"
     cut = threshold if threshold > 0.0 else DEFAULT_THRESHOLD
     produced = _source_output(opacity)
     if produced is None:
         value = _value(opacity)
+        if value is not None and math.isnan(value):
+            return None, f"{where}: its opacity is NaN; it casts as opaque"
         if value is None or value >= 1.0:
             return None, None
         return _constant_source(float(value), cut, threshold > 0.0, where)
@@ -108,6 +113,10 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
     channel = _CHANNELS[output]
     scale = _float4(texture, "scale", 1.0)[channel]
     bias = _float4(texture, "bias", 0.0)[channel]
+    if not (math.isfinite(scale) and math.isfinite(bias)):
+        return None, (
+            f"{where}: its opacity texture's scale or bias is not finite; it casts as opaque"
+        )
     space = _value(texture.GetInput("sourceColorSpace")) or "auto"
     srgb = output != "a" and (
         space == "sRGB" or (space == "auto" and not asset.resolvedPath.lower().endswith(".exr"))
@@ -302,6 +311,8 @@ def read_mask(source: MaskSource) -> npt.NDArray[np.float32]:
         if source.srgb:
             values = np.where(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
     values = values * source.scale + source.bias
+    # A NaN texel (an EXR's) is opaque, as an opacity that cannot be read is.
+    values = np.nan_to_num(values, nan=1.0, posinf=1.0, neginf=0.0)
     return np.ascontiguousarray(np.flipud(values), dtype=np.float32)
 
 

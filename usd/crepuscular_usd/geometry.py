@@ -446,6 +446,16 @@ class GeometryCollector:
                 if note not in self._masks.notes:
                     self._masks.notes.append(note)
                 continue
+            finite = np.isfinite(values).all(axis=(1, 2))
+            if not finite.all():
+                note = (
+                    f"{prim.GetPath()}: primvar '{primvar}' has NaN or infinite values; the "
+                    "triangles that read them cast as opaque"
+                )
+                if note not in self._masks.notes:
+                    self._masks.notes.append(note)
+                masks[np.flatnonzero(rows)[~finite]] = -1
+                values = np.where(finite[:, None, None], values, 0.0)
             uvs[rows] = values
         split = points[corner_points].reshape(-1, 3)
         triangles = np.arange(len(split), dtype=np.uint32).reshape(-1, 3)
