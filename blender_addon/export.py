@@ -673,9 +673,22 @@ def export_geometry(
                 uvs.append(np.zeros((count * vertices, 2), dtype=np.float32))
                 triangle_masks.append(np.full(count * len(arrays.triangles), -1, np.int64))
             else:
-                uvs.append(np.tile(arrays.uvs, (count, 1)))
                 per_slot = np.asarray(cut.masks, dtype=np.int64)
-                triangle_masks.append(np.tile(per_slot[arrays.slots], count))
+                masks_here, uvs_here = per_slot[arrays.slots], arrays.uvs
+                # NaN texture coordinates would fail the frame, naming no object: the
+                # triangles that read them cast as opaque instead, and are named.
+                finite = np.isfinite(uvs_here.reshape(-1, 3, 2)).all(axis=(1, 2))
+                if not finite.all():
+                    note = (
+                        f"object '{_name_of(names, object_id)}': NaN or infinite texture "
+                        "coordinates; the triangles with them cast as opaque"
+                    )
+                    if note not in table.notes:
+                        table.notes.append(note)
+                    masks_here = np.where(finite, masks_here, -1)
+                    uvs_here = np.where(np.repeat(finite, 3)[:, None], uvs_here, 0.0)
+                uvs.append(np.tile(uvs_here.astype(np.float32), (count, 1)))
+                triangle_masks.append(np.tile(masks_here, count))
         base += count * vertices
     if not positions:
         return Geometry(

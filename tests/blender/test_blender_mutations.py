@@ -1,11 +1,11 @@
 """A scene of every kind the add-on reads (a fog box, a roof, hair, a point cloud, a
 camera and a sun), mutated one thing at a time as artists' scenes go wrong: zero, NaN and
 huge transforms, NaN or negative shader inputs (the fog's, and a NaN alpha, mix factor or
-transparency on the roof's material), emptied or missing data, modifiers that
-break the fog box or multiply the roof, extreme cameras and resolutions. Each frame must
-render to finite layers, or fail with one of the add-on's own errors that names the
-Blender data to fix. Any other exception would reach the artist as a traceback. Objects
-with NaN or infinite geometry are left out, and a note names them."""
+transparency on the roof's material, NaN texture coordinates on a cut card), emptied or
+missing data, modifiers that break the fog box or multiply the roof, extreme cameras and
+resolutions. Each frame must render to finite layers, or fail with one of the add-on's own
+errors that names the Blender data to fix. Any other exception would reach the artist as
+a traceback. Objects with NaN or infinite geometry are left out, and a note names them."""
 
 from __future__ import annotations
 
@@ -100,6 +100,15 @@ def _roof_shader(things: dict[str, Any], kind: str) -> Any:
     return node
 
 
+def _nan_uv_card(things: dict[str, Any]) -> None:
+    """A leaf card cut by an image's alpha, one of whose UV coordinates is NaN."""
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    material = blender_scenes.cutout_material(image, "principled")
+    corners = [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)]
+    card = blender_scenes.add_card(things["scene"], "Card", corners, material, 3.0)
+    card.data.uv_layers["UVMap"].uv[0].vector = (NAN, NAN)
+
+
 MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
     "fog scaled to zero": lambda s: setattr(s["fog"], "scale", (0.0, 0.0, 0.0)),
     "fog scaled by 1e30": lambda s: setattr(s["fog"], "scale", (1e30, 1e30, 1e30)),
@@ -136,6 +145,7 @@ MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
     "roof mix factor NaN": lambda s: setattr(
         _roof_shader(s, "ShaderNodeMixShader").inputs[0], "default_value", NAN
     ),
+    "card texture coordinates NaN": lambda s: _nan_uv_card(s),
     "roof transparency NaN": lambda s: setattr(
         _roof_shader(s, "ShaderNodeBsdfTransparent").inputs["Color"],
         "default_value",
@@ -179,8 +189,9 @@ LEFT_OUT = {
     "dust radius NaN": "object 'Dust': NaN or infinite point positions or radii",
 }
 
-#: Mutations of the roof's material that Cycles renders as it reads a NaN (an alpha or a
-#: mix factor saturated to 0, a closure of NaN weight dropped), and the note that says so.
+#: Mutations of materials and texture coordinates that render, with the note that says
+#: how: a NaN alpha or mix factor as Cycles saturates it (to 0), a closure of NaN weight
+#: dropped as Cycles drops it, triangles of NaN coordinates opaque.
 NOTED = {
     "roof alpha NaN": "material 'Leaf': its alpha or mix factor is NaN, which Cycles reads "
     "as 0: it neither casts nor hides the fog",
@@ -188,6 +199,8 @@ NOTED = {
     "reads as 0: it neither casts nor hides the fog",
     "roof transparency NaN": "material 'Leaf': its Transparent BSDF's Color is not finite; "
     "it casts as opaque",
+    "card texture coordinates NaN": "object 'Card': NaN or infinite texture coordinates; the "
+    "triangles with them cast as opaque",
 }
 
 
