@@ -239,7 +239,11 @@ def particle_hair_arrays(
     scaled by half the radius scale, with a closed tip at 0. Drawn for `seen` (see
     `curves_arrays`). Each key is one Python call (0.5 µs; 100,000 strands of 9 keys read
     in about 0.5 s), and the ribbons 2 triangles a piece per view."""
-    inverse = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64))
+    try:
+        inverse = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64))
+    except np.linalg.LinAlgError:
+        # An emitter scaled to nothing flattens its hair with it, and Cycles draws none.
+        return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
     points: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     radii: list[np.ndarray] = []

@@ -2,10 +2,11 @@
 camera and a sun), mutated one thing at a time as artists' scenes go wrong: zero, NaN and
 huge transforms, NaN or negative shader inputs (the fog's, and a NaN alpha, mix factor or
 transparency on the roof's material, NaN texture coordinates on a cut card), emptied or
-missing data, modifiers that break the fog box or multiply the roof, extreme cameras and
-resolutions. Each frame must render to finite layers, or fail with one of the add-on's own
-errors that names the Blender data to fix. Any other exception would reach the artist as
-a traceback. Objects with NaN or infinite geometry are left out, and a note names them."""
+missing data, modifiers that break the fog box or multiply the roof, an emitter of
+particle hair scaled to nothing, extreme cameras and resolutions. Each frame must render
+to finite layers, or fail with one of the add-on's own errors that names the Blender data
+to fix. Any other exception would reach the artist as a traceback. Objects with NaN or
+infinite geometry are left out, and a note names them."""
 
 from __future__ import annotations
 
@@ -100,6 +101,12 @@ def _roof_shader(things: dict[str, Any], kind: str) -> Any:
     return node
 
 
+def _particle_hair(things: dict[str, Any]) -> Any:
+    """A quad emitter of 20 particle hairs beside the roof; returns it."""
+    corners = [(-1, -1, 1), (1, -1, 1), (1, 1, 1), (-1, 1, 1)]
+    return blender_scenes.add_particle_hair(things["scene"], "Fur", corners, 20, 0.5)
+
+
 def _nan_uv_card(things: dict[str, Any]) -> None:
     """A leaf card cut by an image's alpha, one of whose UV coordinates is NaN."""
     image = blender_scenes.alpha_image("Stripes", size=16)
@@ -146,6 +153,9 @@ MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
         _roof_shader(s, "ShaderNodeMixShader").inputs[0], "default_value", NAN
     ),
     "card texture coordinates NaN": lambda s: _nan_uv_card(s),
+    "particle hair on an emitter scaled to zero": lambda s: setattr(
+        _particle_hair(s), "scale", (1.0, 1.0, 0.0)
+    ),
     "roof transparency NaN": lambda s: setattr(
         _roof_shader(s, "ShaderNodeBsdfTransparent").inputs["Color"],
         "default_value",
