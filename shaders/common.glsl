@@ -26,6 +26,18 @@ float integral_exp(float k, float d) {
     return -expm1_accurate(-kd) / k;
 }
 
+// ∫ e^(−σ·(ℓ(t) + t − a)) dt over [p, q], ℓ linear there from `depth_p` to `depth_q` with
+// slope `slope`: the exponent taken at the lighter end, as the CPU's stretch_integral, so
+// that e^(−σ·…) and the integral never meet as 0 · ∞ on a steep line.
+float stretch_integral(float sigma, float a, float p, float q, float depth_p, float depth_q,
+                       float slope) {
+    float k = sigma * (1.0 + slope);
+    if (k >= 0.0) {
+        return exp(-sigma * (depth_p + p - a)) * integral_exp(k, q - p);
+    }
+    return exp(-sigma * (depth_q + q - a)) * integral_exp(-k, q - p);
+}
+
 // Clamp to [0, 1] with NaN read as 0, like the CPU's `unit`.
 float unit(float v) {
     return isnan(v) ? 0.0 : clamp(v, 0.0, 1.0);

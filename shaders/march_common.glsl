@@ -161,7 +161,7 @@ vec3 march_box(float t_start, float t_end) {
         float t0 = a + float(i) * dt;
         float depth_after = sunward_depth(cube_origin + cube_step * (t0 + dt));
         float slope = (depth_after - depth_before) / dt;
-        float step_weight = exp(-sigma * (depth_before + t0 - a)) * integral_exp(sigma * (1.0 + slope), dt);
+        float step_weight = stretch_integral(sigma, a, t0, t0 + dt, depth_before, depth_after, slope);
         if (lit(t0 + 0.5 * dt)) {
             scattering += step_weight;
         } else {
@@ -274,8 +274,8 @@ float box_integrate(float t0, float t1, float a, float sigma) {
             continue;
         }
         vec2 line = box_line_over(lines, p0, p1);
-        float d0 = max(line.x + line.y * p0, 0.0);
-        total += exp(-sigma * (d0 + p0 - a)) * integral_exp(sigma * (1.0 + line.y), p1 - p0);
+        total += stretch_integral(sigma, a, p0, p1, max(line.x + line.y * p0, 0.0),
+                                  max(line.x + line.y * p1, 0.0), line.y);
     }
     return total;
 }

@@ -1078,3 +1078,31 @@ def test_fog_box_unreached_tells_a_box_no_view_ray_crosses() -> None:
         layers = render(scene)
         assert (layers.volume[..., 3].max() == 0) == (unreached or extinction == 0)
         assert crepuscular.fog_box_unreached(scene["medium"], layers.volume) == unreached
+
+
+@pytest.mark.parametrize("method", ["reference", "minmax", "prefiltered"])
+def test_extreme_but_finite_scenes_render_finite_layers(method: str) -> None:
+    """Values a scene may hold, however far from the built-in ones, render finite layers
+    with every method. Found by mutating a scene's every value: in a box of fog, a sun a
+    hair's breadth (10⁻²⁵) off straight down, and fog of 1000 /m, read NaN pixels (an
+    integral's exponential 0 times ∞); a camera 10³⁰ m from the scene stopped prefiltering
+    with an internal error."""
+    box = {"kind": "box", "world_from_cube": [4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 4, 0, 0, 0, 2, 1]}
+
+    def scene(change: Callable[[dict[str, Any]], None]) -> dict[str, Any]:
+        plane = crepuscular.builtin_scene("plane")
+        plane["camera"]["width"], plane["camera"]["height"] = 24, 14
+        plane["render"].update(method=method, shadow_map_size=64, steps=16)
+        plane["medium"]["extent"] = box
+        change(plane)
+        return plane
+
+    for what, change in {
+        "sun 1e-25 off straight down": lambda s: s["sun"].update(direction=[1e-25, 0.0, -1.0]),
+        "sun 1e-20 off the horizon": lambda s: s["sun"].update(direction=[1.0, 0.0, -1e-20]),
+        "fog of 1000 /m": lambda s: s["medium"].update(extinction=1000.0),
+        "camera 1e30 m away": lambda s: s["camera"]["world_from_camera"].__setitem__(12, 1e30),
+    }.items():
+        layers = crepuscular.render(scene(change))
+        for name in ("volume", "visibility", "depth"):
+            assert np.isfinite(np.asarray(getattr(layers, name))).all(), f"{what}: {name}"

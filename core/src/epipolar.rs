@@ -188,6 +188,13 @@ impl RaySlice {
     pub fn t_at(&self, s: f64) -> f64 {
         (s - self.s_origin) / self.s_per_t
     }
+
+    /// Whether every coordinate is a finite number.
+    pub fn is_finite(&self) -> bool {
+        [self.slice, self.s_origin, self.s_per_t, self.threshold]
+            .iter()
+            .all(|v| v.is_finite())
+    }
 }
 
 /// Fills an epipolar map's values from the shadow map: the CPU's loop or a GPU's.
