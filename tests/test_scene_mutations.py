@@ -1,8 +1,10 @@
 """Scene descriptions mutated one value at a time: every camera, sun, medium (with a fog
 box) and render value of a small `plane` frame, replaced in turn by zero, -1, ±10³⁰, NaN,
 infinity, a string and null, must render finite layers with every method, or be refused
-with a `CrepuscularError` that names the field. The first run of this found NaN pixels
-(a sun 10⁻²⁵ off an axis, fog of 1000 /m) and an internal error (a camera 10³⁰ m out)."""
+with a `CrepuscularError` that names the field, through a perspective camera and an
+orthographic one. The first runs of this found NaN pixels (a sun 10⁻²⁵ off an axis, fog of
+1000 /m, an orthographic camera 10³⁰ m out) and an internal error (a perspective camera
+10³⁰ m out)."""
 
 from __future__ import annotations
 
@@ -22,9 +24,11 @@ LEFT_ALONE = ("meshes", "version")
 REPLACEMENTS: list[Any] = [0, -1, 1e30, -1e30, math.nan, math.inf, "x", None]
 
 
-def _scene(method: str) -> dict[str, Any]:
+def _scene(method: str, projection: str) -> dict[str, Any]:
     scene = crepuscular.builtin_scene("plane")
     scene["camera"]["width"], scene["camera"]["height"] = 24, 14
+    if projection == "orthographic":
+        scene["camera"]["projection"] = {"kind": "orthographic", "ortho_scale": 8.0}
     scene["render"].update(method=method, shadow_map_size=64, steps=16)
     scene["medium"]["extent"] = {
         "kind": "box",
@@ -54,9 +58,12 @@ def _set(scene: dict[str, Any], path: tuple[Any, ...], value: Any) -> None:
 
 
 @pytest.mark.filterwarnings("ignore::UserWarning")
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
 @pytest.mark.parametrize("method", ["reference", "minmax", "prefiltered"])
-def test_a_mutated_scene_renders_finite_layers_or_names_the_field(method: str) -> None:
-    base = _scene(method)
+def test_a_mutated_scene_renders_finite_layers_or_names_the_field(
+    method: str, projection: str
+) -> None:
+    base = _scene(method, projection)
     failures = []
     for path in list(_leaves(base)):
         named = [str(key) for key in path if not isinstance(key, int)]
