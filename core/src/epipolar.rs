@@ -190,7 +190,7 @@ impl RaySlice {
     }
 
     /// Whether every coordinate is a finite number.
-    pub fn is_finite(&self) -> bool {
+    fn is_finite(&self) -> bool {
         [self.slice, self.s_origin, self.s_per_t, self.threshold]
             .iter()
             .all(|v| v.is_finite())
@@ -702,8 +702,15 @@ impl EpipolarMap {
             });
     }
 
-    /// Locates a view ray, or `None` when it runs along the light (at the epipole).
+    /// Locates a view ray, or `None` when it runs along the light (at the epipole) or its
+    /// coordinates are past f64's reach (a camera 10³⁰ m from the scene): the methods
+    /// decline such a ray, and it is walked.
     pub fn locate(&self, ray: &Ray) -> Option<RaySlice> {
+        self.place(ray).filter(RaySlice::is_finite)
+    }
+
+    /// [`EpipolarMap::locate`] before the finiteness test.
+    fn place(&self, ray: &Ray) -> Option<RaySlice> {
         if let Layout::Projective {
             view_from_world,
             first_tan,

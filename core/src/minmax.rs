@@ -209,10 +209,6 @@ impl<'a> MinMaxMethod<'a> {
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
         }
-        // As in prefiltering, a ray located from numbers past f64's reach is walked.
-        if !located.is_finite() {
-            return None;
-        }
         if self.map.is_short(&located, t_start, t_end) {
             return None;
         }

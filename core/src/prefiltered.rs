@@ -1721,11 +1721,6 @@ impl<'a> Prefiltered<'a> {
         if t_end <= t_start {
             return Some(RaySample::EMPTY);
         }
-        // A ray located from numbers past f64's reach (a camera 10³⁰ m from the scene) is
-        // walked, as are rays the method cannot read.
-        if !located.is_finite() {
-            return None;
-        }
         if self.map.is_short(located, t_start, t_end) {
             return None;
         }
