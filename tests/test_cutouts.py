@@ -4,6 +4,7 @@ card with the mask's empty parts cut out of its geometry, for every method."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -117,6 +118,49 @@ def test_the_mask_rows_run_from_v_zero_up() -> None:
     assert _mean_relative(low.volume, other.volume) > 0.02
 
 
+#: Solid but for its first texel: filtered, its alpha crosses 0.5 at u = 1/4 and, where
+#: the texture repeats, at u = 1 (blending texel 3 into texel 0).
+FIRST_EMPTY = np.array([[0, 1, 1, 1]], dtype=np.float32)
+
+
+@pytest.mark.parametrize(
+    ("wrap", "filter_", "threshold", "border", "solid_u"),
+    [
+        ("repeat", "linear", 0.5, 0.0, [(-0.75, 0.0), (0.25, 1.0), (1.25, 2.0)]),
+        ("extend", "linear", 0.5, 0.0, [(0.25, 2.0)]),
+        ("mirror", "linear", 0.5, 0.0, [(-1.0, -0.25), (0.25, 1.75)]),
+        # v repeats: clipped, the one row would fade out over half of it at each end.
+        (("clip", "repeat"), "linear", 0.5, 0.0, [(0.25, 1.0)]),
+        # Filtered, alpha 0.75 lies a quarter of the way from a texel centre to the next.
+        (("clip", "repeat"), "linear", 0.75, 0.0, [(0.3125, 0.9375)]),
+        # A solid border (an inverted alpha's) crosses 0.5 halfway from texel 0 to it.
+        (("clip", "repeat"), "linear", 0.5, 1.0, [(-1.0, 0.0), (0.25, 2.0)]),
+        ("clip", "closest", 0.75, 0.0, [(0.25, 1.0)]),
+        (("extend", "repeat"), "closest", 0.75, 0.0, [(0.25, 2.0)]),
+    ],
+)
+def test_each_wrap_and_filter_cuts_past_the_edges_as_the_texture_reads(
+    wrap: Any, filter_: str, threshold: float, border: float, solid_u: list[tuple[float, float]]
+) -> None:
+    """A card whose u runs from -1 to 2, three times the texture, cut by `FIRST_EMPTY`:
+    read past its edges as Blender's extension modes (and USD's wrap modes) read a
+    texture, it renders as the card's parts where the read alpha reaches the threshold."""
+    arrays = _scene("reference")
+    mask = AlphaMask(FIRST_EMPTY, threshold, wrap=wrap, filter=filter_, border=border)
+    masked = _masked(arrays, mask)
+    masked["uvs"][-4:, 0] = [-1.0, 2.0, 2.0, -1.0]
+    cut = render_arrays(**masked)
+    # Parts of the card, u from -1 to 2 over its 4 m, as `_card` lays [0, 1] over them.
+    parts = [_card((u0 + 1) / 3, (u1 + 1) / 3) for u0, u1 in solid_u]
+    expected = render_arrays(**_with(arrays, parts))
+    repeating = render_arrays(**_masked(arrays, AlphaMask(FIRST_EMPTY, threshold)))
+    for name in ("volume", "visibility", "depth"):
+        error = _mean_relative(getattr(cut, name), getattr(expected, name))
+        assert error < 1e-4, (name, error)
+    if (wrap, filter_, threshold, border) != ("repeat", "linear", 0.5, 0.0):
+        assert _mean_relative(cut.volume, repeating.volume) > 0.01
+
+
 def test_bad_cutouts_are_named() -> None:
     arrays = _masked(_scene("reference"), AlphaMask(STRIPES))
     cases = [
@@ -128,6 +172,9 @@ def test_bad_cutouts_are_named() -> None:
         ({"masks": [AlphaMask(np.ones(4))]}, "masks[0]", "(height, width)"),
         ({"masks": [AlphaMask(np.full((2, 2), np.nan))]}, "masks[0]", "not finite"),
         ({"masks": [AlphaMask(np.ones((0, 2)))]}, "masks[0]", "empty"),
+        ({"masks": [AlphaMask(STRIPES, wrap="border")]}, "masks[0].wrap", "clip or a (u, v)"),
+        ({"masks": [AlphaMask(STRIPES, wrap=("clip",))]}, "masks[0].wrap", "got ('clip',)"),
+        ({"masks": [AlphaMask(STRIPES, filter="cubic")]}, "masks[0].filter", "linear, closest"),
         # Masks that no triangle reads were ignored, whatever they held.
         ({"uvs": None, "triangle_masks": None}, "masks", "need uvs and triangle_masks"),
     ]
@@ -194,6 +241,22 @@ def test_a_scene_files_mesh_cuts_by_its_alpha_mask_image(tmp_path: Path) -> None
     strips = render_arrays(**_with(_scene("prefiltered"), [_card(u0, u1) for u0, u1 in SOLID_U]))
     for name in ("volume", "visibility", "depth"):
         assert _mean_relative(getattr(cut, name), getattr(strips, name)) < 1e-4, name
+    # Its wrap and filter, as `AlphaMask`'s: u from -1 to 2, clipped past the image.
+    scene["meshes"][-1]["uvs"] = [[-1, 0], [2, 0], [2, 1], [-1, 1]]
+    scene["meshes"][-1]["alpha_mask"].update(wrap=["clip", "repeat"], filter="closest")
+    path.write_text(json.dumps(scene))
+    clipped = crepuscular.render(path)
+    masked = _masked(_scene("prefiltered"), AlphaMask(STRIPES, wrap=("clip", "repeat")))
+    masked["uvs"][-4:, 0] = [-1.0, 2.0, 2.0, -1.0]
+    masked["masks"] = [AlphaMask(STRIPES, wrap=("clip", "repeat"), filter="closest")]
+    assert _mean_relative(clipped.volume, render_arrays(**masked).volume) < 1e-6
+    assert _mean_relative(clipped.volume, cut.volume) > 0.01
+    for wrap, words in (("border", "wrap mode (repeat, extend"), (["clip"], "wrap mode")):
+        scene["meshes"][-1]["alpha_mask"]["wrap"] = wrap
+        with pytest.raises(InvalidInputError, match=re.escape(words)) as caught:
+            crepuscular.render(scene)
+        assert caught.value.field == "meshes[1].alpha_mask.wrap", caught.value
+    scene["meshes"][-1]["alpha_mask"]["wrap"] = "clip"
     scene["meshes"][-1]["alpha_mask"]["image"] = "missing.png"
     with pytest.raises(InvalidInputError, match=r"missing\.png") as caught:
         crepuscular.render(scene)

@@ -1,8 +1,8 @@
 //! Alpha cutouts: triangles that a texture's alpha makes partly empty (leaf cards, fences,
 //! grilles), alpha-tested as a renderer's clip mode does. A sample of such a triangle is
 //! drawn into the shadow map and the camera's depth only where the mask's alpha, filtered
-//! bilinearly at its texture coordinates, reaches the mask's threshold; elsewhere light and
-//! sight pass through. Without this a canopy of leaf cards casts the solid shadow of its
+//! and wrapped past its edges as the host's texture node says, reaches the mask's
+//! threshold; elsewhere light and sight pass through. Without this a canopy of leaf cards casts the solid shadow of its
 //! rectangles and lets no shaft through.
 //!
 //! Coordinates are interpolated perspective-correctly over the triangle as authored, from
@@ -12,15 +12,85 @@
 use std::borrow::Cow;
 
 use glam::{DMat3, DVec3, DVec4};
+use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
 /// A triangle's mask index meaning it has none: opaque everywhere.
 pub const OPAQUE: u32 = u32::MAX;
 
+/// How a mask is read past its edges along one axis: Blender's Image Texture extension,
+/// or USD's `wrapS`/`wrapT`, as Cycles and USD's renderers read them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Wrap {
+    /// The texture tiles.
+    #[default]
+    Repeat,
+    /// The edge texels continue outward (Blender's Extend, USD's `clamp`).
+    Extend,
+    /// The texture tiles, every other copy flipped.
+    Mirror,
+    /// The mask's `border` alpha outside (Blender's Clip and USD's `black`, whose
+    /// transparent black reads as alpha 0 but for an inverted or biased alpha), the edge
+    /// texels fading to it over the half texel past them.
+    Clip,
+}
+
+impl Wrap {
+    /// The texel read for index `i` of a side of `size` texels; `None` for none (a clipped
+    /// border).
+    #[inline]
+    fn texel(self, i: i64, size: i64) -> Option<usize> {
+        let index = match self {
+            Self::Repeat => i.rem_euclid(size),
+            Self::Extend => i.clamp(0, size - 1),
+            // Period 2·size: size..2·size reads the side backwards, so that texel −1 is
+            // texel 0 and texel `size` is texel `size` − 1.
+            Self::Mirror => {
+                let folded = i.rem_euclid(2 * size);
+                if folded < size {
+                    folded
+                } else {
+                    2 * size - 1 - folded
+                }
+            }
+            Self::Clip => {
+                if !(0..size).contains(&i) {
+                    return None;
+                }
+                i
+            }
+        };
+        Some(index as usize)
+    }
+
+    /// `x` (in texels) moved by whole periods, or clamped, into a range where every index
+    /// it reads is what it reads at `x`: so that large coordinates never saturate an i64.
+    #[inline]
+    fn near(self, x: f64, size: f64) -> f64 {
+        match self {
+            Self::Repeat => x.rem_euclid(size),
+            Self::Mirror => x.rem_euclid(2.0 * size),
+            Self::Extend | Self::Clip => x.clamp(-2.0, size + 1.0),
+        }
+    }
+}
+
+/// How a mask is filtered between texels: Blender's Image Texture interpolation.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MaskFilter {
+    /// Bilinear between texel centres (Blender's Linear; Cubic and Smart are read so too).
+    #[default]
+    Linear,
+    /// The texel a point lies in (Blender's Closest): cut edges follow the texels.
+    Closest,
+}
+
 /// An alpha texture: `alpha` holds `width` × `height` values, rows from v = 0 up (the
-/// order of Blender's image pixels and of OpenGL textures), and repeats in u and v. Hosts
-/// lend their arrays; a scene description's images are owned.
+/// order of Blender's image pixels and of OpenGL textures), read past its edges as `wrap`
+/// says along u and v. Hosts lend their arrays; a scene description's images are owned.
 #[derive(Clone, Debug)]
 pub struct AlphaMask<'a> {
     pub width: u32,
@@ -28,26 +98,74 @@ pub struct AlphaMask<'a> {
     pub alpha: Cow<'a, [f32]>,
     /// Samples whose filtered alpha is below this are empty.
     pub threshold: f32,
+    /// Along u, then v.
+    pub wrap: [Wrap; 2],
+    pub filter: MaskFilter,
+    /// The alpha read past a clipped edge ([`Wrap::Clip`]).
+    pub border: f32,
+}
+
+impl<'a> AlphaMask<'a> {
+    /// A mask that repeats and is filtered bilinearly, the defaults of Blender's Image
+    /// Texture.
+    pub fn repeating(width: u32, height: u32, alpha: Cow<'a, [f32]>, threshold: f32) -> Self {
+        Self {
+            width,
+            height,
+            alpha,
+            threshold,
+            wrap: [Wrap::Repeat; 2],
+            filter: MaskFilter::Linear,
+            border: 0.0,
+        }
+    }
 }
 
 impl AlphaMask<'_> {
-    /// The alpha at (u, v), filtered bilinearly between texel centres, repeating.
+    /// The alpha at (u, v), filtered and wrapped as the mask says.
     #[inline]
     pub fn alpha_at(&self, [u, v]: [f64; 2]) -> f32 {
         let (width, height) = (self.width as i64, self.height as i64);
-        let x = u * width as f64 - 0.5;
-        let y = v * height as f64 - 0.5;
-        // Large coordinates wrap before the conversion so that i64 never saturates.
-        let (x, y) = (x.rem_euclid(width as f64), y.rem_euclid(height as f64));
-        let (x0, y0) = (x.floor(), y.floor());
-        let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
-        let column = |i: i64| i.rem_euclid(width) as usize;
-        let row = |j: i64| j.rem_euclid(height) as usize * width as usize;
-        let (i0, j0) = (x0 as i64, y0 as i64);
-        let at = |i: i64, j: i64| self.alpha[row(j) + column(i)];
-        let bottom = at(i0, j0) + (at(i0 + 1, j0) - at(i0, j0)) * fx;
-        let top = at(i0, j0 + 1) + (at(i0 + 1, j0 + 1) - at(i0, j0 + 1)) * fx;
-        bottom + (top - bottom) * fy
+        let [wrap_u, wrap_v] = self.wrap;
+        let at = |i: Option<usize>, j: Option<usize>| match (i, j) {
+            (Some(i), Some(j)) => self.alpha[j * width as usize + i],
+            _ => self.border,
+        };
+        match self.filter {
+            MaskFilter::Closest => {
+                let x = wrap_u.near(u * width as f64, width as f64).floor() as i64;
+                let y = wrap_v.near(v * height as f64, height as f64).floor() as i64;
+                at(wrap_u.texel(x, width), wrap_v.texel(y, height))
+            }
+            MaskFilter::Linear => {
+                let x = wrap_u.near(u * width as f64 - 0.5, width as f64);
+                let y = wrap_v.near(v * height as f64 - 0.5, height as f64);
+                let (x0, y0) = (x.floor(), y.floor());
+                let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
+                let (i0, j0) = (x0 as i64, y0 as i64);
+                let [i0, i1] = [i0, i0 + 1].map(|i| wrap_u.texel(i, width));
+                let [j0, j1] = [j0, j0 + 1].map(|j| wrap_v.texel(j, height));
+                let bottom = at(i0, j0) + (at(i1, j0) - at(i0, j0)) * fx;
+                let top = at(i0, j1) + (at(i1, j1) - at(i0, j1)) * fx;
+                bottom + (top - bottom) * fy
+            }
+        }
+    }
+
+    /// The wrap and filter as `raster_cut.glsl`'s `Mask::sampling` packs them: bits 0–1
+    /// the wrap along u, 2–3 along v, bit 4 set for closest filtering.
+    pub fn shader_sampling(&self) -> u32 {
+        let wrap = |wrap: Wrap| match wrap {
+            Wrap::Repeat => 0,
+            Wrap::Extend => 1,
+            Wrap::Mirror => 2,
+            Wrap::Clip => 3,
+        };
+        let closest = match self.filter {
+            MaskFilter::Linear => 0,
+            MaskFilter::Closest => 16,
+        };
+        wrap(self.wrap[0]) | wrap(self.wrap[1]) << 2 | closest
     }
 
     /// Whether the mask is solid at (u, v).
@@ -83,6 +201,12 @@ impl AlphaMask<'_> {
             return Err(Error::invalid(
                 format!("{}.threshold", field()),
                 format!("{} is not finite", self.threshold),
+            ));
+        }
+        if !self.border.is_finite() {
+            return Err(Error::invalid(
+                format!("{}.border", field()),
+                format!("{} is not finite", self.border),
             ));
         }
         Ok(())
@@ -203,12 +327,7 @@ mod tests {
     use super::*;
 
     fn mask(width: u32, height: u32, alpha: &[f32]) -> AlphaMask<'_> {
-        AlphaMask {
-            width,
-            height,
-            alpha: Cow::Borrowed(alpha),
-            threshold: 0.5,
-        }
+        AlphaMask::repeating(width, height, Cow::Borrowed(alpha), 0.5)
     }
 
     #[test]
@@ -225,6 +344,144 @@ mod tests {
         assert_eq!(m.alpha_at([3.25, -1.75]), m.alpha_at([0.25, 0.25]));
         assert!((m.alpha_at([0.0, 0.25]) - 0.5).abs() < 1e-6);
         assert!(m.covers([0.6, 0.25]) && !m.covers([0.4, 0.25]));
+    }
+
+    /// One row of three texels, 0, 1 and 0.25, wrapped along u as `wrap` says.
+    fn row_of_three(wrap: Wrap, filter: MaskFilter) -> AlphaMask<'static> {
+        AlphaMask {
+            wrap: [wrap, Wrap::Repeat],
+            filter,
+            ..AlphaMask::repeating(3, 1, Cow::Owned(vec![0.0, 1.0, 0.25]), 0.5)
+        }
+    }
+
+    #[test]
+    fn each_wrap_reads_past_the_edges_as_blender_and_usd_do() {
+        // Texel i's centre, and the texture's right edge, between texel 2 and the next.
+        let centre = |i: f64| [(i + 0.5) / 3.0, 0.5];
+        let read = |wrap, at: [f64; 2]| row_of_three(wrap, MaskFilter::Linear).alpha_at(at);
+        let cases: [(Wrap, [(f64, f32); 7]); 4] = [
+            (
+                Wrap::Repeat,
+                [
+                    (-2.0, 1.0),
+                    (-1.0, 0.25),
+                    (3.0, 0.0),
+                    (4.0, 1.0),
+                    (5.0, 0.25),
+                    (6.0, 0.0),
+                    (302.0, 0.25),
+                ],
+            ),
+            (
+                Wrap::Extend,
+                [
+                    (-2.0, 0.0),
+                    (-1.0, 0.0),
+                    (3.0, 0.25),
+                    (4.0, 0.25),
+                    (5.0, 0.25),
+                    (6.0, 0.25),
+                    (302.0, 0.25),
+                ],
+            ),
+            (
+                // Period 6: 3, 4, 5 read 2, 1, 0; −1, −2 read 0, 1.
+                Wrap::Mirror,
+                [
+                    (-2.0, 1.0),
+                    (-1.0, 0.0),
+                    (3.0, 0.25),
+                    (4.0, 1.0),
+                    (5.0, 0.0),
+                    (6.0, 0.0),
+                    (303.0, 0.25),
+                ],
+            ),
+            (
+                Wrap::Clip,
+                [
+                    (-2.0, 0.0),
+                    (-1.0, 0.0),
+                    (3.0, 0.0),
+                    (4.0, 0.0),
+                    (5.0, 0.0),
+                    (6.0, 0.0),
+                    (302.0, 0.0),
+                ],
+            ),
+        ];
+        for (wrap, reads) in cases {
+            for (i, expected) in reads {
+                assert_eq!(read(wrap, centre(i)), expected, "{wrap:?} at texel {i}");
+            }
+            // Inside, every wrap reads the texture itself.
+            assert_eq!(read(wrap, centre(1.0)), 1.0);
+            assert!((read(wrap, centre(1.5)) - 0.625).abs() < 1e-6);
+            // Huge coordinates read some texel or the border, never past the array.
+            for u in [1e30, -1e30, 1e15 + 0.3] {
+                let alpha = read(wrap, [u, 0.5]);
+                assert!((0.0..=1.0).contains(&alpha), "{wrap:?} at {u}: {alpha}");
+            }
+        }
+        // At the right edge, half a texel past texel 2's centre: the blend of texel 2 and
+        // what lies beyond it.
+        let edge = [1.0, 0.5];
+        assert!((read(Wrap::Repeat, edge) - 0.125).abs() < 1e-6);
+        assert_eq!(read(Wrap::Extend, edge), 0.25);
+        assert_eq!(read(Wrap::Mirror, edge), 0.25);
+        assert!((read(Wrap::Clip, edge) - 0.125).abs() < 1e-6);
+        // Clipped edges read the border alpha, an inverted mask's 1.
+        let mut inverted = row_of_three(Wrap::Clip, MaskFilter::Linear);
+        inverted.border = 1.0;
+        assert_eq!(inverted.alpha_at(centre(4.0)), 1.0);
+        assert!((inverted.alpha_at(edge) - 0.625).abs() < 1e-6);
+        // Per axis: v clipped, u repeating.
+        let mut mask = row_of_three(Wrap::Repeat, MaskFilter::Linear);
+        mask.wrap[1] = Wrap::Clip;
+        assert_eq!(mask.alpha_at([centre(4.0)[0], 0.5]), 1.0);
+        assert_eq!(mask.alpha_at([centre(4.0)[0], 1.5]), 0.0);
+    }
+
+    #[test]
+    fn closest_filtering_reads_the_texel_a_point_lies_in() {
+        let closest = |wrap, u: f64| row_of_three(wrap, MaskFilter::Closest).alpha_at([u, 0.5]);
+        assert_eq!(closest(Wrap::Repeat, 0.34), 1.0);
+        assert_eq!(closest(Wrap::Repeat, 0.33), 0.0);
+        assert_eq!(closest(Wrap::Repeat, 0.99), 0.25);
+        assert_eq!(closest(Wrap::Repeat, 1.01), 0.0);
+        assert_eq!(closest(Wrap::Extend, 1.01), 0.25);
+        assert_eq!(closest(Wrap::Mirror, 1.01), 0.25);
+        assert_eq!(closest(Wrap::Mirror, 1.35), 1.0);
+        assert_eq!(closest(Wrap::Clip, 1.01), 0.0);
+        assert_eq!(closest(Wrap::Clip, -0.01), 0.0);
+        // Linear filtering would blend texels 0 and 1 there.
+        let linear = row_of_three(Wrap::Repeat, MaskFilter::Linear).alpha_at([0.34, 0.5]);
+        assert!(linear > 0.5 && linear < 1.0);
+    }
+
+    #[test]
+    fn shaders_read_the_wrap_and_filter_from_their_bits() {
+        let mut mask = row_of_three(Wrap::Mirror, MaskFilter::Closest);
+        mask.wrap[1] = Wrap::Clip;
+        assert_eq!(mask.shader_sampling(), 2 | 3 << 2 | 16);
+        assert_eq!(
+            row_of_three(Wrap::Repeat, MaskFilter::Linear).shader_sampling(),
+            0
+        );
+        let glsl = include_str!("../../shaders/raster_cut.glsl");
+        for (name, value) in [
+            ("WRAP_REPEAT", 0),
+            ("WRAP_EXTEND", 1),
+            ("WRAP_MIRROR", 2),
+            ("WRAP_CLIP", 3),
+            ("CLOSEST", 16),
+        ] {
+            assert!(
+                glsl.contains(&format!("const uint {name} = {value}u;")),
+                "{name}"
+            );
+        }
     }
 
     #[test]

@@ -1326,12 +1326,12 @@ mod tests {
         let uvs = positions.map(|[x, _, z]| [x / 2.0, z / 2.0]);
         let ids = [4, 4];
         let checker: Vec<f32> = (0..16).map(|k| ((k % 4 + k / 4) % 2) as f32).collect();
-        let masks = [AlphaMask {
-            width: 4,
-            height: 4,
-            alpha: std::borrow::Cow::Borrowed(&checker),
-            threshold: 0.5,
-        }];
+        let masks = [AlphaMask::repeating(
+            4,
+            4,
+            std::borrow::Cow::Borrowed(&checker),
+            0.5,
+        )];
         let geometry = Geometry {
             positions: &positions,
             triangles: &triangles,

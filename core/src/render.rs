@@ -177,11 +177,15 @@ impl FlatGeometry {
                 None => crate::cutout::OPAQUE,
                 Some(desc) => {
                     let field = format!("meshes[{index}].alpha_mask.image");
-                    self.masks.push(crate::transfer_function::load_alpha_mask(
+                    let mut mask = crate::transfer_function::load_alpha_mask(
                         &field,
                         &desc.image,
                         desc.threshold,
-                    )?);
+                    )?;
+                    mask.wrap = desc.wrap.axes();
+                    mask.filter = desc.filter;
+                    mask.border = desc.border;
+                    self.masks.push(mask);
                     (self.masks.len() - 1) as u32
                 }
             };

@@ -8,6 +8,7 @@ use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
+use crate::cutout::{MaskFilter, Wrap};
 use crate::error::{Error, Result};
 use crate::style::Style;
 
@@ -270,6 +271,50 @@ pub struct AlphaMaskDesc {
     pub image: std::path::PathBuf,
     #[serde(default = "half")]
     pub threshold: f32,
+    /// How the image is read past its edges: one mode for both axes (`"clip"`), or one
+    /// each for u and v (`["repeat", "clip"]`).
+    #[serde(default, skip_serializing_if = "MaskWrapDesc::is_default")]
+    pub wrap: MaskWrapDesc,
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub filter: MaskFilter,
+    /// The alpha read past an edge clipped by `wrap` (0: empty there).
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub border: f32,
+}
+
+/// [`AlphaMaskDesc::wrap`]: one mode, or one per axis.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(
+    untagged,
+    expecting = "a wrap mode (repeat, extend, mirror or clip) or a pair of them"
+)]
+pub enum MaskWrapDesc {
+    Both(Wrap),
+    PerAxis([Wrap; 2]),
+}
+
+impl Default for MaskWrapDesc {
+    fn default() -> Self {
+        Self::Both(Wrap::Repeat)
+    }
+}
+
+impl MaskWrapDesc {
+    /// Along u, then v.
+    pub fn axes(self) -> [Wrap; 2] {
+        match self {
+            Self::Both(wrap) => [wrap; 2],
+            Self::PerAxis(axes) => axes,
+        }
+    }
+
+    fn is_default(&self) -> bool {
+        self.axes() == [Wrap::Repeat; 2]
+    }
+}
+
+fn is_default<T: Default + PartialEq>(value: &T) -> bool {
+    *value == T::default()
 }
 
 fn half() -> f32 {

@@ -621,12 +621,12 @@ pub fn load_alpha_mask(
         .rev()
         .flat_map(|row| row.iter().map(|texel| texel[3]))
         .collect();
-    Ok(crate::cutout::AlphaMask {
+    Ok(crate::cutout::AlphaMask::repeating(
         width,
         height,
-        alpha: std::borrow::Cow::Owned(alpha),
+        std::borrow::Cow::Owned(alpha),
         threshold,
-    })
+    ))
 }
 
 /// Reads an image layer's file as straight linear RGBA, rows top to bottom.

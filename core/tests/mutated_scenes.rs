@@ -7,9 +7,10 @@
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use crepuscular::builtin::builtin_scene;
+use crepuscular::cutout::{MaskFilter, Wrap};
 use crepuscular::scene::{
-    AlphaMaskDesc, BasisStorage, ExactRayEnds, Extent, Mesh, Method, PhaseModel, Projection,
-    Rectification, Scene,
+    AlphaMaskDesc, BasisStorage, ExactRayEnds, Extent, MaskWrapDesc, Mesh, Method, PhaseModel,
+    Projection, Rectification, Scene,
 };
 use crepuscular::{render_scene, Error, RenderControl, Style};
 use glam::Mat4;
@@ -284,6 +285,9 @@ fn every_option(mask: &std::path::Path) -> Scene {
     occluder.alpha_mask = Some(AlphaMaskDesc {
         image: mask.to_path_buf(),
         threshold: 0.5,
+        wrap: MaskWrapDesc::PerAxis([Wrap::Mirror, Wrap::Clip]),
+        filter: MaskFilter::Closest,
+        border: 0.25,
     });
     let mut above = occluder.clone();
     above.object_id = 3;

@@ -1479,10 +1479,12 @@ fn coverage_mismatches(gpu: &DepthTarget, cpu: &DepthTarget) -> (f64, f64) {
 /// the GPU's cut passes against the CPU rasterizer. Measured on lavapipe: coverage differs
 /// on 1.9e-6 of the shadow map's texels and ids on 3.8e-6 (where f32 coordinates round to
 /// the other side of a square's edge), and nowhere in the cameras' depth; the checker
-/// itself removes 35% of the map's texels and 7% and 20% of the cameras' samples.
+/// itself removes 35% of the map's texels and 7% and 20% of the cameras' samples. Then the
+/// triangles take turns among six masks of one uneven 3×2 texture, each read with another
+/// wrap and filter (the clipped one past a border of alpha 1).
 #[test]
 fn alpha_cut_triangles_match_the_cpu_rasterizer() {
-    use crepuscular::cutout::{AlphaMask, Cutouts};
+    use crepuscular::cutout::{AlphaMask, MaskFilter, Wrap};
     let Some(device) = device("the alpha-cut raster parity test") else {
         return;
     };
@@ -1500,35 +1502,73 @@ fn alpha_cut_triangles_match_the_cpu_rasterizer() {
         })
         .collect();
     let checker: Vec<f32> = (0..4).map(|k| ((k % 2 + k / 2) % 2) as f32).collect();
-    let masks = [AlphaMask {
-        width: 2,
-        height: 2,
-        alpha: std::borrow::Cow::Borrowed(&checker),
-        threshold: 0.5,
-    }];
-    let triangle_masks = vec![0u32; flat.triangles.len()];
+    let uneven = [0.0, 1.0, 0.3, 1.0, 0.8, 0.0];
+    let sampled = |wrap: [Wrap; 2], filter| AlphaMask {
+        wrap,
+        filter,
+        ..AlphaMask::repeating(3, 2, std::borrow::Cow::Borrowed(&uneven), 0.5)
+    };
+    let checkers = [AlphaMask::repeating(
+        2,
+        2,
+        std::borrow::Cow::Borrowed(&checker),
+        0.5,
+    )];
+    let sampling = [
+        sampled([Wrap::Repeat; 2], MaskFilter::Linear),
+        sampled([Wrap::Extend; 2], MaskFilter::Linear),
+        sampled([Wrap::Mirror; 2], MaskFilter::Linear),
+        AlphaMask {
+            border: 1.0,
+            ..sampled([Wrap::Clip; 2], MaskFilter::Linear)
+        },
+        sampled([Wrap::Mirror, Wrap::Clip], MaskFilter::Closest),
+        sampled([Wrap::Repeat, Wrap::Extend], MaskFilter::Closest),
+    ];
+    for (masks, kind) in [
+        (&checkers[..], "checker"),
+        (&sampling[..], "wrap and filter"),
+    ] {
+        alpha_cuts_match(&device, &scene, &flat, &uvs, masks, kind);
+    }
+}
+
+/// [`alpha_cut_triangles_match_the_cpu_rasterizer`] for one set of masks, which the
+/// triangles take in turn.
+fn alpha_cuts_match(
+    device: &Arc<Device>,
+    scene: &crepuscular::scene::Scene,
+    flat: &FlatGeometry,
+    uvs: &[[f32; 2]],
+    masks: &[crepuscular::cutout::AlphaMask<'_>],
+    kind: &str,
+) {
+    use crepuscular::cutout::Cutouts;
+    let triangle_masks: Vec<u32> = (0..flat.triangles.len())
+        .map(|k| (k % masks.len()) as u32)
+        .collect();
     let geometry = crepuscular::render::Geometry {
         cutouts: Some(Cutouts {
-            uvs: &uvs,
+            uvs,
             triangle_masks: &triangle_masks,
-            masks: &masks,
+            masks,
         }),
         ..flat.view()
     };
     let camera = CameraModel::new(&scene.camera);
-    let shadow = ShadowMap::of_scene_geometry(&scene, &camera, &flat).unwrap();
+    let shadow = ShadowMap::of_scene_geometry(scene, &camera, flat).unwrap();
     let map_desc = crepuscular::raster::RasterDesc::orthographic(shadow.size, shadow.size);
     let mut orthographic = scene.clone();
     orthographic.camera.projection = Projection::orthographic(30.0);
     let mut targets = vec![("shadow map", shadow.texel_from_world, map_desc, true)];
-    for (kind, scene) in [("pinhole", &scene), ("orthographic", &orthographic)] {
+    for (projection, scene) in [("pinhole", scene), ("orthographic", &orthographic)] {
         let (pixel_from_world, desc) = camera_raster(&CameraModel::new(&scene.camera), 1);
-        targets.push((kind, pixel_from_world, desc, false));
+        targets.push((projection, pixel_from_world, desc, false));
     }
     for (label, pixel_from_world, desc, ids) in targets {
         let rasterizer = match ids {
-            true => gpu::raster::GpuRasterizer::shadow_map(&device),
-            false => gpu::raster::GpuRasterizer::camera_depth(&device),
+            true => gpu::raster::GpuRasterizer::shadow_map(device),
+            false => gpu::raster::GpuRasterizer::camera_depth(device),
         };
         let cpu = rasterize(&geometry, &pixel_from_world, &desc).unwrap();
         let gpu = rasterizer
@@ -1537,12 +1577,18 @@ fn alpha_cut_triangles_match_the_cpu_rasterizer() {
         let opaque = rasterize(&flat.view(), &pixel_from_world, &desc).unwrap();
         let (cut_away, _) = coverage_mismatches(&cpu, &opaque);
         let (coverage, id_errors) = coverage_mismatches(&gpu, &cpu);
-        println!("{label}: the checker removes {cut_away:.3}; coverage {coverage:.2e}, ids {id_errors:.2e}");
+        println!("{kind}, {label}: the masks remove {cut_away:.3}; coverage {coverage:.2e}, ids {id_errors:.2e}");
         assert!(
             cut_away > 0.05,
-            "{label}: the mask cut nothing ({cut_away})"
+            "{kind}, {label}: the masks cut nothing ({cut_away})"
         );
-        assert!(coverage <= 1e-4, "{label}: coverage differs on {coverage}");
-        assert!(id_errors <= 1e-4, "{label}: ids differ on {id_errors}");
+        assert!(
+            coverage <= 1e-4,
+            "{kind}, {label}: coverage differs on {coverage}"
+        );
+        assert!(
+            id_errors <= 1e-4,
+            "{kind}, {label}: ids differ on {id_errors}"
+        );
     }
 }

@@ -93,6 +93,17 @@ fn render_json<'py>(
     layers_to_py(py, layers)
 }
 
+/// An alpha mask as `render_arrays` takes it: its alpha, threshold, wrap along u and v,
+/// filter and border alpha.
+type MaskArgs<'py> = (PyReadonlyArray2<'py, f32>, f32, String, String, String, f32);
+
+/// The value of a setting that the scene description spells `name` (`"clip"`), for
+/// `field`.
+fn named_value<T: serde::de::DeserializeOwned>(field: &str, name: &str) -> crepuscular::Result<T> {
+    serde_json::from_value(serde_json::Value::String(name.to_owned()))
+        .map_err(|error| Error::invalid(field, error.to_string()))
+}
+
 /// Renders borrowed geometry with the camera, sun, medium and render settings given as JSON
 /// objects (the `camera`, `sun`, `medium` and `render` members of a scene description).
 ///
@@ -124,7 +135,7 @@ fn render_arrays<'py>(
     origin: Option<[f64; 3]>,
     uvs: Option<PyReadonlyArray2<'py, f32>>,
     triangle_masks: Option<PyReadonlyArray1<'py, u32>>,
-    masks: Option<Vec<(PyReadonlyArray2<'py, f32>, f32)>>,
+    masks: Option<Vec<MaskArgs<'py>>>,
     triangle_visibility: Option<PyReadonlyArray1<'py, u8>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let alpha_masks = masks
@@ -132,13 +143,19 @@ fn render_arrays<'py>(
         .unwrap_or_default()
         .iter()
         .enumerate()
-        .map(|(k, (alpha, threshold))| {
+        .map(|(k, (alpha, threshold, wrap_u, wrap_v, filter, border))| {
             let shape = alpha.shape();
             Ok(AlphaMask {
                 width: shape[1] as u32,
                 height: shape[0] as u32,
                 alpha: std::borrow::Cow::Borrowed(values_2d(&format!("masks[{k}]"), alpha)?),
                 threshold: *threshold,
+                wrap: [
+                    named_value(&format!("masks[{k}].wrap"), wrap_u)?,
+                    named_value(&format!("masks[{k}].wrap"), wrap_v)?,
+                ],
+                filter: named_value(&format!("masks[{k}].filter"), filter)?,
+                border: *border,
             })
         })
         .collect::<crepuscular::Result<Vec<_>>>()

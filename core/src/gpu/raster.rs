@@ -308,16 +308,24 @@ impl GpuRasterizer {
         })?;
         let cutouts = geometry.cutouts.as_ref().filter(|c| c.cuts_any());
         // The masks' table and their texels, one after another.
-        let (mask_table, texels): (Vec<[u32; 4]>, Vec<f32>) = match cutouts {
+        // Six words a mask, as `raster_cut.glsl`'s `Mask`.
+        let (mask_table, texels): (Vec<u32>, Vec<f32>) = match cutouts {
             None => (Vec::new(), Vec::new()),
             Some(cutouts) => {
-                let mut table = Vec::with_capacity(cutouts.masks.len());
+                let mut table = Vec::with_capacity(6 * cutouts.masks.len());
                 let mut texels = Vec::new();
                 for mask in cutouts.masks {
                     let offset = u32::try_from(texels.len()).map_err(|_| {
                         GpuError::Unsupported("alpha masks of more than 2³² texels".to_owned())
                     })?;
-                    table.push([offset, mask.width, mask.height, mask.threshold.to_bits()]);
+                    table.extend([
+                        offset,
+                        mask.width,
+                        mask.height,
+                        mask.threshold.to_bits(),
+                        mask.shader_sampling(),
+                        mask.border.to_bits(),
+                    ]);
                     texels.extend_from_slice(&mask.alpha);
                 }
                 (table, texels)

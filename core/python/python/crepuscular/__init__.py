@@ -66,6 +66,8 @@ __all__ = [
     "ExrError",
     "InvalidInputError",
     "Layers",
+    "MaskFilter",
+    "MaskWrap",
     "ProgressCallback",
     "SceneLike",
     "StyleLike",
@@ -197,19 +199,34 @@ def render(
     return Layers(*raw)
 
 
+#: How an `AlphaMask` is read past its edges, as Blender's Image Texture extension: it
+#: tiles, its edge texels continue ("extend"; USD's "clamp"), it tiles flipped every other
+#: copy, or it is empty outside ("clip"; USD's "black").
+MaskWrap: TypeAlias = Literal["repeat", "extend", "mirror", "clip"]
+#: How an `AlphaMask` is filtered: bilinearly between texel centres, or the texel a point
+#: lies in (Blender's Closest interpolation).
+MaskFilter: TypeAlias = Literal["linear", "closest"]
+
+
 @dataclass(frozen=True)
 class AlphaMask:
     """An alpha texture that cuts the triangles `render_arrays` assigns it (leaf cards,
-    fences), as a renderer's alpha clip does: where its alpha, filtered bilinearly at a
-    sample's texture coordinates, is below `threshold`, the triangle is empty there, to the
-    sun's shadow map and to the camera's depth alike.
+    fences), as a renderer's alpha clip does: where its alpha, filtered at a sample's
+    texture coordinates, is below `threshold`, the triangle is empty there, to the sun's
+    shadow map and to the camera's depth alike.
 
     `alpha` is (height, width); row 0 holds v = 0, the bottom of the image (the order of
-    Blender's `Image.pixels` and of OpenGL textures), and the texture repeats in u and v.
+    Blender's `Image.pixels` and of OpenGL textures). `wrap` says how it is read past its
+    edges, one mode for both axes or a (u, v) pair; `filter` how it is filtered; `border`
+    the alpha read past a clipped edge (1 where the alpha is inverted, as a Mix Shader's
+    factor towards a Transparent BSDF is).
     """
 
     alpha: npt.ArrayLike
     threshold: float = 0.5
+    wrap: MaskWrap | tuple[MaskWrap, MaskWrap] = "repeat"
+    filter: MaskFilter = "linear"
+    border: float = 0.0
 
 
 def _alpha_mask(mask: object, index: int) -> AlphaMask:
@@ -277,7 +294,12 @@ def render_arrays(
             "uvs": _convert.uv_rows(uvs, len(position_rows)),
             "triangle_masks": _convert.triangle_masks(triangle_masks, len(triangle_rows)),
             "masks": [
-                (_convert.alpha_mask(_alpha_mask(mask, k).alpha, k), float(mask.threshold))
+                (
+                    _convert.alpha_mask(_alpha_mask(mask, k).alpha, k),
+                    float(mask.threshold),
+                    *_convert.mask_sampling(mask.wrap, mask.filter, k),
+                    float(mask.border),
+                )
                 for k, mask in enumerate(masks)
             ],
         }

@@ -217,6 +217,31 @@ def alpha_mask(value: npt.ArrayLike, index: int) -> npt.NDArray[np.float32]:
     return _contiguous(array, np.float32)
 
 
+_MASK_WRAPS = ("repeat", "extend", "mirror", "clip")
+_MASK_FILTERS = ("linear", "closest")
+
+
+def mask_sampling(wrap: object, filter_: object, index: int) -> tuple[str, str, str]:
+    """An alpha mask's wrap along u and v, and its filter, each checked against the names
+    the core reads."""
+    axes = (wrap, wrap) if isinstance(wrap, str) else wrap
+    if not (
+        isinstance(axes, tuple | list)
+        and len(axes) == 2
+        and all(axis in _MASK_WRAPS for axis in axes)
+    ):
+        raise invalid(
+            f"masks[{index}].wrap",
+            f"must be one of {', '.join(_MASK_WRAPS)} or a (u, v) pair of them, got {wrap!r}",
+        )
+    if filter_ not in _MASK_FILTERS:
+        raise invalid(
+            f"masks[{index}].filter",
+            f"must be one of {', '.join(_MASK_FILTERS)}, got {filter_!r}",
+        )
+    return str(axes[0]), str(axes[1]), str(filter_)
+
+
 def point(value: npt.ArrayLike, name: str) -> tuple[float, float, float]:
     """Three coordinates for `name`, as float64; the core checks that they are finite."""
     array = np.asarray(value)

@@ -58,7 +58,7 @@ def render_arrays(
     origin: tuple[float, float, float] | None = None,
     uvs: _Float32Array | None = None,
     triangle_masks: _UInt32Array | None = None,
-    masks: list[tuple[_Float32Array, float]] | None = None,
+    masks: list[tuple[_Float32Array, float, str, str, str, float]] | None = None,
     triangle_visibility: npt.NDArray[np.uint8] | None = None,
 ) -> _RawLayers: ...
 def normalize_scene_json(
