@@ -9,7 +9,9 @@ whose factor is an Image Texture's Alpha (or Color). A constant Alpha or factor,
 Transparent BSDF alone, is one alpha everywhere, clipped as masks are; a material with a
 Volume shader and no Surface one is alpha 0, as Cycles draws no surface there. The texture's
 coordinates are its UV Map node's map, or the mesh's default (active render) map when
-nothing feeds its Vector. Links are followed through reroutes, muted nodes and node groups.
+nothing feeds its Vector, and its extension (Repeat, Extend, Mirror or Clip) and Closest
+interpolation read the mask as Cycles reads the image. Links are followed through reroutes,
+muted nodes and node groups.
 
 The core clips at alpha 0.5, where Cycles lets each shadow ray through by the alpha: the
 same for the nearly binary masks of cutouts, and within their filtered edges otherwise.
@@ -31,6 +33,8 @@ from . import node_links
 LUMINANCE = node_links.LUMINANCE.astype(np.float32)
 #: Where the core cuts: alpha below this lets light and sight through.
 THRESHOLD = 0.5
+#: The core's wrap for each Image Texture extension.
+_WRAPS = {"REPEAT": "repeat", "EXTEND": "extend", "MIRROR": "mirror", "CLIP": "clip"}
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,12 @@ class MaskSource:
     invert: bool
     #: The alpha of a material transparent alike everywhere (no image), else None.
     constant: float | None = None
+    #: How the image is read past its edges (`crepuscular.MaskWrap`), from the Image
+    #: Texture's extension.
+    wrap: str = "repeat"
+    #: "closest" for the Image Texture's Closest interpolation, else "linear" (Cubic and
+    #: Smart, whose smoother alpha crosses the cut within a texel of the linear one, too).
+    filter: str = "linear"
 
 
 def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
@@ -154,7 +164,14 @@ def _image_source(
                 f"{where}: image '{node.image.name}' is mapped by "
                 f"'{mapping.name}', not a UV map; it casts as opaque"
             )
-    return MaskSource(node.image.name_full, uv_map, channel, invert), None
+    return MaskSource(
+        node.image.name_full,
+        uv_map,
+        channel,
+        invert,
+        wrap=_WRAPS[node.extension],
+        filter="closest" if node.interpolation == "Closest" else "linear",
+    ), None
 
 
 def mask_alpha(source: MaskSource) -> np.ndarray:
@@ -204,5 +221,12 @@ class MaskTable:
             alpha = self.kept.get(source)
             if alpha is None:
                 alpha = self.kept[source] = mask_alpha(source)
-            masks.append(crepuscular.AlphaMask(alpha, THRESHOLD))
+            # Clipped, Cycles reads the image as 0 past its edges: an alpha of 0, or of 1
+            # where the value is a Mix Shader's factor towards a Transparent BSDF.
+            border = 1.0 if source.invert else 0.0
+            masks.append(
+                crepuscular.AlphaMask(
+                    alpha, THRESHOLD, wrap=source.wrap, filter=source.filter, border=border
+                )
+            )
         return masks

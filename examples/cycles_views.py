@@ -22,8 +22,9 @@ installed into a temporary Blender user folder, as the tests install it. Fog is
 grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, and the
 extension then has crepuscular scatter once per channel value. `--cutouts` adds one to three
 cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
-Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF), which crepuscular reads as
-alpha masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
+Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF either side; repeating or
+not, read with any extension and Linear or Closest), which crepuscular reads as alpha
+masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
 hair curves object of 10 to 40 black strands over the box, which the extension draws as ribbons,
 and `--points` a geometry-nodes point cloud of 20 to 300 black points of random radii over
 and in the box, which it draws as spheres (`scene.json` carries both as meshes).
@@ -167,8 +168,14 @@ def add_cut_cards(
         rgba[..., 3] = alpha
         image.pixels.foreach_set(rgba.ravel())
         image.pack()
-        material = blender_scenes.cutout_material(image, rng.choice(["principled", "mix"]))
-        blender_scenes.add_card(scene, f"card_{index}", corners, material, rng.uniform(1, 3))
+        kind = rng.choice(["principled", "mix", "inverted"])
+        material = blender_scenes.cutout_material(image, kind)
+        texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
+        texture.extension = rng.choice(["REPEAT", "REPEAT", "EXTEND", "CLIP", "MIRROR"])
+        texture.interpolation = rng.choice(["Linear", "Linear", "Linear", "Closest"])
+        start = rng.choice([0.0, rng.uniform(-1.0, 0.0)])
+        repeats = rng.uniform(1, 3)
+        blender_scenes.add_card(scene, f"card_{index}", corners, material, repeats, start)
     return count
 
 
@@ -384,9 +391,13 @@ def scene_description(inputs: dict, out: Path) -> dict:
             mesh["seen_by_camera"] = False
         if mask >= 0:
             mesh["uvs"] = inputs["uvs"][used].tolist()
+            alpha_mask = inputs["masks"][mask]
             mesh["alpha_mask"] = {
                 "image": f"mask_{mask}.exr",
-                "threshold": float(inputs["masks"][mask].threshold),
+                "threshold": float(alpha_mask.threshold),
+                "wrap": alpha_mask.wrap,
+                "filter": alpha_mask.filter,
+                "border": float(alpha_mask.border),
             }
         meshes.append(mesh)
     description = {

@@ -88,6 +88,69 @@ def test_a_textured_opacity_cuts_the_card_as_its_solid_parts(
         assert _mean_relative(getattr(cut, name), getattr(strips, name)) < 1e-4, name
 
 
+#: Solid but for its first column, in four equal rows: filtered, it crosses 0.5 at s = 1/4
+#: and, where it repeats, at s = 1.
+FIRST_EMPTY = np.tile(np.array([[0, 1, 1, 1]], dtype=np.float32), (4, 1))
+
+
+@pytest.mark.parametrize(
+    ("wrap_s", "inputs", "solid_s"),
+    [
+        ("repeat", {}, [(-0.75, 0.0), (0.25, 1.0), (1.25, 2.0)]),
+        ("clamp", {}, [(0.25, 2.0)]),
+        ("mirror", {}, [(-1.0, -0.25), (0.25, 1.75)]),
+        ("black", {}, [(0.25, 1.0)]),
+        # USD's fallback for a file without wrap metadata (none of ours has any): black.
+        ("useMetadata", {}, [(0.25, 1.0)]),
+        (None, {}, [(0.25, 1.0)]),
+        # Inverted by scale and bias: past a black edge it reads 0 · -1 + 1, solid.
+        ("black", {"scale": (-1.0,) * 4, "bias": (1.0,) * 4}, [(-1.0, 0.25), (1.0, 2.0)]),
+        # A wrap USD has no such mode: named, and the card casts whole.
+        ("clampToEdge", {}, [(-1.0, 2.0)]),
+    ],
+)
+def test_each_wrap_mode_cuts_past_the_texture_as_usd_reads_it(
+    tmp_path: Path, wrap_s: str | None, inputs: dict[str, Any], solid_s: list[tuple[float, float]]
+) -> None:
+    """A card whose s runs from -1 to 2 across it (t from 1/4 to 3/4, inside the texture),
+    cut by `FIRST_EMPTY` read past its edges as `wrapS` says: the card's parts where the
+    read opacity reaches the cut. Left to the file (`useMetadata`, or nothing authored),
+    the texture reads black, and a note says that Blender's import repeats it."""
+    stage = _stage(tmp_path, "wrapped")
+    card = _quad(stage, "/World/Card", -2, 2)
+    points = np.array(card.GetPointsAttr().Get())
+    st = np.c_[-1 + 3 * (points[:, 0] + 2) / 4, 0.25 + 0.5 * (points[:, 2] + 2) / 4]
+    UsdGeom.PrimvarsAPI(card).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
+    ).Set(Vt.Vec2fArray.FromNumpy(st.astype(np.float32)))
+    file = write_alpha_png(tmp_path / "first_empty.png", FIRST_EMPTY)
+    material = cut_material(stage, "/World/Looks/Leaf", file, wrap=None)
+    texture = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Alpha"))
+    texture.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("repeat")
+    if wrap_s is not None:
+        texture.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(wrap_s)
+    for name, value in inputs.items():
+        texture.CreateInput(name, Sdf.ValueTypeNames.Float4).Set(value)
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    notes = frame.geometry.notes
+    expected_note = {
+        "useMetadata": "Blender's USD import repeats it",
+        None: "Blender's USD import repeats it",
+        "clampToEdge": "wrap 'clampToEdge' is none of",
+    }.get(wrap_s)
+    assert len(notes) == (expected_note is not None), notes
+    if expected_note is not None:
+        assert expected_note in notes[0], notes
+    cut = crepuscular.render_arrays(**frame.render_kwargs())
+    parts = _stage(tmp_path, "parts")
+    for k, (s0, s1) in enumerate(solid_s):
+        _quad(parts, f"/World/Part{k}", -2 + 4 * (s0 + 1) / 3, -2 + 4 * (s1 + 1) / 3)
+    expected = _render(parts)
+    for name in ("volume", "visibility", "depth"):
+        assert _mean_relative(getattr(cut, name), getattr(expected, name)) < 1e-4, name
+
+
 def test_rows_run_from_the_image_top_and_an_exr_reads_the_same(tmp_path: Path) -> None:
     """A texture solid in its bottom row (v near 0, the card's -z edge) cuts the card to
     its -z half, from a PNG and from an EXR alike."""
@@ -214,7 +277,7 @@ def _interface_material(stage: Usd.Stage, path: str, file: str) -> UsdShade.Mate
     """`cut_material` as material libraries author it (and Pixar's UsdPreviewSurface
     tutorial): the texture and its primvar reader inside a NodeGraph whose output feeds the
     opacity, the file, the primvar's name and the threshold given by the material's
-    interface inputs."""
+    interface inputs (its wrap too)."""
     material = UsdShade.Material.Define(stage, path)
     surface = UsdShade.Shader.Define(stage, f"{path}/Surface")
     surface.CreateIdAttr("UsdPreviewSurface")
@@ -228,10 +291,15 @@ def _interface_material(stage: Usd.Stage, path: str, file: str) -> UsdShade.Mate
         "file": (Sdf.ValueTypeNames.Asset, file),
         "frame:stPrimvarName": (Sdf.ValueTypeNames.Token, "st"),
         "cut": (Sdf.ValueTypeNames.Float, 0.5),
+        "wrap": (Sdf.ValueTypeNames.Token, "repeat"),
     }
     for name, (kind, value) in interface.items():
         assert material.CreateInput(name, kind).Set(value)
     texture.CreateInput("file", Sdf.ValueTypeNames.Asset).ConnectToSource(material.GetInput("file"))
+    for name in ("wrapS", "wrapT"):
+        texture.CreateInput(name, Sdf.ValueTypeNames.Token).ConnectToSource(
+            material.GetInput("wrap")
+        )
     reader.CreateInput("varname", Sdf.ValueTypeNames.Token).ConnectToSource(
         material.GetInput("frame:stPrimvarName")
     )
@@ -248,7 +316,7 @@ def _interface_material(stage: Usd.Stage, path: str, file: str) -> UsdShade.Mate
 
 
 def test_a_node_graph_and_interface_inputs_cut_as_the_plain_material(tmp_path: Path) -> None:
-    """The texture behind a NodeGraph, its file, primvar name and threshold on the
+    """The texture behind a NodeGraph, its file, primvar name, threshold and wrap on the
     material's interface: the card cuts exactly as with `cut_material` (before, it cast
     as opaque with a note). A constant opacity on the interface is one value everywhere."""
     file = write_alpha_png(tmp_path / "stripes.png", STRIPES)

@@ -220,7 +220,9 @@ def write_alpha_png(path: Path, alpha: np.ndarray) -> str:
 
 def cut_material(stage: Usd.Stage, path: str, file: str, **inputs: Any) -> UsdShade.Material:
     """A material whose UsdPreviewSurface takes its opacity from a UsdUVTexture of `file`
-    (its "a" output, or `channel`), read at the "st" primvar, cut at 0.5."""
+    (its "a" output, or `channel`), read at the "st" primvar, cut at 0.5, and repeating
+    (`wrap` for both axes, as Blender's USD export authors them; None authors none)."""
+    wrap = inputs.pop("wrap", "repeat")
     material = UsdShade.Material.Define(stage, path)
     surface = UsdShade.Shader.Define(stage, f"{path}/Surface")
     surface.CreateIdAttr("UsdPreviewSurface")
@@ -228,6 +230,9 @@ def cut_material(stage: Usd.Stage, path: str, file: str, **inputs: Any) -> UsdSh
     texture = UsdShade.Shader.Define(stage, f"{path}/Alpha")
     texture.CreateIdAttr("UsdUVTexture")
     texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    if wrap is not None:
+        for name in ("wrapS", "wrapT"):
+            texture.CreateInput(name, Sdf.ValueTypeNames.Token).Set(wrap)
     texture.CreateOutput(inputs.pop("channel", "a"), Sdf.ValueTypeNames.Float)
     reader = UsdShade.Shader.Define(stage, f"{path}/St")
     reader.CreateIdAttr("UsdPrimvarReader_float2")

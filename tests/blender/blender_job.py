@@ -180,6 +180,48 @@ def job_cutout_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "opaque.exr")) == {"FINISHED"}
 
 
+def job_extension_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box under a roof of five cards whose u runs from -0.5 to
+    1.5, so that each reads its image past the edges as its Image Texture's extension says:
+    Clip (through a Principled BSDF's Alpha, and through a Mix Shader towards a Transparent
+    BSDF, whose clipped factor 0 is opaque), Extend and Mirror of the stripes image, and a
+    coarse image of scattered solid texels read with Closest interpolation. Cycles, our layers
+    (reference and default method), and our layers with every texture repeating and
+    linear, as they were read before extensions and interpolation were."""
+    scene = fog_scene(spec)
+    for name in ("roof_a", "roof_b"):
+        bpy.data.objects.remove(scene.objects[name])
+    stripes = blender_scenes.alpha_image("Stripes")
+    # Solid texels with no solid neighbour: linear filtering rounds each into a blob of 61%
+    # of its area, where Closest keeps the whole texel.
+    dots = bpy.data.images.new("Dots", 4, 4, alpha=True, float_buffer=True)
+    rgba = np.zeros((4, 4, 4), dtype=np.float32)
+    for row, column in ((0, 0), (1, 2), (2, 1), (3, 3)):
+        rgba[row, column, 3] = 1.0
+    dots.pixels.foreach_set(rgba.ravel())
+    dots.pack()
+    cards = [
+        ("clip", stripes, "principled", "CLIP", "Linear"),
+        ("clip_inverted", stripes, "inverted", "CLIP", "Linear"),
+        ("extend", stripes, "principled", "EXTEND", "Linear"),
+        ("mirror", stripes, "principled", "MIRROR", "Linear"),
+        ("closest", dots, "principled", "REPEAT", "Closest"),
+    ]
+    textures = []
+    for k, (name, image, kind, extension, interpolation) in enumerate(cards):
+        material = blender_scenes.cutout_material(image, kind)
+        texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
+        texture.extension, texture.interpolation = extension, interpolation
+        textures.append(texture)
+        x0, x1 = -6 + 2.2 * k, -6 + 2.2 * (k + 1)
+        corners = [(x0, -5, 6), (x1, -5, 6), (x1, 5, 6), (x0, 5, 6)]
+        blender_scenes.add_card(scene, name, corners, material, 1.5, start=-0.5)
+    _cycles_then_ours(scene, out)
+    for texture in textures:
+        texture.extension, texture.interpolation = "REPEAT", "Linear"
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "repeating.exr")) == {"FINISHED"}
+
+
 def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of hair strands (curves of radius 0.15,
     bending along y) instead of slats: Cycles, and our layers (reference and default
@@ -696,6 +738,7 @@ JOBS = {
     "fidelity": job_fidelity,
     "mapped_fidelity": job_mapped_fidelity,
     "cutout_fidelity": job_cutout_fidelity,
+    "extension_fidelity": job_extension_fidelity,
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
     "strand_gap_fidelity": job_strand_gap_fidelity,

@@ -461,8 +461,9 @@ def alpha_png(path: Path) -> Any:
 
 
 def cutout_material(image: Any, kind: str) -> Any:
-    """Black, cut by `image`'s alpha: into a Principled BSDF's Alpha, or as the factor of a
-    Mix Shader from a Transparent BSDF to it."""
+    """Black, cut by `image`'s alpha: into a Principled BSDF's Alpha ("principled"), as the
+    factor of a Mix Shader from a Transparent BSDF to it ("mix"), or from it to a
+    Transparent BSDF ("inverted", the alpha then being the transparency)."""
     material = black_material(0.0)
     material.name = f"Cutout {kind}"
     nodes, links = material.node_tree.nodes, material.node_tree.links
@@ -475,18 +476,24 @@ def cutout_material(image: Any, kind: str) -> Any:
         transparent = nodes.new("ShaderNodeBsdfTransparent")
         mix = nodes.new("ShaderNodeMixShader")
         links.new(texture.outputs["Alpha"], mix.inputs[0])
-        links.new(transparent.outputs[0], mix.inputs[1])
-        links.new(bsdf.outputs[0], mix.inputs[2])
+        shaders = [transparent.outputs[0], bsdf.outputs[0]]
+        if kind == "inverted":
+            shaders.reverse()
+        links.new(shaders[0], mix.inputs[1])
+        links.new(shaders[1], mix.inputs[2])
         links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
     return material
 
 
-def add_card(scene: Any, name: str, corners: Any, material: Any, repeats: float) -> Any:
-    """A quad with a UV map running 0 to `repeats` along its first edge, 0 to 1 along the
-    other."""
+def add_card(
+    scene: Any, name: str, corners: Any, material: Any, repeats: float, start: float = 0.0
+) -> Any:
+    """A quad with a UV map running `start` to `repeats` along its first edge, 0 to 1 along
+    the other."""
     card = add_quad(scene, name, corners, material)
     layer = card.data.uv_layers.new(name="UVMap")
-    for loop, uv in zip(card.data.loops, ((0, 0), (repeats, 0), (repeats, 1), (0, 1)), strict=True):
+    uvs = ((start, 0), (repeats, 0), (repeats, 1), (start, 1))
+    for loop, uv in zip(card.data.loops, uvs, strict=True):
         layer.uv[loop.index].vector = uv
     return card
 

@@ -493,7 +493,8 @@ def test_static_geometry_is_cached_and_invalidated(addon: ModuleType) -> None:
 def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     """A card whose material cuts by an image's alpha exports a vertex per triangle corner
     with the UV map its texture reads, a mask index per triangle and the image's alpha
-    (rows from the bottom); a Mix Shader towards a Transparent BSDF cuts by one minus the
+    (rows from the bottom), read past its edges and filtered as the texture's extension and
+    interpolation say; a Mix Shader towards a Transparent BSDF cuts by one minus the
     factor; other geometry keeps no mask; transparency of other kinds is named in a note."""
     scene = bpy.context.scene
     image = blender_scenes.alpha_image("Stripes", size=16)
@@ -540,6 +541,18 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     mixed.node_tree.links.new(first, mix.inputs[2])
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     np.testing.assert_array_equal(np.asarray(geometry.masks[0].alpha), 1.0 - pixels[..., 3])
+    assert (geometry.masks[0].wrap, geometry.masks[0].filter) == ("repeat", "linear")
+    # The texture's extension and interpolation; clipped, an inverted factor reads 1 past
+    # the image (Cycles reads the factor 0 there: the opaque first input).
+    mixed_texture = mixed.node_tree.nodes["Image Texture"]
+    for extension, wrap in (("EXTEND", "extend"), ("MIRROR", "mirror"), ("CLIP", "clip")):
+        mixed_texture.extension, mixed_texture.interpolation = extension, "Closest"
+        geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+        mask = geometry.masks[0]
+        assert (mask.wrap, mask.filter, mask.border) == (wrap, "closest", 1.0), extension
+    mixed_texture.interpolation = "Cubic"
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert geometry.masks[0].filter == "linear"
 
     # A mapping the export cannot follow, and a constant alpha: opaque, with a note.
     texture = material.node_tree.nodes["Image Texture"]

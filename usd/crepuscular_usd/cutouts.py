@@ -6,7 +6,10 @@ A mesh's material is its bound one for full rendering (`ComputeBoundMaterial`), 
 where `GeomSubset`s bind their own. The texture's coordinates are the primvar its
 `UsdPrimvarReader_float2` names, at any interpolation; its `scale` and `bias` apply, and a
 colour channel is decoded from sRGB where its `sourceColorSpace` says (or, on `auto`, an
-8-bit file implies). The cut is at `opacityThreshold` where that is above 0, else at 0.5: a
+8-bit file implies). Past the image's edges it is read as `wrapS` and `wrapT` say; where
+they are left to the file's metadata (`useMetadata`, the default), as black, USD's fallback
+(Blender's USD import repeats such a texture instead, and a note says so where the
+coordinates leave the image). The cut is at `opacityThreshold` where that is above 0, else at 0.5: a
 renderer lets a shadow ray through by the opacity itself, which for the nearly binary masks
 of cutouts is the same. Textures are PNG, JPEG, TGA, TIFF or BMP (read with Pillow) or EXR.
 
@@ -37,6 +40,8 @@ __all__ = ["MaskSource", "MaskTable", "face_masks"]
 #: The cut where a material sets no `opacityThreshold`.
 DEFAULT_THRESHOLD = 0.5
 _CHANNELS = {"r": 0, "g": 1, "b": 2, "a": 3}
+#: The core's wrap for each of `UsdUVTexture`'s wrap modes but `useMetadata`.
+_WRAPS = {"repeat": "repeat", "clamp": "extend", "mirror": "mirror", "black": "clip"}
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,11 @@ class MaskSource:
     primvar: str
     #: The opacity of a material opaque alike everywhere (no file), else None.
     constant: float | None = None
+    #: How the texture is read past its edges along s and t (`crepuscular.MaskWrap`).
+    wrap: tuple[str, str] = ("repeat", "repeat")
+    #: Whether some axis's wrap was left to the file (`useMetadata`, the default), which
+    #: reads black past the edges (USD's fallback, as no file's wrap metadata is read).
+    wrap_unauthored: bool = False
 
 
 def face_masks(prim: Usd.Prim, face_count: int, table: MaskTable) -> npt.NDArray[np.int64] | None:
@@ -117,12 +127,28 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         return None, (
             f"{where}: its opacity texture's scale or bias is not finite; it casts as opaque"
         )
+    wraps = [_value(texture.GetInput(name)) for name in ("wrapS", "wrapT")]
+    unknown = [str(wrap) for wrap in wraps if wrap not in (*_WRAPS, "useMetadata", None)]
+    if unknown:
+        return None, (
+            f"{where}: its opacity texture's wrap '{unknown[0]}' is none of "
+            f"{', '.join(_WRAPS)} or useMetadata; it casts as opaque"
+        )
+    wrap_s, wrap_t = (_WRAPS.get(str(wrap), "clip") for wrap in wraps)
     space = _value(texture.GetInput("sourceColorSpace")) or "auto"
     srgb = output != "a" and (
         space == "sRGB" or (space == "auto" and not asset.resolvedPath.lower().endswith(".exr"))
     )
     source_record = MaskSource(
-        asset.resolvedPath, output, float(scale), float(bias), srgb, cut, primvar
+        asset.resolvedPath,
+        output,
+        float(scale),
+        float(bias),
+        srgb,
+        cut,
+        primvar,
+        wrap=(wrap_s, wrap_t),
+        wrap_unauthored=any(wrap not in _WRAPS for wrap in wraps),
     )
     return source_record, None
 
@@ -281,7 +307,10 @@ class MaskTable:
                     )
                     alpha = np.ones((1, 1), dtype=np.float32)
                 self._alpha[source] = alpha
-            masks.append(crepuscular.AlphaMask(alpha, source.threshold))
+            # Past a black edge the texel reads 0, then is scaled and biased.
+            masks.append(
+                crepuscular.AlphaMask(alpha, source.threshold, wrap=source.wrap, border=source.bias)
+            )
         return masks
 
 

@@ -456,6 +456,15 @@ class GeometryCollector:
                     self._masks.notes.append(note)
                 masks[np.flatnonzero(rows)[~finite]] = -1
                 values = np.where(finite[:, None, None], values, 0.0)
+            if source.wrap_unauthored and ((values < 0.0) | (values > 1.0)).any():
+                note = (
+                    f"{prim.GetPath()}: texture {source.file} leaves its wrap to the file "
+                    "(wrapS or wrapT useMetadata, the default), so past its edges it reads "
+                    "black, USD's fallback, and cuts the mesh away there (Blender's USD "
+                    'import repeats it; author wrapS and wrapT "repeat" to tile it)'
+                )
+                if note not in self._masks.notes:
+                    self._masks.notes.append(note)
             uvs[rows] = values
         split = points[corner_points].reshape(-1, 3)
         triangles = np.arange(len(split), dtype=np.uint32).reshape(-1, 3)
