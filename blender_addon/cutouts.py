@@ -9,8 +9,9 @@ whose factor is an Image Texture's Alpha (or Color). A constant Alpha or factor,
 Transparent BSDF alone, is one alpha everywhere, clipped as masks are; a material with a
 Volume shader and no Surface one is alpha 0, as Cycles draws no surface there. The texture's
 coordinates are its UV Map node's map, or the mesh's default (active render) map when
-nothing feeds its Vector, and its extension (Repeat, Extend, Mirror or Clip) and Closest
-interpolation read the mask as Cycles reads the image. Links are followed through reroutes,
+nothing feeds its Vector, mapped by any Mapping nodes between (Point, Texture or Vector),
+and its extension (Repeat, Extend, Mirror or Clip) and Closest interpolation read the mask
+as Cycles reads the image. Links are followed through reroutes,
 muted nodes and node groups.
 
 The core clips at alpha 0.5, where Cycles lets each shadow ray through by the alpha: the
@@ -57,6 +58,10 @@ class MaskSource:
     #: "closest" for the Image Texture's Closest interpolation, else "linear" (Cubic and
     #: Smart, whose smoother alpha crosses the cut within a texel of the linear one, too).
     filter: str = "linear"
+    #: The Mapping nodes between the UV map and the texture, as the affine map of
+    #: (u, v) they make: (a, b, c, d, e, f) reads (a·u + b·v + c, d·u + e·v + f). None
+    #: where no node maps them.
+    uv_transform: tuple[float, ...] | None = None
 
 
 def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
@@ -153,7 +158,26 @@ def _image_source(
     channel = {"Alpha": "alpha", "Color": "luminance"}.get(source.socket.name)
     if channel is None:
         return None, f"{where}: its alpha comes from '{source.socket.name}'; it casts as opaque"
+    if node.projection != "FLAT":
+        return None, (
+            f"{where}: image '{node.image.name}' is projected {node.projection.lower()}, not "
+            "flat; it casts as opaque"
+        )
     vector = node_links.traced(node.inputs["Vector"], source.groups)
+    # Mapping nodes, outermost (nearest the texture) first: each maps what the next
+    # gives it.
+    mapped = np.eye(4)
+    while vector.is_linked and vector.node.bl_idname == "ShaderNodeMapping":
+        try:
+            mapped = mapped @ _mapping_matrix(vector.node, vector.groups, where)
+        except node_links.NodeLinkError as error:
+            return None, f"{error}; it casts as opaque"
+        vector = node_links.traced(vector.node.inputs["Vector"], vector.groups)
+        if not vector.is_linked:
+            return None, (
+                f"{where}: image '{node.image.name}' is mapped from no coordinates (its "
+                "Mapping node's Vector is unlinked); it casts as opaque"
+            )
     uv_map = ""
     if vector.is_linked:
         mapping = vector.node
@@ -164,14 +188,55 @@ def _image_source(
                 f"{where}: image '{node.image.name}' is mapped by "
                 f"'{mapping.name}', not a UV map; it casts as opaque"
             )
+    if not np.isfinite(mapped).all():
+        return None, (
+            f"{where}: image '{node.image.name}' is mapped by values that are not finite; it "
+            "casts as opaque"
+        )
+    # A UV map gives (u, v, 0): the map's columns u, v and its translation, rows x and y.
+    transform = None
+    if not np.array_equal(mapped, np.eye(4)):
+        transform = tuple(float(value) for value in mapped[:2][:, [0, 1, 3]].ravel())
     return MaskSource(
         node.image.name_full,
         uv_map,
         channel,
         invert,
-        wrap=_WRAPS[node.extension],
+        wrap=_WRAPS.get(node.extension, "repeat"),
         filter="closest" if node.interpolation == "Closest" else "linear",
+        uv_transform=transform,
     ), None
+
+
+def _mapping_matrix(
+    node: bpy.types.Node, groups: tuple[bpy.types.Node, ...], where: str
+) -> np.ndarray:
+    """The 4x4 affine map of a Mapping node, as Cycles applies it: Point scales, rotates
+    (Euler XYZ) and then moves; Texture undoes that (dividing by a zero scale gives 0);
+    Vector scales and rotates. Normal, which normalizes, is not affine: NodeLinkError."""
+    from mathutils import Euler
+
+    kind = node.vector_type
+    if kind == "NORMAL":
+        raise node_links.NodeLinkError(
+            f"{where}: Mapping node '{node.name}' maps normals, which is not affine"
+        )
+
+    def vector(name: str) -> np.ndarray:
+        return np.array(node_links.constant(node, name, groups, where)[:3], dtype=np.float64)
+
+    rotation = np.array(Euler(vector("Rotation"), "XYZ").to_matrix(), dtype=np.float64)
+    scale = vector("Scale")
+    matrix = np.eye(4)
+    if kind == "TEXTURE":
+        inverse_scale = np.divide(1.0, scale, out=np.zeros(3), where=scale != 0)
+        matrix[:3, :3] = inverse_scale[:, None] * rotation.T
+        matrix[:3, 3] = -matrix[:3, :3] @ vector("Location")
+    else:
+        matrix[:3, :3] = rotation * scale
+        if kind == "POINT":
+            matrix[:3, 3] = vector("Location")
+    return matrix
 
 
 def mask_alpha(source: MaskSource) -> np.ndarray:

@@ -678,7 +678,8 @@ def export_geometry(
                 triangle_masks.append(np.full(count * len(arrays.triangles), -1, np.int64))
             else:
                 per_slot = np.asarray(cut.masks, dtype=np.int64)
-                masks_here, uvs_here = per_slot[arrays.slots], arrays.uvs
+                masks_here = per_slot[arrays.slots]
+                uvs_here = _mapped_uvs(arrays.uvs, arrays.slots, cut.uv_transforms)
                 # NaN texture coordinates would fail the frame, naming no object: the
                 # triangles that read them cast as opaque instead, and are named.
                 finite = np.isfinite(uvs_here.reshape(-1, 3, 2)).all(axis=(1, 2))
@@ -747,6 +748,9 @@ class _SlotCuts:
 
     masks: tuple[int, ...]
     uv_maps: tuple[str, ...]
+    #: The affine map of the coordinates each slot's texture reads through Mapping nodes
+    #: (`MaskSource.uv_transform`), or None.
+    uv_transforms: tuple[tuple[float, ...] | None, ...]
 
 
 def _slot_cuts(obj: bpy.types.Object, table: MaskTable) -> _SlotCuts | None:
@@ -754,7 +758,25 @@ def _slot_cuts(obj: bpy.types.Object, table: MaskTable) -> _SlotCuts | None:
     found = [table.add(slot.material) for slot in obj.material_slots]
     if all(index < 0 for index, _ in found):
         return None
-    return _SlotCuts(tuple(i for i, _ in found), tuple(uv for _, uv in found))
+    transforms = tuple(table.sources[i].uv_transform if i >= 0 else None for i, _ in found)
+    return _SlotCuts(tuple(i for i, _ in found), tuple(uv for _, uv in found), transforms)
+
+
+def _mapped_uvs(
+    uvs: np.ndarray, slots: np.ndarray, transforms: tuple[tuple[float, ...] | None, ...]
+) -> np.ndarray:
+    """`uvs` (three rows a triangle) mapped per triangle by its slot's transform; `uvs`
+    itself, which a cache may hold, where no slot maps them."""
+    if all(transform is None for transform in transforms):
+        return uvs
+    mapped = uvs.astype(np.float64).reshape(-1, 3, 2)
+    for slot, transform in enumerate(transforms):
+        if transform is None:
+            continue
+        rows = slots == slot
+        matrix = np.array(transform, dtype=np.float64).reshape(2, 3)
+        mapped[rows] = mapped[rows] @ matrix[:, :2].T + matrix[:, 2]
+    return mapped.reshape(-1, 2)
 
 
 def _name_of(names: dict[str, int], object_id: int) -> str:

@@ -23,8 +23,9 @@ grey unless `--tinted`: Cycles colours a tinted fog's extinction per channel, an
 extension then has crepuscular scatter once per channel value. `--cutouts` adds one to three
 cards over the box cut by a random image's alpha (stripes, checks or round holes, through a
 Principled BSDF's Alpha or a Mix Shader with a Transparent BSDF either side; repeating or
-not, read with any extension and Linear or Closest), which crepuscular reads as alpha
-masks (`scene.json` carries them as `alpha_mask` images beside it). `--hair` adds a
+not, read with any extension and Linear or Closest, now and then through a Mapping node),
+which crepuscular reads as alpha masks (`scene.json` carries them as `alpha_mask` images
+beside it). `--hair` adds a
 hair curves object of 10 to 40 black strands over the box, which the extension draws as ribbons,
 and `--points` a geometry-nodes point cloud of 20 to 300 black points of random radii over
 and in the box, which it draws as spheres (`scene.json` carries both as meshes).
@@ -173,6 +174,12 @@ def add_cut_cards(
         texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
         texture.extension = rng.choice(["REPEAT", "REPEAT", "EXTEND", "CLIP", "MIRROR"])
         texture.interpolation = rng.choice(["Linear", "Linear", "Linear", "Closest"])
+        if rng.random() < 0.3:
+            location = (rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0.0)
+            rotation = (0.0, 0.0, rng.uniform(-math.pi, math.pi))
+            scale = (rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0), 1.0)
+            kind = rng.choice(["POINT", "TEXTURE"])
+            blender_scenes.map_texture(material, texture, [(kind, location, rotation, scale)])
         start = rng.choice([0.0, rng.uniform(-1.0, 0.0)])
         repeats = rng.uniform(1, 3)
         blender_scenes.add_card(scene, f"card_{index}", corners, material, repeats, start)

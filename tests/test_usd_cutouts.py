@@ -196,6 +196,68 @@ def test_a_subsets_material_cuts_its_faces_alone(tmp_path: Path) -> None:
     assert _mean_relative(cut.volume, _render(reference).volume) < 1e-4
 
 
+@pytest.mark.parametrize(
+    ("transforms", "parts"),
+    [
+        # s' = s/2 + 1/4 over the card: stripes [3/8, 4/8] and [5/8, 6/8] of the texture.
+        ([{"scale": (0.5, 1.0), "translation": (0.25, 0.0)}], [(-1, 0, -2, 2), (1, 2, -2, 2)]),
+        # A quarter turn: s' = 0.03 - t, so the stripes run across z.
+        (
+            [{"rotation": 90.0, "translation": (0.03, 0.0)}],
+            [
+                (-2, 2, -1.88, -1.38),
+                (-2, 2, -0.88, -0.38),
+                (-2, 2, 0.12, 0.62),
+                (-2, 2, 1.12, 1.62),
+            ],
+        ),
+        # Chained, the node nearest the texture last: a half turn after the first map,
+        # s' = -(s/2 + 1/4) + 1 = 3/4 - s/2, the same stripes.
+        (
+            [
+                {"rotation": 180.0, "translation": (1.0, 0.0)},
+                {"scale": (0.5, 1.0), "translation": (0.25, 0.0)},
+            ],
+            [(-2, -1, -2, 2), (0, 1, -2, 2)],
+        ),
+    ],
+)
+def test_transform_2d_nodes_map_the_coordinates(
+    tmp_path: Path, transforms: list[dict[str, Any]], parts: list[tuple[float, ...]]
+) -> None:
+    """`UsdTransform2d` nodes between the primvar reader and the texture (what Blender's
+    exporter writes for a Mapping node) scale, turn (counter-clockwise, in degrees) and
+    move the coordinates the texture reads: the card cuts as its parts where the mapped
+    stripes are solid."""
+    stage = _stage(tmp_path, "mapped")
+    card = _quad(stage, "/World/Card", -2, 2)
+    _card_uvs(card)
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
+    material = cut_material(stage, "/World/Looks/Leaf", file)
+    texture = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Alpha"))
+    reader = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/St"))
+    into = texture.GetInput("st")
+    for k, inputs in enumerate(transforms):
+        node = UsdShade.Shader.Define(stage, f"/World/Looks/Leaf/Map{k}")
+        node.CreateIdAttr("UsdTransform2d")
+        for name, value in inputs.items():
+            kind = Sdf.ValueTypeNames.Float if name == "rotation" else Sdf.ValueTypeNames.Float2
+            node.CreateInput(name, kind).Set(value)
+        assert into.ConnectToSource(node.ConnectableAPI(), "result")
+        into = node.CreateInput("in", Sdf.ValueTypeNames.Float2)
+    assert into.ConnectToSource(reader.ConnectableAPI(), "result")
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    assert frame.geometry.notes == []
+    cut = crepuscular.render_arrays(**frame.render_kwargs())
+    expected = _stage(tmp_path, "mapped_parts")
+    for k, (x0, x1, z0, z1) in enumerate(parts):
+        _quad(expected, f"/World/Part{k}", x0, x1, z0, z1)
+    for name in ("volume", "visibility", "depth"):
+        error = _mean_relative(getattr(cut, name), getattr(_render(expected), name))
+        assert error < 1e-4, (name, error)
+
+
 def test_unmappable_opacity_is_named_and_casts_as_opaque(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:

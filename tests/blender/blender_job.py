@@ -180,12 +180,24 @@ def job_cutout_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "opaque.exr")) == {"FINISHED"}
 
 
+#: The Mapping nodes of two of `job_extension_fidelity`'s cards, each a chain of (vector
+#: type, location, rotation, scale), the node nearest the texture first.
+MAPPINGS = {
+    "extend": [("TEXTURE", (0.2, -0.1, 0.0), (0.0, 0.0, 1.0), (0.8, 1.3, 1.0))],
+    "mirror": [
+        ("VECTOR", (0.0, 0.0, 0.0), (0.3, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        ("POINT", (0.1, -0.3, 0.0), (0.0, 0.0, -1.1), (1.7, 0.9, 1.0)),
+    ],
+}
+
+
 def job_extension_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of five cards whose u runs from -0.5 to
     1.5, so that each reads its image past the edges as its Image Texture's extension says:
     Clip (through a Principled BSDF's Alpha, and through a Mix Shader towards a Transparent
-    BSDF, whose clipped factor 0 is opaque), Extend and Mirror of the stripes image, and a
-    coarse image of scattered solid texels read with Closest interpolation. Cycles, our layers
+    BSDF, whose clipped factor 0 is opaque), Extend and Mirror of the stripes image (their
+    coordinates mapped by Mapping nodes, `MAPPINGS`), and a coarse image of scattered solid
+    texels read with Closest interpolation. Cycles, our layers
     (reference and default method), and our layers with every texture repeating and
     linear, as they were read before extensions and interpolation were."""
     scene = fog_scene(spec)
@@ -213,6 +225,8 @@ def job_extension_fidelity(spec: dict[str, Any], out: Path) -> None:
         texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
         texture.extension, texture.interpolation = extension, interpolation
         textures.append(texture)
+        if name in MAPPINGS:
+            blender_scenes.map_texture(material, texture, MAPPINGS[name])
         x0, x1 = -6 + 2.2 * k, -6 + 2.2 * (k + 1)
         corners = [(x0, -5, 6), (x1, -5, 6), (x1, 5, 6), (x0, 5, 6)]
         blender_scenes.add_card(scene, name, corners, material, 1.5, start=-0.5)
@@ -623,12 +637,17 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.2, location=(2.5, -1.0, 2.0))
     add_rigged_column(scene)
     # A card cut by a PNG's alpha: Blender's exporter writes a UsdPreviewSurface whose
-    # opacity is a UsdUVTexture's alpha.
+    # opacity is a UsdUVTexture's alpha, mirrored past its edges, whose coordinates a
+    # UsdTransform2d maps as the Mapping node does.
     leaf = blender_scenes.alpha_png(Path(spec["out"]) / "leaf.png")
     card = [(-8.5, -6, 7.2), (-5.2, -6, 7.2), (-5.2, 6, 7.2), (-8.5, 6, 7.2)]
-    blender_scenes.add_card(
-        scene, "leaf_card", card, blender_scenes.cutout_material(leaf, "principled"), 2.0
+    material = blender_scenes.cutout_material(leaf, "principled")
+    texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
+    texture.extension = "MIRROR"
+    blender_scenes.map_texture(
+        material, texture, [("POINT", (0.1, -0.2, 0.0), (0.0, 0.0, 0.4), (1.3, 0.8, 1.0))]
     )
+    blender_scenes.add_card(scene, "leaf_card", card, material, 2.0)
     # Hair strands across the slats' gaps, inside the fog, which the exporter writes as
     # BasisCurves with widths.
     y = np.linspace(-6, 6, 7)

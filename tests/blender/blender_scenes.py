@@ -498,6 +498,25 @@ def add_card(
     return card
 
 
+def map_texture(material: Any, texture: Any, chain: list[Any]) -> None:
+    """Maps `texture`'s coordinates (the default UV map, a Texture Coordinate node's UV)
+    through a chain of Mapping nodes. (Blender's USD exporter renames the default map's
+    primvar to "st", but not a UV Map node's reader, which then reads no primvar.)"""
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    uv = nodes.new("ShaderNodeTexCoord")
+    into = texture.inputs["Vector"]
+    for kind, location, rotation, scale in chain:
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.vector_type = kind
+        if kind != "VECTOR":
+            mapping.inputs["Location"].default_value = location
+        mapping.inputs["Rotation"].default_value = rotation
+        mapping.inputs["Scale"].default_value = scale
+        links.new(mapping.outputs["Vector"], into)
+        into = mapping.inputs["Vector"]
+    links.new(uv.outputs["UV"], into)
+
+
 #: Node properties that say what a node computes, copied when its graph is rebuilt.
 NODE_PROPERTIES = ("phase", "image", "interpolation", "extension", "projection", "uv_map")
 

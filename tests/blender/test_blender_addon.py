@@ -554,15 +554,42 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     assert geometry.masks[0].filter == "linear"
 
-    # A mapping the export cannot follow, and a constant alpha: opaque, with a note.
+    # A Mapping node between the UV map and the texture: the coordinates it gives.
     texture = material.node_tree.nodes["Image Texture"]
     mapping = nodes.new("ShaderNodeMapping")
+    mapping.inputs["Location"].default_value = (0.5, -1.0, 0.0)
+    mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.pi / 2)
+    mapping.inputs["Scale"].default_value = (2.0, 3.0, 1.0)
     links.new(mapping.outputs["Vector"], texture.inputs["Vector"])
+    links.new(uv_node.outputs["UV"], mapping.inputs["Vector"])
     card.data.materials[0] = material
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    leaf_uvs = xy * [1.5 / 2, 0.5]
+    # Point: scaled, turned a quarter about z, moved: (u, v) to (0.5 - 3v, 2u - 1).
+    expected = np.c_[0.5 - 3 * leaf_uvs[:, 1], 2 * leaf_uvs[:, 0] - 1]
+    np.testing.assert_allclose(geometry.uvs[corners], expected, atol=1e-5)
+    assert geometry.notes == []
+    # Texture undoes the Point mapping.
+    mapping.vector_type = "TEXTURE"
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    expected = np.c_[(leaf_uvs[:, 1] + 1) / 2, (0.5 - leaf_uvs[:, 0]) / 3]
+    np.testing.assert_allclose(geometry.uvs[corners], expected, atol=1e-5)
+
+    # Mappings the export cannot follow, and a constant alpha: opaque, with a note.
+    mapping.vector_type = "NORMAL"
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert geometry.uvs is None
+    assert "maps normals, which is not affine" in geometry.notes[0]
+    mapping.vector_type = "POINT"
+    links.remove(mapping.inputs["Vector"].links[0])
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     assert geometry.uvs is None
     assert len(geometry.notes) == 1
-    assert "mapped by 'Mapping'" in geometry.notes[0]
+    assert "mapped from no coordinates" in geometry.notes[0]
+    coordinates = nodes.new("ShaderNodeTexCoord")
+    links.new(coordinates.outputs["Object"], mapping.inputs["Vector"])
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert "mapped by 'Texture Coordinate', not a UV map" in geometry.notes[0]
     links.remove(nodes["Principled BSDF"].inputs["Alpha"].links[0])
     nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.5
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())

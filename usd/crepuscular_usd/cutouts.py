@@ -16,8 +16,9 @@ of cutouts is the same. Textures are PNG, JPEG, TGA, TIFF or BMP (read with Pill
 Inputs are read as USD's renderers resolve them: through NodeGraphs, and from the
 material's interface inputs they are connected to. A constant opacity is one value
 everywhere, cut the same way (below the cut, the surface neither casts nor hides the fog).
-Anything else that makes a surface transparent (another shader, UDIM tiles, a transformed
-texture coordinate) leaves it opaque, with a note that names it.
+Coordinates mapped by `UsdTransform2d` nodes (what Blender's exporter writes for a Mapping
+node) are mapped so too. Anything else that makes a surface transparent (another shader,
+UDIM tiles, coordinates computed otherwise) leaves it opaque, with a note that names it.
 """
 
 from __future__ import annotations
@@ -65,6 +66,10 @@ class MaskSource:
     #: Whether some axis's wrap was left to the file (`useMetadata`, the default), which
     #: reads black past the edges (USD's fallback, as no file's wrap metadata is read).
     wrap_unauthored: bool = False
+    #: The `UsdTransform2d` nodes between the primvar reader and the texture, as the
+    #: affine map of (s, t) they make: (a, b, c, d, e, f) reads (a·s + b·t + c,
+    #: d·s + e·t + f). None where none maps them.
+    uv_transform: tuple[float, ...] | None = None
 
 
 def face_masks(prim: Usd.Prim, face_count: int, table: MaskTable) -> npt.NDArray[np.int64] | None:
@@ -117,7 +122,7 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         return None, f"{where}: its opacity texture has no file or is tiled; it casts as opaque"
     if not asset.resolvedPath:
         return None, f"{where}: texture {asset.path} was not found; it casts as opaque"
-    primvar, note = _primvar(texture, where)
+    primvar, transform, note = _primvar(texture, where)
     if note is not None:
         return None, note
     channel = _CHANNELS[output]
@@ -149,6 +154,7 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         primvar,
         wrap=(wrap_s, wrap_t),
         wrap_unauthored=any(wrap not in _WRAPS for wrap in wraps),
+        uv_transform=transform,
     )
     return source_record, None
 
@@ -206,17 +212,61 @@ def _constant_source(
     return MaskSource("", "a", 1.0, 0.0, False, cut, "", constant=opacity), note
 
 
-def _primvar(texture: UsdShade.Shader, where: str) -> tuple[str, str | None]:
+def _primvar(
+    texture: UsdShade.Shader, where: str
+) -> tuple[str, tuple[float, ...] | None, str | None]:
+    """The primvar `texture` reads its coordinates from, through any `UsdTransform2d`
+    nodes, and the affine map those make (None for none); or a note where the
+    coordinates come from anything else."""
     produced = _source_output(texture.GetInput("st"))
+    mapped = np.eye(3)
+    while produced is not None and produced[0].GetIdAttr().Get() == "UsdTransform2d":
+        node = produced[0]
+        mapped = mapped @ _transform_2d(node)
+        if not np.isfinite(mapped).all():
+            return (
+                "",
+                None,
+                (
+                    f"{where}: {node.GetPath()} maps its texture coordinates by values that are "
+                    "not finite; it casts as opaque"
+                ),
+            )
+        produced = _source_output(node.GetInput("in"))
+    transform = None
+    if not np.array_equal(mapped, np.eye(3)):
+        transform = tuple(float(value) for value in mapped[:2].ravel())
     if produced is None:
-        return "", None
+        return "", transform, None
     reader, _ = produced
     if reader.GetIdAttr().Get() != "UsdPrimvarReader_float2":
-        return "", (
-            f"{where}: its texture coordinates come from {reader.GetPath()}, not a primvar "
-            "reader; it casts as opaque"
+        return (
+            "",
+            None,
+            (
+                f"{where}: its texture coordinates come from {reader.GetPath()}, not a primvar "
+                "reader; it casts as opaque"
+            ),
         )
-    return str(_value(reader.GetInput("varname")) or ""), None
+    return str(_value(reader.GetInput("varname")) or ""), transform, None
+
+
+def _transform_2d(node: UsdShade.Shader) -> npt.NDArray[np.float64]:
+    """A `UsdTransform2d` node's 3x3 affine map: it scales, rotates by `rotation` degrees
+    counter-clockwise, then translates."""
+    rotation = math.radians(float(_value(node.GetInput("rotation")) or 0.0))
+    scale = _value(node.GetInput("scale"))
+    translation = _value(node.GetInput("translation"))
+    scale = (1.0, 1.0) if scale is None else tuple(scale)
+    translation = (0.0, 0.0) if translation is None else tuple(translation)
+    cos, sin = math.cos(rotation), math.sin(rotation)
+    return np.array(
+        [
+            [cos * scale[0], -sin * scale[1], translation[0]],
+            [sin * scale[0], cos * scale[1], translation[1]],
+            [0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def _float4(shader: UsdShade.Shader, name: str, fallback: float) -> tuple[float, ...]:

@@ -456,6 +456,9 @@ class GeometryCollector:
                     self._masks.notes.append(note)
                 masks[np.flatnonzero(rows)[~finite]] = -1
                 values = np.where(finite[:, None, None], values, 0.0)
+            if source.uv_transform is not None:
+                matrix = np.array(source.uv_transform, dtype=np.float64).reshape(2, 3)
+                values = values @ matrix[:, :2].T + matrix[:, 2]
             if source.wrap_unauthored and ((values < 0.0) | (values > 1.0)).any():
                 note = (
                     f"{prim.GetPath()}: texture {source.file} leaves its wrap to the file "
