@@ -518,7 +518,15 @@ def map_texture(material: Any, texture: Any, chain: list[Any]) -> None:
 
 
 #: Node properties that say what a node computes, copied when its graph is rebuilt.
-NODE_PROPERTIES = ("phase", "image", "interpolation", "extension", "projection", "uv_map")
+NODE_PROPERTIES = (
+    "phase",
+    "image",
+    "interpolation",
+    "extension",
+    "projection",
+    "uv_map",
+    "vector_type",
+)
 
 
 def _socket(sockets: Any, identifier: str) -> Any:
