@@ -14,6 +14,10 @@ and its extension (Repeat, Extend, Mirror or Clip) and Closest interpolation rea
 as Cycles reads the image. Links are followed through reroutes,
 muted nodes and node groups.
 
+A Mix Shader whose factor is Light Path's Is Shadow Ray or Is Camera Ray shows each kind of
+ray one input: a Transparent BSDF there hides the surface from those rays only
+(`MaskSource.rays`, which the export turns into triangle visibility flags).
+
 The core clips at alpha 0.5, where Cycles lets each shadow ray through by the alpha: the
 same for the nearly binary masks of cutouts, and within their filtered edges otherwise.
 Any other use of transparency leaves the material opaque, and a note says which.
@@ -21,6 +25,7 @@ Any other use of transparency leaves the material opaque, and a note says which.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -62,6 +67,10 @@ class MaskSource:
     #: (u, v) they make: (a, b, c, d, e, f) reads (a·u + b·v + c, d·u + e·v + f). None
     #: where no node maps them.
     uv_transform: tuple[float, ...] | None = None
+    #: Which rays see the surface (`crepuscular.BLOCKS_SUN` | `SEEN_BY_CAMERA`): fewer
+    #: where a Mix Shader's factor is Light Path's Is Shadow Ray or Is Camera Ray and a
+    #: Transparent BSDF is what those rays see.
+    rays: int = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
 
 
 def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
@@ -84,6 +93,11 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
             f"{where}: only a volume shader: its faces neither cast nor hide the fog, and "
             "its volume is not rendered (the medium is the scene's Medium setting)"
         )
+    return _surface_mask(surface, where)
+
+
+def _surface_mask(surface: node_links.Traced, where: str) -> tuple[MaskSource | None, str | None]:
+    """`material_mask` of the shader `surface` (a linked shader socket)."""
     shader, groups = surface.node, surface.groups
     if shader.bl_idname == "ShaderNodeBsdfPrincipled":
         alpha = node_links.traced(shader.inputs["Alpha"], groups)
@@ -102,6 +116,8 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
         return _constant_source(1.0 - float(rgb @ LUMINANCE), where)
     if shader.bl_idname == "ShaderNodeMixShader":
         factor, first, second = (node_links.traced(socket, groups) for socket in shader.inputs[:3])
+        if factor.is_linked and factor.node.bl_idname == "ShaderNodeLightPath":
+            return _ray_split(factor.socket.name, first, second, where)
         transparent = [
             shaded.is_linked and shaded.node.bl_idname == "ShaderNodeBsdfTransparent"
             for shaded in (first, second)
@@ -118,6 +134,42 @@ def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | Non
         # the Transparent BSDF, and the transparency where the second is.
         return _image_source(factor, invert=transparent[1], where=where)
     return None, None
+
+
+def _ray_split(
+    output: str, first: node_links.Traced, second: node_links.Traced, where: str
+) -> tuple[MaskSource | None, str | None]:
+    """A Mix Shader whose factor is Light Path's `output`: Is Shadow Ray shows shadow rays
+    its second input and camera rays its first, Is Camera Ray the other way round. The
+    rays that see a Transparent BSDF (or any surface clipped away) pass; the others see
+    their input's own cut, or an opaque surface (an unlinked input, no closure)."""
+    sides = {
+        "Is Shadow Ray": (second, first),
+        "Is Camera Ray": (first, second),
+    }.get(output)
+    if sides is None:
+        return None, f"{where}: its mix factor is Light Path's '{output}'; it casts as opaque"
+    seen = {}
+    for flag, side in zip((crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA), sides, strict=True):
+        source, note = _surface_mask(side, where) if side.is_linked else (None, None)
+        if note is not None and source is None:
+            return None, note
+        clear = source is not None and source.constant is not None and source.constant < THRESHOLD
+        if not clear:
+            seen[flag] = source
+    if not seen:
+        return MaskSource("", "", "alpha", invert=False, constant=0.0), None
+    if len(seen) == 2:
+        sun, camera = seen.values()
+        if sun != camera:
+            return None, (
+                f"{where}: shadow and camera rays see different cutouts through Light Path; "
+                "it casts as opaque"
+            )
+        return sun, None
+    ((flag, source),) = seen.items()
+    opaque = MaskSource("", "", "alpha", invert=False, constant=1.0)
+    return dataclasses.replace(source or opaque, rays=flag), None
 
 
 def _saturated(value: float) -> float:

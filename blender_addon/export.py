@@ -669,6 +669,9 @@ def export_geometry(
         triangles.append((arrays.triangles[None] + offsets[:, None, None]).reshape(-1, 3))
         ids.append(np.full(count * len(arrays.triangles), object_id, dtype=np.uint32))
         own = flags if arrays.visibility is None else arrays.visibility & flags
+        if cut is not None and arrays.slots is not None and any(r != BOTH for r in cut.rays):
+            # Materials that Light Path shows to some rays only.
+            own = np.asarray(cut.rays, dtype=np.uint8)[arrays.slots] & own
         visibility.append(
             np.broadcast_to(own, (count, len(arrays.triangles))).reshape(-1).astype(np.uint8)
         )
@@ -751,6 +754,8 @@ class _SlotCuts:
     #: The affine map of the coordinates each slot's texture reads through Mapping nodes
     #: (`MaskSource.uv_transform`), or None.
     uv_transforms: tuple[tuple[float, ...] | None, ...]
+    #: Which rays see each slot's surface (`MaskSource.rays`).
+    rays: tuple[int, ...]
 
 
 def _slot_cuts(obj: bpy.types.Object, table: MaskTable) -> _SlotCuts | None:
@@ -758,8 +763,13 @@ def _slot_cuts(obj: bpy.types.Object, table: MaskTable) -> _SlotCuts | None:
     found = [table.add(slot.material) for slot in obj.material_slots]
     if all(index < 0 for index, _ in found):
         return None
-    transforms = tuple(table.sources[i].uv_transform if i >= 0 else None for i, _ in found)
-    return _SlotCuts(tuple(i for i, _ in found), tuple(uv for _, uv in found), transforms)
+    sources = [table.sources[i] if i >= 0 else None for i, _ in found]
+    return _SlotCuts(
+        tuple(i for i, _ in found),
+        tuple(uv for _, uv in found),
+        tuple(source.uv_transform if source else None for source in sources),
+        tuple(source.rays if source else BOTH for source in sources),
+    )
 
 
 def _mapped_uvs(

@@ -416,7 +416,10 @@ def job_visibility_fidelity(spec: dict[str, Any], out: Path) -> None:
     collection that excludes a slat; "included", one that includes only the other slat,
     an instanced copy of it (through its instancer) and the fog (Cycles lights no fog that
     the light's shadow linking leaves out); "wall", a card between the camera and the box
-    hidden from shadow rays; "ghost", a card over the box hidden from the camera."""
+    hidden from shadow rays; "ghost", a card over the box hidden from the camera; and
+    "ghost_light_path" and "wall_light_path", the same two the other way round (the card
+    hidden from shadow rays, the wall from the camera) by their materials
+    (`blender_scenes.light_path_material`) rather than their ray visibility."""
     scene = fog_scene(spec)
     sun = scene.objects["Sun"]
     settings = sun.data.crepuscular
@@ -465,6 +468,18 @@ def job_visibility_fidelity(spec: dict[str, Any], out: Path) -> None:
     )
     ghost.visible_camera = False
     both("ghost")
+    # The other way round, through their materials, as artists hide a surface from some
+    # rays (Light Path's Is Shadow Ray or Is Camera Ray into a Mix Shader towards a
+    # Transparent BSDF): the card over the box casts nothing, and the wall hides nothing
+    # but casts its shadow.
+    ghost.visible_camera = True
+    ghost.data.materials[0] = blender_scenes.light_path_material("Is Shadow Ray")
+    both("ghost_light_path")
+    bpy.data.objects.remove(ghost)
+    wall.hide_render = False
+    wall.visible_shadow = True
+    wall.data.materials[0] = blender_scenes.light_path_material("Is Camera Ray")
+    both("wall_light_path")
 
 
 def shaft_scene(spec: dict[str, Any]) -> Any:

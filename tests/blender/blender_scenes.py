@@ -219,6 +219,22 @@ def black_material(value: float = 0.0) -> Any:
     return material
 
 
+def light_path_material(output: str) -> Any:
+    """Black, but a Transparent BSDF to the rays Light Path's `output` ("Is Shadow Ray" or
+    "Is Camera Ray") flags: the factor of a Mix Shader from the black surface to it."""
+    material = black_material(0.0)
+    material.name = f"Black but to {output}"
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    light_path = nodes.new("ShaderNodeLightPath")
+    transparent = nodes.new("ShaderNodeBsdfTransparent")
+    mix = nodes.new("ShaderNodeMixShader")
+    links.new(light_path.outputs[output], mix.inputs[0])
+    links.new(nodes["Principled BSDF"].outputs[0], mix.inputs[1])
+    links.new(transparent.outputs[0], mix.inputs[2])
+    links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+    return material
+
+
 def add_quad(scene: Any, name: str, vertices: Any, material: Any = None) -> Any:
     import bpy
 

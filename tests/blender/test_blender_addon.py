@@ -618,6 +618,58 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     assert geometry.notes == []
 
 
+def test_light_path_materials_hide_a_surface_from_some_rays(addon: ModuleType) -> None:
+    """A Mix Shader whose factor is Light Path's Is Shadow Ray or Is Camera Ray, towards a
+    Transparent BSDF, shows the surface only to the other rays: its triangles' visibility
+    flags say which, and the seen side keeps its own cut. Other Light Path outputs, and
+    different cuts for the two kinds of ray, are named and cast as opaque."""
+    scene = bpy.context.scene
+    corners = [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)]
+    card = blender_scenes.add_card(scene, "Card", corners, None, 1.0)
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(5, 0, 0))
+
+    def exported(material: bpy.types.Material) -> tuple[Any, Any]:
+        card.data.materials.clear()
+        card.data.materials.append(material)
+        geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+        card_id = next(i for i, name in geometry.names.items() if name == "Card")
+        rows = geometry.object_ids == card_id
+        flags = None if geometry.visibility is None else geometry.visibility[rows]
+        return geometry, flags
+
+    _, flags = exported(blender_scenes.light_path_material("Is Shadow Ray"))
+    assert (flags == crepuscular.SEEN_BY_CAMERA).all()
+    geometry, flags = exported(blender_scenes.light_path_material("Is Camera Ray"))
+    assert (flags == crepuscular.BLOCKS_SUN).all()
+    assert geometry.notes == []
+    # The cube keeps both.
+    cube_id = next(i for i, name in geometry.names.items() if name == "Cube")
+    assert (geometry.visibility[geometry.object_ids == cube_id] == 3).all()
+    # A leaf the camera sees cut by its image, and shadow rays not at all.
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    leaf = blender_scenes.cutout_material(image, "principled")
+    nodes, links = leaf.node_tree.nodes, leaf.node_tree.links
+    light_path = nodes.new("ShaderNodeLightPath")
+    mix = nodes.new("ShaderNodeMixShader")
+    links.new(light_path.outputs["Is Shadow Ray"], mix.inputs[0])
+    links.new(nodes["Principled BSDF"].outputs[0], mix.inputs[1])
+    links.new(nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[2])
+    links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+    geometry, flags = exported(leaf)
+    assert (flags == crepuscular.SEEN_BY_CAMERA).all()
+    pixels = np.array(image.pixels[:], dtype=np.float32).reshape(16, 16, 4)
+    np.testing.assert_array_equal(np.asarray(geometry.masks[0].alpha), pixels[..., 3])
+    # Shadow rays see a plain black surface, the camera the leaf: cuts that differ.
+    links.new(nodes.new("ShaderNodeBsdfDiffuse").outputs[0], mix.inputs[2])
+    geometry, flags = exported(leaf)
+    assert flags is None or (flags == 3).all()
+    assert "see different cutouts through Light Path" in geometry.notes[0]
+    links.new(light_path.outputs["Is Diffuse Ray"], mix.inputs[0])
+    links.new(nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[2])
+    geometry, _ = exported(leaf)
+    assert "mix factor is Light Path's 'Is Diffuse Ray'" in geometry.notes[0]
+
+
 def test_cut_materials_inside_node_groups_export_their_masks(addon: ModuleType) -> None:
     """A leaf material as asset libraries wrap it: the Principled BSDF inside a node
     group whose Alpha input is exposed and fed by the Image Texture outside, through a
