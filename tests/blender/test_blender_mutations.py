@@ -1,7 +1,8 @@
 """A scene of every kind the add-on reads (a fog box, a roof, hair, a point cloud, a
 camera and a sun), mutated one thing at a time as artists' scenes go wrong: zero, NaN and
 huge transforms, NaN or negative shader inputs (the fog's, and a NaN alpha, mix factor or
-transparency on the roof's material, NaN texture coordinates on a cut card), emptied or
+transparency on the roof's material, NaN texture coordinates or mappings on a cut card,
+Light Path materials of transparent or missing sides), emptied or
 missing data, modifiers that break the fog box or multiply the roof, an emitter of
 particle hair scaled to nothing, extreme cameras and resolutions. Each frame must render
 to finite layers, or fail with one of the add-on's own errors that names the Blender data
@@ -116,6 +117,44 @@ def _nan_uv_card(things: dict[str, Any]) -> None:
     card.data.uv_layers["UVMap"].uv[0].vector = (NAN, NAN)
 
 
+def _mapped_card(things: dict[str, Any], kind: str = "POINT", **inputs: Any) -> Any:
+    """A leaf card cut by an image's alpha, clipped past its edges, whose coordinates a
+    Mapping node of `kind` maps with `inputs`; returns the node."""
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    material = blender_scenes.cutout_material(image, "principled")
+    texture = material.node_tree.nodes["Image Texture"]
+    texture.extension = "CLIP"
+    blender_scenes.map_texture(material, texture, [(kind, (0, 0, 0), (0, 0, 0), (1, 1, 1))])
+    mapping = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    for name, value in inputs.items():
+        mapping.inputs[name].default_value = value
+    corners = [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)]
+    blender_scenes.add_card(things["scene"], "Card", corners, material, 3.0)
+    return mapping
+
+
+def _noise_mapped_card(things: dict[str, Any]) -> None:
+    mapping = _mapped_card(things)
+    tree = mapping.id_data
+    tree.links.new(
+        tree.nodes.new("ShaderNodeTexNoise").outputs["Color"], mapping.inputs["Rotation"]
+    )
+
+
+def _light_path_roof(things: dict[str, Any], output: str, sides: tuple[str, str]) -> None:
+    """The roof's material a Mix Shader of `sides` (node types, or "" for unlinked) by
+    Light Path's `output`."""
+    material = blender_scenes.light_path_material(output)
+    tree = material.node_tree
+    mix = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeMixShader")
+    for slot, kind in zip((1, 2), sides, strict=True):
+        for link in mix.inputs[slot].links:
+            tree.links.remove(link)
+        if kind:
+            tree.links.new(tree.nodes.new(kind).outputs[0], mix.inputs[slot])
+    things["roof"].data.materials.append(material)
+
+
 MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
     "fog scaled to zero": lambda s: setattr(s["fog"], "scale", (0.0, 0.0, 0.0)),
     "fog scaled by 1e30": lambda s: setattr(s["fog"], "scale", (1e30, 1e30, 1e30)),
@@ -153,6 +192,19 @@ MUTATIONS: dict[str, Callable[[dict[str, Any]], None]] = {
         _roof_shader(s, "ShaderNodeMixShader").inputs[0], "default_value", NAN
     ),
     "card texture coordinates NaN": lambda s: _nan_uv_card(s),
+    "card mapped to NaN": lambda s: _mapped_card(s, Location=(NAN, 0.0, 0.0)),
+    "card mapped by 1e30": lambda s: _mapped_card(s, Scale=(1e30, 1e30, 1.0)),
+    "card mapped by a zero scale, inverted": lambda s: _mapped_card(s, "TEXTURE", Scale=(0, 0, 0)),
+    "card mapped by a noise texture's rotation": lambda s: _noise_mapped_card(s),
+    "roof transparent to every ray by Light Path": lambda s: _light_path_roof(
+        s, "Is Shadow Ray", ("ShaderNodeBsdfTransparent", "ShaderNodeBsdfTransparent")
+    ),
+    "roof of no closure to shadow rays by Light Path": lambda s: _light_path_roof(
+        s, "Is Shadow Ray", ("ShaderNodeBsdfTransparent", "")
+    ),
+    "roof of no closure at all by Light Path": lambda s: _light_path_roof(
+        s, "Is Camera Ray", ("", "")
+    ),
     "particle hair on an emitter scaled to zero": lambda s: setattr(
         _particle_hair(s), "scale", (1.0, 1.0, 0.0)
     ),
@@ -211,6 +263,11 @@ NOTED = {
     "it casts as opaque",
     "card texture coordinates NaN": "object 'Card': NaN or infinite texture coordinates; the "
     "triangles with them cast as opaque",
+    "card mapped to NaN": "material 'Cutout principled': image 'Stripes' is mapped by values "
+    "that are not finite; it casts as opaque",
+    "card mapped by a noise texture's rotation": "material 'Cutout principled': input "
+    "'Rotation' of 'Mapping' must be a constant (its own value, a group input's, or a Value "
+    "or RGB node's), not linked from 'Noise Texture'; it casts as opaque",
 }
 
 
