@@ -302,10 +302,23 @@ def mask_alpha(source: MaskSource) -> np.ndarray:
     pixels = np.empty(width * height * 4, dtype=np.float32)
     image.pixels.foreach_get(pixels)
     rgba = pixels.reshape(height, width, 4)
-    alpha = rgba[..., 3] if source.channel == "alpha" else rgba[..., :3] @ LUMINANCE
+    if source.channel == "alpha":
+        # An image whose alpha is set to be ignored gives an Alpha of 1, in Cycles too.
+        alpha = np.ones_like(rgba[..., 3]) if image.alpha_mode == "NONE" else rgba[..., 3]
+    else:
+        alpha = _linear(image, rgba[..., :3]) @ LUMINANCE
     # Saturated as Cycles saturates an alpha or a mix factor: NaN is 0.
     alpha = np.clip(np.nan_to_num(alpha, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     return np.ascontiguousarray(1.0 - alpha if source.invert else alpha, dtype=np.float32)
+
+
+def _linear(image: bpy.types.Image, rgb: np.ndarray) -> np.ndarray:
+    """An image's colours as Cycles reads them, in scene-linear values: `Image.pixels` gives
+    an 8-bit image's as stored, which for an sRGB file (the default for 8-bit images) are
+    sRGB-encoded; float images and data (Non-Color) are read as they are."""
+    if image.is_float or image.colorspace_settings.name != "sRGB":
+        return rgb
+    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 @dataclass

@@ -618,6 +618,37 @@ def test_cut_materials_export_their_masks(addon: ModuleType) -> None:
     assert geometry.notes == []
 
 
+def test_masks_read_an_images_colour_and_alpha_as_cycles_does(addon: ModuleType) -> None:
+    """An 8-bit sRGB image's Color, which `Image.pixels` gives sRGB-encoded, cuts by its
+    scene-linear luminance, as Cycles reads it (an Emission of a grey of 0.6 renders 0.318
+    there); a Non-Color image's as stored. An image whose alpha is ignored (alpha mode
+    None) has an Alpha of 1."""
+    scene = bpy.context.scene
+    image = bpy.data.images.new("Grey", 4, 4, alpha=True)
+    # Bytes of exactly 0.6 (153) and 0.2 (51).
+    rgba = np.tile(np.array([0.6, 0.6, 0.6, 0.2], dtype=np.float32), 16)
+    image.pixels.foreach_set(rgba)
+    assert not image.is_float
+    assert image.colorspace_settings.name == "sRGB"
+    material = blender_scenes.cutout_material(image, "principled")
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    corners = [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)]
+    blender_scenes.add_card(scene, "Card", corners, material, 1.0)
+
+    def mask() -> np.ndarray:
+        geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+        return np.asarray(geometry.masks[0].alpha)
+
+    np.testing.assert_allclose(mask(), 0.2, atol=1e-6)
+    image.alpha_mode = "NONE"
+    np.testing.assert_array_equal(mask(), 1.0)
+    links.new(nodes["Image Texture"].outputs["Color"], nodes["Principled BSDF"].inputs["Alpha"])
+    np.testing.assert_allclose(mask(), ((0.6 + 0.055) / 1.055) ** 2.4, rtol=1e-5)
+    image.colorspace_settings.name = "Non-Color"
+    image.pixels.foreach_set(rgba)  # a generated image is generated again on that change
+    np.testing.assert_allclose(mask(), 0.6, rtol=1e-6)
+
+
 def test_light_path_materials_hide_a_surface_from_some_rays(addon: ModuleType) -> None:
     """A Mix Shader whose factor is Light Path's Is Shadow Ray or Is Camera Ray, towards a
     Transparent BSDF, shows the surface only to the other rays: its triangles' visibility
