@@ -14,6 +14,9 @@ and its extension (Repeat, Extend, Mirror or Clip) and Closest interpolation rea
 as Cycles reads the image. Links are followed through reroutes,
 muted nodes and node groups.
 
+Value nodes between the image and the alpha (Math, Invert, Map Range, Color Ramp) move the
+cut to a threshold on the texture's value (`alpha_chains`).
+
 A Mix Shader whose factor is Light Path's Is Shadow Ray or Is Camera Ray shows each kind of
 ray one input: a Transparent BSDF there hides the surface from those rays only
 (`MaskSource.rays`, which the export turns into triangle visibility flags).
@@ -34,7 +37,7 @@ import numpy as np
 
 import crepuscular
 
-from . import node_links
+from . import alpha_chains, node_links
 
 LUMINANCE = node_links.LUMINANCE.astype(np.float32)
 #: Where the core cuts: alpha below this lets light and sight through.
@@ -57,6 +60,10 @@ class MaskSource:
     invert: bool
     #: The alpha of a material transparent alike everywhere (no image), else None.
     constant: float | None = None
+    #: Where the texture value (one minus it where `invert`) cuts: `THRESHOLD`, or where
+    #: value nodes between the image and the alpha put the alpha's one half
+    #: (`alpha_chains`).
+    threshold: float = THRESHOLD
     #: How the image is read past its edges (`crepuscular.MaskWrap`), from the Image
     #: Texture's extension.
     wrap: str = "repeat"
@@ -204,6 +211,10 @@ def _constant_source(
 def _image_source(
     source: node_links.Traced, *, invert: bool, where: str
 ) -> tuple[MaskSource | None, str | None]:
+    try:
+        steps, source = alpha_chains.follow(source, where)
+    except alpha_chains.ChainError as error:
+        return None, f"{error}; it casts as opaque"
     node = source.node
     if node.bl_idname != "ShaderNodeTexImage" or node.image is None:
         return None, f"{where}: its alpha is not an Image Texture's; it casts as opaque"
@@ -245,6 +256,20 @@ def _image_source(
             f"{where}: image '{node.image.name}' is mapped by values that are not finite; it "
             "casts as opaque"
         )
+    cut = alpha_chains.Cut(invert=invert)
+    if steps:
+        # The alpha, or a Mix Shader's factor towards a Transparent BSDF (its transparency).
+        def alpha(value: np.ndarray) -> np.ndarray:
+            return 1.0 - np.clip(value, 0.0, 1.0) if invert else value
+
+        try:
+            cut = alpha_chains.cut_of(steps, alpha, where)
+        except alpha_chains.ChainError as error:
+            return None, f"{error}; it casts as opaque"
+        if cut.solid:
+            return None, None
+        if cut.empty:
+            return MaskSource("", "", "alpha", invert=False, constant=0.0), None
     # A UV map gives (u, v, 0): the map's columns u, v and its translation, rows x and y.
     transform = None
     if not np.array_equal(mapped, np.eye(4)):
@@ -253,7 +278,8 @@ def _image_source(
         node.image.name_full,
         uv_map,
         channel,
-        invert,
+        cut.invert,
+        threshold=cut.threshold,
         wrap=_WRAPS.get(node.extension, "repeat"),
         filter="closest" if node.interpolation == "Closest" else "linear",
         uv_transform=transform,
@@ -356,7 +382,11 @@ class MaskTable:
             border = 1.0 if source.invert else 0.0
             masks.append(
                 crepuscular.AlphaMask(
-                    alpha, THRESHOLD, wrap=source.wrap, filter=source.filter, border=border
+                    alpha,
+                    source.threshold,
+                    wrap=source.wrap,
+                    filter=source.filter,
+                    border=border,
                 )
             )
         return masks

@@ -236,6 +236,63 @@ def job_extension_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert bpy.ops.crepuscular.render_layers(filepath=str(out / "repeating.exr")) == {"FINISHED"}
 
 
+def job_alpha_chain_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene's fog box under a roof of three cards of one smooth alpha (round
+    blobs), each through value nodes that sharpen it into a binary alpha, as Blender 4.2
+    versions EEVEE's Alpha Clip materials and as artists crisp a leaf: a Math node Greater
+    Than 0.3 into a Principled BSDF's Alpha; the image's Color through a constant Color Ramp
+    (white from 0.6 up) into a Mix Shader's factor from a Transparent BSDF; and an Invert
+    then a Math node Less Than 0.45 into the factor of a Mix Shader towards one. Cycles, our
+    layers (reference and default method), and ours with the value nodes muted (each passes
+    its input on), as the raw alpha cut at one half."""
+    scene = fog_scene(spec)
+    for name in ("roof_a", "roof_b"):
+        bpy.data.objects.remove(scene.objects[name])
+    image = bpy.data.images.new("Blobs", 64, 64, alpha=True, float_buffer=True)
+    y, x = np.mgrid[0:64, 0:64] + 0.5
+    rgba = np.zeros((64, 64, 4), dtype=np.float32)
+    rgba[..., :3] = rgba[..., 3:] = (
+        0.5 + 0.5 * np.sin(2 * np.pi * x / 32) * np.sin(2 * np.pi * y / 32)
+    )[..., None]
+    image.pixels.foreach_set(rgba.ravel())
+    image.pack()
+    chained = []
+    for k, kind in enumerate(("principled", "mix", "inverted")):
+        material = blender_scenes.cutout_material(image, kind)
+        nodes, links = material.node_tree.nodes, material.node_tree.links
+        texture = nodes["Image Texture"]
+        target = next(iter(texture.outputs["Alpha"].links)).to_socket
+        if kind == "principled":
+            step = nodes.new("ShaderNodeMath")
+            step.operation, step.inputs[1].default_value = "GREATER_THAN", 0.3
+            links.new(texture.outputs["Alpha"], step.inputs[0])
+            links.new(step.outputs[0], target)
+            chain = [step]
+        elif kind == "mix":
+            ramp = nodes.new("ShaderNodeValToRGB")
+            ramp.color_ramp.interpolation = "CONSTANT"
+            ramp.color_ramp.elements[1].position = 0.6
+            links.new(texture.outputs["Color"], ramp.inputs["Fac"])
+            links.new(ramp.outputs["Color"], target)
+            chain = [ramp]
+        else:
+            invert = nodes.new("ShaderNodeInvert")
+            step = nodes.new("ShaderNodeMath")
+            step.operation, step.inputs[1].default_value = "LESS_THAN", 0.45
+            links.new(texture.outputs["Alpha"], invert.inputs["Color"])
+            links.new(invert.outputs["Color"], step.inputs[0])
+            links.new(step.outputs[0], target)
+            chain = [invert, step]
+        chained += chain
+        x0, x1 = -6 + 11 / 3 * k, -6 + 11 / 3 * (k + 1)
+        corners = [(x0, -5, 6), (x1, -5, 6), (x1, 5, 6), (x0, 5, 6)]
+        blender_scenes.add_card(scene, f"card_{kind}", corners, material, 3.0)
+    _cycles_then_ours(scene, out)
+    for node in chained:
+        node.mute = True
+    assert bpy.ops.crepuscular.render_layers(filepath=str(out / "unchained.exr")) == {"FINISHED"}
+
+
 def job_hair_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The fidelity scene's fog box under a roof of hair strands (curves of radius 0.15,
     bending along y) instead of slats: Cycles, and our layers (reference and default
@@ -773,6 +830,7 @@ JOBS = {
     "mapped_fidelity": job_mapped_fidelity,
     "cutout_fidelity": job_cutout_fidelity,
     "extension_fidelity": job_extension_fidelity,
+    "alpha_chain_fidelity": job_alpha_chain_fidelity,
     "hair_fidelity": job_hair_fidelity,
     "points_fidelity": job_points_fidelity,
     "strand_gap_fidelity": job_strand_gap_fidelity,

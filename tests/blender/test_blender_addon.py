@@ -649,6 +649,72 @@ def test_masks_read_an_images_colour_and_alpha_as_cycles_does(addon: ModuleType)
     np.testing.assert_allclose(mask(), 0.6, rtol=1e-6)
 
 
+def test_value_nodes_on_the_alpha_move_the_cut(addon: ModuleType) -> None:
+    """Math, Map Range, Invert and Color Ramp nodes between the image and the alpha: where
+    the texture values whose alpha reaches one half are one interval from 0 or to 1, the
+    mask cuts the raw value there (inverted for a falling chain); a chain that cuts several
+    bands, or an operation this does not map, is named and casts as opaque."""
+    image = blender_scenes.alpha_image("Stripes", size=16)
+    material = blender_scenes.cutout_material(image, "principled")
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    corners = [(0, 0, 2), (2, 0, 2), (2, 1, 2), (0, 1, 2)]
+    blender_scenes.add_card(bpy.context.scene, "Card", corners, material, 1.0)
+    texture, alpha = nodes["Image Texture"], nodes["Principled BSDF"].inputs["Alpha"]
+    math_node = nodes.new("ShaderNodeMath")
+    links.new(texture.outputs["Alpha"], math_node.inputs[0])
+    links.new(math_node.outputs[0], alpha)
+
+    def cut(operation: str, operand: float) -> tuple[Any, list[str]]:
+        math_node.operation, math_node.inputs[1].default_value = operation, operand
+        geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+        return geometry.masks, geometry.notes
+
+    masks, notes = cut("GREATER_THAN", 0.3)
+    assert notes == []
+    assert masks[0].threshold == pytest.approx(0.3, abs=1e-3)
+    masks, _ = cut("MULTIPLY", 2.0)
+    assert masks[0].threshold == pytest.approx(0.25, abs=1e-3)
+    # Falling: solid where 0.7 - v reaches one half, v up to 0.2; the mask holds 1 - v.
+    math_node.inputs[0].default_value = 0.7
+    links.remove(math_node.inputs[0].links[0])
+    links.new(texture.outputs["Alpha"], math_node.inputs[1])
+    masks, _ = cut("SUBTRACT", 0.0)
+    pixels = np.array(image.pixels[:], dtype=np.float32).reshape(16, 16, 4)
+    np.testing.assert_allclose(np.asarray(masks[0].alpha), 1.0 - pixels[..., 3])
+    assert masks[0].threshold == pytest.approx(0.8, abs=1e-3)
+    links.remove(math_node.inputs[1].links[0])
+    links.new(texture.outputs["Alpha"], math_node.inputs[0])
+    # Every value solid, or none: opaque, or a card of no surface.
+    masks, notes = cut("LESS_THAN", 2.0)
+    assert (masks, notes) == ([], [])
+    masks, _ = cut("GREATER_THAN", 2.0)
+    assert np.asarray(masks[0].alpha).tolist() == [[0.0]]
+    masks, notes = cut("SINE", 0.0)
+    assert masks == []
+    assert "Math node 'Math' on its alpha is SINE" in notes[0]
+    # |v - 0.5| + 0.25 reaches one half at both ends: two bands.
+    subtract = nodes.new("ShaderNodeMath")
+    subtract.operation, subtract.inputs[1].default_value = "SUBTRACT", 0.5
+    links.new(texture.outputs["Alpha"], subtract.inputs[0])
+    links.new(subtract.outputs[0], math_node.inputs[0])
+    absolute = nodes.new("ShaderNodeMath")
+    absolute.operation = "ABSOLUTE"
+    links.new(subtract.outputs[0], absolute.inputs[0])
+    links.new(absolute.outputs[0], math_node.inputs[0])
+    masks, notes = cut("ADD", 0.25)
+    assert "cut the texture in more than one band" in notes[0]
+    # A Map Range from [0.2, 0.8] to [0, 1], and an Invert before it: falling, at 0.5.
+    remap = nodes.new("ShaderNodeMapRange")
+    remap.inputs["From Min"].default_value, remap.inputs["From Max"].default_value = 0.2, 0.8
+    invert = nodes.new("ShaderNodeInvert")
+    links.new(texture.outputs["Alpha"], invert.inputs["Color"])
+    links.new(invert.outputs["Color"], remap.inputs["Value"])
+    links.new(remap.outputs["Result"], alpha)
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert geometry.masks[0].threshold == pytest.approx(0.5, abs=1e-3)
+    np.testing.assert_allclose(np.asarray(geometry.masks[0].alpha), 1.0 - pixels[..., 3])
+
+
 def test_light_path_materials_hide_a_surface_from_some_rays(addon: ModuleType) -> None:
     """A Mix Shader whose factor is Light Path's Is Shadow Ray or Is Camera Ray, towards a
     Transparent BSDF, shows the surface only to the other rays: its triangles' visibility
