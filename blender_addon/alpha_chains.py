@@ -1,7 +1,8 @@
 """Value nodes between a cutout's image and the alpha it gives: Math, Invert, Map Range and
-Color Ramp nodes that artists put there to sharpen or invert a mask. Blender 4.2 inserts a
-Math node set to Greater Than, at the material's old clip threshold, into every material that
-EEVEE rendered with the Alpha Clip blend mode, so leaf cards from older files arrive so.
+Color Ramp nodes that artists put there to sharpen or invert a mask. Opening a file whose
+scenes all render with EEVEE, Blender 4.2 and later put a Math node set to Greater Than, at
+the old clip threshold, into each material of the Alpha Clip blend mode, so leaf cards from
+older files arrive so.
 
 Cycles applies such a chain to the filtered texture value, and lets light through by the
 alpha it gives; the core clips a mask's filtered value at a threshold. Where the texture
