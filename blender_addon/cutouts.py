@@ -221,6 +221,9 @@ def _image_source(
     channel = {"Alpha": "alpha", "Color": "luminance"}.get(source.socket.name)
     if channel is None:
         return None, f"{where}: its alpha comes from '{source.socket.name}'; it casts as opaque"
+    if node.image.source == "TILED":
+        # `Image.pixels` holds the first tile only, where Cycles reads each by its UDIM.
+        return None, f"{where}: image '{node.image.name}' is tiled (UDIM); it casts as opaque"
     if node.projection != "FLAT":
         return None, (
             f"{where}: image '{node.image.name}' is projected {node.projection.lower()}, not "

@@ -653,7 +653,8 @@ def test_value_nodes_on_the_alpha_move_the_cut(addon: ModuleType) -> None:
     """Math, Map Range, Invert and Color Ramp nodes between the image and the alpha: where
     the texture values whose alpha reaches one half are one interval from 0 or to 1, the
     mask cuts the raw value there (inverted for a falling chain); a chain that cuts several
-    bands, or an operation this does not map, is named and casts as opaque."""
+    bands, an operation this does not map, or a tiled image, is named and casts as
+    opaque."""
     image = blender_scenes.alpha_image("Stripes", size=16)
     material = blender_scenes.cutout_material(image, "principled")
     nodes, links = material.node_tree.nodes, material.node_tree.links
@@ -713,6 +714,11 @@ def test_value_nodes_on_the_alpha_move_the_cut(addon: ModuleType) -> None:
     geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
     assert geometry.masks[0].threshold == pytest.approx(0.5, abs=1e-3)
     np.testing.assert_allclose(np.asarray(geometry.masks[0].alpha), 1.0 - pixels[..., 3])
+    # A tiled image, of which `Image.pixels` holds the first tile only.
+    image.source = "TILED"
+    geometry = addon.export.export_geometry(bpy.context.evaluated_depsgraph_get())
+    assert geometry.masks == []
+    assert "image 'Stripes' is tiled (UDIM); it casts as opaque" in geometry.notes[0]
 
 
 def test_light_path_materials_hide_a_surface_from_some_rays(addon: ModuleType) -> None:
