@@ -11,8 +11,7 @@ Volume shader and no Surface one is alpha 0, as Cycles draws no surface there. T
 coordinates are its UV Map node's map, or the mesh's default (active render) map when
 nothing feeds its Vector, mapped by any Mapping nodes between (Point, Texture or Vector),
 and its extension (Repeat, Extend, Mirror or Clip) and Closest interpolation read the mask
-as Cycles reads the image. Links are followed through reroutes,
-muted nodes and node groups.
+as Cycles reads the image. Links are followed through reroutes, muted nodes and node groups.
 
 Value nodes between the image and the alpha (Math, Invert, Map Range, Color Ramp) move the
 cut to a threshold on the texture's value (`alpha_chains`).
@@ -34,6 +33,7 @@ from dataclasses import dataclass, field
 
 import bpy
 import numpy as np
+from mathutils import Euler
 
 import crepuscular
 
@@ -149,23 +149,26 @@ def _ray_split(
     """A Mix Shader whose factor is Light Path's `output`: Is Shadow Ray shows shadow rays
     its second input and camera rays its first, Is Camera Ray the other way round. The
     rays that see a Transparent BSDF (or any surface clipped away) pass; the others see
-    their input's own cut, or an opaque surface (an unlinked input, no closure)."""
+    their input's own cut, or an opaque surface (an unlinked input, no closure, or one
+    whose transparency is noted as not mapped)."""
     sides = {
         "Is Shadow Ray": (second, first),
         "Is Camera Ray": (first, second),
     }.get(output)
     if sides is None:
         return None, f"{where}: its mix factor is Light Path's '{output}'; it casts as opaque"
-    seen = {}
+    seen: dict[int, MaskSource | None] = {}
+    notes = []
     for flag, side in zip((crepuscular.BLOCKS_SUN, crepuscular.SEEN_BY_CAMERA), sides, strict=True):
         source, note = _surface_mask(side, where) if side.is_linked else (None, None)
-        if note is not None and source is None:
-            return None, note
+        if note is not None and note not in notes:
+            notes.append(note)
         clear = source is not None and source.constant is not None and source.constant < THRESHOLD
         if not clear:
             seen[flag] = source
+    note = "; ".join(notes) or None
     if not seen:
-        return MaskSource("", "", "alpha", invert=False, constant=0.0), None
+        return MaskSource("", "", "alpha", invert=False, constant=0.0), note
     if len(seen) == 2:
         sun, camera = seen.values()
         if sun != camera:
@@ -173,10 +176,10 @@ def _ray_split(
                 f"{where}: shadow and camera rays see different cutouts through Light Path; "
                 "it casts as opaque"
             )
-        return sun, None
+        return sun, note
     ((flag, source),) = seen.items()
     opaque = MaskSource("", "", "alpha", invert=False, constant=1.0)
-    return dataclasses.replace(source or opaque, rays=flag), None
+    return dataclasses.replace(source or opaque, rays=flag), note
 
 
 def _saturated(value: float) -> float:
@@ -295,8 +298,6 @@ def _mapping_matrix(
     """The 4x4 affine map of a Mapping node, as Cycles applies it: Point scales, rotates
     (Euler XYZ) and then moves; Texture undoes that (dividing by a zero scale gives 0);
     Vector scales and rotates. Normal, which normalizes, is not affine: NodeLinkError."""
-    from mathutils import Euler
-
     kind = node.vector_type
     if kind == "NORMAL":
         raise node_links.NodeLinkError(
