@@ -459,7 +459,9 @@ class GeometryCollector:
             if source.uv_transform is not None:
                 matrix = np.array(source.uv_transform, dtype=np.float64).reshape(2, 3)
                 values = values @ matrix[:, :2].T + matrix[:, 2]
-            if source.wrap_unauthored and ((values < 0.0) | (values > 1.0)).any():
+            # Past the image by more than rounding (coordinates authored as 1 read 1 + 1e-7).
+            outside = (values < -1e-6) | (values > 1.0 + 1e-6)
+            if source.wrap_unauthored and outside.any():
                 note = (
                     f"{prim.GetPath()}: texture {source.file} leaves its wrap to the file "
                     "(wrapS or wrapT useMetadata, the default), so past its edges it reads "
