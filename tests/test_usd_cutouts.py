@@ -258,6 +258,42 @@ def test_transform_2d_nodes_map_the_coordinates(
         assert error < 1e-4, (name, error)
 
 
+def test_missing_coordinates_read_the_readers_fallback(tmp_path: Path) -> None:
+    """A primvar reader whose primvar the mesh lacks reads its `fallback` everywhere (named
+    in a note), and a texture whose `st` is a value rather than a reader reads there: at
+    s = 0.19 the stripes' filtered alpha is 0.98 (the whole card solid), at 0.3 it is 0.1
+    (no card)."""
+    plain = _stage(tmp_path, "plain_card")
+    _quad(plain, "/World/Card", -2, 2)
+    solid, bare = _render(plain), _render(_stage(tmp_path, "no_card"))
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
+    for s_value, expected in ((0.19, solid), (0.3, bare)):
+        for how in ("fallback", "st value"):
+            stage = _stage(tmp_path, f"missing_{how.replace(' ', '_')}_{s_value}")
+            card = _quad(stage, "/World/Card", -2, 2)
+            material = cut_material(stage, "/World/Looks/Leaf", file)
+            if how == "fallback":
+                reader = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/St"))
+                reader.CreateInput("fallback", Sdf.ValueTypeNames.Float2).Set((s_value, 0.5))
+            else:
+                texture = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Alpha"))
+                st = texture.GetInput("st")
+                assert st.DisconnectSource()
+                st.Set((s_value, 0.5))
+            UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
+            frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(
+                Usd.TimeCode.Default()
+            )
+            notes = frame.geometry.notes
+            if how == "fallback":
+                assert len(notes) == 1
+                assert f"primvar 'st' is missing; its mask reads ({s_value:g}, 0.5)" in notes[0]
+            else:
+                assert notes == []
+            cut = crepuscular.render_arrays(**frame.render_kwargs())
+            assert _mean_relative(cut.volume, expected.volume) < 1e-6, (how, s_value)
+
+
 def test_unmappable_opacity_is_named_and_casts_as_opaque(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:

@@ -16,7 +16,8 @@ of cutouts is the same. Textures are PNG, JPEG, TGA, TIFF or BMP (read with Pill
 Inputs are read as USD's renderers resolve them: through NodeGraphs, and from the
 material's interface inputs they are connected to. A constant opacity is one value
 everywhere, cut the same way (below the cut, the surface neither casts nor hides the fog).
-Coordinates mapped by `UsdTransform2d` nodes (what Blender's exporter writes for a Mapping
+A primvar the mesh lacks reads the reader's `fallback`, and an `st` given as a value reads
+there. Coordinates mapped by `UsdTransform2d` nodes (what Blender's exporter writes for a Mapping
 node) are mapped so too. Anything else that makes a surface transparent (another shader,
 UDIM tiles, coordinates computed otherwise) leaves it opaque, with a note that names it.
 """
@@ -70,6 +71,8 @@ class MaskSource:
     #: affine map of (s, t) they make: (a, b, c, d, e, f) reads (a·s + b·t + c,
     #: d·s + e·t + f). None where none maps them.
     uv_transform: tuple[float, ...] | None = None
+    #: The coordinates read where the primvar is missing, or where no primvar is read.
+    st_fallback: tuple[float, float] = (0.0, 0.0)
 
 
 def face_masks(prim: Usd.Prim, face_count: int, table: MaskTable) -> npt.NDArray[np.int64] | None:
@@ -122,7 +125,7 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         return None, f"{where}: its opacity texture has no file or is tiled; it casts as opaque"
     if not asset.resolvedPath:
         return None, f"{where}: texture {asset.path} was not found; it casts as opaque"
-    primvar, transform, note = _primvar(texture, where)
+    primvar, st_fallback, transform, note = _primvar(texture, where)
     if note is not None:
         return None, note
     channel = _CHANNELS[output]
@@ -155,6 +158,7 @@ def mask_source(material: UsdShade.Material | None) -> tuple[MaskSource | None, 
         wrap=(wrap_s, wrap_t),
         wrap_unauthored=any(wrap not in _WRAPS for wrap in wraps),
         uv_transform=transform,
+        st_fallback=st_fallback,
     )
     return source_record, None
 
@@ -214,41 +218,47 @@ def _constant_source(
 
 def _primvar(
     texture: UsdShade.Shader, where: str
-) -> tuple[str, tuple[float, ...] | None, str | None]:
+) -> tuple[str, tuple[float, float], tuple[float, ...] | None, str | None]:
     """The primvar `texture` reads its coordinates from, through any `UsdTransform2d`
-    nodes, and the affine map those make (None for none); or a note where the
+    nodes; the coordinates read where that primvar is missing (the reader's `fallback`),
+    or where none is read (the value of the input left unconnected, `st` (0, 0) by
+    default); the affine map the nodes make (None for none); or a note where the
     coordinates come from anything else."""
-    produced = _source_output(texture.GetInput("st"))
+    unlinked = texture.GetInput("st")
+    produced = _source_output(unlinked)
     mapped = np.eye(3)
     while produced is not None and produced[0].GetIdAttr().Get() == "UsdTransform2d":
         node = produced[0]
         mapped = mapped @ _transform_2d(node)
         if not np.isfinite(mapped).all():
-            return (
-                "",
-                None,
-                (
-                    f"{where}: {node.GetPath()} maps its texture coordinates by values that are "
-                    "not finite; it casts as opaque"
-                ),
+            note = (
+                f"{where}: {node.GetPath()} maps its texture coordinates by values that are "
+                "not finite; it casts as opaque"
             )
-        produced = _source_output(node.GetInput("in"))
+            return "", (0.0, 0.0), None, note
+        unlinked = node.GetInput("in")
+        produced = _source_output(unlinked)
     transform = None
     if not np.array_equal(mapped, np.eye(3)):
         transform = tuple(float(value) for value in mapped[:2].ravel())
     if produced is None:
-        return "", transform, None
+        return "", _float2(_value(unlinked)), transform, None
     reader, _ = produced
     if reader.GetIdAttr().Get() != "UsdPrimvarReader_float2":
-        return (
-            "",
-            None,
-            (
-                f"{where}: its texture coordinates come from {reader.GetPath()}, not a primvar "
-                "reader; it casts as opaque"
-            ),
+        note = (
+            f"{where}: its texture coordinates come from {reader.GetPath()}, not a primvar "
+            "reader; it casts as opaque"
         )
-    return str(_value(reader.GetInput("varname")) or ""), transform, None
+        return "", (0.0, 0.0), None, note
+    fallback = _float2(_value(reader.GetInput("fallback")))
+    return str(_value(reader.GetInput("varname")) or ""), fallback, transform, None
+
+
+def _float2(value: Any) -> tuple[float, float]:
+    """An authored float2, where it is two finite numbers; else (0, 0), USD's default."""
+    if value is None or len(value) != 2 or not all(math.isfinite(v) for v in value):
+        return 0.0, 0.0
+    return float(value[0]), float(value[1])
 
 
 def _transform_2d(node: UsdShade.Shader) -> npt.NDArray[np.float64]:

@@ -442,10 +442,15 @@ class GeometryCollector:
                 prim, primvar, time, corners[rows], corner_points[rows], triangle_faces[rows]
             )
             if values is None:
-                note = f"{prim.GetPath()}: primvar '{primvar}' is missing; its mask reads (0, 0)"
-                if note not in self._masks.notes:
-                    self._masks.notes.append(note)
-                continue
+                if primvar:
+                    fallback = source.st_fallback
+                    note = (
+                        f"{prim.GetPath()}: primvar '{primvar}' is missing; its mask reads "
+                        f"({fallback[0]:g}, {fallback[1]:g}), the reader's fallback"
+                    )
+                    if note not in self._masks.notes:
+                        self._masks.notes.append(note)
+                values = np.broadcast_to(source.st_fallback, (int(rows.sum()), 3, 2))
             finite = np.isfinite(values).all(axis=(1, 2))
             if not finite.all():
                 note = (
