@@ -471,10 +471,15 @@ class LightLinking:
 
     included: frozenset[str]
     excluded: frozenset[str]
+    #: Whether no object takes part: the blockers of a light that casts no shadows.
+    takes_none: bool = False
 
     @classmethod
     def of_blockers(cls, light: bpy.types.Object) -> LightLinking | None:
-        """The light object's blocker collection, or None where it has none (all block)."""
+        """The light object's blocker collection, or None where it has none (all block);
+        none block where the light casts no shadows (its Cast Shadow off)."""
+        if not light.original.data.use_shadow:
+            return cls(frozenset(), frozenset(), takes_none=True)
         return cls._of(light.original.light_linking.blocker_collection)
 
     @classmethod
@@ -502,7 +507,7 @@ class LightLinking:
     def contains(self, chain: list[bpy.types.Object]) -> bool:
         """Whether an instance (its object, and its instancer if any) takes part."""
         names = {o.original.name_full for o in chain}
-        if names & self.excluded:
+        if self.takes_none or names & self.excluded:
             return False
         return not self.included or bool(names & self.included)
 
@@ -1177,11 +1182,25 @@ def frame_inputs(
     eye = np.asarray(camera["world_from_camera"][12:15], dtype=np.float64)
     blockers = LightLinking.of_blockers(sun)
     receivers = LightLinking.of_receivers(sun)
+    if blockers is not None and blockers.takes_none:
+        notes.append(
+            f"'{sun.name}' casts no shadows (its Cast Shadow is off): nothing casts shafts "
+            "but objects whose Casts Shafts is On, and the fog is lit everywhere, as in "
+            "Cycles; but its light still fades through the fog towards the sun, which "
+            "Cycles, tracing no shadow rays, leaves out (the layers are darker in dense fog)"
+        )
+    if not sun.original.visible_volume_scatter:
+        notes.append(
+            f"'{sun.name}' has its Volume Scatter ray visibility off: Cycles then lights no "
+            "fog with it; the shafts are rendered as if it were on"
+        )
     for linking, kind, collection in (
         (blockers, "shadow linking", "blocker"),
         (receivers, "light linking", "receiver"),
     ):
-        if linking is not None and fog is not None and not linking.contains([fog]):
+        if linking is None or linking.takes_none:
+            continue
+        if fog is not None and not linking.contains([fog]):
             notes.append(
                 f"the {kind} of '{sun.name}' leaves the fog object '{fog.name}' out: "
                 "Cycles then lights no fog with it; the shafts are rendered as if it were "

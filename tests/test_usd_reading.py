@@ -1280,7 +1280,8 @@ def test_the_lights_shadow_linking_decides_what_blocks_it(tmp_path: Path) -> Non
     """UsdLuxLightAPI's shadowLink collection: an owner it leaves out (a mesh, or a
     PointInstancer with all it places) does not block the sun but still hides the fog from
     the camera; unauthored, everything blocks. Excluding the occluder renders its shadow
-    away and keeps its outline in the depth."""
+    away and keeps its outline in the depth. A light whose `shadow:enable` is false is
+    blocked by nothing."""
     stage = author_stage(str(tmp_path / "linked.usda"), build_scene(**SMALL))
     instancer = UsdGeom.PointInstancer.Define(stage, "/World/Posts")
     post = UsdGeom.Cube.Define(stage, "/World/Posts/Post")
@@ -1319,6 +1320,16 @@ def test_the_lights_shadow_linking_decides_what_blocks_it(tmp_path: Path) -> Non
         "/World/occluder": {crepuscular.SEEN_BY_CAMERA},
         "/World/Posts": {crepuscular.SEEN_BY_CAMERA},
     }
+    # A light that casts no shadows (UsdLuxShadowAPI), from a time on: nothing blocks it,
+    # and a note says so.
+    enable = UsdLux.ShadowAPI.Apply(stage.GetPrimAtPath("/World/Sun")).CreateShadowEnableAttr()
+    enable.Set(True, 1.0)
+    enable.Set(False, 2.0)
+    reader = StageReader(stage, None, None, width=64)
+    assert reader.read(Usd.TimeCode(1.0)).geometry.notes == []
+    shadowless = reader.read(Usd.TimeCode(2.0)).geometry
+    assert set(shadowless.visibility.tolist()) == {crepuscular.SEEN_BY_CAMERA}
+    assert "casts no shadows (inputs:shadow:enable is false)" in shadowless.notes[0]
 
 
 def test_a_medium_left_out_of_the_lights_linking_is_named(tmp_path: Path) -> None:

@@ -721,6 +721,33 @@ def test_value_nodes_on_the_alpha_move_the_cut(addon: ModuleType) -> None:
     assert "image 'Stripes' is tiled (UDIM); it casts as opaque" in geometry.notes[0]
 
 
+def test_a_sun_that_casts_no_shadows_is_blocked_by_nothing(addon: ModuleType) -> None:
+    """A sun whose Cast Shadow is off: no triangle blocks it but one whose Casts Shafts
+    is On, every one still hides the fog from the camera, and a note says so; a sun whose
+    Volume Scatter ray visibility is off is named."""
+    scene = bpy.context.scene
+    blender_scenes.add_camera(scene, blender_scenes.look_at((0, -10, 2), (0, 0, 2)))
+    sun = blender_scenes.add_sun(scene, (0.2, 0.3, -1.0))
+    for x in (0, 3):
+        bpy.ops.mesh.primitive_cube_add(size=1.0, location=(x, 0, 2))
+    forced = bpy.context.object
+    sun.data.use_shadow = False
+    inputs = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get(), sun=sun)
+    flags = inputs.geometry.visibility
+    ids = inputs.geometry.object_ids
+    assert set(flags.tolist()) == {crepuscular.SEEN_BY_CAMERA}
+    assert "casts no shadows (its Cast Shadow is off)" in " ".join(inputs.notes)
+    forced.crepuscular.casts_shafts = "on"
+    inputs = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get(), sun=sun)
+    forced_id = next(i for i, name in inputs.geometry.names.items() if name == forced.name)
+    flags, ids = inputs.geometry.visibility, inputs.geometry.object_ids
+    assert set(flags[ids == forced_id].tolist()) == {3}
+    assert set(flags[ids != forced_id].tolist()) == {crepuscular.SEEN_BY_CAMERA}
+    sun.visible_volume_scatter = False
+    inputs = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get(), sun=sun)
+    assert "Volume Scatter ray visibility off" in " ".join(inputs.notes)
+
+
 def test_light_path_materials_hide_a_surface_from_some_rays(addon: ModuleType) -> None:
     """A Mix Shader whose factor is Light Path's Is Shadow Ray or Is Camera Ray, towards a
     Transparent BSDF, shows the surface only to the other rays: its triangles' visibility

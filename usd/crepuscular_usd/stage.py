@@ -171,6 +171,18 @@ def _membership(collection: Usd.CollectionAPI) -> Usd.UsdCollectionMembershipQue
     return None if holds_everything else collection.ComputeMembershipQuery()
 
 
+class _NoMembers:
+    """A membership query that holds no prim: the blockers of a light that casts no
+    shadows."""
+
+    @staticmethod
+    def IsPathIncluded(path: Sdf.Path) -> bool:
+        return False
+
+
+_NO_MEMBERS: Any = _NoMembers()
+
+
 class StageReader:
     """Reads frames of one stage for one camera and one DistantLight."""
 
@@ -196,6 +208,12 @@ class StageReader:
         self._shadow_link = _membership(light_api.GetShadowLinkCollectionAPI())
         self._light_link = _membership(light_api.GetLightLinkCollectionAPI())
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond()) or 24.0
+
+    def _casts_shadows(self, time: Usd.TimeCode) -> bool:
+        """Whether the light casts shadows at `time`: UsdLuxShadowAPI's `shadow:enable`,
+        true unless authored false."""
+        enable = self.light_prim.GetAttribute("inputs:shadow:enable")
+        return not enable or enable.Get(time) is not False
 
     def source_of(self, field: str) -> str | None:
         """The USD property behind the renderer's scene field `field` (as its invalid-input
@@ -277,12 +295,19 @@ class StageReader:
             intensity_scale=light.sun["intensity_scale"],
             angle_scale=light.sun["angle_scale"],
         )
+        casts = self._casts_shadows(time)
         geometry = collector.collect(
             time,
             np.asarray(camera["world_from_camera"][12:15]),
             seen=sun_and_camera(sun, camera),
-            shadow_link=self._shadow_link,
+            shadow_link=self._shadow_link if casts else _NO_MEMBERS,
         )
+        if not casts:
+            geometry.notes.append(
+                f"{self.light_prim.GetPath()} casts no shadows (inputs:shadow:enable is "
+                "false): nothing casts shafts, and the fog is lit everywhere (its light "
+                "still fades through the fog towards the light)"
+            )
         medium = dict(light.medium)
         medium["extent"] = self._extent(light, time)
         if light.extent_prim is not None:
