@@ -41,7 +41,9 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import export, render
+import crepuscular
+
+from . import cutouts, export, render
 from .style import style_from_light
 from .usd_attributes import API_NAME, ATTRIBUTES, HOLES_OBJECTS, MEDIUM_EXTENT, TF_JSON
 
@@ -511,7 +513,7 @@ def author_shadow_link(
         for obj in scene.objects
         if obj.type in export.GEOMETRY_TYPES | {"EMPTY"}
         and obj != fog
-        and not export.blocks_sun([obj], blockers)
+        and (not export.blocks_sun([obj], blockers) or _hidden_from_shadow_rays(obj))
         for prim in prims.of(obj)
     ]
     if not left_out:
@@ -519,6 +521,22 @@ def author_shadow_link(
     link = UsdLux.LightAPI(light).GetShadowLinkCollectionAPI()
     link.CreateIncludeRootAttr(True)
     link.CreateExcludesRel().SetTargets(left_out)
+
+
+def _hidden_from_shadow_rays(obj: bpy.types.Object) -> bool:
+    """Whether every material of `obj` hides it from shadow rays through Light Path (a
+    Mix Shader towards a Transparent BSDF by Is Shadow Ray), which Blender's exporter does
+    not carry: the add-on then casts none of it, and neither may the USD step."""
+    if obj.type == "EMPTY" or obj.original.crepuscular.casts_shafts == "on":
+        return False
+    materials = [slot.material for slot in obj.material_slots]
+    if not materials:
+        return False
+    for material in materials:
+        source, _ = cutouts.material_mask(material)
+        if source is None or source.rays & crepuscular.BLOCKS_SUN:
+            return False
+    return True
 
 
 class CREPUSCULAR_USDHook(bpy.types.USDHook):
