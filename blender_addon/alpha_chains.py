@@ -82,13 +82,13 @@ def cut_of(steps: list[Step], alpha: Callable[[np.ndarray], np.ndarray], where: 
     value = _SAMPLES.copy()
     for step in reversed(steps):
         value = np.nan_to_num(step(value), nan=0.0, posinf=1.0, neginf=0.0)
-    solid = alpha(value) >= 0.5
+    levels = alpha(value)
+    solid = levels >= 0.5
     if solid.all():
         return Cut(solid=True)
     if not solid.any():
         return Cut(empty=True)
     first, last = int(np.argmax(solid)), len(solid) - 1 - int(np.argmax(solid[::-1]))
-    levels = alpha(value)
     if solid[first:].all():  # rising: solid from the first solid sample up
         return Cut(threshold=_crossing(levels, first - 1))
     if solid[: last + 1].all():  # falling: solid up to the last solid sample

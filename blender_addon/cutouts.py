@@ -79,6 +79,12 @@ class MaskSource:
     #: Transparent BSDF is what those rays see.
     rays: int = crepuscular.BLOCKS_SUN | crepuscular.SEEN_BY_CAMERA
 
+    @property
+    def pixels(self) -> tuple[str, str, bool, float | None]:
+        """What its alpha array depends on (`mask_alpha`): sources that differ only in how
+        the array is read (wrap, filter, threshold, mapping, rays) share one."""
+        return self.image, self.channel, self.invert, self.constant
+
 
 def material_mask(material: bpy.types.Material | None) -> tuple[MaskSource | None, str | None]:
     """The mask a material cuts with, or None; and a note where its transparency is of a
@@ -354,10 +360,10 @@ def _linear(image: bpy.types.Image, rgb: np.ndarray) -> np.ndarray:
 @dataclass
 class MaskTable:
     """The masks of one export, each source once, in the order first used. `kept` holds
-    alphas across exports, by source (reading an image's pixels takes a while); the
-    geometry cache owns it and drops those of changed images."""
+    alphas across exports, by `MaskSource.pixels` (reading an image's pixels takes a
+    while); the geometry cache owns it and drops those of changed images."""
 
-    kept: dict[MaskSource, np.ndarray] = field(default_factory=dict)
+    kept: dict[tuple[str, str, bool, float | None], np.ndarray] = field(default_factory=dict)
     sources: list[MaskSource] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     _index: dict[MaskSource, int] = field(default_factory=dict)
@@ -378,9 +384,9 @@ class MaskTable:
     def masks(self) -> list[crepuscular.AlphaMask]:
         masks = []
         for source in self.sources:
-            alpha = self.kept.get(source)
+            alpha = self.kept.get(source.pixels)
             if alpha is None:
-                alpha = self.kept[source] = mask_alpha(source)
+                alpha = self.kept[source.pixels] = mask_alpha(source)
             # Clipped, Cycles reads the image as 0 past its edges: an alpha of 0, or of 1
             # where the value is a Mix Shader's factor towards a Transparent BSDF.
             border = 1.0 if source.invert else 0.0

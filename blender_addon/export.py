@@ -22,7 +22,7 @@ import numpy as np
 import crepuscular
 
 from . import node_links
-from .cutouts import MaskSource, MaskTable
+from .cutouts import MaskTable
 
 #: Object types whose evaluated mesh occludes the sun. Curves, surfaces and text reach the
 #: depsgraph's instances as their evaluated meshes (type MESH, instanced by the curve).
@@ -81,7 +81,8 @@ class GeometryCache:
     frames."""
 
     meshes: dict[str, MeshArrays] = field(default_factory=dict)
-    masks: dict[MaskSource, np.ndarray] = field(default_factory=dict)
+    #: By `MaskSource.pixels`, whose first item is the image's name.
+    masks: dict[tuple[str, str, bool, float | None], np.ndarray] = field(default_factory=dict)
     hits: int = 0
     misses: int = 0
 
@@ -96,8 +97,8 @@ class GeometryCache:
 
     def invalidate_images(self, names: set[str]) -> None:
         """Drops the masks read from these images."""
-        for source in [s for s in self.masks if s.image in names]:
-            del self.masks[source]
+        for pixels in [key for key in self.masks if key[0] in names]:
+            del self.masks[pixels]
 
 
 #: Separates a mesh's name from the UV maps of its loop-split arrays in cache keys.

@@ -2,8 +2,8 @@
 //! grilles), alpha-tested as a renderer's clip mode does. A sample of such a triangle is
 //! drawn into the shadow map and the camera's depth only where the mask's alpha, filtered
 //! and wrapped past its edges as the host's texture node says, reaches the mask's
-//! threshold; elsewhere light and sight pass through. Without this a canopy of leaf cards casts the solid shadow of its
-//! rectangles and lets no shaft through.
+//! threshold; elsewhere light and sight pass through. Without this a canopy of leaf cards
+//! casts the solid shadow of its rectangles and lets no shaft through.
 //!
 //! Coordinates are interpolated perspective-correctly over the triangle as authored, from
 //! its vertices' homogeneous pixel coordinates, so clipping (which cuts a triangle into
