@@ -832,27 +832,83 @@ def column_major(matrix: Any) -> list[float]:
 
 
 def render_size(scene: bpy.types.Scene, divisor: int = 1) -> tuple[int, int]:
-    """The render's pixel size, as Blender computes it, divided for previews."""
+    """The render's whole frame in pixels, as Blender computes it, divided for previews."""
     render = scene.render
-    if render.use_border:
-        raise ExportError(
-            "scene.render.use_border: render regions are not supported; the layers cover "
-            "the whole frame"
-        )
-    if not math.isclose(render.pixel_aspect_x, render.pixel_aspect_y):
-        raise ExportError(
-            "scene.render.pixel_aspect_x/y: non-square pixels are not supported "
-            f"({render.pixel_aspect_x} x {render.pixel_aspect_y})"
-        )
     width = render.resolution_x * render.resolution_percentage // 100
     height = render.resolution_y * render.resolution_percentage // 100
     return max(1, width // divisor), max(1, height // divisor)
 
 
-def camera_dict(
-    scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph, divisor: int = 1
+@dataclass(frozen=True)
+class Region:
+    """The render region (*Render Region*) in the frame's pixels, from its top-left corner,
+    and whether the render is cropped to it (else the frame keeps its size around it)."""
+
+    x: int
+    y: int
+    width: int
+    height: int
+    cropped: bool
+
+
+def render_region(scene: bpy.types.Scene) -> Region | None:
+    """The render region F12 renders, None for the whole frame. Its pixels are Blender's:
+    the border's fractions of the frame, truncated (y from the bottom)."""
+    render = scene.render
+    corners = (render.border_min_x, render.border_min_y, render.border_max_x, render.border_max_y)
+    if not render.use_border or corners == (0.0, 0.0, 1.0, 1.0):
+        return None
+    width, height = render_size(scene)
+    left, right = int(corners[0] * width), int(corners[2] * width)
+    bottom, top = int(corners[1] * height), int(corners[3] * height)
+    if right <= left or top <= bottom:
+        raise ExportError(
+            f"scene.render.border_min/max: the render region is empty at {width}x{height} pixels"
+        )
+    return Region(left, height - top, right - left, top - bottom, render.use_crop_to_border)
+
+
+def output_size(scene: bpy.types.Scene) -> tuple[int, int]:
+    """The size of what F12 renders: the region where the render is cropped to it."""
+    region = render_region(scene)
+    if region is not None and region.cropped:
+        return region.width, region.height
+    return render_size(scene)
+
+
+def _cropped_to(
+    projection: dict[str, Any], frame: tuple[int, int], pixel_aspect: float, region: Region
 ) -> dict[str, Any]:
-    """The scene camera in the core's terms (sensor fit, shift, clip, orthographic)."""
+    """`projection` of a frame of `frame` pixels narrowed to `region`: a horizontally fitted
+    sensor (or ortho scale) as wide as the region, shifted onto it, whose pixels are the
+    frame's, as Blender renders a region of the frame's view plane."""
+    width, height = frame
+    fit = projection["sensor_fit"]
+    horizontal = fit == "horizontal" or (fit == "auto" and width * pixel_aspect >= height)
+    fitted = width if horizontal else height / pixel_aspect
+    size_key = "ortho_scale" if projection["kind"] == "orthographic" else "sensor_width"
+    size = projection[size_key]
+    if projection["kind"] == "perspective" and fit == "vertical":
+        size = projection["sensor_height"]
+    left = -0.5 * width + projection["shift_x"] * fitted + region.x
+    top = 0.5 * height / pixel_aspect + projection["shift_y"] * fitted - region.y / pixel_aspect
+    return {
+        **projection,
+        size_key: size * region.width / fitted,
+        "sensor_fit": "horizontal",
+        "shift_x": (left + 0.5 * region.width) / region.width,
+        "shift_y": (top - 0.5 * region.height / pixel_aspect) / region.width,
+    }
+
+
+def camera_dict(
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph,
+    divisor: int = 1,
+    region: Region | None = None,
+) -> dict[str, Any]:
+    """The scene camera in the core's terms (sensor fit, shift, clip, orthographic, pixel
+    aspect), narrowed to `region` of the frame where given."""
     if scene.camera is None:
         raise ExportError(f"scene '{scene.name}' has no camera (scene.camera)")
     obj = scene.camera.evaluated_get(depsgraph)
@@ -891,6 +947,10 @@ def camera_dict(
             "(perspective or orthographic only)"
         )
     width, height = render_size(scene, divisor)
+    pixel_aspect = float(scene.render.pixel_aspect_x / scene.render.pixel_aspect_y)
+    if region is not None:
+        projection = _cropped_to(projection, (width, height), pixel_aspect, region)
+        width, height = region.width, region.height
     return {
         "world_from_camera": column_major(matrix),
         "projection": projection,
@@ -898,6 +958,7 @@ def camera_dict(
         "clip_end": float(data.clip_end),
         "width": width,
         "height": height,
+        "pixel_aspect": pixel_aspect,
     }
 
 
@@ -1174,7 +1235,9 @@ def frame_inputs(
         sun = suns[0]
     notes: list[str] = []
     evaluated = sun.evaluated_get(depsgraph)
-    camera = camera_dict(scene, depsgraph, divisor)
+    # The viewport's preview shows the whole frame; F12 renders its region.
+    region = None if preview or divisor != 1 else render_region(scene)
+    camera = camera_dict(scene, depsgraph, divisor, region)
     notes += _unblurred_notes(scene)
     medium, medium_notes = medium_dict(scene, depsgraph)
     notes += medium_notes

@@ -98,8 +98,9 @@ def render_layers(
     *,
     progress: crepuscular.ProgressCallback | None = None,
 ) -> tuple[crepuscular.Layers, export.FrameInputs]:
-    """Exports the frame in `depsgraph` and renders its layers at the render's size, with
-    the volume layer filtered like the beauty's pixels. Several suns with shafts add their
+    """Exports the frame in `depsgraph` and renders its layers at the render's size (its
+    render region's, in the frame or cropped to it, as F12 renders it), with the volume
+    layer filtered like the beauty's pixels. Several suns with shafts add their
     light (see `export.render_suns`); the first one's inputs are returned, with every
     sun's notes."""
     inputs = export.all_frame_inputs(scene, depsgraph, cache=CACHE)
@@ -115,6 +116,19 @@ def render_layers(
             f"no view ray reaches fog object '{fog.name}': the frame has no fog (is it out of "
             "view, behind a surface or past Max Distance?)"
         )
+    region = export.render_region(scene)
+    if region is not None and not region.cropped:
+        # The frame keeps its size, the region's layers in place and nothing around them,
+        # as Blender uncrops the beauty.
+        width, height = export.render_size(scene)
+        rows = slice(region.y, region.y + region.height)
+        columns = slice(region.x, region.x + region.width)
+        framed = []
+        for layer in (volume, visibility, depth):
+            whole = np.zeros((height, width, *layer.shape[2:]), dtype=np.float32)
+            whole[rows, columns] = layer
+            framed.append(whole)
+        volume, visibility, depth = framed
     return crepuscular.Layers(width, height, volume, visibility, depth), inputs[0]
 
 
@@ -429,7 +443,10 @@ def on_frame_change_post(scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph)
     except USER_ERRORS as error:
         settings.last_error = f"frame {frame}: {error}"
         # A transparent layer: the render shows the plain beauty, never a stale frame.
-        width, height = export.render_size(scene)
+        try:
+            width, height = export.output_size(scene)
+        except export.ExportError:
+            width, height = export.render_size(scene)
         set_volume_image(np.zeros((height, width, 4), np.float32))
         log(settings.last_error)
         raise

@@ -2048,6 +2048,7 @@ mod tests {
                 clip_end: 100.0,
                 width: 160,
                 height: 90,
+                pixel_aspect: 1.5,
             });
             for stride in [1, 2, 4] {
                 let lines = EpipolarLines::of_view(&camera, light_travel, stride);

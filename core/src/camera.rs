@@ -1,5 +1,5 @@
 //! Camera rays and the camera's raster projection, following Blender's view-plane rules
-//! (sensor fit, lens shift in units of the fitted sensor dimension).
+//! (sensor fit, lens shift in units of the fitted sensor dimension, non-square pixels).
 //!
 //! Pixel coordinates are continuous: (0, 0) is the top-left corner of the image and
 //! (width, height) the bottom-right one, so pixel (x, y) has its centre at (x + ½, y + ½).
@@ -49,8 +49,9 @@ pub struct CameraModel {
     pub clip_start: f64,
     pub clip_end: f64,
     perspective: bool,
-    /// View-plane units per pixel (at unit depth for perspective, scene units for ortho).
-    plane_per_pixel: f64,
+    /// View-plane units per pixel across and down (at unit depth for perspective, scene
+    /// units for ortho); they differ by the pixel aspect.
+    plane_per_pixel: [f64; 2],
     /// View-plane coordinates of the image's top-left corner.
     plane_origin: [f64; 2],
 }
@@ -89,19 +90,20 @@ impl CameraModel {
                 shift_y,
             } => (false, ortho_scale as f64, sensor_fit, shift_x, shift_y),
         };
-        let fitted_pixels = match fit {
+        // As Blender's view plane: the fit compares the sides in square units, and the
+        // height, the shift's unit where it is fitted, counts in pixel widths.
+        let aspect = camera.pixel_aspect as f64;
+        let height_in_widths = height / aspect;
+        let fitted = match fit {
             SensorFit::Horizontal => width,
-            SensorFit::Vertical => height,
-            SensorFit::Auto => width.max(height),
+            SensorFit::Vertical => height_in_widths,
+            SensorFit::Auto => width.max(height_in_widths),
         };
-        let plane_per_pixel = plane_size / fitted_pixels;
-        let shift = [
-            shift_x as f64 * fitted_pixels,
-            shift_y as f64 * fitted_pixels,
-        ];
+        let across = plane_size / fitted;
+        let plane_per_pixel = [across, across / aspect];
         let plane_origin = [
-            (-0.5 * width + shift[0]) * plane_per_pixel,
-            (0.5 * height + shift[1]) * plane_per_pixel,
+            (-0.5 * width + shift_x as f64 * fitted) * across,
+            (0.5 * height_in_widths + shift_y as f64 * fitted) * across,
         ];
         let world_from_camera = camera.world_from_camera.as_dmat4();
         Self {
@@ -124,8 +126,8 @@ impl CameraModel {
     /// Camera-space point on the view plane for continuous pixel coordinates.
     fn plane_point(&self, px: f64, py: f64) -> [f64; 2] {
         [
-            self.plane_origin[0] + px * self.plane_per_pixel,
-            self.plane_origin[1] - py * self.plane_per_pixel,
+            self.plane_origin[0] + px * self.plane_per_pixel[0],
+            self.plane_origin[1] - py * self.plane_per_pixel[1],
         ]
     }
 
@@ -167,8 +169,8 @@ impl CameraModel {
     /// space, for backends that generate rays themselves.
     pub fn ray_terms(&self) -> RayTerms {
         let [x0, y0] = self.plane_origin;
-        let s = self.plane_per_pixel;
-        let (dx, dy) = (DVec3::new(s, 0.0, 0.0), DVec3::new(0.0, -s, 0.0));
+        let [sx, sy] = self.plane_per_pixel;
+        let (dx, dy) = (DVec3::new(sx, 0.0, 0.0), DVec3::new(0.0, -sy, 0.0));
         if self.perspective {
             RayTerms {
                 origin: [DVec3::ZERO; 3],
@@ -191,23 +193,23 @@ impl CameraModel {
     /// planar depth for perspective cameras and 1 for orthographic ones. Linear, so that
     /// triangles can be clipped in this space before the division.
     pub fn pixel_from_world(&self) -> DMat4 {
-        let inv = 1.0 / self.plane_per_pixel;
+        let [ix, iy] = self.plane_per_pixel.map(|s| 1.0 / s);
         let [x0, y0] = self.plane_origin;
         // Camera space has the view direction along −Z, so planar depth is −z.
         let pixel_from_camera = if self.perspective {
-            // px = (x/(−z) − x0)/ppp, py = (y0 − y/(−z))/ppp; multiplied through by w = −z.
+            // px = (x/(−z) − x0)/ppx, py = (y0 − y/(−z))/ppy; multiplied through by w = −z.
             DMat4::from_cols(
-                DVec4::new(inv, 0.0, 0.0, 0.0),
-                DVec4::new(0.0, -inv, 0.0, 0.0),
-                DVec4::new(x0 * inv, -y0 * inv, -1.0, -1.0),
+                DVec4::new(ix, 0.0, 0.0, 0.0),
+                DVec4::new(0.0, -iy, 0.0, 0.0),
+                DVec4::new(x0 * ix, -y0 * iy, -1.0, -1.0),
                 DVec4::new(0.0, 0.0, 0.0, 0.0),
             )
         } else {
             DMat4::from_cols(
-                DVec4::new(inv, 0.0, 0.0, 0.0),
-                DVec4::new(0.0, -inv, 0.0, 0.0),
+                DVec4::new(ix, 0.0, 0.0, 0.0),
+                DVec4::new(0.0, -iy, 0.0, 0.0),
                 DVec4::new(0.0, 0.0, -1.0, 0.0),
-                DVec4::new(-x0 * inv, y0 * inv, 0.0, 1.0),
+                DVec4::new(-x0 * ix, y0 * iy, 0.0, 1.0),
             )
         };
         pixel_from_camera * self.camera_from_world
@@ -249,6 +251,7 @@ mod tests {
             clip_end: 100.0,
             width,
             height,
+            pixel_aspect: 1.0,
         }
     }
 
@@ -333,7 +336,10 @@ mod tests {
                 shift_y: 0.3,
             },
         ] {
-            let model = CameraModel::new(&camera(projection, 320, 240));
+            let model = CameraModel::new(&Camera {
+                pixel_aspect: 0.75,
+                ..camera(projection, 320, 240)
+            });
             let m = model.pixel_from_world();
             for (px, py) in [(0.0, 0.0), (10.5, 200.25), (319.0, 1.0)] {
                 let ray = model.ray(px, py);
@@ -342,6 +348,45 @@ mod tests {
                 assert!((clip.x / clip.w - px).abs() < 1e-6, "{clip:?}");
                 assert!((clip.y / clip.w - py).abs() < 1e-6);
                 assert!((clip.z - t / ray.distance_per_depth).abs() < 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn wide_pixels_see_what_square_pixels_as_much_narrower_see() {
+        let orthographic = |fit, shift_x, shift_y| Projection::Orthographic {
+            ortho_scale: 6.0,
+            sensor_fit: fit,
+            shift_x,
+            shift_y,
+        };
+        for (width, height) in [(160, 90), (90, 160), (100, 150)] {
+            for fit in [SensorFit::Auto, SensorFit::Horizontal, SensorFit::Vertical] {
+                let shifted = Projection::Perspective {
+                    focal_length: 35.0,
+                    sensor_width: 36.0,
+                    sensor_height: 24.0,
+                    sensor_fit: fit,
+                    shift_x: 0.15,
+                    shift_y: -0.2,
+                };
+                for projection in [shifted, orthographic(fit, -0.1, 0.25)] {
+                    for aspect in [2.0, 0.5, 1.5] {
+                        let wide = CameraModel::new(&Camera {
+                            pixel_aspect: aspect as f32,
+                            ..camera(projection.clone(), width, height)
+                        });
+                        // The same view in square pixels, `aspect` times as many across.
+                        let across = (width as f64 * aspect) as u32;
+                        let square = CameraModel::new(&camera(projection.clone(), across, height));
+                        for (px, py) in [(0.0, 0.0), (40.5, 30.25), (width as f64, height as f64)] {
+                            let (a, b) = (wide.ray(px, py), square.ray(px * aspect, py));
+                            let context = format!("{width}×{height} {fit:?} {aspect} ({px}, {py})");
+                            assert!((a.direction - b.direction).length() < 1e-12, "{context}");
+                            assert!((a.origin - b.origin).length() < 1e-12, "{context}");
+                        }
+                    }
+                }
             }
         }
     }

@@ -60,13 +60,25 @@ pub struct Camera {
     pub clip_end: f32,
     pub width: u32,
     pub height: u32,
+    /// A pixel's width over its height: 1 for square pixels, 2 for a 2:1 anamorphic
+    /// squeeze (Blender's `pixel_aspect_x / pixel_aspect_y`, USD's `pixelAspectRatio`).
+    #[serde(default = "square_pixels", skip_serializing_if = "is_square")]
+    pub pixel_aspect: f32,
+}
+
+fn square_pixels() -> f32 {
+    1.0
+}
+
+fn is_square(pixel_aspect: &f32) -> bool {
+    *pixel_aspect == 1.0
 }
 
 /// Which sensor dimension the sensor size (or ortho scale) applies to, as in Blender.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SensorFit {
-    /// The larger image dimension gets `sensor_width`.
+    /// The larger image dimension, measured with the pixels' aspect, gets `sensor_width`.
     #[default]
     Auto,
     /// The image width gets `sensor_width`.
@@ -745,6 +757,7 @@ impl Camera {
             clip_end: 1000.0,
             width,
             height,
+            pixel_aspect: 1.0,
         }
     }
 
@@ -769,6 +782,7 @@ impl Camera {
         check_matrix("camera.world_from_camera", &self.world_from_camera)?;
         check_positive("camera.clip_start", self.clip_start)?;
         check_positive("camera.clip_end", self.clip_end)?;
+        check_positive("camera.pixel_aspect", self.pixel_aspect)?;
         if self.clip_end <= self.clip_start {
             return Err(Error::invalid(
                 "camera.clip_end",

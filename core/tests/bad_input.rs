@@ -72,6 +72,9 @@ fn nan_in_matrices_is_named() {
 fn sizes_out_of_range_are_named() {
     check(|s| s.camera.width = 0, "camera.width");
     check(|s| s.camera.height = 0, "camera.height");
+    check(|s| s.camera.pixel_aspect = 0.0, "camera.pixel_aspect");
+    check(|s| s.camera.pixel_aspect = -2.0, "camera.pixel_aspect");
+    check(|s| s.camera.pixel_aspect = f32::NAN, "camera.pixel_aspect");
     check(
         |s| s.render.shadow_map_size = MAX_SHADOW_MAP_SIZE + 1,
         "render.shadow_map_size",

@@ -620,6 +620,7 @@ fn fuzzed_plane(
         clip_end: 1000.0,
         width: 2 * WIDTH,
         height: 2 * HEIGHT,
+        pixel_aspect: 1.0,
     };
     scene.sun.direction = sun;
     scene.medium.extinction = extinction;
@@ -1209,4 +1210,31 @@ fn nearly_black_rays_keep_the_light_from_far_along() {
     );
     assert!(mean < 1e-4, "the view is nearly black: {mean}");
     assert!(relative < 0.03, "prefiltered: {relative}");
+}
+
+/// Non-square pixels: a 2:1 anamorphic squeeze, and pixels twice as tall as wide. The
+/// epipolar lines, the adaptive lattices and the rectification's slices are laid out in
+/// pixel coordinates, which then stretch the view unevenly; the fast methods keep the
+/// bounds they keep on square pixels, with the sun in the view and without.
+#[test]
+fn non_square_pixels_keep_the_fast_methods_within_bounds() {
+    for name in ["tree", "colonnade"] {
+        for (view, mut scene) in views_at(name, 2 * WIDTH, 2 * HEIGHT) {
+            if !matches!(view, "default" | "sun in view") {
+                continue;
+            }
+            for aspect in [2.0, 0.5] {
+                scene.camera.pixel_aspect = aspect;
+                // About as many square units across as before.
+                scene.camera.width = (2.0 * WIDTH as f32 / aspect) as u32;
+                let reference = render_with(&scene, Method::Reference, 4096);
+                assert_methods_within(
+                    &format!("{name:>10} {view}, pixels {aspect}:1"),
+                    &scene,
+                    &reference,
+                    [(Method::MinMax, 0.01), (Method::Prefiltered, 0.02)],
+                );
+            }
+        }
+    }
 }

@@ -265,6 +265,11 @@ fn reference_march_matches_in_a_box_supersampled_and_downsampled() {
     downsampled.render.downsample = 2;
     let (gpu, cpu, _) = render_both(&device, &downsampled);
     check_layers("march tree at 1/2", &gpu, &cpu, 0.05, 0.05);
+    let mut anamorphic = small("plane");
+    anamorphic.camera.pixel_aspect = 2.0;
+    anamorphic.camera.width /= 2;
+    let (gpu, cpu, _) = render_both(&device, &anamorphic);
+    check_layers("march plane, pixels 2:1", &gpu, &cpu, 0.05, 0.05);
 }
 
 /// Hole filling: minimum and maximum are exact, so the GPU must equal the CPU bit for
@@ -933,6 +938,12 @@ fn prefiltered_frames_match_the_cpu_on_the_builtin_scenes() {
         }
         check_layers(&format!("prefiltered {name}"), &gpu, &cpu, 0.05, 0.05);
     }
+    let mut anamorphic = small("tree");
+    anamorphic.render.method = Method::Prefiltered;
+    anamorphic.camera.pixel_aspect = 0.5;
+    anamorphic.camera.width *= 2;
+    let (gpu, cpu, _) = render_both(&device, &anamorphic);
+    check_layers("prefiltered tree, pixels 1:2", &gpu, &cpu, 0.05, 0.05);
 }
 
 /// A nearly black frame (`plane` in fog of 0.6 /m under a dilated silhouette; see

@@ -86,11 +86,34 @@ def job_fidelity(spec: dict[str, Any], out: Path) -> None:
     assert fog.visible_shadow, "the fog object was not restored"
 
 
+def job_region_fidelity(spec: dict[str, Any], out: Path) -> None:
+    """The fidelity scene through a render region (an odd 53 x 27 of 96 x 54), cropped to
+    it and in its frame: Cycles renders each as F12 does, then the operator, which renders
+    what F12 renders, our reference and default-method layers."""
+    scene = fog_scene(spec)
+    render = scene.render
+    render.use_border = True
+    render.border_min_x, render.border_max_x = 0.3, 0.85
+    render.border_min_y, render.border_max_y = 0.2, 0.7
+    settings = scene.objects["Sun"].data.crepuscular
+    for name, crop in (("cropped", True), ("framed", False)):
+        render.use_crop_to_border = crop
+        settings.enabled = False
+        _render(scene, out / f"cycles_{name}.exr")
+        settings.enabled = True
+        for method in ("reference", settings.bl_rna.properties["method"].default):
+            settings.method = method
+            path = str(out / f"{name}_{method}.exr")
+            assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
+        settings.method = "reference"
+
+
 def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
     """The mappings the fidelity scene leaves at their plainest, against Cycles: a tinted
     Principled Volume with an absorption colour (its extinction coloured), a sun with
-    colour, temperature, exposure and a disc, and two cameras, orthographic with lens
-    shift and a vertical sensor fit, and a pinhole inside the box. Black surfaces and
+    colour, temperature, exposure and a disc, and three cameras: orthographic with lens
+    shift and a vertical sensor fit, a pinhole inside the box, and a pinhole through 2:1
+    anamorphic pixels (the render's pixel aspect). Black surfaces and
     world, no bounces; each view is rendered by Cycles, then as our reference and
     default-method layers."""
     scene = bpy.context.scene
@@ -128,6 +151,7 @@ def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
     views = {
         "orthographic": blender_scenes.look_at((-14, -12, 9), (0, 0, 2.5)),
         "inside": blender_scenes.look_at((-3.5, -2.0, 1.2), (3, 2, 3.5)),
+        "anamorphic": blender_scenes.look_at((-12, -6, 4.5), (0, 0, 3.0)),
     }
     for name, matrix in views.items():
         camera = blender_scenes.add_camera(scene, matrix, lens=24.0)
@@ -135,8 +159,11 @@ def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
             camera.data.type, camera.data.ortho_scale = "ORTHO", 11.0
             camera.data.sensor_fit = "VERTICAL"
             camera.data.shift_x, camera.data.shift_y = 0.1, -0.05
-        else:
+        elif name == "inside":
             camera.data.shift_y = 0.08
+        else:
+            camera.data.lens, camera.data.shift_x = 40.0, -0.04
+            scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = 2.0, 1.0
         light.crepuscular.enabled = False
         _render(scene, out / f"cycles_{name}.exr")
         light.crepuscular.enabled = True
@@ -145,6 +172,7 @@ def job_mapped_fidelity(spec: dict[str, Any], out: Path) -> None:
             path = str(out / f"{name}_{method}.exr")
             assert bpy.ops.crepuscular.render_layers(filepath=path) == {"FINISHED"}
         settings.method = "reference"
+        scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
 
 
 def _cycles_then_ours(scene: Any, out: Path) -> Any:
@@ -835,6 +863,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
 JOBS = {
     "fidelity": job_fidelity,
     "mapped_fidelity": job_mapped_fidelity,
+    "region_fidelity": job_region_fidelity,
     "cutout_fidelity": job_cutout_fidelity,
     "extension_fidelity": job_extension_fidelity,
     "alpha_chain_fidelity": job_alpha_chain_fidelity,

@@ -1743,7 +1743,8 @@ def test_bad_input_is_reported_by_name(addon: ModuleType, tmp_path: Path) -> Non
         bpy.ops.crepuscular.render_layers(filepath=path)
     scene.render.resolution_x = 64
     scene.render.use_border = True
-    with pytest.raises(RuntimeError, match=r"use_border"):
+    scene.render.border_min_x = scene.render.border_max_x = 0.5
+    with pytest.raises(RuntimeError, match=r"the render region is empty at 64x"):
         bpy.ops.crepuscular.render_layers(filepath=path)
     scene.render.use_border = False
     scene.camera.data.type = "PANO"
