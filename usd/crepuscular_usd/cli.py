@@ -1,7 +1,8 @@
 """`crepuscular-usd`: render light-shaft layers from a USD stage, or author the schema.
 
     crepuscular-usd render STAGE --camera /cam --frames 1-100x2 --out 'shafts.####.exr'
-        [--light /sun] [--beauty 'beauty.####.exr' [--comp 'comp.####.exr']]
+        [--light /sun] [--renderSettingsPrimPath /Render/settings]
+        [--beauty 'beauty.####.exr' [--comp 'comp.####.exr']]
         [--out-layer shafts.usda] [--width W] [--height H] [--half]
         [--exr-compression zip|zips|piz|rle|none|pxr24] [--quiet]
     crepuscular-usd apply-schema STAGE --light /sun [--medium-extent /fog] [--output FILE]
@@ -33,6 +34,7 @@ from crepuscular_usd.attributes import HOLES_OBJECTS
 from crepuscular_usd.frames import FrameSpecError, add_cmdline_args, validate_cmdline_args
 from crepuscular_usd.geometry import MeshError
 from crepuscular_usd.output import OutputLayerError, RenderRecord, write_output_layer
+from crepuscular_usd.render_settings import RenderSettingsError, read_render_settings
 from crepuscular_usd.schema import API_NAME, SchemaError, apply_schema
 from crepuscular_usd.stage import StageError, StageReader, open_stage, tf_message
 
@@ -61,9 +63,23 @@ def _parser() -> argparse.ArgumentParser:
 
     render = commands.add_parser("render", help="render layer EXRs for a frame range")
     render.add_argument("stage", metavar="STAGE", help="the USD stage to render")
-    render.add_argument("--camera", "-cam", help="camera prim path (default: the only camera)")
+    render.add_argument(
+        "--camera",
+        "-cam",
+        help="camera prim path (default: the render settings' camera, else the only camera)",
+    )
     render.add_argument(
         "--light", help="DistantLight prim path (default: the only one, preferring the API)"
+    )
+    render.add_argument(
+        "--renderSettingsPrimPath",
+        "-rs",
+        dest="render_settings",
+        help=(
+            "RenderSettings prim whose camera, resolution, pixel aspect, aperture conform "
+            "policy and included purposes to render with (default: the stage's "
+            "renderSettingsPrimPath, else its only RenderSettings prim)"
+        ),
     )
     add_cmdline_args(render)
     render.add_argument(
@@ -85,8 +101,19 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     render.add_argument("--out-layer", help="USD layer recording the products and settings")
-    render.add_argument("--width", type=int, help="image width (default 1920 or the beauty's)")
-    render.add_argument("--height", type=int, help="image height (default from the aperture)")
+    render.add_argument(
+        "--width",
+        type=int,
+        help="image width (default: the render settings', else the beauty's, else 1920)",
+    )
+    render.add_argument(
+        "--height",
+        type=int,
+        help=(
+            "image height (default: the render settings', else the beauty's, else from "
+            "the aperture)"
+        ),
+    )
     render.add_argument("--half", action="store_true", help="write volume and visibility as half")
     render.add_argument(
         "--exr-compression",
@@ -267,10 +294,25 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
     for option in ("out", "comp", "out_layer"):
         _make_folder(getattr(args, option), option)
     time_codes = [_resolve_time(stage, code) for code in frame_args.time_codes]
+    try:
+        image = read_render_settings(stage, args.render_settings)
+    except RenderSettingsError as error:
+        raise CommandError(str(error)) from error
+    for note in image.notes:
+        _warn(err, note)
     width, height = args.width, args.height
-    if args.beauty and width is None and height is None:
+    if image.resolution is not None:
+        # One side given scales the settings' image.
+        full_width, full_height = image.resolution
+        if width is None and height is None:
+            width, height = full_width, full_height
+        elif width is None:
+            width = max(1, round(height * full_width / full_height))
+        elif height is None:
+            height = max(1, round(width * full_height / full_width))
+    elif args.beauty and width is None and height is None:
         width, height = _beauty_size(_frame_path(frame_args.formats["beauty"], time_codes[0]))
-    reader = StageReader(stage, args.camera, args.light, width=width, height=height)
+    reader = StageReader(stage, args.camera, args.light, width=width, height=height, image=image)
     if not reader.light_prim.HasAPI(API_NAME):
         _warn(
             err,
@@ -290,6 +332,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
             for key in (
                 "camera",
                 "light",
+                "render_settings",
                 "frames",
                 "out",
                 "beauty",
@@ -408,6 +451,8 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 )
                 record.composites[key] = comp_path
             record.resolution = (layers.width, layers.height)
+            record.pixel_aspect = frame.camera["pixel_aspect"]
+            record.conform = image.conform
             record.settings[key] = frame.settings_record()
     except Exception as error:
         # The frames rendered before the failure are still written: a farm's retry of the

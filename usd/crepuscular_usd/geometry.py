@@ -344,8 +344,11 @@ class GeometryCollector:
         core_from_stage: F64,
         *,
         skip: Iterable[Sdf.Path] = (),
+        purposes: Iterable[str] = ("default", "render"),
     ) -> None:
         self._stage = stage
+        #: The purposes that render (a RenderSettings prim's `includedPurposes`).
+        self._purposes = frozenset(purposes)
         #: Column-vector 4x4: stage world space -> renderer space (Z-up, metres).
         self._core_from_stage = core_from_stage
         self._skip = set(skip)
@@ -630,16 +633,14 @@ class GeometryCollector:
         geometry.notes = list(self._masks.notes)
         return geometry
 
-    @staticmethod
-    def _renderable(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
+    def _renderable(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
         imageable = UsdGeom.Imageable(prim)
         if not imageable:
             # Typed but not imageable (materials, shaders, render settings) holds no geometry.
             return not prim.GetTypeName()
         if imageable.GetVisibilityAttr().Get(time) == UsdGeom.Tokens.invisible:
             return False
-        purpose = imageable.GetPurposeAttr().Get()
-        return purpose not in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)
+        return imageable.GetPurposeAttr().Get() in self._purposes
 
     @staticmethod
     def _count_unsupported(prim: Usd.Prim, unsupported: Counter[str]) -> None:

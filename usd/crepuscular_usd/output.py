@@ -2,7 +2,8 @@
 
 The layer is meant to be sublayered into the shot. Under `/Render` it holds:
 
-- `CrepuscularSettings` (RenderSettings): camera, resolution, products, and the exact
+- `CrepuscularSettings` (RenderSettings): camera, resolution, pixel aspect and aperture
+  conform policy where not the defaults, products, and the exact
   scene description used per frame (everything but the meshes) as the time-sampled
   string `crepuscular:sceneSettings`, plus the command's inputs in `customData`;
 - `Products/shafts` (and `Products/composite` with `--beauty`): RenderProducts whose
@@ -41,6 +42,9 @@ class RenderRecord:
     meters_per_unit: float
     up_axis: str
     time_codes_per_second: float
+    #: A pixel's width over its height, and how the camera's aperture was fitted.
+    pixel_aspect: float = 1.0
+    conform: str = "expandAperture"
     #: Per frame: the layer EXR written.
     shafts: dict[float | None, str] = field(default_factory=dict)
     #: Per frame: the composited EXR written (with --beauty).
@@ -105,6 +109,17 @@ def _author_vars(
     return paths
 
 
+def _author_image(prim: UsdRender.SettingsBase, record: RenderRecord, name: str) -> None:
+    """The pixel aspect and conform policy the image was rendered with, where they are not
+    the schema's fallbacks."""
+    if record.pixel_aspect != 1.0:
+        attribute = prim.CreatePixelAspectRatioAttr()
+        _check(attribute.Set(record.pixel_aspect), f"{name}.pixelAspectRatio")
+    if record.conform != UsdRender.Tokens.expandAperture:
+        attribute = prim.CreateAspectRatioConformPolicyAttr()
+        _check(attribute.Set(record.conform), f"{name}.aspectRatioConformPolicy")
+
+
 def _author_product(
     stage: Usd.Stage,
     name: str,
@@ -121,6 +136,7 @@ def _author_product(
         _check(name_attr.Set(_relative(path, layer_dir), _time_code(frame)), f"{name}.productName")
     _check(product.CreateCameraRel().SetTargets([record.camera_path]), f"{name}.camera")
     _check(product.CreateResolutionAttr().Set(Gf.Vec2i(*record.resolution)), f"{name}.resolution")
+    _author_image(product, record, name)
     _check(product.CreateOrderedVarsRel().SetTargets(var_paths), f"{name}.orderedVars")
     return product.GetPath()
 
@@ -171,6 +187,7 @@ def write_output_layer(path: str, record: RenderRecord) -> None:
     _check(settings.CreateCameraRel().SetTargets([record.camera_path]), "settings camera")
     _check(settings.CreateProductsRel().SetTargets(products), "settings products")
     _check(settings.CreateResolutionAttr().Set(Gf.Vec2i(*record.resolution)), "settings resolution")
+    _author_image(settings, record, "settings")
     prim = settings.GetPrim()
     scene_attr = prim.CreateAttribute("crepuscular:sceneSettings", Sdf.ValueTypeNames.String)
     for frame, values in record.settings.items():

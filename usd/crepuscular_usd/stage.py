@@ -4,9 +4,10 @@ The renderer works right-handed, Z up, in metres. Stage space converts with
 `metersPerUnit` (a uniform scale) and, for Y-up stages, a +90 degree rotation about X,
 the same as Blender's USD importer. Cameras map exactly:
 
-- perspective: the aperture that fits the image (conform policy "fit", as Hydra's
-  default) becomes the fitted sensor side, and aperture offsets become lens shifts in
-  units of that side;
+- perspective: the aperture side that spans the image by the RenderSettings' conform
+  policy (`expandAperture` where there are none, as Hydra's default) becomes the fitted
+  sensor side, and aperture offsets become lens shifts in units of that side; the
+  settings' pixel aspect carries over;
 - orthographic: apertures are tenths of a stage unit (Gf.Camera's convention);
 - clipping range in stage units along the view axis, like the renderer's clip planes.
 """
@@ -33,6 +34,7 @@ from crepuscular_usd.geometry import (
     sun_and_camera,
     tf_message,
 )
+from crepuscular_usd.render_settings import ImageSettings, fitted_vertically
 from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
 
 __all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage", "tf_message"]
@@ -194,9 +196,11 @@ class StageReader:
         *,
         width: int | None = None,
         height: int | None = None,
+        image: ImageSettings | None = None,
     ) -> None:
         self.stage = stage
         self.core_from_stage, self.meters_per_unit = core_from_stage(stage)
+        self.image = image or ImageSettings()
         self.camera_prim = self._find_camera(camera_path)
         self.light_prim = self._find_light(light_path)
         self._width = width
@@ -230,11 +234,22 @@ class StageReader:
                 return f"{light} {source}"
         if path in CAMERA_SOURCES:
             return f"{camera} {CAMERA_SOURCES[path]}"
+        if path == "camera.pixel_aspect":
+            return self.image.attribute("pixelAspectRatio")
         return None
 
     # --- prims ----------------------------------------------------------------------
 
     def _find_camera(self, path: str | None) -> Usd.Prim:
+        if path is None and self.image.camera is not None:
+            path = str(self.image.camera)
+            prim = self.stage.GetPrimAtPath(path)
+            if not (prim and prim.IsActive() and prim.IsA(UsdGeom.Camera)):
+                raise StageError(
+                    f"{self.image.attribute('camera')} targets {path}, which is not an active "
+                    "Camera on the stage"
+                )
+            return prim
         if path is None:
             cameras = [p for p in self.stage.Traverse() if p.IsA(UsdGeom.Camera)]
             if len(cameras) != 1:
@@ -287,7 +302,9 @@ class StageReader:
         collector = self._collectors.get(extent_path)
         if collector is None:
             skip = [extent_path] if extent_path is not None else []
-            collector = GeometryCollector(self.stage, self.core_from_stage, skip=skip)
+            collector = GeometryCollector(
+                self.stage, self.core_from_stage, skip=skip, purposes=self.image.purposes
+            )
             self._collectors[extent_path] = collector
         camera = self.camera(time)
         sun = self.sun(
@@ -359,13 +376,15 @@ class StageReader:
         }
 
     def resolution(self, aperture_aspect: float) -> tuple[int, int]:
-        """The image size: as given, or the other side from the aperture's aspect ratio."""
+        """The image size: as given, or the other side from the aperture's aspect ratio
+        (and the pixels')."""
+        pixel_aspect = self.image.pixel_aspect
         if self._width and self._height:
             return self._width, self._height
         if self._height:
-            return max(1, round(self._height * aperture_aspect)), self._height
+            return max(1, round(self._height * aperture_aspect / pixel_aspect)), self._height
         width = self._width or 1920
-        return width, max(1, round(width / aperture_aspect))
+        return width, max(1, round(width * pixel_aspect / aperture_aspect))
 
     def camera(self, time: Usd.TimeCode) -> dict[str, Any]:
         where = str(self.camera_prim.GetPath())
@@ -384,8 +403,12 @@ class StageReader:
                 f"camera {where}: its apertures {h_aperture} x {v_aperture} give a {width} x "
                 f"{height} image; give both --width and --height"
             )
-        # Fit the aperture inside the image: the side whose aspect is tighter wins.
-        vertical = width / height > h_aperture / v_aperture
+        pixel_aspect = self.image.pixel_aspect
+        vertical, adjusted = fitted_vertically(
+            self.image.conform, width * pixel_aspect / height, h_aperture / v_aperture
+        )
+        if adjusted is not None:
+            pixel_aspect *= adjusted
         fitted = v_aperture if vertical else h_aperture
         fit = "vertical" if vertical else "horizontal"
         shift_x = camera.horizontalApertureOffset / fitted
@@ -427,6 +450,7 @@ class StageReader:
             "clip_end": float(clip.max) * self.meters_per_unit,
             "width": width,
             "height": height,
+            "pixel_aspect": pixel_aspect,
         }
 
     def sun(

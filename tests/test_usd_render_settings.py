@@ -1,0 +1,246 @@
+"""A stage's RenderSettings prim: camera, resolution, pixel aspect, aperture conform
+policy and included purposes, as farm renderers read them, through `crepuscular-usd`."""
+
+from __future__ import annotations
+
+import copy
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
+from scenes import build_scene
+from usd_helpers import author_camera, author_stage
+
+import crepuscular
+from crepuscular_usd import StageReader
+from crepuscular_usd.cli import main
+from crepuscular_usd.render_settings import ImageSettings, read_render_settings
+
+SMALL = {"steps": 32, "shadow_map_size": 128}
+
+
+def run(*argv: str) -> tuple[int, str]:
+    err = io.StringIO()
+    status = main(list(argv), stderr=err)
+    return status, err.getvalue()
+
+
+def _settings(
+    stage: Usd.Stage, path: str = "/Render/settings", *, name_on_stage: bool = True, **values: Any
+) -> UsdRender.Settings:
+    """A RenderSettings prim with `values` (camera, resolution, pixel_aspect, conform,
+    purposes, window) authored; named by the stage's metadata unless told not to."""
+    settings = UsdRender.Settings.Define(stage, path)
+    assert settings
+    if "camera" in values:
+        assert settings.CreateCameraRel().SetTargets([Sdf.Path(values["camera"])])
+    if "resolution" in values:
+        assert settings.CreateResolutionAttr().Set(Gf.Vec2i(*values["resolution"]))
+    if "pixel_aspect" in values:
+        assert settings.CreatePixelAspectRatioAttr().Set(values["pixel_aspect"])
+    if "conform" in values:
+        assert settings.CreateAspectRatioConformPolicyAttr().Set(values["conform"])
+    if "purposes" in values:
+        assert settings.CreateIncludedPurposesAttr().Set(values["purposes"])
+    if "window" in values:
+        assert settings.CreateDataWindowNDCAttr().Set(Gf.Vec4f(*values["window"]))
+    if name_on_stage:
+        stage.SetMetadata(UsdRender.Tokens.renderSettingsPrimPath, path)
+    return settings
+
+
+def _shot(tmp_path: Path, name: str = "shot.usda") -> tuple[Path, Usd.Stage, dict[str, Any]]:
+    """The test scene as a stage with a second camera, so that no camera is the only one."""
+    path = tmp_path / name
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(path), scene)
+    other = copy.deepcopy(scene["camera"])
+    other["world_from_camera"][12] += 3.0
+    author_camera(stage, "/World/Other", other)
+    return path, stage, scene
+
+
+def _volume(path: Path) -> np.ndarray:
+    channels = crepuscular.read_exr(path)
+    return np.stack([channels[f"volume.{c}"] for c in "RGBA"], axis=-1)
+
+
+def test_the_stage_s_settings_give_camera_resolution_and_pixel_aspect(tmp_path: Path) -> None:
+    """Named by the stage's metadata, the settings choose the camera among two, the image
+    size and 2:1 anamorphic pixels; the layers are the core's render of that camera, and
+    the output layer records the pixel aspect."""
+    path, stage, scene = _shot(tmp_path)
+    _settings(stage, camera="/World/Camera", resolution=(48, 27), pixel_aspect=2.0)
+    assert stage.GetRootLayer().Save()
+    out = tmp_path / "out"
+    status, err = run(
+        "render", str(path), "--out", str(out / "s.exr"), "--out-layer",
+        str(out / "shafts.usda"), "--quiet",
+    )  # fmt: skip
+    assert status == 0, err
+    written = _volume(out / "s.exr")
+    assert written.shape == (27, 48, 4)
+    # The stage's aperture is 36 x 20.25 mm; 48 x 27 pixels of 2:1 span 96 x 27 square
+    # units, wider than it: expandAperture fits its height.
+    direct = copy.deepcopy(scene)
+    direct["camera"].update(width=48, height=27, pixel_aspect=2.0)
+    direct["camera"]["projection"].update(
+        sensor_fit="vertical", sensor_width=36.0, sensor_height=36.0 * 36 / 64
+    )
+    expected = crepuscular.render(direct)
+    np.testing.assert_allclose(written, expected.volume, atol=1e-4 * expected.volume.max())
+    assert written[..., 3].mean() > 0.01
+    # Square pixels see another image: the test can tell.
+    direct["camera"]["pixel_aspect"] = 1.0
+    assert np.abs(crepuscular.render(direct).volume - written).max() > 0.05 * written.max()
+    record = Usd.Stage.Open(str(out / "shafts.usda"))
+    recorded = UsdRender.Settings(record.GetPrimAtPath("/Render/CrepuscularSettings"))
+    assert recorded.GetPixelAspectRatioAttr().Get() == 2.0
+    assert recorded.GetCameraRel().GetTargets() == [Sdf.Path("/World/Camera")]
+    assert tuple(recorded.GetResolutionAttr().Get()) == (48, 27)
+    product = UsdRender.Product(record.GetPrimAtPath("/Render/Products/shafts"))
+    assert product.GetPixelAspectRatioAttr().Get() == 2.0
+
+
+def test_the_command_line_overrides_the_settings(tmp_path: Path) -> None:
+    """--camera and both sides replace the settings'; one side scales their image."""
+    path, stage, _ = _shot(tmp_path)
+    _settings(stage, camera="/World/Other", resolution=(48, 27))
+    assert stage.GetRootLayer().Save()
+    out = tmp_path / "out"
+    common = ["render", str(path), "--quiet", "--out-layer", str(out / "l.usda")]
+    status, err = run(*common, "--out", str(out / "a.exr"), "--width", "96")
+    assert status == 0, err
+    assert _volume(out / "a.exr").shape[:2] == (54, 96)
+    status, err = run(*common, "--out", str(out / "b.exr"), "--height", "9")
+    assert status == 0, err
+    assert _volume(out / "b.exr").shape[:2] == (9, 16)
+    status, err = run(
+        *common, "--out", str(out / "c.exr"), "--width", "40", "--height", "40",
+        "--camera", "/World/Camera",
+    )  # fmt: skip
+    assert status == 0, err
+    assert _volume(out / "c.exr").shape[:2] == (40, 40)
+    layer = Usd.Stage.Open(str(out / "l.usda"))
+    recorded = UsdRender.Settings(layer.GetPrimAtPath("/Render/CrepuscularSettings"))
+    assert recorded.GetCameraRel().GetTargets() == [Sdf.Path("/World/Camera")]
+    assert not recorded.GetPixelAspectRatioAttr().HasAuthoredValue()
+    other = _volume(out / "a.exr")
+    mine = StageReader(stage, "/World/Other", None, width=96, height=54)
+    expected = crepuscular.render_arrays(**mine.read(Usd.TimeCode.Default()).render_kwargs())
+    np.testing.assert_array_equal(other, expected.volume)
+
+
+@pytest.mark.parametrize(
+    ("conform", "size", "fit", "pixel_aspect"),
+    [
+        ("expandAperture", (64, 32), "vertical", 1.0),
+        ("expandAperture", (32, 64), "horizontal", 1.0),
+        ("cropAperture", (64, 32), "horizontal", 1.0),
+        ("cropAperture", (32, 64), "vertical", 1.0),
+        ("adjustApertureWidth", (32, 64), "vertical", 1.0),
+        ("adjustApertureHeight", (64, 32), "horizontal", 1.0),
+        # 64 x 32 pixels of 1:2 cover the square aperture exactly.
+        ("adjustPixelAspectRatio", (64, 32), "horizontal", 0.5),
+    ],
+)
+def test_conform_policies_fit_the_aperture_as_named(
+    tmp_path: Path, conform: str, size: tuple[int, int], fit: str, pixel_aspect: float
+) -> None:
+    """A square aperture in a wide or a tall image. expandAperture shows all of it (the
+    image's longer side sees more), cropAperture fills the image with it, the adjust
+    policies keep one side, or the pixels' shape."""
+    _, stage, _ = _shot(tmp_path)
+    camera = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    camera.GetVerticalApertureAttr().Set(36.0)
+    camera.CreateHorizontalApertureOffsetAttr().Set(3.0)
+    _settings(stage, camera="/World/Camera", resolution=size, conform=conform)
+    image = read_render_settings(stage, None)
+    reader = StageReader(stage, None, "/World/Sun", width=size[0], height=size[1], image=image)
+    view = reader.camera(Usd.TimeCode.Default())
+    assert view["projection"]["sensor_fit"] == fit
+    assert view["pixel_aspect"] == pytest.approx(pixel_aspect)
+    assert view["projection"]["shift_x"] == pytest.approx(3.0 / 36.0)
+
+
+def test_included_purposes_decide_what_casts(tmp_path: Path) -> None:
+    """A proxy occluder casts only where the settings include the proxy purpose."""
+    _, stage, _ = _shot(tmp_path)
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/occluder")).CreatePurposeAttr("proxy")
+    plain = StageReader(stage, "/World/Camera", "/World/Sun", width=48, height=27)
+    _settings(stage, purposes=["default", "proxy"], resolution=(48, 27), camera="/World/Camera")
+    with_proxy = StageReader(
+        stage, None, "/World/Sun", width=48, height=27, image=read_render_settings(stage, None)
+    )
+    time = Usd.TimeCode.Default()
+    without = crepuscular.render_arrays(**plain.read(time).render_kwargs())
+    casting = crepuscular.render_arrays(**with_proxy.read(time).render_kwargs())
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/occluder")).GetPurposeAttr().Set("default")
+    fresh = StageReader(stage, "/World/Camera", "/World/Sun", width=48, height=27)
+    expected = crepuscular.render_arrays(**fresh.read(time).render_kwargs())
+    np.testing.assert_array_equal(casting.volume, expected.volume)
+    assert np.abs(without.volume - casting.volume).max() > 0.05 * casting.volume.max()
+
+
+def test_settings_the_stage_cannot_render_are_named(tmp_path: Path) -> None:
+    path, stage, _ = _shot(tmp_path)
+    out = str(tmp_path / "out" / "s.exr")
+    common = ("render", str(path), "--quiet", "--out", out, "--camera", "/World/Camera")
+    cases = [
+        ({"path": "/Render/gone"}, "renderSettingsPrimPath names /Render/gone"),
+        ({"resolution": (0, 10)}, "/Render/settings.resolution 0x10 is outside"),
+        ({"pixel_aspect": 0.0}, "/Render/settings.pixelAspectRatio 0.0 must be positive"),
+        ({"conform": "stretch"}, "aspectRatioConformPolicy 'stretch' is none of"),
+        ({"purposes": ["render", "hero"]}, "includedPurposes holds hero"),
+        ({"camera": "/World/Sun"}, "/Render/settings.camera targets /World/Sun, which is not"),
+    ]
+    for values, message in cases:
+        settings = _settings(stage, **{k: v for k, v in values.items() if k != "path"})
+        if "path" in values:
+            stage.SetMetadata(UsdRender.Tokens.renderSettingsPrimPath, values["path"])
+        assert stage.GetRootLayer().Save()
+        argv = ["render", str(path), "--quiet", "--out", out]
+        status, err = run(*argv, *(() if "camera" in values else ("--camera", "/World/Camera")))
+        assert status == 1, (values, err)
+        assert message in err, (values, err)
+        stage.RemovePrim(settings.GetPath())
+        stage.ClearMetadata(UsdRender.Tokens.renderSettingsPrimPath)
+    status, err = run(*common, "-rs", "/World/Camera")
+    assert status == 1
+    assert "/World/Camera is a Camera, not a RenderSettings" in err, err
+    status, err = run(*common, "-rs", "/Render/none")
+    assert status == 1
+    assert "render settings /Render/none does not exist" in err, err
+
+
+def test_what_the_settings_hold_but_are_not_followed_is_named(tmp_path: Path) -> None:
+    """A crop window renders the whole image; two settings prims and no metadata choose
+    none; several camera targets read the first."""
+    path, stage, _ = _shot(tmp_path)
+    _settings(stage, camera="/World/Camera", resolution=(32, 18), window=(0.25, 0.0, 0.75, 1.0))
+    settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/settings"))
+    settings.GetCameraRel().AddTarget("/World/Other")
+    assert stage.GetRootLayer().Save()
+    out = tmp_path / "out"
+    status, err = run("render", str(path), "--quiet", "--out", str(out / "a.exr"))
+    assert status == 0, err
+    assert "dataWindowNDC (0.25, 0.0, 0.75, 1.0) is not followed" in err
+    assert "targets 2 prims; the first, /World/Camera, is read" in err
+    assert _volume(out / "a.exr").shape[:2] == (18, 32)
+    _settings(stage, "/Render/preview", name_on_stage=False, resolution=(16, 9))
+    stage.ClearMetadata(UsdRender.Tokens.renderSettingsPrimPath)
+    assert stage.GetRootLayer().Save()
+    image = read_render_settings(stage, None)
+    assert image == ImageSettings(notes=image.notes)
+    assert "2 RenderSettings prims (/Render/settings, /Render/preview)" in image.notes[0]
+    status, err = run(
+        "render", str(path), "--quiet", "--camera", "/World/Camera", "--width", "32", "--out",
+        str(out / "b.exr"),
+    )  # fmt: skip
+    assert status == 0, err
+    assert "none is read (give --renderSettingsPrimPath)" in err, err
+    # The aperture's aspect, not the settings' 16 x 9 nor 32 x 18.
+    assert _volume(out / "b.exr").shape[:2] == (18, 32)
