@@ -35,7 +35,9 @@ disc is left at 0° (a point sun), or with `--disc` drawn from 1° to 10°, whic
 softens over `crepuscular.SUN_DISC_SAMPLES` directions. `--grouped` rebuilds the fog's and
 the cards' materials inside node groups, as asset libraries ship them, with inputs exposed
 and given outside by sockets, Value and RGB nodes, and reached through reroutes and muted
-Add Shaders (the same scenes as without it, seed for seed).
+Add Shaders (the same scenes as without it, seed for seed). `--anamorphic` renders each
+case through non-square pixels, 1:2 to 2:1, and `--region` through a random render region,
+cropped to it or not (both the same scenes, seed for seed).
 """
 
 from __future__ import annotations
@@ -465,6 +467,12 @@ def main() -> int:
     parser.add_argument(
         "--grouped", action="store_true", help="materials rebuilt inside node groups (see above)"
     )
+    parser.add_argument(
+        "--anamorphic", action="store_true", help="non-square pixels, 1:2 to 2:1 (see above)"
+    )
+    parser.add_argument(
+        "--region", action="store_true", help="a random render region, cropped or not"
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -486,6 +494,19 @@ def main() -> int:
             args.disc,
             random.Random(f"{args.seed} {case} grouping") if args.grouped else None,
         )
+        if args.anamorphic:
+            aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)
+            # Blender keeps each side of the aspect at 1 or more.
+            scene.render.pixel_aspect_x = max(aspect, 1.0)
+            scene.render.pixel_aspect_y = max(1.0 / aspect, 1.0)
+            summary += f" pixels {aspect:.2f}:1"
+        if args.region:
+            draw = random.Random(f"{args.seed} {case} region")
+            render = scene.render
+            render.use_border, render.use_crop_to_border = True, draw.random() < 0.5
+            render.border_min_x, render.border_max_x = sorted(draw.uniform(0, 1) for _ in "xx")
+            render.border_min_y, render.border_max_y = sorted(draw.uniform(0, 1) for _ in "yy")
+            summary += " region" + (" cropped" if render.use_crop_to_border else "")
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)
         started = time.perf_counter()
