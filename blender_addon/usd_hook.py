@@ -22,7 +22,12 @@ each sun with shafts and authors what the add-on would render with, so that
 - objects that do not block the sun (Casts Shafts Off, no Shadow ray visibility, outside
   the sun's shadow linking) are excluded from the light's `shadowLink` collection, which
   Blender's exporter does not write;
-- an animated export gets time samples wherever a value changes over the frame range.
+- an animated export gets time samples wherever a value changes over the frame range;
+- a `RenderSettings` prim, `/Render/settings`, named by the stage's
+  `renderSettingsPrimPath`, holds the scene camera, the render's resolution, pixel aspect
+  and render region (`dataWindowNDC`), which Blender's exporter does not write: the USD
+  step, and farm renderers that read it, render the image F12 renders. A stage that
+  already names its render settings keeps them.
 
 Errors (a fog object that cannot be mapped, a setting the core refuses) are raised: Blender
 reports them and the export operator fails.
@@ -492,6 +497,39 @@ def author_shaft_settings(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[st
     return authored
 
 
+def author_render_settings(stage: Any, scene: bpy.types.Scene) -> str | None:
+    """The render's image as a RenderSettings prim named by the stage's metadata (see the
+    module's doc); returns its path, None where the stage names one already."""
+    from pxr import Gf, Sdf, UsdGeom, UsdRender
+
+    if stage.GetMetadata(UsdRender.Tokens.renderSettingsPrimPath):
+        return None
+    root = UsdGeom.Scope.Define(stage, Sdf.Path("/Render"))
+    settings = UsdRender.Settings.Define(stage, root.GetPath().AppendChild("settings"))
+    if not (root and settings):
+        raise USDExportError("could not define the render settings /Render/settings")
+    cameras = ExportedPrims(stage).data(scene.camera, UsdGeom.Camera) if scene.camera else []
+    if cameras:
+        settings.CreateCameraRel().SetTargets([cameras[0].GetPath()])
+    render_settings = scene.render
+    settings.CreateResolutionAttr(Gf.Vec2i(*export.render_size(scene)))
+    aspect = render_settings.pixel_aspect_x / render_settings.pixel_aspect_y
+    settings.CreatePixelAspectRatioAttr(float(aspect))
+    if export.render_region(scene) is not None:
+        # Both count from the bottom-left corner, in fractions of the frame.
+        window = Gf.Vec4f(
+            render_settings.border_min_x,
+            render_settings.border_min_y,
+            render_settings.border_max_x,
+            render_settings.border_max_y,
+        )
+        settings.CreateDataWindowNDCAttr(window)
+    path = settings.GetPath()
+    if not stage.SetMetadata(UsdRender.Tokens.renderSettingsPrimPath, str(path)):
+        raise USDExportError(f"could not name {path} the stage's render settings")
+    return str(path)
+
+
 def author_shadow_link(
     light: Any,
     scene: bpy.types.Scene,
@@ -555,9 +593,13 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
         if not export.shaft_suns(depsgraph.scene):
             return True
         check_blender_pxr()
-        paths = author_shaft_settings(export_context.get_stage(), depsgraph)
+        stage = export_context.get_stage()
+        paths = author_shaft_settings(stage, depsgraph)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
+            settings = author_render_settings(stage, depsgraph.scene)
+            if settings is not None:
+                render.log(f"USD export: the render's image authored as {settings}")
         return True
 
 

@@ -27,6 +27,7 @@ so its extinction travels per channel (`crepuscular:medium:channelExtinction`).
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -40,7 +41,7 @@ bpy = pytest.importorskip("bpy")
 pxr = pytest.importorskip("pxr")
 
 import blender_scenes  # noqa: E402
-from pxr import Sdf, Usd, UsdGeom, UsdLux  # noqa: E402
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
 
 from crepuscular_usd.attributes import ATTRIBUTES  # noqa: E402
 from crepuscular_usd.cli import main  # noqa: E402
@@ -52,10 +53,12 @@ MEAN_RELATIVE = 1e-4
 DEPTH_ABSOLUTE = 1e-3
 
 
-def _render(stage: Path, out: str, *frames: str) -> None:
-    args = ["render", str(stage), "--out", out, "--width", str(WIDTH), "--height", str(HEIGHT)]
-    status = main([*args, *frames, "--quiet"])
-    assert status == 0
+def _render(stage: Path, out: str, *frames: str) -> str:
+    """Renders with the image the hook's RenderSettings give; returns the warnings."""
+    err = io.StringIO()
+    status = main(["render", str(stage), "--out", out, *frames, "--quiet"], stderr=err)
+    assert status == 0, err.getvalue()
+    return err.getvalue()
 
 
 def _errors(blender: Path, usd: Path) -> dict[str, float]:
@@ -99,7 +102,8 @@ def test_layers_match_the_addons(still: Path) -> None:
     assert 0.2 < blender["volume.A"].mean() < 0.9
     assert 0.05 < blender["visibility"].mean() < 0.95
     assert blender["volume.R"].max() > 0.01
-    _render(still / "shot.usda", str(still / "usd.exr"))
+    warnings = _render(still / "shot.usda", str(still / "usd.exr"))
+    assert "/Render/settings.dataWindowNDC (0.25, 0.1, 0.75, 0.6) is not followed" in warnings
     _assert_close(_errors(still / "blender.0001.exr", still / "usd.exr"), "Z up, metres:")
 
 
@@ -121,8 +125,10 @@ def test_y_up_centimetre_export_renders_the_same(still: Path) -> None:
 
 
 def test_animated_export_renders_every_frame(animated: Path) -> None:
-    """Camera, lens, sun and closing radius keyed over three frames; the fog box is hidden
-    from renders, so the exporter leaves it out and the hook authors its box."""
+    """Camera, lens, sun and closing radius keyed over three frames, through 3:2 pixels
+    (the hook's RenderSettings carry the pixel aspect, which Blender's exporter bakes into
+    the apertures); the fog box is hidden from renders, so the exporter leaves it out and
+    the hook authors its box."""
     _render(animated / "shot.usda", str(animated / "usd.####.exr"), "--frames", "1-3")
     for frame in (1, 2, 3):
         errors = _errors(animated / f"blender.{frame:04d}.exr", animated / f"usd.{frame:04d}.exr")
@@ -176,6 +182,21 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
     cube = stage.GetPrimAtPath(cube_path)
     assert cube.IsA(UsdGeom.Cube)
     assert UsdGeom.Imageable(cube).ComputePurpose() == UsdGeom.Tokens.guide
+    # The render's image: the scene camera, its size and pixel aspect, and (on the still,
+    # exported with one) its render region, from the bottom-left corner as Blender's.
+    for out, aspect, window in (
+        (still, 1.0, Gf.Vec4f(0.25, 0.1, 0.75, 0.6)),
+        (animated, 1.5, None),
+    ):
+        stage = Usd.Stage.Open(str(out / "shot.usda"))
+        settings = UsdRender.Settings.GetStageRenderSettings(stage)
+        assert settings.GetPath() == Sdf.Path("/Render/settings")
+        assert settings.GetCameraRel().GetTargets() == [Sdf.Path("/root/Camera/Camera")]
+        assert tuple(settings.GetResolutionAttr().Get()) == (WIDTH, HEIGHT)
+        assert settings.GetPixelAspectRatioAttr().Get() == pytest.approx(aspect)
+        assert settings.GetDataWindowNDCAttr().HasAuthoredValue() == (window is not None)
+        if window is not None:
+            assert settings.GetDataWindowNDCAttr().Get() == window
 
 
 def test_hook_names_are_the_usd_steps(installed: ModuleType) -> None:
