@@ -504,8 +504,11 @@ def main() -> int:
             draw = random.Random(f"{args.seed} {case} region")
             render = scene.render
             render.use_border, render.use_crop_to_border = True, draw.random() < 0.5
-            render.border_min_x, render.border_max_x = sorted(draw.uniform(0, 1) for _ in "xx")
-            render.border_min_y, render.border_max_y = sorted(draw.uniform(0, 1) for _ in "yy")
+            # At least a fifth of each side, so that it holds blocks to compare.
+            for axis in "xy":
+                low = draw.uniform(0.0, 0.8)
+                setattr(render, f"border_min_{axis}", low)
+                setattr(render, f"border_max_{axis}", draw.uniform(low + 0.2, 1.0))
             summary += " region" + (" cropped" if render.use_crop_to_border else "")
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)
