@@ -129,7 +129,9 @@ def render_layers(
             whole[rows, columns] = layer
             framed.append(whole)
         volume, visibility, depth = framed
-    return crepuscular.Layers(width, height, volume, visibility, depth), inputs[0]
+    pixel_aspect = inputs[0].kwargs["camera"]["pixel_aspect"]
+    layers = crepuscular.Layers(width, height, volume, visibility, depth, pixel_aspect)
+    return layers, inputs[0]
 
 
 @contextlib.contextmanager

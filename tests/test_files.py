@@ -181,3 +181,28 @@ def test_named_channels_round_trip_and_mismatches_name_the_channel(tmp_path: Pat
     assert info.value.field == "channels.G"
     with pytest.raises(crepuscular.InvalidInputError, match="no channels"):
         crepuscular.write_exr_channels(tmp_path / "none.exr", {})
+
+
+def test_anamorphic_layers_carry_their_pixel_aspect_into_exr(tmp_path: Path) -> None:
+    """An EXR viewer (Nuke, Blender) shows an anamorphic image unsqueezed by the header's
+    pixelAspectRatio, which Blender writes for its own renders: the layers of a camera of
+    2:1 pixels carry it, as does a composite given it; the pixels read back unchanged."""
+    scene = small(crepuscular.builtin_scene("torus"))
+    scene["camera"]["pixel_aspect"] = 2.0
+    layers = crepuscular.render(scene)
+    assert layers.pixel_aspect == 2.0
+    crepuscular.write_exr(tmp_path / "wide.exr", layers)
+    assert crepuscular.read_exr_pixel_aspect(tmp_path / "wide.exr") == 2.0
+    np.testing.assert_array_equal(
+        crepuscular.read_exr(tmp_path / "wide.exr")["depth"], layers.depth
+    )
+    plane = {"R": np.ones((3, 4), np.float32)}
+    crepuscular.write_exr_channels(tmp_path / "tall.exr", plane, pixel_aspect=0.5)
+    assert crepuscular.read_exr_pixel_aspect(tmp_path / "tall.exr") == 0.5
+    crepuscular.write_exr_channels(tmp_path / "square.exr", plane)
+    assert crepuscular.read_exr_pixel_aspect(tmp_path / "square.exr") == 1.0
+    for aspect in (0.0, -1.0, float("nan")):
+        with pytest.raises(crepuscular.InvalidInputError, match="must be positive") as info:
+            crepuscular.write_exr_channels(tmp_path / "bad.exr", plane, pixel_aspect=aspect)
+        assert info.value.field == "pixel_aspect"
+    assert not (tmp_path / "bad.exr").exists()

@@ -83,6 +83,7 @@ def test_the_stage_s_settings_give_camera_resolution_and_pixel_aspect(tmp_path: 
     assert status == 0, err
     written = _volume(out / "s.exr")
     assert written.shape == (27, 48, 4)
+    assert crepuscular.read_exr_pixel_aspect(out / "s.exr") == 2.0
     # The stage's aperture is 36 x 20.25 mm; 48 x 27 pixels of 2:1 span 96 x 27 square
     # units, wider than it: expandAperture fits its height.
     direct = copy.deepcopy(scene)

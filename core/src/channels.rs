@@ -144,6 +144,7 @@ mod tests {
             volume: vec![value, value, value, alpha, value, value, value, alpha],
             visibility: vec![visibility; 2],
             depth: vec![7.0, 8.0],
+            pixel_aspect: 1.0,
         };
         let (red, green, blue) = (
             layers(1.0, 0.2, 0.5),

@@ -129,7 +129,7 @@ impl std::str::FromStr for ExrCompression {
 }
 
 /// Writes `layers` to `path` as one single-part scanline EXR with channels
-/// `volume.R/G/B/A`, `visibility` and `depth`.
+/// `volume.R/G/B/A`, `visibility` and `depth`, and the layers' pixel aspect.
 ///
 /// With [`Precision::F16`] the depth channel is still written as f32: distances beyond
 /// 65504 (the background's max distance, typically) would become infinity in half, and
@@ -178,11 +178,13 @@ pub fn write_layers(
             (DEPTH, &layers.depth, Precision::F32),
         ],
         compression,
+        layers.pixel_aspect,
     )
 }
 
 /// Writes a single-part scanline EXR with the given named channels, each
-/// `width * height` values with rows top to bottom.
+/// `width * height` values with rows top to bottom, of pixels `pixel_aspect` times as
+/// wide as tall (the header's `pixelAspectRatio`).
 pub fn write_channels(
     path: &Path,
     width: u32,
@@ -190,12 +192,13 @@ pub fn write_channels(
     channels: &[(&str, &[f32])],
     precision: Precision,
     compression: ExrCompression,
+    pixel_aspect: f32,
 ) -> Result<()> {
     let planes: Vec<_> = channels
         .iter()
         .map(|&(name, values)| (name, values, precision))
         .collect();
-    write_planes(path, width, height, &planes, compression)
+    write_planes(path, width, height, &planes, compression, pixel_aspect)
 }
 
 fn write_planes(
@@ -204,7 +207,14 @@ fn write_planes(
     height: u32,
     channels: &[(&str, &[f32], Precision)],
     compression: ExrCompression,
+    pixel_aspect: f32,
 ) -> Result<()> {
+    if !(pixel_aspect.is_finite() && pixel_aspect > 0.0) {
+        return Err(Error::invalid(
+            "pixel_aspect",
+            format!("{pixel_aspect} must be positive"),
+        ));
+    }
     if width == 0 || height == 0 {
         return Err(Error::invalid(
             "size",
@@ -252,17 +262,16 @@ fn write_planes(
         encoding,
         AnyChannels::sort(list),
     );
+    let mut image = Image::from_layer(layer);
+    image.attributes.pixel_aspect = pixel_aspect;
     // `to_file` deletes a partially written file on error.
-    Image::from_layer(layer)
-        .write()
-        .to_file(path)
-        .map_err(|error| match error {
-            exr::error::Error::Io(source) => Error::io(path, source),
-            other => Error::Exr {
-                path: path.to_path_buf(),
-                reason: other.to_string(),
-            },
-        })
+    image.write().to_file(path).map_err(|error| match error {
+        exr::error::Error::Io(source) => Error::io(path, source),
+        other => Error::Exr {
+            path: path.to_path_buf(),
+            reason: other.to_string(),
+        },
+    })
 }
 
 /// Every channel of every part of an EXR file, as f32 planes covering the display window
@@ -274,6 +283,8 @@ pub struct ExrImage {
     /// Keyed by full channel name: `<part name>.<channel>` unless the channel name already
     /// carries the part-name prefix (as Blender's do).
     pub channels: BTreeMap<String, Vec<f32>>,
+    /// The header's `pixelAspectRatio`: a pixel's width over its height.
+    pub pixel_aspect: f32,
 }
 
 /// Reads all parts and channels of a flat (non-deep) EXR file. Any sample type (f16, f32,
@@ -306,12 +317,12 @@ pub fn read_exr(path: &Path) -> Result<ExrImage> {
 
 fn decode(bytes: &[u8]) -> Result<ExrImage, String> {
     let meta = MetaData::read_from_buffered(Cursor::new(bytes), false).map_err(describe)?;
-    let display = meta
+    let shared = &meta
         .headers
         .first()
         .ok_or("file has no parts")?
-        .shared_attributes
-        .display_window;
+        .shared_attributes;
+    let (display, pixel_aspect) = (shared.display_window, shared.pixel_aspect);
     let mut samples: u128 = 0;
     for header in meta.headers.iter() {
         let data = header.layer_size;
@@ -385,6 +396,7 @@ fn decode(bytes: &[u8]) -> Result<ExrImage, String> {
         width,
         height,
         channels,
+        pixel_aspect,
     })
 }
 
@@ -507,6 +519,7 @@ impl ExrImage {
         }
         layers.visibility = get(VISIBILITY)?.to_vec();
         layers.depth = get(DEPTH)?.to_vec();
+        layers.pixel_aspect = self.pixel_aspect;
         Ok(layers)
     }
 }
@@ -564,9 +577,25 @@ mod tests {
                 &channels,
                 Precision::F32,
                 ExrCompression::Zip,
+                1.0,
             ) {
                 Err(Error::InvalidInput { field, .. }) => assert_eq!(field, expected),
                 other => panic!("expected InvalidInput for {expected}, got {other:?}"),
+            }
+        }
+        for aspect in [0.0, -1.0, f32::NAN, f32::INFINITY] {
+            let channels = [("R", &two[..])];
+            match write_channels(
+                &path,
+                2,
+                1,
+                &channels,
+                Precision::F32,
+                ExrCompression::Zip,
+                aspect,
+            ) {
+                Err(Error::InvalidInput { field, .. }) => assert_eq!(field, "pixel_aspect"),
+                other => panic!("expected InvalidInput for aspect {aspect}, got {other:?}"),
             }
         }
         assert!(!path.exists());
@@ -592,6 +621,7 @@ mod tests {
             width: 1,
             height: 1,
             channels,
+            pixel_aspect: 1.0,
         };
         assert_eq!(image.beauty_rgba(), Some(vec![1.0, 2.0, 3.0, 1.0]));
         assert_eq!(image.depth(), Some(&[5.0][..]));
@@ -718,6 +748,7 @@ mod tests {
                 .iter()
                 .map(|name| (name.to_string(), vec![0.0]))
                 .collect(),
+            pixel_aspect: 1.0,
         };
         match image.to_layers() {
             Err(Error::InvalidInput { field, reason }) => {
@@ -737,6 +768,8 @@ mod tests {
         }
         layers.visibility = vec![0.0, 0.5, 1.0, 0.25, 0.75, 0.125];
         layers.depth = vec![1.0e10, 123_456.79, 0.1, 2.0, 3.0, 4.0];
+        // Anamorphic: the header carries the pixels' shape.
+        layers.pixel_aspect = 2.0;
         write_layers(&path, &layers, Precision::F16, ExrCompression::Zip).unwrap();
         let read = read_exr(&path).unwrap();
         std::fs::remove_file(&path).unwrap();

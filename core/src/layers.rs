@@ -25,6 +25,8 @@ pub struct Layers {
     pub visibility: Vec<f32>,
     /// Distance along the view ray to the first surface, or the max distance for background.
     pub depth: Vec<f32>,
+    /// A pixel's width over its height, the camera's: EXR files carry it for viewers.
+    pub pixel_aspect: f32,
 }
 
 // Dropped layers' buffers, kept for the next frame's (see `crate::spare`): at 1920×1080 the
@@ -82,6 +84,7 @@ impl Layers {
             volume: SPARE_VOLUME.try_take(pixels * 4, what("volume"))?,
             visibility: SPARE_VISIBILITY.try_take(pixels, what("visibility"))?,
             depth: SPARE_DEPTH.try_take(pixels, what("depth"))?,
+            pixel_aspect: 1.0,
         })
     }
 
@@ -93,6 +96,7 @@ impl Layers {
             volume: vec![0.0; pixels * 4],
             visibility: vec![0.0; pixels],
             depth: vec![0.0; pixels],
+            pixel_aspect: 1.0,
         }
     }
 

@@ -336,16 +336,24 @@ pub fn render_timed(frame: &Frame, control: &RenderControl) -> Result<(Layers, S
         }
         render_grey_cpu(frame, control)
     };
-    crate::channels::by_channel(frame, control, |frame, control| {
+    let (layers, times) = crate::channels::by_channel(frame, control, |frame, control| {
         crate::sun_disc::by_sun_direction(frame, control, render_pass)
-    })
+    })?;
+    Ok((with_camera_pixels(layers, frame), times))
+}
+
+/// `layers` marked with the camera's pixel aspect.
+fn with_camera_pixels(mut layers: Layers, frame: &Frame) -> Layers {
+    layers.pixel_aspect = frame.camera.pixel_aspect;
+    layers
 }
 
 /// [`render_timed`] on the CPU backend, the oracle.
 pub fn render_timed_cpu(frame: &Frame, control: &RenderControl) -> Result<(Layers, StageTimes)> {
-    crate::channels::by_channel(frame, control, |frame, control| {
+    let (layers, times) = crate::channels::by_channel(frame, control, |frame, control| {
         crate::sun_disc::by_sun_direction(frame, control, render_grey_cpu)
-    })
+    })?;
+    Ok((with_camera_pixels(layers, frame), times))
 }
 
 /// [`render_timed_cpu`] of a frame whose medium has one extinction.

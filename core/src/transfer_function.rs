@@ -2217,6 +2217,7 @@ mod tests {
             &channels,
             crate::exr_file::Precision::F32,
             crate::exr_file::ExrCompression::Zip,
+            1.0,
         )
         .unwrap();
         let layer = TfLayer::Image {
@@ -2240,6 +2241,7 @@ mod tests {
             &nan,
             crate::exr_file::Precision::F32,
             crate::exr_file::ExrCompression::Zip,
+            1.0,
         )
         .unwrap();
         let result = bake_layers(&[layer], 2, "layers");

@@ -120,7 +120,16 @@ fn generic_channels_write_rgba() {
     let b = [0.25, 0.0];
     let a = [1.0, 0.5];
     let channels: [(&str, &[f32]); 4] = [("R", &r), ("G", &g), ("B", &b), ("A", &a)];
-    write_channels(&path, 1, 2, &channels, Precision::F16, ExrCompression::Zip).unwrap();
+    write_channels(
+        &path,
+        1,
+        2,
+        &channels,
+        Precision::F16,
+        ExrCompression::Zip,
+        1.0,
+    )
+    .unwrap();
     let image = read_exr(&path).unwrap();
     std::fs::remove_file(&path).unwrap();
     assert_eq!((image.width, image.height), (1, 2));

@@ -184,6 +184,10 @@ def test_mapped_settings_match_cycles(mapped_fidelity: Path, view: str, method: 
     are within Cycles' noise.)"""
     cycles = rgba(mapped_fidelity / f"cycles_{view}.exr")[..., :3]
     ours = volume(mapped_fidelity / f"{view}_{method}.exr")[..., :3]
+    # Blender's EXR tells viewers the pixels' shape; so does ours.
+    aspect = crepuscular.read_exr_pixel_aspect(mapped_fidelity / f"cycles_{view}.exr")
+    assert aspect == (2.0 if view == "anamorphic" else 1.0)
+    assert crepuscular.read_exr_pixel_aspect(mapped_fidelity / f"{view}_{method}.exr") == aspect
     assert cycles.mean() > 1e-3, "Cycles rendered a black image"
     assert (ours.mean(axis=-1) > 0).mean() > 0.3, "the fog box fills too little of the view"
     np.testing.assert_allclose(ours.mean(axis=(0, 1)), cycles.mean(axis=(0, 1)), rtol=0.02)

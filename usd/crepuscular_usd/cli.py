@@ -444,8 +444,10 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 comp = crepuscular.composite(layers.volume, beauty_rgba)
                 planes = {c: comp[..., i] for i, c in enumerate("RGBA")}
                 writer.submit(
-                    lambda p=comp_path, pl=planes: crepuscular.write_exr_channels(
-                        p, pl, compression=args.exr_compression
+                    lambda p=comp_path, pl=planes, a=layers.pixel_aspect: (
+                        crepuscular.write_exr_channels(
+                            p, pl, compression=args.exr_compression, pixel_aspect=a
+                        )
                     ),
                     comp_path,
                 )

@@ -118,7 +118,7 @@ fn lend(
 /// without a copy, shaped `(H, W, 4)`, `(H, W)` and `(H, W)`.
 pub fn layers_to_py(py: Python<'_>, mut layers: Layers) -> PyResult<Bound<'_, PyTuple>> {
     // Taken rather than destructured: `Layers` keeps its buffers for reuse when dropped.
-    let (width, height) = (layers.width, layers.height);
+    let (width, height, pixel_aspect) = (layers.width, layers.height, layers.pixel_aspect);
     let volume = std::mem::take(&mut layers.volume);
     let visibility = std::mem::take(&mut layers.visibility);
     let depth = std::mem::take(&mut layers.depth);
@@ -126,5 +126,5 @@ pub fn layers_to_py(py: Python<'_>, mut layers: Layers) -> PyResult<Bound<'_, Py
     let volume = lend(py, LayerBuffer::Volume, volume)?.reshape([h, w, 4])?;
     let visibility = lend(py, LayerBuffer::Visibility, visibility)?.reshape([h, w])?;
     let depth = lend(py, LayerBuffer::Depth, depth)?.reshape([h, w])?;
-    (width, height, volume, visibility, depth).into_pyobject(py)
+    (width, height, volume, visibility, depth, pixel_aspect).into_pyobject(py)
 }

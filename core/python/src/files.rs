@@ -43,7 +43,7 @@ pub fn read_exr(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyTuple>> {
     for (name, values) in all {
         channels.set_item(name, PyArray1::from_vec(py, values).reshape([h, w])?)?;
     }
-    (image.width, image.height, channels).into_pyobject(py)
+    (image.width, image.height, channels, image.pixel_aspect).into_pyobject(py)
 }
 
 fn contiguous<'a>(
@@ -54,9 +54,13 @@ fn contiguous<'a>(
 }
 
 /// Writes the layer set (`volume` (H, W, 4), `visibility` and `depth` (H, W)) as one
-/// multi-layer EXR with the channels `volume.R/G/B/A`, `visibility` and `depth`.
+/// multi-layer EXR with the channels `volume.R/G/B/A`, `visibility` and `depth`, of
+/// pixels `pixel_aspect` times as wide as tall.
 #[pyfunction]
-#[pyo3(signature = (path, volume, visibility, depth, /, *, half=false, compression="zip"))]
+#[pyo3(signature = (
+    path, volume, visibility, depth, /, *, half=false, compression="zip", pixel_aspect=1.0
+))]
+#[allow(clippy::too_many_arguments)]
 pub fn write_layers_exr(
     py: Python<'_>,
     path: PathBuf,
@@ -65,6 +69,7 @@ pub fn write_layers_exr(
     depth: PyReadonlyArray2<'_, f32>,
     half: bool,
     compression: &str,
+    pixel_aspect: f32,
 ) -> PyResult<()> {
     let compression: ExrCompression = compression.parse().map_err(to_py_err)?;
     let shape = volume.shape();
@@ -93,6 +98,7 @@ pub fn write_layers_exr(
             volume: contiguous("volume", volume.as_slice())?.to_vec(),
             visibility: contiguous("visibility", visibility.as_slice())?.to_vec(),
             depth: contiguous("depth", depth.as_slice())?.to_vec(),
+            pixel_aspect,
         })
     })()
     .map_err(to_py_err)?;
@@ -104,13 +110,14 @@ pub fn write_layers_exr(
 /// Writes named (H, W) float32 planes as one single-part EXR, e.g. a composited
 /// frame's `R`, `G`, `B`, `A`. Channel names are written as given, in the given order.
 #[pyfunction]
-#[pyo3(signature = (path, channels, /, *, half=false, compression="zip"))]
+#[pyo3(signature = (path, channels, /, *, half=false, compression="zip", pixel_aspect=1.0))]
 pub fn write_channels_exr(
     py: Python<'_>,
     path: PathBuf,
     channels: Vec<(String, PyReadonlyArray2<'_, f32>)>,
     half: bool,
     compression: &str,
+    pixel_aspect: f32,
 ) -> PyResult<()> {
     let compression: ExrCompression = compression.parse().map_err(to_py_err)?;
     let (h, w) = match channels.first() {
@@ -145,7 +152,15 @@ pub fn write_channels_exr(
     let precision = if half { Precision::F16 } else { Precision::F32 };
     py.detach(|| {
         let named: Vec<(&str, &[f32])> = planes.iter().map(|(n, v)| (*n, v.as_slice())).collect();
-        write_channels(&path, w as u32, h as u32, &named, precision, compression)
+        write_channels(
+            &path,
+            w as u32,
+            h as u32,
+            &named,
+            precision,
+            compression,
+            pixel_aspect,
+        )
     })
     .map_err(to_py_err)
 }

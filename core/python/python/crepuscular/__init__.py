@@ -81,6 +81,7 @@ __all__ = [
     "point_sphere_visibility",
     "point_spheres",
     "read_exr",
+    "read_exr_pixel_aspect",
     "release_kept_buffers",
     "render",
     "render_arrays",
@@ -157,6 +158,8 @@ class Layers:
     visibility: npt.NDArray[np.float32]
     #: (height, width) distance along the view ray to the first surface (or the max distance).
     depth: npt.NDArray[np.float32]
+    #: A pixel's width over its height, the camera's; `write_exr` puts it in the header.
+    pixel_aspect: float = 1.0
 
     def __repr__(self) -> str:
         return f"Layers(width={self.width}, height={self.height})"
@@ -396,8 +399,13 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, npt.NDArray[np.float32]]
     Keys are full channel names such as "volume.R" or "ViewLayer.Depth.Z"; values are
     (height, width) float32 arrays.
     """
-    _, _, channels = _core.read_exr(os.fspath(path))
+    _, _, channels, _ = _core.read_exr(os.fspath(path))
     return channels
+
+
+def read_exr_pixel_aspect(path: str | os.PathLike[str]) -> float:
+    """An EXR file's `pixelAspectRatio`: a pixel's width over its height."""
+    return _core.read_exr(os.fspath(path))[3]
 
 
 def write_exr(
@@ -412,7 +420,7 @@ def write_exr(
     `compression` is the EXR codec (Blender's names; see `EXR_COMPRESSIONS`): "zip", the
     default, is compact and fast to read; "piz" writes faster and reads slower; "none"
     writes fastest; "pxr24" is lossy (float channels rounded to 24 bits). An unknown name
-    raises `InvalidInputError`.
+    raises `InvalidInputError`. The header's `pixelAspectRatio` is the layers'.
     """
     _core.write_layers_exr(
         os.fspath(path),
@@ -421,6 +429,7 @@ def write_exr(
         np.ascontiguousarray(layers.depth, dtype=np.float32),
         half=half,
         compression=compression,
+        pixel_aspect=layers.pixel_aspect,
     )
 
 
@@ -430,17 +439,20 @@ def write_exr_channels(
     *,
     half: bool = False,
     compression: ExrCompression = "zip",
+    pixel_aspect: float = 1.0,
 ) -> None:
     """Writes named (height, width) planes as one EXR, in the mapping's order.
 
     For images that are not a layer set, such as a composited frame (`R`, `G`, `B`, `A`).
-    `compression` as in `write_exr`.
+    `compression` as in `write_exr`; `pixel_aspect` (a pixel's width over its height)
+    goes in the header.
     """
     _core.write_channels_exr(
         os.fspath(path),
         [(name, np.ascontiguousarray(plane, dtype=np.float32)) for name, plane in channels.items()],
         half=half,
         compression=compression,
+        pixel_aspect=pixel_aspect,
     )
 
 

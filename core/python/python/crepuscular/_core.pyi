@@ -20,7 +20,7 @@ _UInt32Array: TypeAlias = npt.NDArray[np.uint32]
 _DepthKind: TypeAlias = Literal["planar", "ray_distance"]
 _Progress: TypeAlias = Callable[[float], object]
 #: (width, height, volume (H, W, 4), visibility (H, W), depth (H, W)).
-_RawLayers: TypeAlias = tuple[int, int, _Float32Array, _Float32Array, _Float32Array]
+_RawLayers: TypeAlias = tuple[int, int, _Float32Array, _Float32Array, _Float32Array, float]
 
 class CrepuscularError(Exception): ...
 
@@ -70,7 +70,9 @@ def normalize_style_json(
 def bake_tf(style_json: str, /, *, time: float = 0.0) -> _Float32Array: ...
 def builtin_scene_json(name: str, /) -> str: ...
 def builtin_scene_names() -> list[str]: ...
-def read_exr(path: str | os.PathLike[str], /) -> tuple[int, int, dict[str, _Float32Array]]: ...
+def read_exr(
+    path: str | os.PathLike[str], /
+) -> tuple[int, int, dict[str, _Float32Array], float]: ...
 def write_layers_exr(
     path: str | os.PathLike[str],
     volume: _Float32Array,
@@ -80,6 +82,7 @@ def write_layers_exr(
     *,
     half: bool = False,
     compression: str = "zip",
+    pixel_aspect: float = 1.0,
 ) -> None: ...
 def write_channels_exr(
     path: str | os.PathLike[str],
@@ -88,6 +91,7 @@ def write_channels_exr(
     *,
     half: bool = False,
     compression: str = "zip",
+    pixel_aspect: float = 1.0,
 ) -> None: ...
 def composite(volume: _Float32Array, beauty: _Float32Array, /) -> _Float32Array: ...
 def write_preview_png(
