@@ -876,31 +876,6 @@ def output_size(scene: bpy.types.Scene) -> tuple[int, int]:
     return render_size(scene)
 
 
-def _cropped_to(
-    projection: dict[str, Any], frame: tuple[int, int], pixel_aspect: float, region: Region
-) -> dict[str, Any]:
-    """`projection` of a frame of `frame` pixels narrowed to `region`: a horizontally fitted
-    sensor (or ortho scale) as wide as the region, shifted onto it, whose pixels are the
-    frame's, as Blender renders a region of the frame's view plane."""
-    width, height = frame
-    fit = projection["sensor_fit"]
-    horizontal = fit == "horizontal" or (fit == "auto" and width * pixel_aspect >= height)
-    fitted = width if horizontal else height / pixel_aspect
-    size_key = "ortho_scale" if projection["kind"] == "orthographic" else "sensor_width"
-    size = projection[size_key]
-    if projection["kind"] == "perspective" and fit == "vertical":
-        size = projection["sensor_height"]
-    left = -0.5 * width + projection["shift_x"] * fitted + region.x
-    top = 0.5 * height / pixel_aspect + projection["shift_y"] * fitted - region.y / pixel_aspect
-    return {
-        **projection,
-        size_key: size * region.width / fitted,
-        "sensor_fit": "horizontal",
-        "shift_x": (left + 0.5 * region.width) / region.width,
-        "shift_y": (top - 0.5 * region.height / pixel_aspect) / region.width,
-    }
-
-
 def camera_dict(
     scene: bpy.types.Scene,
     depsgraph: bpy.types.Depsgraph,
@@ -908,7 +883,7 @@ def camera_dict(
     region: Region | None = None,
 ) -> dict[str, Any]:
     """The scene camera in the core's terms (sensor fit, shift, clip, orthographic, pixel
-    aspect), narrowed to `region` of the frame where given."""
+    aspect), its window the frame's `region` where given."""
     if scene.camera is None:
         raise ExportError(f"scene '{scene.name}' has no camera (scene.camera)")
     obj = scene.camera.evaluated_get(depsgraph)
@@ -947,19 +922,23 @@ def camera_dict(
             "(perspective or orthographic only)"
         )
     width, height = render_size(scene, divisor)
-    pixel_aspect = float(scene.render.pixel_aspect_x / scene.render.pixel_aspect_y)
-    if region is not None:
-        projection = _cropped_to(projection, (width, height), pixel_aspect, region)
-        width, height = region.width, region.height
-    return {
+    camera = {
         "world_from_camera": column_major(matrix),
         "projection": projection,
         "clip_start": float(data.clip_start),
         "clip_end": float(data.clip_end),
         "width": width,
         "height": height,
-        "pixel_aspect": pixel_aspect,
+        "pixel_aspect": float(scene.render.pixel_aspect_x / scene.render.pixel_aspect_y),
     }
+    if region is not None:
+        camera["window"] = {
+            "x": region.x,
+            "y": region.y,
+            "width": region.width,
+            "height": region.height,
+        }
+    return camera
 
 
 def shaft_suns(scene: bpy.types.Scene) -> list[bpy.types.Object]:

@@ -116,21 +116,12 @@ def render_layers(
             f"no view ray reaches fog object '{fog.name}': the frame has no fog (is it out of "
             "view, behind a surface or past Max Distance?)"
         )
+    camera = inputs[0].kwargs["camera"]
+    layers = crepuscular.Layers(width, height, volume, visibility, depth, camera["pixel_aspect"])
     region = export.render_region(scene)
     if region is not None and not region.cropped:
-        # The frame keeps its size, the region's layers in place and nothing around them,
-        # as Blender uncrops the beauty.
-        width, height = export.render_size(scene)
-        rows = slice(region.y, region.y + region.height)
-        columns = slice(region.x, region.x + region.width)
-        framed = []
-        for layer in (volume, visibility, depth):
-            whole = np.zeros((height, width, *layer.shape[2:]), dtype=np.float32)
-            whole[rows, columns] = layer
-            framed.append(whole)
-        volume, visibility, depth = framed
-    pixel_aspect = inputs[0].kwargs["camera"]["pixel_aspect"]
-    layers = crepuscular.Layers(width, height, volume, visibility, depth, pixel_aspect)
+        # The frame keeps its size, as Blender uncrops the beauty.
+        layers = layers.in_frame(camera)
     return layers, inputs[0]
 
 

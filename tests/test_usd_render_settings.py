@@ -217,20 +217,38 @@ def test_settings_the_stage_cannot_render_are_named(tmp_path: Path) -> None:
     assert "render settings /Render/none does not exist" in err, err
 
 
-def test_what_the_settings_hold_but_are_not_followed_is_named(tmp_path: Path) -> None:
-    """A crop window renders the whole image; two settings prims and no metadata choose
-    none; several camera targets read the first."""
+def test_a_data_window_renders_its_pixels_in_the_whole_image(tmp_path: Path) -> None:
+    """dataWindowNDC: the pixels whose centres it holds are rendered, the frame's own (the
+    shadow map is fitted to the whole view), and sit in the whole image with nothing
+    around them, as in a renderer's display window; a window that holds no pixel is
+    named. Two settings prims and no metadata choose none; several camera targets read
+    the first."""
     path, stage, _ = _shot(tmp_path)
-    _settings(stage, camera="/World/Camera", resolution=(32, 18), window=(0.25, 0.0, 0.75, 1.0))
+    # Columns 7.52 to 24.48 of 32 hold the centres of 8 to 23; rows 4.68 to 18 of 18 from
+    # the top (y up 0 to 0.74) those of 5 to 17.
+    _settings(stage, camera="/World/Camera", resolution=(32, 18), window=(0.235, 0.0, 0.765, 0.74))
     settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/settings"))
     settings.GetCameraRel().AddTarget("/World/Other")
     assert stage.GetRootLayer().Save()
     out = tmp_path / "out"
     status, err = run("render", str(path), "--quiet", "--out", str(out / "a.exr"))
     assert status == 0, err
-    assert "dataWindowNDC (0.25, 0.0, 0.75, 1.0) is not followed" in err
     assert "targets 2 prims; the first, /World/Camera, is read" in err
-    assert _volume(out / "a.exr").shape[:2] == (18, 32)
+    windowed = _volume(out / "a.exr")
+    assert windowed.shape[:2] == (18, 32)
+    inside = np.zeros((18, 32), dtype=bool)
+    inside[5:18, 8:24] = True
+    assert not windowed[~inside].any()
+    whole = StageReader(stage, "/World/Camera", None, width=32, height=18)
+    expected = crepuscular.render_arrays(**whole.read(Usd.TimeCode.Default()).render_kwargs())
+    np.testing.assert_allclose(windowed[inside], expected.volume[inside], rtol=1e-5, atol=1e-6)
+    assert expected.volume[inside][:, 3].mean() > 0.01
+    settings.GetDataWindowNDCAttr().Set(Gf.Vec4f(0.5, 0.5, 0.51, 0.51))
+    assert stage.GetRootLayer().Save()
+    status, err = run("render", str(path), "--quiet", "--out", str(out / "b.exr"))
+    assert status == 1
+    assert "dataWindowNDC (0.5, 0.5, 0.51" in err
+    assert "holds no pixel of the 32x18 image" in err
     _settings(stage, "/Render/preview", name_on_stage=False, resolution=(16, 9))
     stage.ClearMetadata(UsdRender.Tokens.renderSettingsPrimPath)
     assert stage.GetRootLayer().Save()

@@ -2049,6 +2049,7 @@ mod tests {
                 width: 160,
                 height: 90,
                 pixel_aspect: 1.5,
+                window: None,
             });
             for stride in [1, 2, 4] {
                 let lines = EpipolarLines::of_view(&camera, light_travel, stride);

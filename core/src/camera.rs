@@ -6,6 +6,8 @@
 
 use glam::{DMat4, DVec3, DVec4};
 
+#[cfg(test)]
+use crate::scene::PixelWindow;
 use crate::scene::{Camera, Projection, SensorFit};
 
 /// A view ray in world space. `direction` has unit length.
@@ -54,6 +56,9 @@ pub struct CameraModel {
     plane_per_pixel: [f64; 2],
     /// View-plane coordinates of the image's top-left corner.
     plane_origin: [f64; 2],
+    /// The whole frame's corners in the image's pixel coordinates, (x0, y0, x1, y1): the
+    /// image's own where it has no window.
+    frame: [f64; 4],
 }
 
 impl CameraModel {
@@ -105,17 +110,28 @@ impl CameraModel {
             (-0.5 * width + shift_x as f64 * fitted) * across,
             (0.5 * height_in_widths + shift_y as f64 * fitted) * across,
         ];
+        // A window is the frame's view plane from its top-left pixel, at the frame's pixels.
+        let (mut plane_origin, mut size) = (plane_origin, (camera.width, camera.height));
+        let mut frame = [0.0, 0.0, width, height];
+        if let Some(window) = camera.window {
+            let (x, y) = (window.x as f64, window.y as f64);
+            plane_origin[0] += x * plane_per_pixel[0];
+            plane_origin[1] -= y * plane_per_pixel[1];
+            size = (window.width, window.height);
+            frame = [-x, -y, width - x, height - y];
+        }
         let world_from_camera = camera.world_from_camera.as_dmat4();
         Self {
             world_from_camera,
             camera_from_world: world_from_camera.inverse(),
-            width: camera.width,
-            height: camera.height,
+            width: size.0,
+            height: size.1,
             clip_start: camera.clip_start as f64,
             clip_end: camera.clip_end as f64,
             perspective,
             plane_per_pixel,
             plane_origin,
+            frame,
         }
     }
 
@@ -218,9 +234,19 @@ impl CameraModel {
     /// World-space corners of the region view rays can reach before planar depth `depth`:
     /// four on the near plane and four at `depth`.
     pub fn frustum_corners(&self, depth: f64) -> [DVec3; 8] {
+        self.corners_of([0.0, 0.0, self.width as f64, self.height as f64], depth)
+    }
+
+    /// [`CameraModel::frustum_corners`] of the whole frame where the image is a window of
+    /// it: what a shadow map fitted to the view covers, so that a window's pixels are the
+    /// frame's.
+    pub fn frame_frustum_corners(&self, depth: f64) -> [DVec3; 8] {
+        self.corners_of(self.frame, depth)
+    }
+
+    fn corners_of(&self, [x0, y0, x1, y1]: [f64; 4], depth: f64) -> [DVec3; 8] {
         let mut corners = [DVec3::ZERO; 8];
-        let (w, h) = (self.width as f64, self.height as f64);
-        for (i, (px, py)) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+        for (i, (px, py)) in [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
             .into_iter()
             .enumerate()
         {
@@ -252,6 +278,7 @@ mod tests {
             width,
             height,
             pixel_aspect: 1.0,
+            window: None,
         }
     }
 
@@ -386,6 +413,44 @@ mod tests {
                             assert!((a.origin - b.origin).length() < 1e-12, "{context}");
                         }
                     }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_window_sees_the_frames_pixels() {
+        let orthographic = Projection::Orthographic {
+            ortho_scale: 6.0,
+            sensor_fit: SensorFit::Vertical,
+            shift_x: 0.1,
+            shift_y: -0.2,
+        };
+        for projection in [perspective(SensorFit::Auto, 0.2), orthographic] {
+            for aspect in [1.0, 2.0] {
+                let frame = Camera {
+                    pixel_aspect: aspect,
+                    ..camera(projection.clone(), 96, 54)
+                };
+                let window = PixelWindow {
+                    x: 28,
+                    y: 17,
+                    width: 53,
+                    height: 27,
+                };
+                let whole = CameraModel::new(&frame);
+                let part = CameraModel::new(&Camera {
+                    window: Some(window),
+                    ..frame
+                });
+                assert_eq!((part.width, part.height), (53, 27));
+                for (px, py) in [(0.0, 0.0), (10.5, 3.25), (53.0, 27.0)] {
+                    let (a, b) = (part.ray(px, py), whole.ray(px + 28.0, py + 17.0));
+                    assert!((a.direction - b.direction).length() < 1e-12);
+                    assert!((a.origin - b.origin).length() < 1e-12);
+                    let pixel = part.pixel_from_world() * b.at(3.0).extend(1.0);
+                    assert!((pixel.x / pixel.w - px).abs() < 1e-9);
+                    assert!((pixel.y / pixel.w - py).abs() < 1e-9);
                 }
             }
         }

@@ -415,7 +415,7 @@ pub(crate) fn scatter_timed(
     let mut times = StageTimes::default();
     let mut stopwatch = Stopwatch::start();
     frame.validate()?;
-    control.begin(reduced_size(frame.camera.height, frame.settings.downsample) as u64);
+    control.begin(reduced_size(frame.camera.image_size().1, frame.settings.downsample) as u64);
     control.check()?;
     let camera = CameraModel::new(frame.camera);
     let shadow = FrameShadowMap(ShadowMap::build(
@@ -1214,7 +1214,8 @@ impl<'a> Frame<'a> {
             ));
         }
         if let Some(depth) = &self.camera_depth {
-            depth.validate(self.camera.width, self.camera.height)?;
+            let (width, height) = self.camera.image_size();
+            depth.validate(width, height)?;
         }
         if self.style.manipulates_occluders()
             && self.settings.rectification == Rectification::Projective

@@ -64,6 +64,20 @@ pub struct Camera {
     /// squeeze (Blender's `pixel_aspect_x / pixel_aspect_y`, USD's `pixelAspectRatio`).
     #[serde(default = "square_pixels", skip_serializing_if = "is_square")]
     pub pixel_aspect: f32,
+    /// The pixels of the `width` × `height` frame that the layers cover (Blender's render
+    /// region, USD's `dataWindowNDC`); the whole frame where absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window: Option<PixelWindow>,
+}
+
+/// A rectangle of a frame's pixels, from its top-left corner.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PixelWindow {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
 }
 
 fn square_pixels() -> f32 {
@@ -706,7 +720,8 @@ impl Scene {
         self.medium.validate()?;
         self.render.validate()?;
         let ss = self.render.supersampling as u64;
-        let samples = self.camera.width as u64 * self.camera.height as u64 * ss * ss;
+        let (width, height) = self.camera.image_size();
+        let samples = width as u64 * height as u64 * ss * ss;
         if samples > MAX_DEPTH_SAMPLES {
             return Err(Error::invalid(
                 "render.supersampling",
@@ -714,7 +729,7 @@ impl Scene {
                     "{}×{} pixels at {ss}×{ss} samples each are {samples} camera-depth \
                      samples, more than the {MAX_DEPTH_SAMPLES} a frame may take; lower the \
                      supersampling or the resolution",
-                    self.camera.width, self.camera.height
+                    width, height
                 ),
             ));
         }
@@ -758,6 +773,7 @@ impl Camera {
             width,
             height,
             pixel_aspect: 1.0,
+            window: None,
         }
     }
 
@@ -776,6 +792,12 @@ impl Camera {
         }
     }
 
+    /// The layers' size: the window's, else the frame's.
+    pub fn image_size(&self) -> (u32, u32) {
+        self.window
+            .map_or((self.width, self.height), |w| (w.width, w.height))
+    }
+
     pub fn validate(&self) -> Result<()> {
         check_size("camera.width", self.width, 1, MAX_IMAGE_SIZE)?;
         check_size("camera.height", self.height, 1, MAX_IMAGE_SIZE)?;
@@ -783,6 +805,22 @@ impl Camera {
         check_positive("camera.clip_start", self.clip_start)?;
         check_positive("camera.clip_end", self.clip_end)?;
         check_positive("camera.pixel_aspect", self.pixel_aspect)?;
+        if let Some(window) = self.window {
+            let fits = |start: u32, size: u32, side: u32| {
+                size >= 1 && start.checked_add(size).is_some_and(|end| end <= side)
+            };
+            if !(fits(window.x, window.width, self.width)
+                && fits(window.y, window.height, self.height))
+            {
+                return Err(Error::invalid(
+                    "camera.window",
+                    format!(
+                        "{}×{} at ({}, {}) must hold a pixel and lie within the {}×{} frame",
+                        window.width, window.height, window.x, window.y, self.width, self.height
+                    ),
+                ));
+            }
+        }
         if self.clip_end <= self.clip_start {
             return Err(Error::invalid(
                 "camera.clip_end",

@@ -146,8 +146,9 @@ pub fn light_from_world(sun: &Sun) -> DMat4 {
     )
 }
 
-/// Chooses the map's footprint: the light-space bounds of everything a view ray can
-/// reach (the frustum up to `max_distance`), narrowed to the medium's box if it has one.
+/// Chooses the map's footprint: the light-space bounds of everything a view ray of the
+/// whole frame can reach (the frustum up to `max_distance`; a window's map is the frame's),
+/// narrowed to the medium's box if it has one.
 fn fit(camera: &CameraModel, sun: &Sun, medium: &Medium, max_distance: f64, size: u32) -> DMat4 {
     let light = light_from_world(sun);
     // The camera's own position too: the fast methods rectify rays from its projection,
@@ -155,7 +156,7 @@ fn fit(camera: &CameraModel, sun: &Sun, medium: &Medium, max_distance: f64, size
     // and leak light into every ray of a dense medium (seen at the map's edge: 60% off).
     let apex = camera.world_from_camera.transform_point3(DVec3::ZERO);
     let reach: Vec<DVec3> = camera
-        .frustum_corners(max_distance.max(camera.clip_start * 2.0))
+        .frame_frustum_corners(max_distance.max(camera.clip_start * 2.0))
         .into_iter()
         .chain([apex])
         .map(|p| light.transform_point3(p))

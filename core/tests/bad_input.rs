@@ -5,7 +5,7 @@ mod common;
 use common::*;
 use crepuscular::render::{CameraDepth, DepthKind, FlatGeometry, Frame};
 use crepuscular::scene::{
-    ExactRayEnds, Scene, MAX_IMAGE_SIZE, MAX_SHADOW_MAP_SIZE, MAX_SUPERSAMPLING,
+    ExactRayEnds, PixelWindow, Scene, MAX_IMAGE_SIZE, MAX_SHADOW_MAP_SIZE, MAX_SUPERSAMPLING,
 };
 use crepuscular::{render, render_scene, Error, RenderControl};
 use glam::{Mat4, Vec3};
@@ -75,6 +75,31 @@ fn sizes_out_of_range_are_named() {
     check(|s| s.camera.pixel_aspect = 0.0, "camera.pixel_aspect");
     check(|s| s.camera.pixel_aspect = -2.0, "camera.pixel_aspect");
     check(|s| s.camera.pixel_aspect = f32::NAN, "camera.pixel_aspect");
+    let window = |x, y, width, height| {
+        Some(PixelWindow {
+            x,
+            y,
+            width,
+            height,
+        })
+    };
+    let (w, h) = (valid_scene().camera.width, valid_scene().camera.height);
+    check(
+        move |s| s.camera.window = window(0, 0, 0, 1),
+        "camera.window",
+    );
+    check(
+        move |s| s.camera.window = window(1, 0, w, 1),
+        "camera.window",
+    );
+    check(
+        move |s| s.camera.window = window(0, h, 1, 1),
+        "camera.window",
+    );
+    check(
+        move |s| s.camera.window = window(u32::MAX, 0, 2, 1),
+        "camera.window",
+    );
     check(
         |s| s.render.shadow_map_size = MAX_SHADOW_MAP_SIZE + 1,
         "render.shadow_map_size",

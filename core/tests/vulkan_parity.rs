@@ -944,6 +944,18 @@ fn prefiltered_frames_match_the_cpu_on_the_builtin_scenes() {
     anamorphic.camera.width *= 2;
     let (gpu, cpu, _) = render_both(&device, &anamorphic);
     check_layers("prefiltered tree, pixels 1:2", &gpu, &cpu, 0.05, 0.05);
+    let mut windowed = small("colonnade");
+    windowed.render.method = Method::Prefiltered;
+    let (width, height) = (windowed.camera.width, windowed.camera.height);
+    windowed.camera.window = Some(crepuscular::scene::PixelWindow {
+        x: width / 5,
+        y: height / 3,
+        width: width / 2 + 1,
+        height: height / 2 + 1,
+    });
+    let (gpu, cpu, _) = render_both(&device, &windowed);
+    assert_eq!((gpu.width, gpu.height), (width / 2 + 1, height / 2 + 1));
+    check_layers("prefiltered colonnade, a window", &gpu, &cpu, 0.05, 0.05);
 }
 
 /// A nearly black frame (`plane` in fog of 0.6 /m under a dilated silhouette; see

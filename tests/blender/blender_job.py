@@ -809,10 +809,10 @@ def add_rigged_column(scene: Any) -> Any:
 
 def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
     """The add-on's layers, and the same scene through Blender's USD exporter (default
-    options, and again Y up in centimetres), exported with a render region that the
-    layers were not rendered with (the USD step names it and renders the whole frame).
-    Animated: through 3:2 anamorphic pixels, camera, lens, sun and closing radius keyed
-    over frames 1-3, and the fog box left out of the export."""
+    options, and again Y up in centimetres); the still also through a render region, in
+    its frame, which the export carries as the render settings' data window. Animated:
+    through 3:2 anamorphic pixels, camera, lens, sun and closing radius keyed over frames
+    1-3, and the fog box left out of the export."""
     scene = round_trip_scene(spec)
     frames = [scene.frame_current]
     if spec["animated"]:
@@ -853,9 +853,11 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
     scene.frame_set(frames[0])
     if not spec["animated"]:
         render = scene.render
-        render.use_border = True
+        render.use_border, render.use_crop_to_border = True, False
         render.border_min_x, render.border_max_x = 0.25, 0.75
         render.border_min_y, render.border_max_y = 0.1, 0.6
+        path = out / f"blender_region.{frames[0]:04d}.exr"
+        assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
     animation = {"export_animation": True} if spec["animated"] else {}
     assert bpy.ops.wm.usd_export(filepath=str(out / "shot.usda"), **animation) == {"FINISHED"}
     if not spec["animated"]:

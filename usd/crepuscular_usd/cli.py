@@ -409,6 +409,10 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                     kind = args.beauty_depth
                     if kind == "auto":
                         kind = "ray_distance" if name == "depth" else "planar"
+                    window = frame.camera.get("window")
+                    if window is not None:
+                        rows = slice(window["y"], window["y"] + window["height"])
+                        plane = plane[rows, window["x"] : window["x"] + window["width"]]
                     kwargs["camera_depth"] = plane * np.float32(reader.meters_per_unit)
                     kwargs["depth_kind"] = kind
                 record.beauties[key] = beauty_path
@@ -417,6 +421,9 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 layers = crepuscular.render_arrays(
                     **kwargs, progress=lambda f, i=index, lab=label: progress.update(i, f, lab)
                 )
+            # A data window's layers sit in the whole image, as in a renderer's display
+            # window, so that they composite over the beauty.
+            layers = layers.in_frame(frame.camera)
             timings["render"] += time.perf_counter() - started
             extent = frame.light_settings.extent_prim
             if (

@@ -1,5 +1,6 @@
 """The image a stage's RenderSettings prim asks for: camera, resolution, pixel aspect, how
-the camera's aperture is conformed to the image, and which purposes render.
+the camera's aperture is conformed to the image, its data window, and which purposes
+render.
 
 The prim is the one named on the command line, else the stage's `renderSettingsPrimPath`
 metadata, else the stage's only RenderSettings prim, as farm renderers look for it. Its
@@ -14,7 +15,13 @@ from dataclasses import dataclass
 
 from pxr import Sdf, Usd, UsdRender
 
-__all__ = ["ImageSettings", "RenderSettingsError", "fitted_vertically", "read_render_settings"]
+__all__ = [
+    "ImageSettings",
+    "RenderSettingsError",
+    "fitted_vertically",
+    "pixel_window",
+    "read_render_settings",
+]
 
 #: Purposes a RenderSettings prim renders where `includedPurposes` is unauthored.
 DEFAULT_PURPOSES = ("default", "render")
@@ -42,6 +49,8 @@ class ImageSettings:
     pixel_aspect: float = 1.0
     conform: str = "expandAperture"
     purposes: tuple[str, ...] = DEFAULT_PURPOSES
+    #: `dataWindowNDC` (x min, y min, x max, y max; y up) where not the whole image.
+    data_window: tuple[float, float, float, float] | None = None
     #: What of the prim (or of finding one) is not followed, for warnings.
     notes: tuple[str, ...] = ()
 
@@ -67,6 +76,22 @@ def fitted_vertically(
     if conform == "adjustPixelAspectRatio":
         return False, aperture_aspect / image_aspect
     return wider, None
+
+
+def pixel_window(
+    data_window: tuple[float, float, float, float], width: int, height: int
+) -> dict[str, int] | None:
+    """The pixels of a `width` x `height` image whose centres lie in `data_window` (NDC,
+    y up), as the core's camera window (from the top-left corner); None where none does.
+    Overscan past the image is left out."""
+    x_min, y_min, x_max, y_max = data_window
+    left = max(0, math.ceil(x_min * width - 0.5))
+    right = min(width, math.floor(x_max * width - 0.5) + 1)
+    top = max(0, math.ceil((1.0 - y_max) * height - 0.5))
+    bottom = min(height, math.floor((1.0 - y_min) * height - 0.5) + 1)
+    if right <= left or bottom <= top:
+        return None
+    return {"x": left, "y": top, "width": right - left, "height": bottom - top}
 
 
 def _find(stage: Usd.Stage, path: str | None) -> UsdRender.Settings | list[Sdf.Path]:
@@ -135,11 +160,11 @@ def read_render_settings(stage: Usd.Stage, path: str | None) -> ImageSettings:
             f"{where}.includedPurposes holds {', '.join(unknown)}, none of {', '.join(PURPOSES)}"
         )
     window = settings.GetDataWindowNDCAttr().Get()
+    data_window = None
     if window is not None and tuple(window) != (0.0, 0.0, 1.0, 1.0):
-        notes.append(
-            f"{where}.dataWindowNDC {tuple(round(v, 4) for v in window)} is not followed: "
-            "the layers cover the whole image"
-        )
+        data_window = tuple(float(v) for v in window)
+        if not all(math.isfinite(v) for v in data_window):
+            raise RenderSettingsError(f"{where}.dataWindowNDC {data_window} is not finite")
     return ImageSettings(
         path=where,
         camera=cameras[0] if cameras else None,
@@ -147,5 +172,6 @@ def read_render_settings(stage: Usd.Stage, path: str | None) -> ImageSettings:
         pixel_aspect=float(aspect),
         conform=conform,
         purposes=purposes,
+        data_window=data_window,
         notes=tuple(notes),
     )

@@ -34,7 +34,7 @@ from crepuscular_usd.geometry import (
     sun_and_camera,
     tf_message,
 )
-from crepuscular_usd.render_settings import ImageSettings, fitted_vertically
+from crepuscular_usd.render_settings import ImageSettings, fitted_vertically, pixel_window
 from crepuscular_usd.schema import LightSettings, box_from_extent_prim, read_light_settings
 
 __all__ = ["Frame", "StageError", "StageReader", "core_from_stage", "open_stage", "tf_message"]
@@ -434,6 +434,15 @@ class StageReader:
                 "shift_x": shift_x,
                 "shift_y": shift_y,
             }
+        window = None
+        if self.image.data_window is not None:
+            window = pixel_window(self.image.data_window, width, height)
+            if window is None:
+                shown = tuple(round(v, 4) for v in self.image.data_window)
+                raise StageError(
+                    f"{self.image.attribute('dataWindowNDC')} {shown} holds no pixel of the "
+                    f"{width}x{height} image"
+                )
         transform = Gf.Matrix4d(camera.transform)
         # A camera's scale does not change its projection; keep rotation and position.
         transform.Orthonormalize()
@@ -451,6 +460,7 @@ class StageReader:
             "width": width,
             "height": height,
             "pixel_aspect": pixel_aspect,
+            **({"window": window} if window is not None else {}),
         }
 
     def sun(

@@ -152,7 +152,7 @@ fn gpu_frame(
 ) -> Result<(Layers, StageTimes)> {
     let mut times = StageTimes::default();
     let mut stopwatch = crate::render::Stopwatch::start();
-    let rows = reduced_size(frame.camera.height, frame.settings.downsample);
+    let rows = reduced_size(frame.camera.image_size().1, frame.settings.downsample);
     control.begin(rows as u64);
     control.check()?;
     let shadow_rasterizer = GpuRasterizer::shadow_map(device);

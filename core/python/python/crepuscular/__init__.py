@@ -164,6 +164,27 @@ class Layers:
     def __repr__(self) -> str:
         return f"Layers(width={self.width}, height={self.height})"
 
+    def in_frame(self, camera: Mapping[str, Any]) -> Layers:
+        """These layers, rendered for `camera`'s `window`, placed in its whole `width` x
+        `height` frame with nothing around them (every layer 0 there), as a renderer
+        leaves a render region uncropped; themselves where the camera has no window."""
+        window = camera.get("window")
+        if window is None:
+            return self
+        x, y = int(window["x"]), int(window["y"])
+        if (self.width, self.height) != (int(window["width"]), int(window["height"])):
+            raise _convert.invalid(
+                "camera.window",
+                f"is {window['width']}x{window['height']}, the layers {self.width}x{self.height}",
+            )
+        width, height = int(camera["width"]), int(camera["height"])
+        placed = []
+        for layer in (self.volume, self.visibility, self.depth):
+            whole = np.zeros((height, width, *layer.shape[2:]), dtype=np.float32)
+            whole[y : y + self.height, x : x + self.width] = layer
+            placed.append(whole)
+        return Layers(width, height, *placed, self.pixel_aspect)
+
 
 def release_kept_buffers() -> None:
     """Lets go of the buffers kept from earlier frames for the next.
