@@ -263,3 +263,42 @@ def test_a_data_window_renders_its_pixels_in_the_whole_image(tmp_path: Path) -> 
     assert "none is read (give --renderSettingsPrimPath)" in err, err
     # The aperture's aspect, not the settings' 16 x 9 nor 32 x 18.
     assert _volume(out / "b.exr").shape[:2] == (18, 32)
+
+
+def test_purposes_are_inherited_as_usd_computes_them(tmp_path: Path) -> None:
+    """A prim's own authored purpose wins over its ancestors' (`ComputePurpose`): a render
+    mesh under a proxy scope renders, an unauthored one there is a proxy, and an
+    authored default under a guide scope renders."""
+    _, stage, _ = _shot(tmp_path)
+    occluder = stage.GetPrimAtPath("/World/occluder")
+    points = UsdGeom.Mesh(occluder).GetPointsAttr().Get()
+    scopes = {"/World/Proxies": "proxy", "/World/Guides": "guide"}
+    meshes = {
+        "/World/Proxies/Hero": "render",
+        "/World/Proxies/Stand": None,
+        "/World/Guides/Kept": "default",
+    }
+    for path, purpose in scopes.items():
+        UsdGeom.Xform.Define(stage, path).CreatePurposeAttr(purpose)
+    for path, purpose in meshes.items():
+        mesh = UsdGeom.Mesh.Define(stage, path)
+        mesh.CreatePointsAttr([p + Gf.Vec3f(0, 0, 0.1) for p in points])
+        mesh.CreateFaceVertexCountsAttr([4])
+        mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        if purpose is not None:
+            mesh.CreatePurposeAttr(purpose)
+    for path in meshes:
+        assert (
+            UsdGeom.Imageable(stage.GetPrimAtPath(path)).ComputePurpose() in ("render", "default")
+        ) == (path != "/World/Proxies/Stand")
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=48, height=27)
+    owners = set(reader.read(Usd.TimeCode.Default()).geometry.ids_by_path)
+    assert Sdf.Path("/World/Proxies/Hero") in owners
+    assert Sdf.Path("/World/Guides/Kept") in owners
+    assert Sdf.Path("/World/Proxies/Stand") not in owners
+    image = ImageSettings(purposes=("default", "render", "proxy"))
+    with_proxies = StageReader(
+        stage, "/World/Camera", "/World/Sun", width=48, height=27, image=image
+    )
+    owners = set(with_proxies.read(Usd.TimeCode.Default()).geometry.ids_by_path)
+    assert Sdf.Path("/World/Proxies/Stand") in owners

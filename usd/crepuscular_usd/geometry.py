@@ -331,6 +331,28 @@ class SceneGeometry:
 _LIGHT_TYPES = (UsdLux.BoundableLightBase, UsdLux.NonboundableLightBase)
 
 
+class _Purposes:
+    """The purposes of a traversal's prims as USD computes them (`ComputePurpose`): a
+    prim's own where authored, else its parent's, so that a `render` prim under a `proxy`
+    scope renders. A traversal visits parents first."""
+
+    def __init__(self) -> None:
+        self._of: dict[Sdf.Path, str] = {}
+
+    def of(self, prim: Usd.Prim) -> str:
+        imageable = UsdGeom.Imageable(prim)
+        attribute = imageable.GetPurposeAttr() if imageable else None
+        if attribute and attribute.HasAuthoredValue():
+            purpose = str(attribute.Get())
+        else:
+            purpose = self._of.get(prim.GetParent().GetPath(), "")
+            if not purpose:
+                # The traversal's first prim: what its ancestors give it.
+                purpose = str(imageable.ComputePurpose()) if imageable else "default"
+        self._of[prim.GetPath()] = purpose
+        return purpose
+
+
 class GeometryCollector:
     """Reads the renderable meshes of a stage at a time code.
 
@@ -575,9 +597,14 @@ class GeometryCollector:
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
         prims = iter(Usd.PrimRange(self._stage.GetPseudoRoot(), predicate))
         next(prims)  # the pseudo-root itself
+        purposes = _Purposes()
         for prim in prims:
             if not self._renderable(prim, time):
                 prims.PruneChildren()
+                continue
+            if not self._rendered_purpose(prim, purposes):
+                if prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer):
+                    prims.PruneChildren()
                 continue
             if prim.GetPath() in self._skip:
                 prims.PruneChildren()
@@ -633,14 +660,19 @@ class GeometryCollector:
         geometry.notes = list(self._masks.notes)
         return geometry
 
-    def _renderable(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
+    @staticmethod
+    def _renderable(prim: Usd.Prim, time: Usd.TimeCode) -> bool:
+        """Whether `prim` and what is under it may render: visibility is inherited
+        whatever the descendants say."""
         imageable = UsdGeom.Imageable(prim)
         if not imageable:
             # Typed but not imageable (materials, shaders, render settings) holds no geometry.
             return not prim.GetTypeName()
-        if imageable.GetVisibilityAttr().Get(time) == UsdGeom.Tokens.invisible:
-            return False
-        return imageable.GetPurposeAttr().Get() in self._purposes
+        return imageable.GetVisibilityAttr().Get(time) != UsdGeom.Tokens.invisible
+
+    def _rendered_purpose(self, prim: Usd.Prim, purposes: _Purposes) -> bool:
+        """Whether `prim`'s purpose renders (a RenderSettings prim's `includedPurposes`)."""
+        return purposes.of(prim) in self._purposes
 
     @staticmethod
     def _count_unsupported(prim: Usd.Prim, unsupported: Counter[str]) -> None:
@@ -667,9 +699,14 @@ class GeometryCollector:
         parent = root.GetParent()
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
         prims = iter(Usd.PrimRange(root, predicate))
+        purposes = _Purposes()
         for prim in prims:
             if not self._renderable(prim, time):
                 prims.PruneChildren()
+                continue
+            if not self._rendered_purpose(prim, purposes):
+                if prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer):
+                    prims.PruneChildren()
                 continue
             if prim.IsA(UsdGeom.PointInstancer):
                 prims.PruneChildren()
