@@ -505,6 +505,24 @@ def test_camera_depth_nan_is_located(scene: dict[str, Any]) -> None:
         render(scene, camera_depth=depth)
 
 
+def test_a_windows_camera_depth_is_the_windows(scene_arrays: dict[str, Any]) -> None:
+    """A camera window renders its own pixels: a given depth pass is the window's size,
+    and the layers placed in their frame hold that depth there and nothing around."""
+    camera = dict(scene_arrays["camera"], window={"x": 10, "y": 5, "width": 20, "height": 8})
+    kwargs = dict(scene_arrays, camera=camera)
+    with raises_invalid("camera_depth", "must have shape (height, width) = (8, 20)"):
+        render_arrays(**kwargs, camera_depth=np.full((36, 64), 5.0, dtype=np.float32))
+    layers = render_arrays(**kwargs, camera_depth=np.full((8, 20), 5.0, dtype=np.float32))
+    assert (layers.width, layers.height) == (20, 8)
+    framed = layers.in_frame(camera)
+    assert framed.depth.shape == (36, 64)
+    np.testing.assert_allclose(framed.depth[5:13, 10:30], layers.depth)
+    assert not framed.depth[:5].any()
+    assert not framed.volume[:, :10].any()
+    with raises_invalid("camera.window", "is 20x8, the layers 64x36"):
+        render_arrays(**scene_arrays).in_frame(camera)
+
+
 def test_camera_depth_negative(scene_arrays: dict[str, Any]) -> None:
     depth = np.full((36, 64), 5.0)
     depth[10, 20] = -1.0

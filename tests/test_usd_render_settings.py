@@ -302,3 +302,42 @@ def test_purposes_are_inherited_as_usd_computes_them(tmp_path: Path) -> None:
     )
     owners = set(with_proxies.read(Usd.TimeCode.Default()).geometry.ids_by_path)
     assert Sdf.Path("/World/Proxies/Stand") in owners
+
+
+def test_a_beauty_composites_through_the_settings_image(tmp_path: Path) -> None:
+    """Anamorphic settings with a data window over a beauty of the full resolution: the
+    beauty's depth is cropped to the window, the composite carries the pixel aspect, and
+    a beauty whose own pixelAspectRatio differs is named once."""
+    path, stage, _ = _shot(tmp_path)
+    _settings(
+        stage,
+        camera="/World/Camera",
+        resolution=(48, 27),
+        pixel_aspect=2.0,
+        window=(0.25, 0.25, 0.75, 0.75),
+    )
+    assert stage.GetRootLayer().Save()
+    beauty = np.full((27, 48), 0.5, dtype=np.float32)
+    planes = {"R": beauty, "G": beauty, "B": beauty, "A": np.ones_like(beauty)}
+    planes["depth"] = np.full((27, 48), 3.0, dtype=np.float32)
+    for frame, aspect in ((1, 1.0), (2, 2.0)):
+        crepuscular.write_exr_channels(
+            tmp_path / f"beauty.{frame:04d}.exr", planes, pixel_aspect=aspect
+        )
+    out = tmp_path / "out"
+    for frames, named in (("1", True), ("2", False)):
+        status, err = run(
+            "render", str(path), "--quiet", "--frames", frames, "--out",
+            str(out / "s.####.exr"), "--beauty", str(tmp_path / "beauty.####.exr"),
+        )  # fmt: skip
+        assert status == 0, err
+        assert ("has pixels 1:1 (its pixelAspectRatio) but the camera renders 2:1" in err) == named
+    comp = out / "comp.s.0002.exr"
+    assert crepuscular.read_exr_pixel_aspect(comp) == 2.0
+    layers = crepuscular.read_exr(out / "s.0002.exr")
+    assert layers["depth"].shape == (27, 48)
+    # Inside the window the beauty's 3 m depth shortens the rays; outside, nothing.
+    window = np.zeros((27, 48), dtype=bool)
+    window[7:20, 12:36] = True
+    assert not layers["volume.A"][~window].any()
+    assert np.allclose(layers["depth"][window], 3.0, rtol=1e-3)

@@ -178,6 +178,19 @@ class Progress:
 # --- beauty -----------------------------------------------------------------------------
 
 
+def _check_beauty_pixels(path: str, pixel_aspect: float, err: TextIO) -> None:
+    """Warns where the first beauty's pixels are not the camera's shape: a beauty
+    rendered through other pixels sees another view, and the shafts would not line up."""
+    beauty_aspect = crepuscular.read_exr_pixel_aspect(path)
+    if not math.isclose(beauty_aspect, pixel_aspect, rel_tol=1e-3):
+        _warn(
+            err,
+            f"beauty {path} has pixels {beauty_aspect:g}:1 (its pixelAspectRatio) but the "
+            f"camera renders {pixel_aspect:g}:1: the shafts may not line up (see the render "
+            "settings' pixelAspectRatio)",
+        )
+
+
 def _beauty_planes(
     path: str, width: int, height: int
 ) -> tuple[npt.NDArray[np.float32], tuple[str, npt.NDArray[np.float32]] | None]:
@@ -404,6 +417,8 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 beauty_rgba, depth = _beauty_planes(
                     beauty_path, frame.camera["width"], frame.camera["height"]
                 )
+                if not record.beauties:
+                    _check_beauty_pixels(beauty_path, frame.camera["pixel_aspect"], err)
                 if depth is not None and args.beauty_depth != "ignore":
                     name, plane = depth
                     kind = args.beauty_depth

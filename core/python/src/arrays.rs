@@ -70,9 +70,11 @@ impl<'a> DepthMap<'a> {
         })
     }
 
-    /// The map must have the camera's image shape; the core checks the values.
+    /// The map must have the camera's image shape (its window's, where it has one); the
+    /// core checks the values.
     pub fn check(&self, camera: &Camera) -> Result<()> {
-        let (width, height) = (camera.width as usize, camera.height as usize);
+        let (width, height) = camera.image_size();
+        let (width, height) = (width as usize, height as usize);
         if self.shape != [height, width] {
             return Err(Error::invalid(
                 "camera_depth",
