@@ -23,6 +23,9 @@ every case's medium in a box, to compare those two on box media alone. `--below-
 turns every case's sun below the horizon (its light travelling upward, as a sun lamp
 pointed up in Blender sends it), the cases otherwise as drawn. `--slices 4096` renders
 every case with that many epipolar slices rather than the automatic count.
+`--anamorphic` renders each case through non-square pixels (1:2 to 2:1, the width scaled
+to keep the view's shape), and `--window` renders a random window of each case's frame, a
+render region: both draw from generators of their own, so that seeds keep their cases.
 """
 
 from __future__ import annotations
@@ -331,6 +334,10 @@ def main() -> int:
         default=0,
         help="epipolar slices for the fast methods' rectified map in every case (0: automatic)",
     )
+    parser.add_argument(
+        "--anamorphic", action="store_true", help="non-square pixels, 1:2 to 2:1 (see above)"
+    )
+    parser.add_argument("--window", action="store_true", help="a random window of the frame")
     args = parser.parse_args()
     rng = random.Random(args.seed)
     geometry = random.Random(f"{args.seed} geometry") if args.geometry == "random" else None
@@ -348,6 +355,19 @@ def main() -> int:
         )
         scene["render"]["exact_ray_ends"] = args.exact_ray_ends
         scene["render"]["epipolar_slices"] = args.slices
+        camera = scene["camera"]
+        if args.anamorphic:
+            aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)
+            camera["pixel_aspect"] = aspect
+            camera["width"] = max(1, round(camera["width"] / aspect))
+            name += f" pixels {aspect:.2f}:1"
+        if args.window:
+            draw = random.Random(f"{args.seed} {case} window")
+            x0, y0 = draw.randrange(camera["width"] // 2), draw.randrange(camera["height"] // 2)
+            width = draw.randint(max(4, camera["width"] // 5), camera["width"] - x0)
+            height = draw.randint(max(4, camera["height"] // 5), camera["height"] - y0)
+            camera["window"] = {"x": x0, "y": y0, "width": width, "height": height}
+            name += f" window {width}x{height}"
         volumes = {}
         try:
             for method in ("reference", "minmax", "prefiltered"):
