@@ -980,6 +980,18 @@ def _constant(
         raise ExportError(str(error)) from error
 
 
+def _density(node: bpy.types.Node, groups: tuple[bpy.types.Node, ...], where: str) -> float:
+    """A volume shader's Density, which must be one value: the core's fog is homogeneous."""
+    try:
+        return float(node_links.constant(node, "Density", groups, where))
+    except node_links.NodeLinkError as error:
+        raise ExportError(
+            f"{error}. The shafts' fog is homogeneous, one density throughout, so a texture's "
+            "variation cannot be rendered: unlink Density, or set the scene's Stylized Shafts "
+            "Medium to Custom and give its extinction there"
+        ) from error
+
+
 @dataclass
 class _VolumeClosure:
     """One volume closure of a shader, already weighted: σs and σt per channel, and the
@@ -1048,7 +1060,7 @@ def _volume_closures(
             )
         ]
     color = np.maximum(np.array(_constant(node, "Color", groups, where)[:3], dtype=np.float64), 0)
-    density = max(float(_constant(node, "Density", groups, where)), 0.0) * weight
+    density = max(_density(node, groups, where), 0.0) * weight
     if kind == "ShaderNodeVolumeAbsorption":
         return [_VolumeClosure(np.zeros(3), np.maximum(1 - color, 0) * density)]
     anisotropy = float(_constant(node, "Anisotropy", groups, where))

@@ -1379,11 +1379,13 @@ def test_fog_shaders_are_followed_through_groups_reroutes_and_muted_nodes(
     found, _ = medium()
     luminance = 0.2126 * 0.5 + 0.7152 * 1.0
     assert found["extinction"] == pytest.approx(expected["extinction"] / 0.7 * luminance)
-    # A texture is not a constant: named, with the node that feeds it.
+    # A texture is not a constant: named, with the node that feeds it, and what to do.
     noise = tree.nodes.new("ShaderNodeTexNoise")
     tree.links.new(noise.outputs["Fac"], preset.inputs["Density"])
-    with pytest.raises(addon.export.ExportError, match=r"'Density'.*'Noise Texture'"):
+    with pytest.raises(addon.export.ExportError, match=r"'Density'.*'Noise Texture'") as info:
         medium()
+    assert "fog is homogeneous" in str(info.value)
+    assert "Medium to Custom" in str(info.value)
 
 
 @pytest.mark.parametrize("seed", range(4))
