@@ -407,14 +407,15 @@ def _frames(stage: Any) -> list[int] | None:
     return list(range(math.floor(start), math.ceil(end) + 1))
 
 
-def author_shaft_settings(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
+def author_shaft_settings(
+    stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
+) -> list[str]:
     """Applies CrepuscularLightAPI to the DistantLight of every exported sun with shafts
-    and authors its settings; returns the light prim paths. Suns that were not exported
-    are named in the log."""
+    (found among the exporter's `prims`) and authors its settings; returns the light prim
+    paths. Suns that were not exported are named in the log."""
     from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
 
     scene = depsgraph.scene
-    prims = ExportedPrims(stage)
     settings = scene.crepuscular
     fog = settings.fog_object if settings.medium_source == "fog_object" else None
     records = []
@@ -497,7 +498,7 @@ def author_shaft_settings(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[st
     return authored
 
 
-def author_render_settings(stage: Any, scene: bpy.types.Scene) -> str | None:
+def author_render_settings(stage: Any, scene: bpy.types.Scene, prims: ExportedPrims) -> str | None:
     """The render's image as a RenderSettings prim named by the stage's metadata (see the
     module's doc); returns its path, None where the stage names one already."""
     from pxr import Gf, Sdf, UsdGeom, UsdRender
@@ -508,7 +509,7 @@ def author_render_settings(stage: Any, scene: bpy.types.Scene) -> str | None:
     settings = UsdRender.Settings.Define(stage, root.GetPath().AppendChild("settings"))
     if not (root and settings):
         raise USDExportError("could not define the render settings /Render/settings")
-    cameras = ExportedPrims(stage).data(scene.camera, UsdGeom.Camera) if scene.camera else []
+    cameras = prims.data(scene.camera, UsdGeom.Camera) if scene.camera else []
     if cameras:
         settings.CreateCameraRel().SetTargets([cameras[0].GetPath()])
     render_settings = scene.render
@@ -594,10 +595,12 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
             return True
         check_blender_pxr()
         stage = export_context.get_stage()
-        paths = author_shaft_settings(stage, depsgraph)
+        # One pass over the exported prims serves both.
+        prims = ExportedPrims(stage)
+        paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
-            settings = author_render_settings(stage, depsgraph.scene)
+            settings = author_render_settings(stage, depsgraph.scene, prims)
             if settings is not None:
                 render.log(f"USD export: the render's image authored as {settings}")
         return True

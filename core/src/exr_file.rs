@@ -293,14 +293,22 @@ pub struct ExrImage {
 /// Corrupt or truncated files give [`Error::Exr`] naming the path.
 pub fn read_exr(path: &Path) -> Result<ExrImage> {
     let bytes = std::fs::read(path).map_err(|source| Error::io(path, source))?;
+    guarded(path, || decode(&bytes))
+}
+
+/// `decode` of a file at `path`, its failures and panics as [`Error::Exr`] naming it.
+/// Last line of defence: the decoder is not guaranteed panic-free on hostile input. The
+/// read runs sequentially so that any panic stays on this thread; the parallel decoder
+/// runs on a rayon pool, where a panic aborts the process.
+fn guarded<T>(
+    path: &Path,
+    decode: impl FnOnce() -> Result<T, String> + std::panic::UnwindSafe,
+) -> Result<T> {
     let exr_error = |reason: String| Error::Exr {
         path: path.to_path_buf(),
         reason,
     };
-    // Last line of defence: the decoder is not guaranteed panic-free on hostile input.
-    // The read runs sequentially so that any panic stays on this thread; the parallel
-    // decoder runs on a rayon pool, where a panic aborts the process.
-    match std::panic::catch_unwind(|| decode(&bytes)) {
+    match std::panic::catch_unwind(decode) {
         Ok(result) => result.map_err(exr_error),
         Err(panic) => {
             let message = panic
@@ -313,6 +321,18 @@ pub fn read_exr(path: &Path) -> Result<ExrImage> {
             )))
         }
     }
+}
+
+/// The `pixelAspectRatio` of an EXR file's first part, from its header alone: a pixel's
+/// width over its height.
+pub fn read_pixel_aspect(path: &Path) -> Result<f32> {
+    let file = std::fs::File::open(path).map_err(|source| Error::io(path, source))?;
+    guarded(path, || {
+        let meta =
+            MetaData::read_from_buffered(std::io::BufReader::new(file), false).map_err(describe)?;
+        let header = meta.headers.first().ok_or("file has no parts")?;
+        Ok(header.shared_attributes.pixel_aspect)
+    })
 }
 
 fn decode(bytes: &[u8]) -> Result<ExrImage, String> {

@@ -4,7 +4,8 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use crepuscular::exr_file::{
-    read_exr as read_exr_file, write_channels, write_layers, ExrCompression, Precision,
+    read_exr as read_exr_file, read_pixel_aspect, write_channels, write_layers, ExrCompression,
+    Precision,
 };
 use crepuscular::preview::{auto_exposure, write_png, ViewTransform};
 use crepuscular::{composite::composite_over, Error, Layers};
@@ -29,6 +30,13 @@ pub fn builtin_scene_names() -> Vec<&'static str> {
     crepuscular::BUILTIN_SCENES.to_vec()
 }
 
+/// An EXR file's `pixelAspectRatio` (a pixel's width over its height), from its header.
+#[pyfunction]
+#[pyo3(signature = (path, /))]
+pub fn read_exr_pixel_aspect(py: Python<'_>, path: PathBuf) -> PyResult<f32> {
+    py.detach(|| read_pixel_aspect(&path)).map_err(to_py_err)
+}
+
 /// Reads every channel of every part of an EXR file.
 ///
 /// Returns `(width, height, channels)` where `channels` maps full channel names to
@@ -43,7 +51,7 @@ pub fn read_exr(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyTuple>> {
     for (name, values) in all {
         channels.set_item(name, PyArray1::from_vec(py, values).reshape([h, w])?)?;
     }
-    (image.width, image.height, channels, image.pixel_aspect).into_pyobject(py)
+    (image.width, image.height, channels).into_pyobject(py)
 }
 
 fn contiguous<'a>(

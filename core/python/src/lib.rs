@@ -378,6 +378,7 @@ fn _core(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(files::builtin_scene_json, module)?)?;
     module.add_function(wrap_pyfunction!(files::builtin_scene_names, module)?)?;
     module.add_function(wrap_pyfunction!(files::read_exr, module)?)?;
+    module.add_function(wrap_pyfunction!(files::read_exr_pixel_aspect, module)?)?;
     module.add_function(wrap_pyfunction!(files::write_layers_exr, module)?)?;
     module.add_function(wrap_pyfunction!(files::write_channels_exr, module)?)?;
     module.add_function(wrap_pyfunction!(files::composite, module)?)?;

@@ -420,13 +420,14 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, npt.NDArray[np.float32]]
     Keys are full channel names such as "volume.R" or "ViewLayer.Depth.Z"; values are
     (height, width) float32 arrays.
     """
-    _, _, channels, _ = _core.read_exr(os.fspath(path))
+    _, _, channels = _core.read_exr(os.fspath(path))
     return channels
 
 
 def read_exr_pixel_aspect(path: str | os.PathLike[str]) -> float:
-    """An EXR file's `pixelAspectRatio`: a pixel's width over its height."""
-    return _core.read_exr(os.fspath(path))[3]
+    """An EXR file's `pixelAspectRatio`: a pixel's width over its height, read from its
+    header alone."""
+    return _core.read_exr_pixel_aspect(os.fspath(path))
 
 
 def write_exr(
