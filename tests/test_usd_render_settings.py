@@ -341,3 +341,118 @@ def test_a_beauty_composites_through_the_settings_image(tmp_path: Path) -> None:
     window[7:20, 12:36] = True
     assert not layers["volume.A"][~window].any()
     assert np.allclose(layers["depth"][window], 3.0, rtol=1e-3)
+
+
+def _product(stage: Usd.Stage, path: str, **values: Any) -> UsdRender.Product:
+    """A RenderProduct with `values` (camera, resolution, pixel_aspect, window) authored,
+    added to /Render/settings' products."""
+    product = UsdRender.Product.Define(stage, path)
+    assert product
+    if "camera" in values:
+        assert product.CreateCameraRel().SetTargets([Sdf.Path(values["camera"])])
+    if "resolution" in values:
+        assert product.CreateResolutionAttr().Set(Gf.Vec2i(*values["resolution"]))
+    if "pixel_aspect" in values:
+        assert product.CreatePixelAspectRatioAttr().Set(values["pixel_aspect"])
+    if "window" in values:
+        assert product.CreateDataWindowNDCAttr().Set(Gf.Vec4f(*values["window"]))
+    settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/settings"))
+    assert settings.GetProductsRel().AddTarget(product.GetPath())
+    return product
+
+
+def test_a_render_product_overrides_what_it_authors(tmp_path: Path) -> None:
+    """A product's authored camera, resolution, pixel aspect and data window replace the
+    settings' (as UsdRender's spec computes a product's image); what it leaves unauthored,
+    here the conform policy, stays the settings'. The render equals one of settings that
+    hold those values themselves, bit for bit."""
+    path, stage, _ = _shot(tmp_path)
+    _settings(
+        stage,
+        camera="/World/Other",
+        resolution=(48, 27),
+        conform="cropAperture",
+        window=(0, 0, 1, 0.5),
+    )
+    _product(
+        stage, "/Render/Products/beauty", camera="/World/Camera", resolution=(40, 30),
+        pixel_aspect=2.0, window=(0.0, 0.0, 1.0, 1.0),
+    )  # fmt: skip
+    assert stage.GetRootLayer().Save()
+    image = read_render_settings(stage, None)
+    assert image.product == Sdf.Path("/Render/Products/beauty")
+    assert (image.camera, image.resolution, image.pixel_aspect, image.conform) == (
+        Sdf.Path("/World/Camera"), (40, 30), 2.0, "cropAperture",
+    )  # fmt: skip
+    # The product's whole-image window clears the settings' half.
+    assert image.data_window is None
+    assert image.attribute("resolution") == "/Render/Products/beauty.resolution"
+    assert (
+        image.attribute("aspectRatioConformPolicy") == "/Render/settings.aspectRatioConformPolicy"
+    )
+    out = tmp_path / "out"
+    status, err = run("render", str(path), "--quiet", "--out", str(out / "product.exr"))
+    assert status == 0, err
+    by_product = _volume(out / "product.exr")
+    assert by_product.shape == (30, 40, 4)
+    assert crepuscular.read_exr_pixel_aspect(out / "product.exr") == 2.0
+    # The same image authored on the settings alone.
+    plain = tmp_path / "plain.usda"
+    _, plain_stage, _ = _shot(tmp_path, plain.name)
+    _settings(
+        plain_stage, camera="/World/Camera", resolution=(40, 30), conform="cropAperture",
+        pixel_aspect=2.0,
+    )  # fmt: skip
+    assert plain_stage.GetRootLayer().Save()
+    status, err = run("render", str(plain), "--quiet", "--out", str(out / "plain.exr"))
+    assert status == 0, err
+    np.testing.assert_array_equal(by_product, _volume(out / "plain.exr"))
+    assert by_product[..., 3].mean() > 0.01
+
+
+def test_several_products_render_the_first_or_the_one_named(tmp_path: Path) -> None:
+    """Products that agree are one image. Where they differ the first is rendered and the
+    choice named; --renderProduct picks another. Targets that are no product, and bad
+    overrides, are named with the product's path."""
+    path, stage, _ = _shot(tmp_path)
+    _settings(stage, camera="/World/Camera", resolution=(48, 27))
+    _product(stage, "/Render/Products/a", resolution=(32, 18))
+    _product(stage, "/Render/Products/b", resolution=(32, 18))
+    image = read_render_settings(stage, None)
+    assert (image.product, image.resolution, image.notes) == (
+        Sdf.Path("/Render/Products/a"), (32, 18), (),
+    )  # fmt: skip
+    _product(stage, "/Render/Products/c", resolution=(16, 9))
+    image = read_render_settings(stage, None)
+    assert image.resolution == (32, 18)
+    assert (
+        "3 products (/Render/Products/a, /Render/Products/b, /Render/Products/c)"
+        in (image.notes[0])
+    )
+    assert "the first, /Render/Products/a, is rendered (give --renderProduct)" in image.notes[0]
+    assert stage.GetRootLayer().Save()
+    out = tmp_path / "out"
+    status, err = run(
+        "render", str(path), "--quiet", "--renderProduct", "/Render/Products/c", "--out",
+        str(out / "c.exr"),
+    )  # fmt: skip
+    assert status == 0, err
+    assert "override the image differently" not in err
+    assert _volume(out / "c.exr").shape[:2] == (9, 16)
+    common = ("render", str(path), "--quiet", "--out", str(out / "x.exr"))
+    status, err = run(*common, "--renderProduct", "/World/Camera")
+    assert status == 1
+    assert "--renderProduct names /World/Camera, a Camera, not a RenderProduct" in err, err
+    UsdRender.Product(stage.GetPrimAtPath("/Render/Products/c")).GetResolutionAttr().Set(
+        Gf.Vec2i(0, 9)
+    )
+    assert stage.GetRootLayer().Save()
+    status, err = run(*common, "--renderProduct", "/Render/Products/c")
+    assert status == 1
+    assert "/Render/Products/c.resolution 0x9 is outside 1..16384" in err, err
+    settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/settings"))
+    assert settings.GetProductsRel().AddTarget("/World/Sun", Usd.ListPositionFrontOfPrependList)
+    assert stage.GetRootLayer().Save()
+    status, err = run(*common)
+    assert status == 1
+    assert "/Render/settings.products names /World/Sun, a DistantLight, not a RenderProduct" in err

@@ -81,6 +81,15 @@ def _parser() -> argparse.ArgumentParser:
             "renderSettingsPrimPath, else its only RenderSettings prim)"
         ),
     )
+    render.add_argument(
+        "--renderProduct",
+        dest="render_product",
+        help=(
+            "RenderProduct whose authored camera, resolution, pixel aspect, conform policy "
+            "and data window override the settings' (default: the settings' only product, "
+            "else their first)"
+        ),
+    )
     add_cmdline_args(render)
     render.add_argument(
         "--out", required=True, help="layer EXR path with a frame placeholder, e.g. shafts.####.exr"
@@ -308,7 +317,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
         _make_folder(getattr(args, option), option)
     time_codes = [_resolve_time(stage, code) for code in frame_args.time_codes]
     try:
-        image = read_render_settings(stage, args.render_settings)
+        image = read_render_settings(stage, args.render_settings, args.render_product)
     except RenderSettingsError as error:
         raise CommandError(str(error)) from error
     for note in image.notes:
@@ -346,6 +355,7 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
                 "camera",
                 "light",
                 "render_settings",
+                "render_product",
                 "frames",
                 "out",
                 "beauty",

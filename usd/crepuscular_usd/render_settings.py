@@ -3,9 +3,11 @@ the camera's aperture is conformed to the image, its data window, and which purp
 render.
 
 The prim is the one named on the command line, else the stage's `renderSettingsPrimPath`
-metadata, else the stage's only RenderSettings prim, as farm renderers look for it. Its
-products' own overrides are not read: a render of several products at different sizes
-is several renders here.
+metadata, else the stage's only RenderSettings prim, as farm renderers look for it. A
+RenderProduct it targets overrides its camera, resolution, pixel aspect, conform policy
+and data window where the product authors them, as UsdRender's spec computes a
+product's image: the one named on the command line, else its only product, else the
+first where its products' images differ (they are several renders here).
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ class ImageSettings:
     """A RenderSettings prim's image; defaults are the schema's fallbacks."""
 
     path: Sdf.Path | None = None
+    #: The RenderProduct whose overrides apply, if any.
+    product: Sdf.Path | None = None
     camera: Sdf.Path | None = None
     resolution: tuple[int, int] | None = None
     pixel_aspect: float = 1.0
@@ -53,10 +57,13 @@ class ImageSettings:
     data_window: tuple[float, float, float, float] | None = None
     #: What of the prim (or of finding one) is not followed, for warnings.
     notes: tuple[str, ...] = ()
+    #: The attributes the product overrides, by name (the rest are the settings').
+    overridden: tuple[str, ...] = ()
 
     def attribute(self, name: str) -> str:
-        """`name` on the prim, for messages."""
-        return f"{self.path}.{name}" if self.path is not None else name
+        """`name` on the prim that gives it, for messages."""
+        where = self.product if name in self.overridden else self.path
+        return f"{where}.{name}" if where is not None else name
 
 
 def fitted_vertically(
@@ -119,11 +126,84 @@ def _find(stage: Usd.Stage, path: str | None) -> UsdRender.Settings | list[Sdf.P
     return UsdRender.Settings(found[0]) if len(found) == 1 else [p.GetPath() for p in found]
 
 
-def read_render_settings(stage: Usd.Stage, path: str | None) -> ImageSettings:
-    """The image settings of the RenderSettings prim at `path`, else of the stage's own
-    (see the module's doc); the schema's defaults where there is none."""
+#: The image attributes a RenderProduct overrides where it authors them.
+_OVERRIDABLE = (
+    "camera",
+    "resolution",
+    "pixelAspectRatio",
+    "aspectRatioConformPolicy",
+    "dataWindowNDC",
+)
+
+
+def _image_values(base: UsdRender.SettingsBase, authored_only: bool) -> dict[str, object]:
+    """`base`'s image attributes by name (the camera as its targets), the fallbacks
+    included unless `authored_only`."""
+    attributes = {
+        "resolution": base.GetResolutionAttr(),
+        "pixelAspectRatio": base.GetPixelAspectRatioAttr(),
+        "aspectRatioConformPolicy": base.GetAspectRatioConformPolicyAttr(),
+        "dataWindowNDC": base.GetDataWindowNDCAttr(),
+    }
+    values: dict[str, object] = {}
+    camera = base.GetCameraRel()
+    if not authored_only or (camera and camera.HasAuthoredTargets()):
+        values["camera"] = tuple(camera.GetForwardedTargets()) if camera else ()
+    for name, attribute in attributes.items():
+        if not authored_only or attribute.HasAuthoredValue():
+            values[name] = attribute.Get()
+    return values
+
+
+def _as_product(stage: Usd.Stage, path: Sdf.Path, named_by: str) -> UsdRender.Product:
+    prim = stage.GetPrimAtPath(path)
+    if not prim:
+        raise RenderSettingsError(f"{named_by} names {path}, which does not exist on the stage")
+    if not prim.IsA(UsdRender.Product):
+        kind = prim.GetTypeName() or "typeless prim"
+        raise RenderSettingsError(f"{named_by} names {path}, a {kind}, not a RenderProduct")
+    return UsdRender.Product(prim)
+
+
+def _product(
+    stage: Usd.Stage, settings: UsdRender.Settings, path: str | None, notes: list[str]
+) -> tuple[Sdf.Path | None, dict[str, object]]:
+    """The product whose overrides apply and those overrides: the one at `path`, else the
+    settings' only product, else their first where their overrides differ."""
+    if path is not None:
+        if not Sdf.Path.IsValidPathString(path) or not Sdf.Path(path).IsAbsolutePath():
+            raise RenderSettingsError(f"render product path {path!r} is not an absolute prim path")
+        product = _as_product(stage, Sdf.Path(path), "--renderProduct")
+        return product.GetPath(), _image_values(product, authored_only=True)
+    where = settings.GetPath()
+    targets = settings.GetProductsRel().GetForwardedTargets()
+    products = [_as_product(stage, target, f"{where}.products") for target in targets]
+    if not products:
+        return None, {}
+    overrides = [_image_values(product, authored_only=True) for product in products]
+    if any(other != overrides[0] for other in overrides[1:]):
+        listed = ", ".join(str(p.GetPath()) for p in products)
+        notes.append(
+            f"{where}.products: {len(products)} products ({listed}) override the image "
+            f"differently; the first, {products[0].GetPath()}, is rendered (give "
+            "--renderProduct)"
+        )
+    return products[0].GetPath(), overrides[0]
+
+
+def read_render_settings(
+    stage: Usd.Stage, path: str | None, product_path: str | None = None
+) -> ImageSettings:
+    """The image settings of the RenderSettings prim at `path`, else of the stage's own,
+    with the overrides of its product at `product_path`, else of its own (see the
+    module's doc); the schema's defaults where there is none."""
     settings = _find(stage, path)
     if isinstance(settings, list):
+        if product_path is not None:
+            raise RenderSettingsError(
+                f"--renderProduct {product_path} needs the RenderSettings prim it belongs to "
+                "(give --renderSettingsPrimPath)"
+            )
         if not settings:
             return ImageSettings()
         listed = ", ".join(str(p) for p in settings)
@@ -133,40 +213,50 @@ def read_render_settings(stage: Usd.Stage, path: str | None) -> ImageSettings:
                 "renderSettingsPrimPath; none is read (give --renderSettingsPrimPath)",
             )
         )
-    where = settings.GetPath()
-    notes = []
+    notes: list[str] = []
     # Read at the default time: UsdRender's image settings are not meant to vary.
-    cameras = settings.GetCameraRel().GetForwardedTargets()
+    values = _image_values(settings, authored_only=False)
+    product, overrides = _product(stage, settings, product_path, notes)
+    values.update(overrides)
+    overridden = tuple(name for name in _OVERRIDABLE if name in overrides)
+
+    def where(name: str) -> str:
+        return f"{product if name in overridden else settings.GetPath()}.{name}"
+
+    cameras = values["camera"]
     if len(cameras) > 1:
         notes.append(
-            f"{where}.camera targets {len(cameras)} prims; the first, {cameras[0]}, is read"
+            f"{where('camera')} targets {len(cameras)} prims; the first, {cameras[0]}, is read"
         )
-    resolution = settings.GetResolutionAttr().Get()
+    resolution = values["resolution"]
     width, height = (int(resolution[0]), int(resolution[1])) if resolution else (0, 0)
     if not (1 <= width <= 16384 and 1 <= height <= 16384):
-        raise RenderSettingsError(f"{where}.resolution {width}x{height} is outside 1..16384")
-    aspect = settings.GetPixelAspectRatioAttr().Get()
+        raise RenderSettingsError(f"{where('resolution')} {width}x{height} is outside 1..16384")
+    aspect = values["pixelAspectRatio"]
     if aspect is None or not (math.isfinite(aspect) and aspect > 0):
-        raise RenderSettingsError(f"{where}.pixelAspectRatio {aspect} must be positive")
-    conform = str(settings.GetAspectRatioConformPolicyAttr().Get())
+        raise RenderSettingsError(f"{where('pixelAspectRatio')} {aspect} must be positive")
+    conform = str(values["aspectRatioConformPolicy"])
     if conform not in CONFORM_POLICIES:
         raise RenderSettingsError(
-            f"{where}.aspectRatioConformPolicy {conform!r} is none of {', '.join(CONFORM_POLICIES)}"
+            f"{where('aspectRatioConformPolicy')} {conform!r} is none of "
+            f"{', '.join(CONFORM_POLICIES)}"
         )
     purposes = tuple(str(p) for p in settings.GetIncludedPurposesAttr().Get() or ())
     unknown = sorted(set(purposes) - set(PURPOSES))
     if unknown:
         raise RenderSettingsError(
-            f"{where}.includedPurposes holds {', '.join(unknown)}, none of {', '.join(PURPOSES)}"
+            f"{settings.GetPath()}.includedPurposes holds {', '.join(unknown)}, none of "
+            f"{', '.join(PURPOSES)}"
         )
-    window = settings.GetDataWindowNDCAttr().Get()
+    window = values["dataWindowNDC"]
     data_window = None
     if window is not None and tuple(window) != (0.0, 0.0, 1.0, 1.0):
         data_window = tuple(float(v) for v in window)
         if not all(math.isfinite(v) for v in data_window):
-            raise RenderSettingsError(f"{where}.dataWindowNDC {data_window} is not finite")
+            raise RenderSettingsError(f"{where('dataWindowNDC')} {data_window} is not finite")
     return ImageSettings(
-        path=where,
+        path=settings.GetPath(),
+        product=product,
         camera=cameras[0] if cameras else None,
         resolution=(width, height),
         pixel_aspect=float(aspect),
@@ -174,4 +264,5 @@ def read_render_settings(stage: Usd.Stage, path: str | None) -> ImageSettings:
         purposes=purposes,
         data_window=data_window,
         notes=tuple(notes),
+        overridden=overridden,
     )
