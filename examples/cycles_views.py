@@ -37,7 +37,12 @@ the cards' materials inside node groups, as asset libraries ship them, with inpu
 and given outside by sockets, Value and RGB nodes, and reached through reroutes and muted
 Add Shaders (the same scenes as without it, seed for seed). `--anamorphic` renders each
 case through non-square pixels, 1:2 to 2:1, and `--region` through a random render region,
-cropped to it or not (both the same scenes, seed for seed).
+cropped to it or not (both the same scenes, seed for seed). `--usd` also exports each case
+with Blender's USD exporter (the extension's hook authoring the shaft settings and the
+RenderSettings) and renders the stage with `crepuscular-usd`: its error against Cycles is
+printed as `usd`, and its largest mean relative difference per layer from the extension's
+own reference layers (the method the hook exports) as `usd vs ours`, which the round
+trip's test bounds by 1e-4 and which flags above 1e-3.
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ import json
 import math
 import os
 import random
+import subprocess
 import sys
 import tempfile
 import time
@@ -65,6 +71,10 @@ import blender_scenes  # noqa: E402
 from differential_views import random_geometry  # noqa: E402
 
 METHODS = ("reference", "minmax", "default")
+#: The USD step's largest mean relative difference per layer from the extension's own
+#: layers above which a case is flagged: ten times the round trip test's bound.
+USD_FLAG = 1e-3
+USD_LAYERS = ("volume.R", "volume.G", "volume.B", "volume.A", "visibility")
 
 
 def random_fog(
@@ -448,6 +458,42 @@ def render_case(scene: bpy.types.Scene, sun: bpy.types.Object, out: Path) -> dic
     return paths
 
 
+def render_through_usd(scene: bpy.types.Scene, out: Path) -> Path:
+    """The case exported with Blender's USD exporter and rendered by `crepuscular-usd` in a
+    process of its own (it holds usd-core's bindings, Blender its own), in the whole frame
+    where the render is cropped to a region, as the USD step renders a data window."""
+    stage = out / "shot.usda"
+    if bpy.ops.wm.usd_export(filepath=str(stage)) != {"FINISHED"}:
+        raise RuntimeError("Blender's USD export failed")
+    layers = out / "usd.exr"
+    command = [sys.executable, "-m", "crepuscular_usd.cli", "render", str(stage), "--quiet"]
+    done = subprocess.run(
+        [*command, "--out", str(layers)], capture_output=True, text=True, check=False
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"crepuscular-usd failed: {done.stderr.strip()}")
+    return layers
+
+
+def usd_difference(scene: bpy.types.Scene, ours: Path, usd: Path) -> float:
+    """The largest mean relative difference per layer between the extension's layers and
+    the USD step's, these cropped to the extension's region where it crops."""
+    export = sys.modules[blender_scenes.ADDON_MODULE].export
+    region = export.render_region(scene)
+    mine, theirs = crepuscular.read_exr(ours), crepuscular.read_exr(usd)
+    worst = 0.0
+    for name in USD_LAYERS:
+        plane = theirs[name]
+        if region is not None and region.cropped:
+            plane = plane[region.y : region.y + region.height, region.x : region.x + region.width]
+        scale = float(np.abs(mine[name]).mean())
+        if plane.shape != mine[name].shape:
+            return math.inf
+        difference = float(np.abs(mine[name] - plane).mean())
+        worst = max(worst, difference / scale if scale > 0 else difference)
+    return worst
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=1)
@@ -472,6 +518,9 @@ def main() -> int:
     )
     parser.add_argument(
         "--region", action="store_true", help="a random render region, cropped or not"
+    )
+    parser.add_argument(
+        "--usd", action="store_true", help="also through Blender's USD export and the USD step"
     )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
@@ -515,6 +564,8 @@ def main() -> int:
         started = time.perf_counter()
         try:
             paths = render_case(scene, sun, out)
+            if args.usd:
+                paths["usd"] = render_through_usd(scene, out)
         except RuntimeError as error:
             print(f"{case:3} {summary} | error: {error}", flush=True)
             continue
@@ -534,7 +585,20 @@ def main() -> int:
             error = 100 * np.abs(block_means(ours) - block_means(cycles)).mean() / mean
             worst = max(worst, error)
             columns.append(f"{method} mean {ours.mean() / mean:.3f} error {error:5.2f}%")
-        flag = worst > args.flag
+        usd_off = 0.0
+        if args.usd:
+            through_usd = rgb(paths["usd"], "volume.")
+            export = sys.modules[blender_scenes.ADDON_MODULE].export
+            region = export.render_region(scene)
+            if region is not None and region.cropped:
+                window = (slice(region.y, region.y + region.height),)
+                window += (slice(region.x, region.x + region.width),)
+                through_usd = through_usd[window]
+            error = 100 * np.abs(block_means(through_usd) - block_means(cycles)).mean() / mean
+            worst = max(worst, error)
+            usd_off = usd_difference(scene, paths["reference"], paths["usd"])
+            columns.append(f"usd error {error:5.2f}% usd vs ours {usd_off:.1e}")
+        flag = worst > args.flag or usd_off > USD_FLAG
         flagged += flag
         print(
             f"{case:3} {summary} | {' | '.join(columns)} ({seconds:.0f} s)"
