@@ -27,7 +27,11 @@ each sun with shafts and authors what the add-on would render with, so that
   `renderSettingsPrimPath`, holds the scene camera, the render's resolution, pixel aspect
   and render region (`dataWindowNDC`), which Blender's exporter does not write: the USD
   step, and farm renderers that read it, render the image F12 renders. A stage that
-  already names its render settings keeps them.
+  already names its render settings keeps them;
+- an orthographic scene camera, which Blender 5.0's exporter writes as its transform alone,
+  gets its `Camera` prim: orthographic, its view's width and height as apertures (tenths
+  of a stage unit), its lens shift as aperture offsets and its clip range, so that the
+  stage has the camera F12 renders through.
 
 Errors (a fog object that cannot be mapped, a setting the core refuses) are raised: Blender
 reports them and the export operator fails.
@@ -498,6 +502,94 @@ def author_shaft_settings(
     return authored
 
 
+def orthographic_view(
+    scene: bpy.types.Scene, data: bpy.types.Camera
+) -> tuple[float, float, float, float]:
+    """The width and height of the view of orthographic camera `data` and its shift, in
+    Blender units, as Blender computes its view plane: `ortho_scale` spans the side the
+    sensor fit names (under Auto, the wider in square units, pixel aspect included), and
+    a shift moves the view by that many `ortho_scale`s."""
+    width, height = export.render_size(scene)
+    render_settings = scene.render
+    across = width * render_settings.pixel_aspect_x
+    down = height * render_settings.pixel_aspect_y
+    fit = data.sensor_fit
+    if fit == "AUTO":
+        fit = "HORIZONTAL" if across >= down else "VERTICAL"
+    scale = data.ortho_scale
+    horizontal = fit == "HORIZONTAL"
+    view_width = scale if horizontal else scale * across / down
+    view_height = scale * down / across if horizontal else scale
+    return view_width, view_height, data.shift_x * scale, data.shift_y * scale
+
+
+def author_orthographic_camera(
+    stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
+) -> str | None:
+    """The scene camera's `Camera` prim where it is orthographic and the exporter wrote
+    its transform alone (see the module's doc), time-sampled where the view changes over
+    an animated export; returns its path, None where there is nothing to author."""
+    from pxr import Gf, Tf, Usd, UsdGeom
+
+    scene = depsgraph.scene
+    camera = scene.camera
+    if camera is None or camera.type != "CAMERA" or camera.data.type != "ORTHO":
+        return None
+    if prims.data(camera, UsdGeom.Camera):
+        return None
+    exported = [prim for prim in prims.of(camera) if prim.IsA(UsdGeom.Xformable)]
+    if not exported:
+        return None
+    transform = exported[0]
+    prim = UsdGeom.Camera.Define(
+        stage, transform.GetPath().AppendChild(Tf.MakeValidIdentifier(camera.data.name))
+    )
+    if not prim:
+        raise USDExportError(f"could not define the Camera prim of camera '{camera.name}'")
+    samples = _Samples()
+    frames = _frames(stage)
+    original = scene.frame_current
+    try:
+        for frame in frames or [None]:
+            if frame is not None:
+                scene.frame_current = frame
+                depsgraph.update()
+            time = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
+            evaluated = camera.evaluated_get(depsgraph)
+            blender = np.array(evaluated.matrix_world, dtype=np.float64)
+            if abs(np.linalg.det(blender[:3, :3])) < 1e-12:
+                raise USDExportError(f"camera '{camera.name}': its matrix is singular")
+            # Stage units per Blender unit, off the exporter's own transform of the camera.
+            to_stage = _world(transform, time) @ np.linalg.inv(blender)
+            units = abs(np.linalg.det(to_stage[:3, :3])) ** (1.0 / 3.0)
+            data = evaluated.data
+            width, height, shift_x, shift_y = orthographic_view(scene, data)
+            # Orthographic apertures and their offsets are in tenths of a stage unit.
+            tenths = 10.0 * units
+            samples.add("horizontalAperture", time, width * tenths)
+            samples.add("verticalAperture", time, height * tenths)
+            samples.add("horizontalApertureOffset", time, shift_x * tenths)
+            samples.add("verticalApertureOffset", time, shift_y * tenths)
+            samples.add("clippingRange", time, (data.clip_start * units, data.clip_end * units))
+    finally:
+        if frames is not None:
+            scene.frame_current = original
+            depsgraph.update()
+    if not prim.CreateProjectionAttr().Set(UsdGeom.Tokens.orthographic):
+        raise USDExportError(f"could not author {prim.GetPath()}.projection")
+    attributes = {
+        "horizontalAperture": prim.CreateHorizontalApertureAttr(),
+        "verticalAperture": prim.CreateVerticalApertureAttr(),
+        "horizontalApertureOffset": prim.CreateHorizontalApertureOffsetAttr(),
+        "verticalApertureOffset": prim.CreateVerticalApertureOffsetAttr(),
+        "clippingRange": prim.CreateClippingRangeAttr(),
+    }
+    for name, attribute in attributes.items():
+        convert = (lambda v: Gf.Vec2f(*v)) if name == "clippingRange" else float
+        samples.author(attribute, name, convert)
+    return str(prim.GetPath())
+
+
 def author_render_settings(stage: Any, scene: bpy.types.Scene, prims: ExportedPrims) -> str | None:
     """The render's image as a RenderSettings prim named by the stage's metadata (see the
     module's doc); returns its path, None where the stage names one already."""
@@ -516,13 +608,19 @@ def author_render_settings(stage: Any, scene: bpy.types.Scene, prims: ExportedPr
     settings.CreateResolutionAttr(Gf.Vec2i(*export.render_size(scene)))
     aspect = render_settings.pixel_aspect_x / render_settings.pixel_aspect_y
     settings.CreatePixelAspectRatioAttr(float(aspect))
-    if export.render_region(scene) is not None:
-        # Both count from the bottom-left corner, in fractions of the frame.
+    region = export.render_region(scene)
+    if region is not None:
+        # The edges of the pixels Blender renders (it truncates the border's fractions),
+        # from the bottom-left corner: a renderer that takes the pixels whose centres lie
+        # inside takes those, where the border's own fractions can gain or lose an edge's
+        # row or column.
+        width, height = export.render_size(scene)
+        bottom = height - region.y - region.height
         window = Gf.Vec4f(
-            render_settings.border_min_x,
-            render_settings.border_min_y,
-            render_settings.border_max_x,
-            render_settings.border_max_y,
+            region.x / width,
+            bottom / height,
+            (region.x + region.width) / width,
+            (bottom + region.height) / height,
         )
         settings.CreateDataWindowNDCAttr(window)
     path = settings.GetPath()
@@ -600,6 +698,11 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
         paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
+            camera = author_orthographic_camera(stage, depsgraph, prims)
+            if camera is not None:
+                render.log(f"USD export: the orthographic camera authored as {camera}")
+                # The render settings target the new prim.
+                prims = ExportedPrims(stage)
             settings = author_render_settings(stage, depsgraph.scene, prims)
             if settings is not None:
                 render.log(f"USD export: the render's image authored as {settings}")

@@ -42,7 +42,9 @@ with Blender's USD exporter (the extension's hook authoring the shaft settings a
 RenderSettings) and renders the stage with `crepuscular-usd`: its error against Cycles is
 printed as `usd`, and its largest mean relative difference per layer from the extension's
 own reference layers (the method the hook exports) as `usd vs ours`, which the round
-trip's test bounds by 1e-4 and which flags above 1e-3.
+trip's test bounds by 1e-4 and which flags above 1e-3. With `--usd`, `--points` makes a
+Point Cloud object rather than a geometry-nodes one: Blender's exporter writes the
+object's own points, and a modifier's as an empty mesh.
 """
 
 from __future__ import annotations
@@ -220,10 +222,15 @@ def add_strands(
 
 
 def add_point_cloud(
-    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+    rng: random.Random,
+    scene: bpy.types.Scene,
+    centre: np.ndarray,
+    half: np.ndarray,
+    as_object: bool = False,
 ) -> int:
     """A point cloud of 20 to 300 black points over and in the fog box (a geometry-nodes
-    Mesh to Points), of radii from 2 cm up to 5 to 50 cm; returns how many."""
+    Mesh to Points, or a Point Cloud object's own data where `as_object`), of radii from
+    2 cm up to 5 to 50 cm; returns how many."""
     count = rng.randint(20, 300)
     spread = np.array([1.2, 1.2, 0.8])
     lift = np.array([0.0, 0.0, 0.5])
@@ -234,7 +241,8 @@ def add_point_cloud(
     largest = rng.uniform(0.05, 0.5)
     radii = [rng.uniform(0.02, largest) for _ in range(count)]
     black = blender_scenes.black_material(0.0)
-    blender_scenes.add_points(scene, "points", centres, radii, black)
+    add = blender_scenes.add_point_cloud if as_object else blender_scenes.add_points
+    add(scene, "points", centres, radii, black)
     return count
 
 
@@ -250,6 +258,7 @@ def build_case(
     closures: bool = False,
     disc: bool = False,
     grouping: random.Random | None = None,
+    point_objects: bool = False,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary.
     With `grouping`, a generator of its own, its materials are rebuilt inside node groups
@@ -294,7 +303,7 @@ def build_case(
     if hair:
         labels.append(f"{add_strands(rng, scene, centre, half)} strands")
     if points:
-        labels.append(f"{add_point_cloud(rng, scene, centre, half)} points")
+        labels.append(f"{add_point_cloud(rng, scene, centre, half, point_objects)} points")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -542,6 +551,9 @@ def main() -> int:
             args.closures,
             args.disc,
             random.Random(f"{args.seed} {case} grouping") if args.grouped else None,
+            # Blender's USD exporter writes a Point Cloud object's own points, not a
+            # modifier's.
+            point_objects=args.usd,
         )
         if args.anamorphic:
             aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)

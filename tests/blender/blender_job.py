@@ -812,8 +812,14 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
     options, and again Y up in centimetres); the still also through a render region, in
     its frame, which the export carries as the render settings' data window. Animated:
     through 3:2 anamorphic pixels, camera, lens, sun and closing radius keyed over frames
-    1-3, and the fog box left out of the export."""
+    1-3, and the fog box left out of the export. Orthographic: the still's camera turned
+    orthographic (16 units across its vertical fit, its shift kept), through 4:5 pixels,
+    without a region."""
     scene = round_trip_scene(spec)
+    if spec.get("orthographic"):
+        scene.camera.data.type = "ORTHO"
+        scene.camera.data.ortho_scale = 16.0
+        scene.render.pixel_aspect_y = 1.25
     frames = [scene.frame_current]
     if spec["animated"]:
         scene.render.pixel_aspect_x = 1.5
@@ -851,10 +857,12 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
         path = out / f"blender.{frame:04d}.exr"
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
     scene.frame_set(frames[0])
-    if not spec["animated"]:
+    if not spec["animated"] and not spec.get("orthographic"):
         render = scene.render
         render.use_border, render.use_crop_to_border = True, False
-        render.border_min_x, render.border_max_x = 0.25, 0.75
+        # 24.96 to 74.88 of 96 columns: Blender renders columns 24 to 73 (it truncates),
+        # where the centres inside those fractions are 25 to 74.
+        render.border_min_x, render.border_max_x = 0.26, 0.78
         render.border_min_y, render.border_max_y = 0.1, 0.6
         path = out / f"blender_region.{frames[0]:04d}.exr"
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}

@@ -94,6 +94,15 @@ def animated(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) ->
     return out
 
 
+@pytest.fixture(scope="module")
+def orthographic(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("round_trip_orthographic")
+    blender_scenes.run_job(
+        out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=False, orthographic=True
+    )
+    return out
+
+
 def test_layers_match_the_addons(still: Path) -> None:
     """Blender's default export options (Z up, metres, polygons as they are), rendered at
     the stage's own time, which the hook makes the Blender frame's."""
@@ -105,11 +114,12 @@ def test_layers_match_the_addons(still: Path) -> None:
     _render(still / "shot.usda", str(still / "usd.exr"))
     _assert_close(_errors(still / "blender_region.0001.exr", still / "usd.exr"), "Z up, metres:")
     # The exported render region is the data window: layers there, nothing around it
-    # (Blender truncates the border, 24 to 72 of 96 and 22 to 49 of 54 from the top; USD
-    # takes the pixels whose centres it holds, the same here).
+    # (Blender truncates the border, columns 24 to 73 of 96 and rows 22 to 48 of 54 from
+    # the top; USD takes the pixels whose centres the window holds, which the hook makes
+    # the same pixels).
     region = crepuscular.read_exr(still / "usd.exr")["volume.A"]
     inside = np.zeros_like(region, dtype=bool)
-    inside[22:49, 24:72] = True
+    inside[22:49, 24:74] = True
     assert not region[~inside].any()
     assert region[inside].mean() > 0.2
     # The whole frame's opacity there (a depth edge's samples may round apart).
@@ -133,6 +143,33 @@ def test_y_up_centimetre_export_renders_the_same(still: Path) -> None:
     _render(still / "shot_y_up_cm.usda", str(still / "usd_y_up_cm.exr"))
     errors = _errors(still / "blender_region.0001.exr", still / "usd_y_up_cm.exr")
     _assert_close(errors, "Y up, centimetres:")
+
+
+def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
+    """Blender's exporter writes an orthographic camera as its transform alone; the hook
+    authors its Camera prim (16 units across the vertical fit through 4:5 pixels, so
+    16 x 96 / 54 x 0.8 across, shift and clip in tenths of a stage unit and in stage
+    units), and the USD step renders the add-on's layers, in metres and in centimetres."""
+    for name, units in (("shot.usda", 1.0), ("shot_y_up_cm.usda", 100.0)):
+        stage = Usd.Stage.Open(str(orthographic / name))
+        camera = UsdGeom.Camera(stage.GetPrimAtPath("/root/Camera/Camera"))
+        assert camera.GetProjectionAttr().Get() == UsdGeom.Tokens.orthographic
+        settings = UsdRender.Settings.GetStageRenderSettings(stage)
+        assert settings.GetCameraRel().GetTargets() == [camera.GetPath()]
+        across = 16.0 * (WIDTH / HEIGHT) / 1.25
+        assert camera.GetHorizontalApertureAttr().Get() == pytest.approx(10 * units * across)
+        assert camera.GetVerticalApertureAttr().Get() == pytest.approx(10 * units * 16.0)
+        offsets = (
+            camera.GetHorizontalApertureOffsetAttr().Get(),
+            camera.GetVerticalApertureOffsetAttr().Get(),
+        )
+        assert offsets == pytest.approx((10 * units * 16 * 0.06, -10 * units * 16 * 0.04))
+        assert tuple(camera.GetClippingRangeAttr().Get()) == pytest.approx(
+            (0.3 * units, 90.0 * units)
+        )
+        out = str(orthographic / name.replace(".usda", ".exr"))
+        _render(orthographic / name, out)
+        _assert_close(_errors(orthographic / "blender.0001.exr", Path(out)), name)
 
 
 def test_animated_export_renders_every_frame(animated: Path) -> None:
@@ -194,9 +231,12 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
     assert cube.IsA(UsdGeom.Cube)
     assert UsdGeom.Imageable(cube).ComputePurpose() == UsdGeom.Tokens.guide
     # The render's image: the scene camera, its size and pixel aspect, and (on the still,
-    # exported with one) its render region, from the bottom-left corner as Blender's.
+    # exported with one) its render region, from the bottom-left corner as Blender's: the
+    # edges of the pixels Blender renders (columns 24 to 73, rows 5 to 31 from the
+    # bottom), not the border's fractions (0.26 to 0.78 across, whose pixel centres are
+    # columns 25 to 74).
     for out, aspect, window in (
-        (still, 1.0, Gf.Vec4f(0.25, 0.1, 0.75, 0.6)),
+        (still, 1.0, Gf.Vec4f(24 / WIDTH, 5 / HEIGHT, 74 / WIDTH, 32 / HEIGHT)),
         (animated, 1.5, None),
     ):
         stage = Usd.Stage.Open(str(out / "shot.usda"))
