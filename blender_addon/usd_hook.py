@@ -28,6 +28,10 @@ each sun with shafts and authors what the add-on would render with, so that
   and render region (`dataWindowNDC`), which Blender's exporter does not write: the USD
   step, and farm renderers that read it, render the image F12 renders. A stage that
   already names its render settings keeps them;
+- a cut-out material whose cut Blender's exporter drops (a Mix Shader towards a
+  Transparent BSDF, a Transparent BSDF) gets its opacity: the add-on's mask as an EXR
+  beside the stage, read by a UsdUVTexture (wrap, Mapping nodes as a UsdTransform2d) and
+  cut at the add-on's threshold, so that every USD renderer cuts what Cycles cuts;
 - an orthographic scene camera, which Blender 5.0's exporter writes as its transform alone,
   gets its `Camera` prim: orthographic, its view's width and height as apertures (tenths
   of a stage unit), its lens shift as aperture offsets and its clip range, so that the
@@ -676,6 +680,164 @@ def _hidden_from_shadow_rays(obj: bpy.types.Object) -> bool:
     return True
 
 
+#: UsdUVTexture's wrap for each of the core's mask wraps.
+USD_WRAPS = {"repeat": "repeat", "extend": "clamp", "mirror": "mirror", "clip": "black"}
+#: Folder, beside the stage, of the cut-out masks the hook writes.
+MASK_FOLDER = "textures"
+
+
+def _uv_transform_2d(transform: tuple[float, ...]) -> tuple[float, float, float, float, float]:
+    """An affine map of (u, v), (a, b, c, d, e, f) reading (a·u + b·v + c, d·u + e·v + f), as
+    UsdTransform2d's scale (x, y), rotation (degrees) and translation, which it applies in
+    that order; USDExportError where it shears, which UsdTransform2d cannot."""
+    a, b, c, d, e, f = transform
+    # Columns (a, d) and (b, e): a rotation times a scale keeps them at right angles.
+    first, second = math.hypot(a, d), math.hypot(b, e)
+    if first == 0.0 or second == 0.0 or abs(a * b + d * e) > 1e-6 * first * second:
+        raise USDExportError("its Mapping nodes shear or flatten the UV map")
+    angle = math.atan2(d, a)
+    # The second column is the first's quarter turn, scaled: negative where mirrored.
+    sign = 1.0 if (-math.sin(angle) * b + math.cos(angle) * e) >= 0 else -1.0
+    return first, sign * second, math.degrees(angle), c, f
+
+
+def _exported_materials(stage: Any) -> dict[str, Any]:
+    """The exporter's Material prims by the Blender material's name."""
+    from pxr import UsdShade
+
+    found: dict[str, Any] = {}
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdShade.Material):
+            continue
+        names = [
+            prim.GetAttribute(name).Get()
+            for name in prim.GetAuthoredPropertyNames()
+            if name.endswith("blender:data_name")
+        ]
+        found.setdefault(str(names[0]) if names and names[0] else prim.GetName(), prim)
+    return found
+
+
+def _uv_primvar(stage: Any, material_prim: Any, uv_map: str) -> str:
+    """The primvar the exported meshes bound to `material_prim` hold UV map `uv_map` in
+    ("" for the mesh's default map): the exporter names the default map `st`, others by
+    their own names."""
+    from pxr import UsdGeom, UsdShade
+
+    if not uv_map:
+        return "st"
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        bound, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+        if bound and bound.GetPrim() == material_prim:
+            primvars = UsdGeom.PrimvarsAPI(prim)
+            if primvars.HasPrimvar(uv_map):
+                return uv_map
+            if primvars.HasPrimvar("st"):
+                return "st"
+    return uv_map
+
+
+def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
+    """Opacity for the cut-out materials whose cut Blender's exporter did not write (a Mix
+    Shader towards a Transparent BSDF, a Transparent BSDF, or an Alpha the exporter left
+    constant): a UsdPreviewSurface whose opacity is the add-on's mask, written as an EXR
+    beside the stage and read by a UsdUVTexture (its wrap, the Mapping nodes as a
+    UsdTransform2d), cut at the add-on's threshold; or a constant opacity. Materials the
+    exporter already cuts are left as they are. Returns the materials authored; those that
+    UsdPreviewSurface cannot carry (a cut seen by only the sun's or the camera's rays, a
+    sheared mapping) are named in the log and stay as exported."""
+    from pxr import Gf, Sdf, UsdShade
+
+    folder = Path(stage.GetRootLayer().realPath).parent if stage.GetRootLayer().realPath else None
+    authored = []
+    materials = _exported_materials(stage)
+    used = {
+        slot.material
+        for obj in depsgraph.scene.objects
+        for slot in obj.material_slots
+        if slot.material is not None
+    }
+    for material in sorted(used, key=lambda m: m.name):
+        prim = materials.get(material.name)
+        if prim is None:
+            continue
+        source, _ = cutouts.material_mask(material)
+        if source is None:
+            continue
+        usd_material = UsdShade.Material(prim)
+        surface = usd_material.ComputeSurfaceSource()
+        shader = surface[0] if isinstance(surface, tuple) else surface
+        if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
+            continue
+        opacity = shader.CreateInput("opacity", Sdf.ValueTypeNames.Float)
+        if opacity.HasConnectedSource():
+            continue
+        where = f"USD export: material '{material.name}'"
+        if source.rays != export.BOTH:
+            render.log(f"{where}: its cut is seen by some rays only; left opaque on the stage")
+            continue
+        threshold = shader.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float)
+        if source.constant is not None:
+            opacity.Set(float(source.constant))
+            threshold.Set(float(cutouts.THRESHOLD))
+            authored.append(material.name)
+            continue
+        if folder is None:
+            render.log(f"{where}: the stage has no file to write its mask beside; left opaque")
+            continue
+        if not source.threshold > 0.0:
+            # UsdPreviewSurface's threshold of 0 turns the cut off.
+            render.log(f"{where}: it cuts at an alpha of 0; left opaque on the stage")
+            continue
+        try:
+            transform = (
+                None if source.uv_transform is None else _uv_transform_2d(source.uv_transform)
+            )
+        except USDExportError as error:
+            render.log(f"{where}: {error}; left opaque on the stage")
+            continue
+        alpha = np.flipud(cutouts.mask_alpha(source))  # files store rows from the top
+        name = f"crepuscular_mask_{prim.GetName()}.exr"
+        (folder / MASK_FOLDER).mkdir(parents=True, exist_ok=True)
+        zeros = np.zeros_like(alpha)
+        planes = {"R": zeros, "G": zeros, "B": zeros, "A": np.ascontiguousarray(alpha)}
+        crepuscular.write_exr_channels(folder / MASK_FOLDER / name, planes)
+        path = prim.GetPath()
+        reader = UsdShade.Shader.Define(stage, path.AppendChild("crepuscular_uv"))
+        reader.CreateIdAttr("UsdPrimvarReader_float2")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set(
+            _uv_primvar(stage, prim, source.uv_map)
+        )
+        coordinates = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+        if transform is not None:
+            mapping = UsdShade.Shader.Define(stage, path.AppendChild("crepuscular_mapping"))
+            mapping.CreateIdAttr("UsdTransform2d")
+            mapping.CreateInput("in", Sdf.ValueTypeNames.Float2).ConnectToSource(coordinates)
+            scale_x, scale_y, rotation, move_x, move_y = transform
+            mapping.CreateInput("scale", Sdf.ValueTypeNames.Float2).Set(Gf.Vec2f(scale_x, scale_y))
+            mapping.CreateInput("rotation", Sdf.ValueTypeNames.Float).Set(rotation)
+            mapping.CreateInput("translation", Sdf.ValueTypeNames.Float2).Set(
+                Gf.Vec2f(move_x, move_y)
+            )
+            coordinates = mapping.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+        texture = UsdShade.Shader.Define(stage, path.AppendChild("crepuscular_mask"))
+        texture.CreateIdAttr("UsdUVTexture")
+        texture.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(
+            Sdf.AssetPath(f"./{MASK_FOLDER}/{name}")
+        )
+        texture.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(coordinates)
+        wrap = USD_WRAPS[source.wrap]
+        texture.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(wrap)
+        texture.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(wrap)
+        texture.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+        opacity.ConnectToSource(texture.CreateOutput("a", Sdf.ValueTypeNames.Float))
+        threshold.Set(float(source.threshold))
+        authored.append(material.name)
+    return authored
+
+
 class CREPUSCULAR_USDHook(bpy.types.USDHook):
     """Applies CrepuscularLightAPI to sun lamps with shafts on USD export"""
 
@@ -698,6 +860,9 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
         paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
+            cut = author_cutouts(stage, depsgraph)
+            if cut:
+                render.log(f"USD export: cut-out opacity authored for {', '.join(cut)}")
             camera = author_orthographic_camera(stage, depsgraph, prims)
             if camera is not None:
                 render.log(f"USD export: the orthographic camera authored as {camera}")

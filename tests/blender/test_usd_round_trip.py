@@ -21,8 +21,11 @@ depth, the leaf card (a PNG's alpha, which the exporter writes as a UsdPreviewSu
 opacity) read as opaque 3 to 13 %, the hair strands (BasisCurves) left out 23 to 55 %,
 the point cloud (Points) left out 0.07 to 2.9 %, and the light's shadowLink collection
 (which the hook authors for the objects that do not block the sun: one hidden from shadow
-rays, one left out by the sun's shadow linking) left out 12 to 32 %. The fog is tinted,
-so its extinction travels per channel (`crepuscular:medium:channelExtinction`).
+rays, one left out by the sun's shadow linking) left out 12 to 32 %, and the veil card's
+cut (a Mix Shader towards a Transparent BSDF, which the exporter writes as an opaque
+surface and the hook as a mask) read as opaque 2.2 % in red through the orthographic view.
+The fog is tinted, so its extinction travels per channel
+(`crepuscular:medium:channelExtinction`).
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ bpy = pytest.importorskip("bpy")
 pxr = pytest.importorskip("pxr")
 
 import blender_scenes  # noqa: E402
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade  # noqa: E402
 
 from crepuscular_usd.attributes import ATTRIBUTES  # noqa: E402
 from crepuscular_usd.cli import main  # noqa: E402
@@ -167,6 +170,16 @@ def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
         assert tuple(camera.GetClippingRangeAttr().Get()) == pytest.approx(
             (0.3 * units, 90.0 * units)
         )
+        # The veil card's cut, which the exporter dropped: the hook's mask as its opacity.
+        surface = UsdShade.Shader(
+            stage.GetPrimAtPath("/root/_materials/Cutout_inverted/Principled_BSDF")
+        )
+        (source,) = surface.GetInput("opacity").GetConnectedSources()[0]
+        mask = UsdShade.Shader(source.source.GetPrim())
+        assert mask.GetIdAttr().Get() == "UsdUVTexture"
+        assert mask.GetInput("wrapS").Get() == "clamp"
+        assert surface.GetInput("opacityThreshold").Get() == pytest.approx(0.5)
+        assert (orthographic / mask.GetInput("file").Get().path).is_file()
         out = str(orthographic / name.replace(".usda", ".exr"))
         _render(orthographic / name, out)
         _assert_close(_errors(orthographic / "blender.0001.exr", Path(out)), name)
