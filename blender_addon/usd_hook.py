@@ -718,36 +718,74 @@ def _exported_materials(stage: Any) -> dict[str, Any]:
     return found
 
 
-def _uv_primvar(stage: Any, material_prim: Any, uv_map: str) -> str:
-    """The primvar the exported meshes bound to `material_prim` hold UV map `uv_map` in
-    ("" for the mesh's default map): the exporter names the default map `st`, others by
-    their own names."""
+def _bound_meshes(stage: Any, material_prim: Any) -> list[Any]:
+    """The exported Mesh prims bound to `material_prim`, whole or through a GeomSubset."""
     from pxr import UsdGeom, UsdShade
 
-    if not uv_map:
-        return "st"
+    meshes = []
     for prim in stage.Traverse():
-        if not prim.IsA(UsdGeom.Mesh):
+        if not (prim.IsA(UsdGeom.Mesh) or prim.IsA(UsdGeom.Subset)):
             continue
         bound, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
         if bound and bound.GetPrim() == material_prim:
-            primvars = UsdGeom.PrimvarsAPI(prim)
-            if primvars.HasPrimvar(uv_map):
-                return uv_map
-            if primvars.HasPrimvar("st"):
-                return "st"
+            mesh = prim if prim.IsA(UsdGeom.Mesh) else prim.GetParent()
+            if mesh not in meshes:
+                meshes.append(mesh)
+    return meshes
+
+
+def _uv_primvar(meshes: list[Any], uv_map: str) -> str:
+    """The primvar `meshes` hold UV map `uv_map` in ("" for the mesh's default map): the
+    exporter names the default map `st`, others by their own names."""
+    from pxr import UsdGeom
+
+    if not uv_map:
+        return "st"
+    for mesh in meshes:
+        primvars = UsdGeom.PrimvarsAPI(mesh)
+        if primvars.HasPrimvar(uv_map):
+            return uv_map
+        if primvars.HasPrimvar("st"):
+            return "st"
     return uv_map
+
+
+def _mapped_primvar(
+    meshes: list[Any], name: str, transform: tuple[float, ...], mapped_name: str
+) -> str | None:
+    """A primvar `mapped_name` on each of `meshes`: their primvar `name` through the affine
+    map `transform` ((a, b, c, d, e, f) reads (a·u + b·v + c, d·u + e·v + f)), exact for
+    any affine map since coordinates interpolate linearly; None where a mesh lacks `name`."""
+    from pxr import Sdf, UsdGeom, Vt
+
+    a, b, c, d, e, f = transform
+    for mesh in meshes:
+        primvars = UsdGeom.PrimvarsAPI(mesh)
+        source = primvars.GetPrimvar(name)
+        values = source.Get() if source else None
+        if values is None:
+            return None
+        uv = np.asarray(values, dtype=np.float64).reshape(-1, 2)
+        mapped = np.c_[a * uv[:, 0] + b * uv[:, 1] + c, d * uv[:, 0] + e * uv[:, 1] + f]
+        target = primvars.CreatePrimvar(
+            mapped_name, Sdf.ValueTypeNames.TexCoord2fArray, source.GetInterpolation()
+        )
+        target.Set(Vt.Vec2fArray.FromNumpy(mapped.astype(np.float32)))
+        if source.IsIndexed():
+            target.SetIndices(source.GetIndices())
+    return mapped_name
 
 
 def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
     """Opacity for the cut-out materials whose cut Blender's exporter did not write (a Mix
     Shader towards a Transparent BSDF, a Transparent BSDF, or an Alpha the exporter left
     constant): a UsdPreviewSurface whose opacity is the add-on's mask, written as an EXR
-    beside the stage and read by a UsdUVTexture (its wrap, the Mapping nodes as a
-    UsdTransform2d), cut at the add-on's threshold; or a constant opacity. Materials the
-    exporter already cuts are left as they are. Returns the materials authored; those that
-    UsdPreviewSurface cannot carry (a cut seen by only the sun's or the camera's rays, a
-    sheared mapping) are named in the log and stay as exported."""
+    beside the stage and read by a UsdUVTexture (its wrap; the Mapping nodes as a
+    UsdTransform2d, or, where they shear, as mapped coordinates on the meshes), cut at the
+    add-on's threshold; or a constant opacity. Materials the exporter already cuts are
+    left as they are. Returns the materials authored; those that UsdPreviewSurface cannot
+    carry (a cut seen by only the sun's or the camera's rays) are named in the log and
+    stay as exported."""
     from pxr import Gf, Sdf, UsdShade
 
     folder = Path(stage.GetRootLayer().realPath).parent if stage.GetRootLayer().realPath else None
@@ -766,22 +804,21 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
         source, _ = cutouts.material_mask(material)
         if source is None:
             continue
-        usd_material = UsdShade.Material(prim)
-        surface = usd_material.ComputeSurfaceSource()
+        surface = UsdShade.Material(prim).ComputeSurfaceSource()
         shader = surface[0] if isinstance(surface, tuple) else surface
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             continue
-        opacity = shader.CreateInput("opacity", Sdf.ValueTypeNames.Float)
-        if opacity.HasConnectedSource():
+        opacity = shader.GetInput("opacity")
+        if opacity and opacity.HasConnectedSource():
             continue
         where = f"USD export: material '{material.name}'"
         if source.rays != export.BOTH:
             render.log(f"{where}: its cut is seen by some rays only; left opaque on the stage")
             continue
-        threshold = shader.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float)
         if source.constant is not None:
-            opacity.Set(float(source.constant))
-            threshold.Set(float(cutouts.THRESHOLD))
+            shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(float(source.constant))
+            threshold = float(cutouts.THRESHOLD)
+            shader.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(threshold)
             authored.append(material.name)
             continue
         if folder is None:
@@ -791,14 +828,24 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
             # UsdPreviewSurface's threshold of 0 turns the cut off.
             render.log(f"{where}: it cuts at an alpha of 0; left opaque on the stage")
             continue
-        try:
-            transform = (
-                None if source.uv_transform is None else _uv_transform_2d(source.uv_transform)
-            )
-        except USDExportError as error:
-            render.log(f"{where}: {error}; left opaque on the stage")
-            continue
+        meshes = _bound_meshes(stage, prim)
+        varname = _uv_primvar(meshes, source.uv_map)
+        transform = None
+        if source.uv_transform is not None:
+            try:
+                transform = _uv_transform_2d(source.uv_transform)
+            except USDExportError:
+                mapped_name = f"crepuscular_st_{prim.GetName()}"
+                mapped = _mapped_primvar(meshes, varname, source.uv_transform, mapped_name)
+                if mapped is None:
+                    render.log(f"{where}: a mesh lacks UV map {varname}; left opaque")
+                    continue
+                varname = mapped
         alpha = np.flipud(cutouts.mask_alpha(source))  # files store rows from the top
+        if source.invert:
+            # The file holds the texture's own value and the reader inverts it, so that
+            # past a clipped image's edges (black) the surface stays opaque, as in Cycles.
+            alpha = 1.0 - alpha
         name = f"crepuscular_mask_{prim.GetName()}.exr"
         (folder / MASK_FOLDER).mkdir(parents=True, exist_ok=True)
         zeros = np.zeros_like(alpha)
@@ -807,9 +854,7 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
         path = prim.GetPath()
         reader = UsdShade.Shader.Define(stage, path.AppendChild("crepuscular_uv"))
         reader.CreateIdAttr("UsdPrimvarReader_float2")
-        reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set(
-            _uv_primvar(stage, prim, source.uv_map)
-        )
+        reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set(varname)
         coordinates = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
         if transform is not None:
             mapping = UsdShade.Shader.Define(stage, path.AppendChild("crepuscular_mapping"))
@@ -832,7 +877,12 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
         texture.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(wrap)
         texture.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(wrap)
         texture.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+        if source.invert:
+            texture.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(1, 1, 1, -1))
+            texture.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(0, 0, 0, 1))
+        opacity = shader.CreateInput("opacity", Sdf.ValueTypeNames.Float)
         opacity.ConnectToSource(texture.CreateOutput("a", Sdf.ValueTypeNames.Float))
+        threshold = shader.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float)
         threshold.Set(float(source.threshold))
         authored.append(material.name)
     return authored

@@ -748,18 +748,28 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
         material, texture, [("POINT", (0.1, -0.2, 0.0), (0.0, 0.0, 0.4), (1.3, 0.8, 1.0))]
     )
     blender_scenes.add_card(scene, "leaf_card", card, material, 2.0)
-    # A card cut by a Mix Shader towards a Transparent BSDF, whose cut Blender's exporter
-    # drops (it writes an opaque UsdPreviewSurface): the hook writes the mask beside the
-    # stage as the surface's opacity, held past its edges, mapped by a rotation and a
-    # mirroring scale.
-    card = [(5.5, -6, 6.9), (7.5, -6, 6.9), (7.5, 6, 6.9), (5.5, 6, 6.9)]
-    material = blender_scenes.cutout_material(blender_scenes.alpha_image("veil"), "inverted")
-    texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
-    texture.extension = "EXTEND"
-    blender_scenes.map_texture(
-        material, texture, [("POINT", (0.2, 0.1, 0.0), (0.0, 0.0, -0.5), (1.5, -0.7, 1.0))]
-    )
-    blender_scenes.add_card(scene, "veil_card", card, material, 3.0)
+    # Two cards cut by Mix Shaders with a Transparent BSDF, whose cuts Blender's exporter
+    # drops (it writes opaque UsdPreviewSurfaces): the hook writes each mask beside the
+    # stage as the surface's opacity. One is the transparency (inverted), held past its
+    # edges and mapped by a rotation and a mirroring scale (a UsdTransform2d); the other
+    # the alpha, clipped past its edges and mapped by a tilt out of the UV plane, which
+    # shears it (mapped coordinates on the mesh).
+    cards = {
+        "veil_card": ([(5.5, -6, 6.9), (7.5, -6, 6.9), (7.5, 0, 6.9), (5.5, 0, 6.9)], "inverted"),
+        "lattice_card": ([(5.5, 0, 6.9), (7.5, 0, 6.9), (7.5, 6, 6.9), (5.5, 6, 6.9)], "mix"),
+    }
+    mappings = {
+        "veil_card": ("EXTEND", (0.2, 0.1, 0.0), (0.0, 0.0, -0.5), (1.5, -0.7, 1.0)),
+        "lattice_card": ("CLIP", (0.1, -0.1, 0.0), (0.6, 0.4, 0.3), (1.2, 1.4, 1.0)),
+    }
+    for name, (corners, kind) in cards.items():
+        material = blender_scenes.cutout_material(blender_scenes.alpha_image(name), kind)
+        nodes = material.node_tree.nodes
+        texture = next(n for n in nodes if n.bl_idname == "ShaderNodeTexImage")
+        extension, location, rotation, scale = mappings[name]
+        texture.extension = extension
+        blender_scenes.map_texture(material, texture, [("POINT", location, rotation, scale)])
+        blender_scenes.add_card(scene, name, corners, material, 3.0)
     # A card over the fog hidden from shadow rays by Light Path, which Blender's exporter
     # cannot carry: the hook leaves it out of the light's shadowLink, as the add-on casts
     # none of it.

@@ -21,10 +21,10 @@ depth, the leaf card (a PNG's alpha, which the exporter writes as a UsdPreviewSu
 opacity) read as opaque 3 to 13 %, the hair strands (BasisCurves) left out 23 to 55 %,
 the point cloud (Points) left out 0.07 to 2.9 %, and the light's shadowLink collection
 (which the hook authors for the objects that do not block the sun: one hidden from shadow
-rays, one left out by the sun's shadow linking) left out 12 to 32 %, and the veil card's
-cut (a Mix Shader towards a Transparent BSDF, which the exporter writes as an opaque
-surface and the hook as a mask) read as opaque 2.2 % in red through the orthographic view.
-The fog is tinted, so its extinction travels per channel
+rays, one left out by the sun's shadow linking) left out 12 to 32 %, and the veil and
+lattice cards' cuts (Mix Shaders with a Transparent BSDF, which the exporter writes as
+opaque surfaces and the hook as masks) read as opaque 1.6 % and 2.1 % in red through the
+orthographic view. The fog is tinted, so its extinction travels per channel
 (`crepuscular:medium:channelExtinction`).
 """
 
@@ -170,16 +170,23 @@ def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
         assert tuple(camera.GetClippingRangeAttr().Get()) == pytest.approx(
             (0.3 * units, 90.0 * units)
         )
-        # The veil card's cut, which the exporter dropped: the hook's mask as its opacity.
-        surface = UsdShade.Shader(
-            stage.GetPrimAtPath("/root/_materials/Cutout_inverted/Principled_BSDF")
-        )
-        (source,) = surface.GetInput("opacity").GetConnectedSources()[0]
-        mask = UsdShade.Shader(source.source.GetPrim())
-        assert mask.GetIdAttr().Get() == "UsdUVTexture"
-        assert mask.GetInput("wrapS").Get() == "clamp"
-        assert surface.GetInput("opacityThreshold").Get() == pytest.approx(0.5)
-        assert (orthographic / mask.GetInput("file").Get().path).is_file()
+        # The cards' cuts, which the exporter dropped: the hook's masks as their opacity,
+        # read through a UsdTransform2d, or through coordinates mapped on the mesh.
+        for material, wrap, varname in (
+            ("Cutout_inverted", "clamp", "st"),
+            ("Cutout_mix", "black", "crepuscular_st_Cutout_mix"),
+        ):
+            surface = UsdShade.Shader(
+                stage.GetPrimAtPath(f"/root/_materials/{material}/Principled_BSDF")
+            )
+            (source,) = surface.GetInput("opacity").GetConnectedSources()[0]
+            mask = UsdShade.Shader(source.source.GetPrim())
+            assert mask.GetIdAttr().Get() == "UsdUVTexture"
+            assert mask.GetInput("wrapS").Get() == wrap
+            assert surface.GetInput("opacityThreshold").Get() == pytest.approx(0.5)
+            assert (orthographic / mask.GetInput("file").Get().path).is_file()
+            reader = stage.GetPrimAtPath(f"/root/_materials/{material}/crepuscular_uv")
+            assert reader.GetAttribute("inputs:varname").Get() == varname
         out = str(orthographic / name.replace(".usda", ".exr"))
         _render(orthographic / name, out)
         _assert_close(_errors(orthographic / "blender.0001.exr", Path(out)), name)
