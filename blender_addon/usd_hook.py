@@ -32,6 +32,8 @@ each sun with shafts and authors what the add-on would render with, so that
   Transparent BSDF, a Transparent BSDF) gets its opacity: the add-on's mask as an EXR
   beside the stage, read by a UsdUVTexture (wrap, Mapping nodes as a UsdTransform2d) and
   cut at the add-on's threshold, so that every USD renderer cuts what Cycles cuts;
+- a point cloud that an object's modifiers make, which the exporter writes as an empty
+  mesh, gets a `Points` prim under the object's transform;
 - an orthographic scene camera, which Blender 5.0's exporter writes as its transform alone,
   gets its `Camera` prim: orthographic, its view's width and height as apertures (tenths
   of a stage unit), its lens shift as aperture offsets and its clip range, so that the
@@ -804,8 +806,20 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
         source, _ = cutouts.material_mask(material)
         if source is None:
             continue
-        surface = UsdShade.Material(prim).ComputeSurfaceSource()
+        usd_material = UsdShade.Material(prim)
+        surface = usd_material.ComputeSurfaceSource()
         shader = surface[0] if isinstance(surface, tuple) else surface
+        if not shader and not usd_material.GetSurfaceOutput().HasConnectedSource():
+            # The exporter writes a material it cannot translate (one built of node
+            # groups) with no surface, which renderers draw with their fallback: this one,
+            # UsdPreviewSurface's defaults, then carries the cut.
+            shader = UsdShade.Shader.Define(
+                stage, prim.GetPath().AppendChild("crepuscular_surface")
+            )
+            shader.CreateIdAttr("UsdPreviewSurface")
+            usd_material.CreateSurfaceOutput().ConnectToSource(
+                shader.CreateOutput("surface", Sdf.ValueTypeNames.Token)
+            )
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             continue
         opacity = shader.GetInput("opacity")
@@ -888,6 +902,101 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
     return authored
 
 
+#: Name of the Points prim the hook adds under an object whose modifiers make points.
+POINTS_PRIM = "crepuscularPoints"
+
+
+def _modifier_points(depsgraph: bpy.types.Depsgraph) -> dict[str, tuple[Any, Any]]:
+    """Per object (by name) whose own evaluated geometry holds a point cloud that its
+    modifiers made (geometry nodes' Mesh to Points, Distribute Points), that point cloud's
+    positions and radii in the object's space."""
+    found: dict[str, tuple[Any, Any]] = {}
+    for instance in depsgraph.object_instances:
+        obj, parent = instance.object, instance.parent
+        if obj.type != "POINTCLOUD" or not instance.is_instance or parent is None:
+            continue
+        if parent.original.type == "POINTCLOUD":
+            continue
+        # The object's own geometry, not a copy that an instancer placed elsewhere.
+        if not np.allclose(np.array(instance.matrix_world), np.array(parent.matrix_world)):
+            continue
+        data = obj.data
+        count = len(data.points)
+        if count == 0:
+            continue
+        positions = np.empty(count * 3, dtype=np.float32)
+        data.attributes["position"].data.foreach_get("vector", positions)
+        radius = data.attributes.get("radius")
+        radii = np.full(count, export.DEFAULT_POINT_RADIUS, dtype=np.float32)
+        if radius is not None:
+            radius.data.foreach_get("value", radii)
+        found[parent.original.name] = (positions.reshape(-1, 3), radii)
+    return found
+
+
+def author_modifier_points(
+    stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
+) -> list[str]:
+    """A `Points` prim (positions, widths of twice the radii) under the exported transform
+    of every object whose modifiers make a point cloud, which Blender 5.0's exporter writes
+    as an empty mesh: so that the stage holds the points Cycles renders (the add-on draws
+    them as spheres, and so does the USD step from Points). Time-sampled over an animated
+    export. Returns the prims' paths."""
+    from pxr import Usd, UsdGeom, Vt
+
+    scene = depsgraph.scene
+    frames = _frames(stage)
+    samples: dict[str, _Samples] = {}
+    original = scene.frame_current
+    try:
+        for frame in frames or [None]:
+            if frame is not None:
+                scene.frame_current = frame
+                depsgraph.update()
+            time = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
+            for name, (positions, radii) in _modifier_points(depsgraph).items():
+                record = samples.setdefault(name, _Samples())
+                record.add("points", time, positions)
+                record.add("widths", time, 2.0 * radii)
+    finally:
+        if frames is not None:
+            scene.frame_current = original
+            depsgraph.update()
+    authored = []
+    for name, record in samples.items():
+        obj = scene.objects.get(name)
+        exported = [p for p in prims.of(obj) if p.IsA(UsdGeom.Xformable)] if obj else []
+        if not exported:
+            continue
+        points = UsdGeom.Points.Define(stage, exported[0].GetPath().AppendChild(POINTS_PRIM))
+        if not points:
+            raise USDExportError(f"could not define the points of object '{name}'")
+        widths = points.CreateWidthsAttr()
+        if not points.SetWidthsInterpolation(UsdGeom.Tokens.vertex):
+            raise USDExportError(f"could not author {points.GetPath()}'s widths")
+        # Values are arrays: one sample a frame (their count may change), or one default.
+        for attribute, key, kind in (
+            (points.CreatePointsAttr(), "points", Vt.Vec3fArray),
+            (widths, "widths", Vt.FloatArray),
+        ):
+            values = record.values[key]
+            first_value = values[0][1]
+            if all(np.array_equal(value, first_value) for _, value in values):
+                attribute.Set(kind.FromNumpy(first_value))
+            else:
+                for time, value in values:
+                    attribute.Set(kind.FromNumpy(value), time)
+        first = record.values
+        extent = UsdGeom.Points.ComputeExtent(
+            Vt.Vec3fArray.FromNumpy(first["points"][0][1]),
+            Vt.FloatArray.FromNumpy(first["widths"][0][1]),
+        )
+        if extent is not None:
+            points.CreateExtentAttr(extent)
+        authored.append(str(points.GetPath()))
+    return authored
+
+
 class CREPUSCULAR_USDHook(bpy.types.USDHook):
     """Applies CrepuscularLightAPI to sun lamps with shafts on USD export"""
 
@@ -910,6 +1019,9 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
         paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
+            points = author_modifier_points(stage, depsgraph, prims)
+            if points:
+                render.log(f"USD export: point clouds authored as {', '.join(points)}")
             cut = author_cutouts(stage, depsgraph)
             if cut:
                 render.log(f"USD export: cut-out opacity authored for {', '.join(cut)}")
