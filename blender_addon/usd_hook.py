@@ -720,19 +720,21 @@ def _exported_materials(stage: Any) -> dict[str, Any]:
     return found
 
 
-def _bound_meshes(stage: Any, material_prim: Any) -> list[Any]:
-    """The exported Mesh prims bound to `material_prim`, whole or through a GeomSubset."""
+def _bound_meshes(stage: Any) -> dict[Any, list[Any]]:
+    """Per bound material's path, the Mesh prims bound to it, whole or through a
+    GeomSubset: one pass over the stage for every material."""
     from pxr import UsdGeom, UsdShade
 
-    meshes = []
+    meshes: dict[Any, list[Any]] = {}
     for prim in stage.Traverse():
         if not (prim.IsA(UsdGeom.Mesh) or prim.IsA(UsdGeom.Subset)):
             continue
         bound, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
-        if bound and bound.GetPrim() == material_prim:
+        if bound:
             mesh = prim if prim.IsA(UsdGeom.Mesh) else prim.GetParent()
-            if mesh not in meshes:
-                meshes.append(mesh)
+            listed = meshes.setdefault(bound.GetPath(), [])
+            if mesh not in listed:
+                listed.append(mesh)
     return meshes
 
 
@@ -793,6 +795,7 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
     folder = Path(stage.GetRootLayer().realPath).parent if stage.GetRootLayer().realPath else None
     authored = []
     materials = _exported_materials(stage)
+    bindings: dict[Any, list[Any]] | None = None
     used = {
         slot.material
         for obj in depsgraph.scene.objects
@@ -842,7 +845,9 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
             # UsdPreviewSurface's threshold of 0 turns the cut off.
             render.log(f"{where}: it cuts at an alpha of 0; left opaque on the stage")
             continue
-        meshes = _bound_meshes(stage, prim)
+        if bindings is None:
+            bindings = _bound_meshes(stage)
+        meshes = bindings.get(prim.GetPath(), [])
         varname = _uv_primvar(meshes, source.uv_map)
         transform = None
         if source.uv_transform is not None:
