@@ -45,11 +45,12 @@ reports them and the export operator fails.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -417,13 +418,41 @@ def _frames(stage: Any) -> list[int] | None:
     return list(range(math.floor(start), math.ceil(end) + 1))
 
 
+@contextlib.contextmanager
+def _stepping_frames(stage: Any, depsgraph: bpy.types.Depsgraph) -> Iterator[Iterator[Any]]:
+    """The export's frames to step through, each a time code (the default time for a still
+    export, whose scene stays at its frame): the scene is set to each frame in turn, and
+    back to its own frame afterwards, however the steps end."""
+    from pxr import Usd
+
+    scene = depsgraph.scene
+    frames = _frames(stage)
+    original = scene.frame_current
+
+    def steps() -> Iterator[Any]:
+        for frame in frames or [None]:
+            if frame is None:
+                yield Usd.TimeCode.Default()
+                continue
+            scene.frame_current = frame
+            depsgraph.update()
+            yield Usd.TimeCode(frame)
+
+    try:
+        yield steps()
+    finally:
+        if frames is not None:
+            scene.frame_current = original
+            depsgraph.update()
+
+
 def author_shaft_settings(
     stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
 ) -> list[str]:
     """Applies CrepuscularLightAPI to the DistantLight of every exported sun with shafts
     (found among the exporter's `prims`) and authors its settings; returns the light prim
     paths. Suns that were not exported are named in the log."""
-    from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux
+    from pxr import Sdf, Tf, UsdGeom, UsdLux
 
     scene = depsgraph.scene
     settings = scene.crepuscular
@@ -440,15 +469,9 @@ def author_shaft_settings(
         return []
     default = stage.GetDefaultPrim()
     parent = default if default else stage.GetPseudoRoot()
-    frames = _frames(stage)
-    original = scene.frame_current
-    try:
-        for frame in frames or [None]:
-            if frame is not None:
-                scene.frame_current = frame
-                depsgraph.update()
-            time = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
-            stage_time = stage.GetStartTimeCode() if frame is None else float(frame)
+    with _stepping_frames(stage, depsgraph) as times:
+        for time in times:
+            stage_time = stage.GetStartTimeCode() if time.IsDefault() else time.GetValue()
             for record in records:
                 for light in record.lights:
                     values = light_values(scene, depsgraph, record.sun, light, time, stage_time)
@@ -460,10 +483,6 @@ def author_shaft_settings(
                     )
                     box = medium_box(scene, depsgraph, parent, to_stage, time)
                     record.box.add("transform", time, box)
-    finally:
-        if frames is not None:
-            scene.frame_current = original
-            depsgraph.update()
 
     authored = []
     holes = [
@@ -535,7 +554,7 @@ def author_orthographic_camera(
     """The scene camera's `Camera` prim where it is orthographic and the exporter wrote
     its transform alone (see the module's doc), time-sampled where the view changes over
     an animated export; returns its path, None where there is nothing to author."""
-    from pxr import Gf, Tf, Usd, UsdGeom
+    from pxr import Gf, Tf, UsdGeom
 
     scene = depsgraph.scene
     camera = scene.camera
@@ -553,14 +572,8 @@ def author_orthographic_camera(
     if not prim:
         raise USDExportError(f"could not define the Camera prim of camera '{camera.name}'")
     samples = _Samples()
-    frames = _frames(stage)
-    original = scene.frame_current
-    try:
-        for frame in frames or [None]:
-            if frame is not None:
-                scene.frame_current = frame
-                depsgraph.update()
-            time = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
+    with _stepping_frames(stage, depsgraph) as times:
+        for time in times:
             evaluated = camera.evaluated_get(depsgraph)
             blender = np.array(evaluated.matrix_world, dtype=np.float64)
             if abs(np.linalg.det(blender[:3, :3])) < 1e-12:
@@ -577,10 +590,6 @@ def author_orthographic_camera(
             samples.add("horizontalApertureOffset", time, shift_x * tenths)
             samples.add("verticalApertureOffset", time, shift_y * tenths)
             samples.add("clippingRange", time, (data.clip_start * units, data.clip_end * units))
-    finally:
-        if frames is not None:
-            scene.frame_current = original
-            depsgraph.update()
     if not prim.CreateProjectionAttr().Set(UsdGeom.Tokens.orthographic):
         raise USDExportError(f"could not author {prim.GetPath()}.projection")
     attributes = {
@@ -947,26 +956,16 @@ def author_modifier_points(
     as an empty mesh: so that the stage holds the points Cycles renders (the add-on draws
     them as spheres, and so does the USD step from Points). Time-sampled over an animated
     export. Returns the prims' paths."""
-    from pxr import Usd, UsdGeom, Vt
+    from pxr import UsdGeom, Vt
 
     scene = depsgraph.scene
-    frames = _frames(stage)
     samples: dict[str, _Samples] = {}
-    original = scene.frame_current
-    try:
-        for frame in frames or [None]:
-            if frame is not None:
-                scene.frame_current = frame
-                depsgraph.update()
-            time = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
+    with _stepping_frames(stage, depsgraph) as times:
+        for time in times:
             for name, (positions, radii) in _modifier_points(depsgraph).items():
                 record = samples.setdefault(name, _Samples())
                 record.add("points", time, positions)
                 record.add("widths", time, 2.0 * radii)
-    finally:
-        if frames is not None:
-            scene.frame_current = original
-            depsgraph.update()
     authored = []
     for name, record in samples.items():
         obj = scene.objects.get(name)
