@@ -442,7 +442,7 @@ def test_several_products_render_the_first_or_the_one_named(tmp_path: Path) -> N
     common = ("render", str(path), "--quiet", "--out", str(out / "x.exr"))
     status, err = run(*common, "--renderProduct", "/World/Camera")
     assert status == 1
-    assert "--renderProduct names /World/Camera, a Camera, not a RenderProduct" in err, err
+    assert "render product (from --renderProduct) /World/Camera is a Camera, not a " in err, err
     UsdRender.Product(stage.GetPrimAtPath("/Render/Products/c")).GetResolutionAttr().Set(
         Gf.Vec2i(0, 9)
     )
@@ -455,4 +455,4 @@ def test_several_products_render_the_first_or_the_one_named(tmp_path: Path) -> N
     assert stage.GetRootLayer().Save()
     status, err = run(*common)
     assert status == 1
-    assert "/Render/settings.products names /World/Sun, a DistantLight, not a RenderProduct" in err
+    assert "(from /Render/settings.products) /World/Sun is a DistantLight, not a Render" in err

@@ -101,18 +101,25 @@ def pixel_window(
     return {"x": left, "y": top, "width": right - left, "height": bottom - top}
 
 
+def _typed_prim(stage: Usd.Stage, path: Sdf.Path, schema: type, what: str) -> Usd.Prim:
+    """The prim at `path`, which must be a UsdRender `schema` (named `what` in messages)."""
+    prim = stage.GetPrimAtPath(path)
+    if not prim:
+        raise RenderSettingsError(f"{what} {path} does not exist on the stage")
+    if not prim.IsA(schema):
+        kind = prim.GetTypeName() or "typeless prim"
+        raise RenderSettingsError(f"{what} {path} is a {kind}, not a Render{schema.__name__}")
+    return prim
+
+
 def _find(stage: Usd.Stage, path: str | None) -> UsdRender.Settings | list[Sdf.Path]:
     """The prim, else the paths of the stage's RenderSettings prims, none of them chosen."""
     if path is not None:
         if not Sdf.Path.IsValidPathString(path) or not Sdf.Path(path).IsAbsolutePath():
             raise RenderSettingsError(f"render settings path {path!r} is not an absolute prim path")
-        prim = stage.GetPrimAtPath(path)
-        if not prim:
-            raise RenderSettingsError(f"render settings {path} does not exist on the stage")
-        if not prim.IsA(UsdRender.Settings):
-            kind = prim.GetTypeName() or "typeless prim"
-            raise RenderSettingsError(f"render settings {path} is a {kind}, not a RenderSettings")
-        return UsdRender.Settings(prim)
+        return UsdRender.Settings(
+            _typed_prim(stage, Sdf.Path(path), UsdRender.Settings, "render settings")
+        )
     named = stage.GetMetadata(UsdRender.Tokens.renderSettingsPrimPath)
     if named:
         settings = UsdRender.Settings.GetStageRenderSettings(stage)
@@ -156,13 +163,9 @@ def _image_values(base: UsdRender.SettingsBase, authored_only: bool) -> dict[str
 
 
 def _as_product(stage: Usd.Stage, path: Sdf.Path, named_by: str) -> UsdRender.Product:
-    prim = stage.GetPrimAtPath(path)
-    if not prim:
-        raise RenderSettingsError(f"{named_by} names {path}, which does not exist on the stage")
-    if not prim.IsA(UsdRender.Product):
-        kind = prim.GetTypeName() or "typeless prim"
-        raise RenderSettingsError(f"{named_by} names {path}, a {kind}, not a RenderProduct")
-    return UsdRender.Product(prim)
+    return UsdRender.Product(
+        _typed_prim(stage, path, UsdRender.Product, f"render product (from {named_by})")
+    )
 
 
 def _product(
