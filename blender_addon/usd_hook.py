@@ -1001,6 +1001,20 @@ def author_modifier_points(
     return authored
 
 
+def subdivision_cages(stage: Any) -> list[str]:
+    """The meshes the exporter wrote as Catmull-Clark cages (a Subdivision Surface
+    modifier last, under its default 'Best Match'), which the USD step casts as cages."""
+    from pxr import UsdGeom
+
+    return [
+        str(prim.GetPath())
+        for prim in stage.Traverse()
+        if prim.IsA(UsdGeom.Mesh)
+        and UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr().HasAuthoredValue()
+        and UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.catmullClark
+    ]
+
+
 class CREPUSCULAR_USDHook(bpy.types.USDHook):
     """Applies CrepuscularLightAPI to sun lamps with shafts on USD export"""
 
@@ -1034,6 +1048,14 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
                 render.log(f"USD export: the orthographic camera authored as {camera}")
                 # The render settings target the new prim.
                 prims = ExportedPrims(stage)
+            cages = subdivision_cages(stage)
+            if cages:
+                more = f" and {len(cages) - 1} more" if len(cages) > 1 else ""
+                render.log(
+                    f"USD export: {cages[0]}{more} exported as subdivision cages (Subdivision "
+                    "'Best Match'): crepuscular-usd casts the cages where F12 casts the "
+                    "subdivided surface; export with Subdivision 'Tessellate' to match"
+                )
             settings = author_render_settings(stage, depsgraph.scene, prims)
             if settings is not None:
                 render.log(f"USD export: the render's image authored as {settings}")

@@ -143,6 +143,35 @@ def test_usd_face_holes_and_orientation_are_read(tmp_path: Path) -> None:
     )
 
 
+def test_meshes_authored_as_subdivision_surfaces_cast_their_cages_and_say_so(
+    tmp_path: Path,
+) -> None:
+    """A mesh that authors catmullClark (as Blender's exporter writes one with a
+    Subdivision Surface modifier) casts its cage, as Storm draws it, and one note names
+    it with the export option that carries the subdivided surface; unauthored (USD's
+    fallback, which most stages leave) or "none", no note."""
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "s.usda"), scene)
+    occluder = UsdGeom.Mesh(stage.GetPrimAtPath("/World/occluder"))
+    time = Usd.TimeCode.Default()
+
+    def read() -> crepuscular_usd.geometry.SceneGeometry:
+        return StageReader(stage, "/World/Camera", "/World/Sun", width=64).read(time).geometry
+
+    plain = read()
+    assert not any("subdivisionScheme" in note for note in plain.notes)
+    occluder.CreateSubdivisionSchemeAttr().Set(UsdGeom.Tokens.none)
+    assert not any("subdivisionScheme" in note for note in read().notes)
+    occluder.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.catmullClark)
+    cage = read()
+    notes = [note for note in cage.notes if "subdivisionScheme" in note]
+    assert len(notes) == 1
+    assert "(/World/occluder) cast as their control cages" in notes[0]
+    assert "export with 'Tessellate'" in notes[0]
+    np.testing.assert_array_equal(cage.triangles, plain.triangles)
+    np.testing.assert_array_equal(cage.positions, plain.positions)
+
+
 # --- units and up axis ------------------------------------------------------------------
 
 

@@ -353,6 +353,24 @@ class _Purposes:
         return purpose
 
 
+#: Subdivision schemes whose surface is smoother than the mesh's own faces.
+SMOOTH_SCHEMES = ("catmullClark", "loop")
+
+
+def _cage_note(paths: set[Sdf.Path]) -> str:
+    """What casting subdivision meshes as their cages means, naming the first of them."""
+    first = min(paths)
+    more = f" and {len(paths) - 1} more" if len(paths) > 1 else ""
+    return (
+        f"meshes that author a smooth subdivisionScheme ({first}{more}) cast as their "
+        "control cages, as Storm draws them at its default complexity and Blender's USD "
+        "import reads them; renderers that subdivide (Karma, RenderMan) cast rounder shadows. "
+        "Blender's exporter writes a mesh with a Subdivision Surface modifier so (its "
+        "Subdivision option 'Best Match'); export with 'Tessellate' to carry the surface "
+        "Blender renders"
+    )
+
+
 class GeometryCollector:
     """Reads the renderable meshes of a stage at a time code.
 
@@ -377,6 +395,8 @@ class GeometryCollector:
         self._cache: dict[Sdf.Path, _LocalMesh] = {}
         self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
         self._masks = MaskTable()
+        #: Meshes that author a smooth subdivision scheme, which cast as their cages.
+        self._subdivided: set[Sdf.Path] = set()
         #: The sun and camera in the renderer's space, for the frame collecting.
         self._seen: _SunAndCamera | None = None
         #: Curves and points drawn for views, by their local mesh's identity and the sun and
@@ -413,6 +433,9 @@ class GeometryCollector:
                 self._cache[key] = local
             return local
         mesh = UsdGeom.Mesh(prim)
+        scheme = mesh.GetSubdivisionSchemeAttr()
+        if scheme.HasAuthoredValue() and scheme.Get() in SMOOTH_SCHEMES:
+            self._subdivided.add(prim.GetPath())
         attrs = [
             mesh.GetPointsAttr(),
             mesh.GetFaceVertexCountsAttr(),
@@ -658,6 +681,8 @@ class GeometryCollector:
         if geometry.triangle_masks is not None:
             geometry.masks = self._masks.masks()
         geometry.notes = list(self._masks.notes)
+        if self._subdivided:
+            geometry.notes.append(_cage_note(self._subdivided))
         return geometry
 
     @staticmethod
