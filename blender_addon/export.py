@@ -232,19 +232,31 @@ def pointcloud_arrays(
 def particle_hair_arrays(
     obj: bpy.types.Object, render: bool, seen: SunAndCamera | None = None
 ) -> MeshArrays:
+    """The legacy particle hair of an evaluated emitter (`particle_hair_strands`) as
+    Catmull-Rom strands, drawn for `seen` (see `curves_arrays`): the ribbons 2 triangles a
+    piece per view."""
+    strands = particle_hair_strands(obj, render)
+    if strands is None:
+        return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
+    return _strand_arrays(*strands, seen)
+
+
+def particle_hair_strands(
+    obj: bpy.types.Object, render: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The legacy particle hair of an evaluated emitter, in its object space, as Cycles
-    draws it: each hair system (rendered as paths) whose modifier shows in this kind of
-    render gives its children, or its parents where it has none, as Catmull-Rom strands
-    through `co_hair`'s keys (2^steps + 1 of them, the render or the viewport steps);
-    radii from the root to the tip radius, shaped by `shape` along the strand's length and
-    scaled by half the radius scale, with a closed tip at 0. Drawn for `seen` (see
-    `curves_arrays`). Each key is one Python call (0.5 µs; 100,000 strands of 9 keys read
-    in about 0.5 s), and the ribbons 2 triangles a piece per view."""
+    draws it, as points, points per strand and radii; None where it has none: each hair
+    system (rendered as paths) whose modifier shows in this kind of render gives its
+    children, or its parents where it has none, as Catmull-Rom strands through
+    `co_hair`'s keys (2^steps + 1 of them, the render or the viewport steps); radii from
+    the root to the tip radius, shaped by `shape` along the strand's length and scaled by
+    half the radius scale, with a closed tip at 0. Each key is one Python call (0.5 µs;
+    100,000 strands of 9 keys read in about 0.5 s)."""
     try:
         inverse = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64))
     except np.linalg.LinAlgError:
         # An emitter scaled to nothing flattens its hair with it, and Cycles draws none.
-        return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
+        return None
     points: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     radii: list[np.ndarray] = []
@@ -292,10 +304,8 @@ def particle_hair_arrays(
         counts.append(np.full(strands, keys))
         radii.append(radius.ravel())
     if not points:
-        return MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
-    return _strand_arrays(
-        np.concatenate(points), np.concatenate(counts), np.concatenate(radii), seen
-    )
+        return None
+    return np.concatenate(points), np.concatenate(counts), np.concatenate(radii)
 
 
 def _hair_shape(shape: float, root: float, tip: float, time: np.ndarray) -> np.ndarray:

@@ -33,7 +33,8 @@ each sun with shafts and authors what the add-on would render with, so that
   beside the stage, read by a UsdUVTexture (wrap, Mapping nodes as a UsdTransform2d) and
   cut at the add-on's threshold, so that every USD renderer cuts what Cycles cuts;
 - a point cloud that an object's modifiers make, which the exporter writes as an empty
-  mesh, gets a `Points` prim under the object's transform;
+  mesh, gets a `Points` prim under the object's transform, and legacy particle hair,
+  which it leaves out (or writes without widths), Catmull-Rom `BasisCurves`;
 - an orthographic scene camera, which Blender 5.0's exporter writes as its transform alone,
   gets its `Camera` prim: orthographic, its view's width and height as apertures (tenths
   of a stage unit), its lens shift as aperture offsets and its clip range, so that the
@@ -383,6 +384,20 @@ class _Samples:
             ok = attribute.Set(convert(first))
         else:
             ok = all(attribute.Set(convert(value), time) for time, value in samples)
+        if not ok:
+            raise USDExportError(f"could not author {attribute.GetPath()}")
+
+    def author_arrays(self, attribute: Any, name: str, kind: Any) -> None:
+        """`author` for numpy arrays, as `kind` (a Vt array type): one sample a frame (their
+        length may change from frame to frame), or one default where they never change."""
+        samples = self.values.get(name, [])
+        if not samples:
+            return
+        first = samples[0][1]
+        if all(np.array_equal(value, first) for _, value in samples):
+            ok = attribute.Set(kind.FromNumpy(first))
+        else:
+            ok = all(attribute.Set(kind.FromNumpy(value), time) for time, value in samples)
         if not ok:
             raise USDExportError(f"could not author {attribute.GetPath()}")
 
@@ -978,18 +993,8 @@ def author_modifier_points(
         widths = points.CreateWidthsAttr()
         if not points.SetWidthsInterpolation(UsdGeom.Tokens.vertex):
             raise USDExportError(f"could not author {points.GetPath()}'s widths")
-        # Values are arrays: one sample a frame (their count may change), or one default.
-        for attribute, key, kind in (
-            (points.CreatePointsAttr(), "points", Vt.Vec3fArray),
-            (widths, "widths", Vt.FloatArray),
-        ):
-            values = record.values[key]
-            first_value = values[0][1]
-            if all(np.array_equal(value, first_value) for _, value in values):
-                attribute.Set(kind.FromNumpy(first_value))
-            else:
-                for time, value in values:
-                    attribute.Set(kind.FromNumpy(value), time)
+        record.author_arrays(points.CreatePointsAttr(), "points", Vt.Vec3fArray)
+        record.author_arrays(widths, "widths", Vt.FloatArray)
         first = record.values
         extent = UsdGeom.Points.ComputeExtent(
             Vt.Vec3fArray.FromNumpy(first["points"][0][1]),
@@ -998,6 +1003,64 @@ def author_modifier_points(
         if extent is not None:
             points.CreateExtentAttr(extent)
         authored.append(str(points.GetPath()))
+    return authored
+
+
+#: Name of the BasisCurves prim the hook adds under an emitter of particle hair.
+HAIR_PRIM = "crepuscularHair"
+
+
+def author_particle_hair(
+    stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
+) -> list[str]:
+    """A `BasisCurves` prim of the legacy particle hair of each emitter, as Cycles draws
+    it (`export.particle_hair_strands`: cubic Catmull-Rom through its keys, widths twice
+    the radii), under the emitter's exported transform, time-sampled over an animated
+    export. Blender's exporter leaves particle hair out by default, and with its Hair
+    option writes linear curves without widths, which no renderer gives a thickness: those
+    are deactivated in favour of this one. Returns the prims' paths."""
+    from pxr import UsdGeom, Vt
+
+    scene = depsgraph.scene
+    emitters = [
+        obj
+        for obj in scene.objects
+        if obj.type in export.GEOMETRY_TYPES
+        and any(system.settings.type == "HAIR" for system in obj.particle_systems)
+        and not obj.hide_render
+    ]
+    samples: dict[str, _Samples] = {}
+    with _stepping_frames(stage, depsgraph) as times:
+        for time in times:
+            for obj in emitters:
+                strands = export.particle_hair_strands(obj.evaluated_get(depsgraph), True)
+                if strands is None:
+                    continue
+                points, counts, radii = strands
+                record = samples.setdefault(obj.name, _Samples())
+                record.add("points", time, points.astype(np.float32))
+                record.add("counts", time, counts.astype(np.int32))
+                record.add("widths", time, (2.0 * radii).astype(np.float32))
+    authored = []
+    for name, record in samples.items():
+        exported = [p for p in prims.of(scene.objects[name]) if p.IsA(UsdGeom.Xformable)]
+        if not exported:
+            continue
+        for child in exported[0].GetChildren():
+            if child.IsA(UsdGeom.BasisCurves) and child.GetName() != HAIR_PRIM:
+                child.SetActive(False)
+        curves = UsdGeom.BasisCurves.Define(stage, exported[0].GetPath().AppendChild(HAIR_PRIM))
+        if not curves:
+            raise USDExportError(f"could not define the particle hair of object '{name}'")
+        curves.CreateTypeAttr(UsdGeom.Tokens.cubic)
+        curves.CreateBasisAttr(UsdGeom.Tokens.catmullRom)
+        curves.CreateWrapAttr(UsdGeom.Tokens.pinned)
+        widths = curves.CreateWidthsAttr()
+        curves.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+        record.author_arrays(curves.CreatePointsAttr(), "points", Vt.Vec3fArray)
+        record.author_arrays(curves.CreateCurveVertexCountsAttr(), "counts", Vt.IntArray)
+        record.author_arrays(widths, "widths", Vt.FloatArray)
+        authored.append(str(curves.GetPath()))
     return authored
 
 
@@ -1037,6 +1100,9 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
         paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
+            hair = author_particle_hair(stage, depsgraph, prims)
+            if hair:
+                render.log(f"USD export: particle hair authored as {', '.join(hair)}")
             points = author_modifier_points(stage, depsgraph, prims)
             if points:
                 render.log(f"USD export: point clouds authored as {', '.join(points)}")

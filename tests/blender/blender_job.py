@@ -786,6 +786,12 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     rng = np.random.default_rng(5)
     motes = np.c_[rng.uniform(-6, 6, (60, 2)), rng.uniform(6.2, 6.9, 60)]
     blender_scenes.add_point_cloud(scene, "motes", motes, rng.uniform(0.1, 0.3, 60))
+    # Legacy particle hair over the fog, which Blender's exporter leaves out by default:
+    # the hook adds its curves, with widths.
+    blender_scenes.add_particle_hair(
+        scene, "fur", [(-4, 1, 6.5), (0, 1, 6.5), (0, 5, 6.5), (-4, 5, 6.5)], 60, 0.8,
+        radius_scale=0.2, material=blender_scenes.black_material(0.0),
+    )  # fmt: skip
     # Dust that geometry nodes make of a mesh's vertices, which Blender's exporter writes
     # as an empty mesh: the hook adds its Points.
     dust = np.c_[rng.uniform(-5, 5, (40, 2)), rng.uniform(4.5, 6.0, 40)]

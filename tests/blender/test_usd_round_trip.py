@@ -24,9 +24,10 @@ the point cloud (Points) left out 0.07 to 2.9 %, and the light's shadowLink coll
 rays, one left out by the sun's shadow linking) left out 12 to 32 %, and the veil and
 lattice cards' cuts (Mix Shaders with a Transparent BSDF, which the exporter writes as
 opaque surfaces and the hook as masks) read as opaque 1.6 % and 2.1 % in red through the
-orthographic view, and the geometry-nodes dust (an empty mesh from the exporter, Points
+orthographic view, the geometry-nodes dust (an empty mesh from the exporter, Points
 from the hook) left out 0.69 % in red through the region and 1.9 % through the
-orthographic view. The fog is tinted, so its extinction travels per channel
+orthographic view, and the particle fur (left out by the exporter, curves from the hook)
+0.63 % through the orthographic view. The fog is tinted, so its extinction travels per channel
 (`crepuscular:medium:channelExtinction`).
 """
 
@@ -189,6 +190,10 @@ def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
             assert (orthographic / mask.GetInput("file").Get().path).is_file()
             reader = stage.GetPrimAtPath(f"/root/_materials/{material}/crepuscular_uv")
             assert reader.GetAttribute("inputs:varname").Get() == varname
+        # The particle fur, which the exporter left out: Catmull-Rom curves with widths.
+        fur = UsdGeom.BasisCurves(stage.GetPrimAtPath("/root/fur/crepuscularHair"))
+        assert fur.GetBasisAttr().Get() == UsdGeom.Tokens.catmullRom
+        assert len(fur.GetWidthsAttr().Get()) == len(fur.GetPointsAttr().Get()) > 0
         # The dust geometry nodes make, which the exporter wrote as an empty mesh.
         dust = UsdGeom.Points(stage.GetPrimAtPath("/root/dust/crepuscularPoints"))
         assert len(dust.GetPointsAttr().Get()) == 40
