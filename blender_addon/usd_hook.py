@@ -32,6 +32,8 @@ each sun with shafts and authors what the add-on would render with, so that
   Transparent BSDF, a Transparent BSDF) gets its opacity: the add-on's mask as an EXR
   beside the stage, read by a UsdUVTexture (wrap, Mapping nodes as a UsdTransform2d) and
   cut at the add-on's threshold, so that every USD renderer cuts what Cycles cuts;
+- legacy curves and NURBS surfaces, whose rendered surfaces the exporter does not write,
+  get meshes;
 - a point cloud that an object's modifiers make, which the exporter writes as an empty
   mesh, gets a `Points` prim under the object's transform, and legacy particle hair,
   which it leaves out (or writes without widths), Catmull-Rom `BasisCurves`;
@@ -1064,6 +1066,79 @@ def author_particle_hair(
     return authored
 
 
+#: Scope, under the stage's default prim, of the meshes the hook writes for legacy curves
+#: and NURBS surfaces.
+CONVERTED_SCOPE = "crepuscularMeshes"
+#: Object types whose rendered surface Blender's exporter does not write as a mesh.
+CONVERTED_TYPES = ("CURVE", "SURFACE")
+
+
+def author_converted_meshes(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
+    """Meshes of the surfaces Cycles renders for legacy curve and NURBS surface objects,
+    which Blender's exporter does not write: it writes a curve as BasisCurves of its path
+    with its radius as width (a bevelled curve's bevel is lost, and a curve with no bevel,
+    which renders nothing, becomes a tube) and a surface not at all. Each becomes a Mesh
+    under `crepuscularMeshes`, in stage space (the exporter's units and axes, read off the
+    first shaft sun's light), carrying the object's name as the exporter does, so that
+    the hook's shadow linking finds it; time-sampled. The exporter's curves of those
+    objects are deactivated. Returns the meshes' paths."""
+    from pxr import Sdf, Tf, UsdGeom, UsdLux, Vt
+
+    scene = depsgraph.scene
+    objects = [obj for obj in scene.objects if obj.type in CONVERTED_TYPES and not obj.hide_render]
+    if not objects:
+        return []
+    prims = ExportedPrims(stage)
+    sun = export.shaft_suns(scene)[0]
+    lights = prims.data(sun, UsdLux.DistantLight)
+    if not lights:
+        return []
+    default = stage.GetDefaultPrim()
+    parent = default if default else stage.GetPseudoRoot()
+    samples: dict[str, _Samples] = {}
+    with _stepping_frames(stage, depsgraph) as times:
+        for time in times:
+            to_stage = stage_from_blender(lights[0], sun.evaluated_get(depsgraph), time)
+            to_parent = np.linalg.inv(_world(parent, time)) @ to_stage
+            for obj in objects:
+                evaluated = obj.evaluated_get(depsgraph)
+                mesh = evaluated.to_mesh()
+                try:
+                    arrays = export.mesh_arrays(mesh) if mesh is not None else None
+                finally:
+                    evaluated.to_mesh_clear()
+                if arrays is None or len(arrays.triangles) == 0:
+                    continue
+                matrix = to_parent @ np.array(evaluated.matrix_world, dtype=np.float64)
+                positions = arrays.positions.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+                record = samples.setdefault(obj.name, _Samples())
+                record.add("points", time, positions.astype(np.float32))
+                record.add("counts", time, np.full(len(arrays.triangles), 3, dtype=np.int32))
+                record.add("indices", time, arrays.triangles.astype(np.int32).reshape(-1))
+    for obj in objects:
+        for prim in prims.of(obj):
+            for curves in [prim, *prim.GetChildren()]:
+                if curves.IsA(UsdGeom.BasisCurves):
+                    curves.SetActive(False)
+    authored = []
+    scope = parent.GetPath().AppendChild(CONVERTED_SCOPE)
+    for name, record in samples.items():
+        mesh = UsdGeom.Mesh.Define(stage, scope.AppendChild(Tf.MakeValidIdentifier(name)))
+        if not mesh:
+            raise USDExportError(f"could not define the mesh of object '{name}'")
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateDoubleSidedAttr(True)
+        record.author_arrays(mesh.CreatePointsAttr(), "points", Vt.Vec3fArray)
+        record.author_arrays(mesh.CreateFaceVertexCountsAttr(), "counts", Vt.IntArray)
+        record.author_arrays(mesh.CreateFaceVertexIndicesAttr(), "indices", Vt.IntArray)
+        attribute = mesh.GetPrim().CreateAttribute(
+            f"userProperties:{OBJECT_NAME}", Sdf.ValueTypeNames.String, custom=True
+        )
+        attribute.Set(name)
+        authored.append(str(mesh.GetPath()))
+    return authored
+
+
 def subdivision_cages(stage: Any) -> list[str]:
     """The meshes the exporter wrote as Catmull-Clark cages (a Subdivision Surface
     modifier last, under its default 'Best Match'), which the USD step casts as cages."""
@@ -1095,7 +1170,11 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
             return True
         check_blender_pxr()
         stage = export_context.get_stage()
-        # One pass over the exported prims serves both.
+        # Before the shaft settings, whose shadow linking names these meshes too.
+        converted = author_converted_meshes(stage, depsgraph)
+        if converted:
+            render.log(f"USD export: curve and surface meshes authored as {', '.join(converted)}")
+        # One pass over the exported prims serves the rest.
         prims = ExportedPrims(stage)
         paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:

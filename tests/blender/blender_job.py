@@ -786,6 +786,13 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     rng = np.random.default_rng(5)
     motes = np.c_[rng.uniform(-6, 6, (60, 2)), rng.uniform(6.2, 6.9, 60)]
     blender_scenes.add_point_cloud(scene, "motes", motes, rng.uniform(0.1, 0.3, 60))
+    # A bevelled Bezier circle and a NURBS sphere in the fog, whose surfaces Blender's
+    # exporter does not write (the circle as curves of its path and radius, the sphere not
+    # at all): the hook writes their meshes.
+    bpy.ops.curve.primitive_bezier_circle_add(radius=1.2, location=(1.0, -3.0, 5.5))
+    ring = bpy.context.active_object
+    ring.name, ring.data.bevel_depth, ring.rotation_euler = "ring", 0.15, (0.4, 0.2, 0.0)
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.7, location=(-1.5, -3.5, 4.5))
     # Legacy particle hair over the fog, which Blender's exporter leaves out by default:
     # the hook adds its curves, with widths.
     blender_scenes.add_particle_hair(

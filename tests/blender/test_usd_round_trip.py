@@ -26,8 +26,10 @@ lattice cards' cuts (Mix Shaders with a Transparent BSDF, which the exporter wri
 opaque surfaces and the hook as masks) read as opaque 1.6 % and 2.1 % in red through the
 orthographic view, the geometry-nodes dust (an empty mesh from the exporter, Points
 from the hook) left out 0.69 % in red through the region and 1.9 % through the
-orthographic view, and the particle fur (left out by the exporter, curves from the hook)
-0.63 % through the orthographic view. The fog is tinted, so its extinction travels per channel
+orthographic view, the particle fur (left out by the exporter, curves from the hook)
+0.63 % through the orthographic view, and the bevelled curve and NURBS sphere (a curve's
+path and no surface from the exporter, meshes from the hook) 0.94 % through the region.
+The fog is tinted, so its extinction travels per channel
 (`crepuscular:medium:channelExtinction`).
 """
 
@@ -190,6 +192,17 @@ def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
             assert (orthographic / mask.GetInput("file").Get().path).is_file()
             reader = stage.GetPrimAtPath(f"/root/_materials/{material}/crepuscular_uv")
             assert reader.GetAttribute("inputs:varname").Get() == varname
+        # The bevelled curve and the NURBS sphere as meshes; the exporter's curves of the
+        # circle's path (its radius as width) inactive.
+        for mesh in ("ring", "SurfSphere"):
+            assert stage.GetPrimAtPath(f"/root/crepuscularMeshes/{mesh}").IsA(UsdGeom.Mesh)
+        exported = [
+            prim
+            for prim in Usd.PrimRange.AllPrims(stage.GetPrimAtPath("/root/ring"))
+            if prim.IsA(UsdGeom.BasisCurves)
+        ]
+        assert exported
+        assert not any(prim.IsActive() for prim in exported)
         # The particle fur, which the exporter left out: Catmull-Rom curves with widths.
         fur = UsdGeom.BasisCurves(stage.GetPrimAtPath("/root/fur/crepuscularHair"))
         assert fur.GetBasisAttr().Get() == UsdGeom.Tokens.catmullRom
