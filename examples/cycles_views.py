@@ -44,7 +44,9 @@ printed as `usd`, and its largest mean relative difference per layer from the ex
 own reference layers (the method the hook exports) as `usd vs ours`, which the round
 trip's test bounds by 1e-4 and which flags above 1e-3. With `--usd`, `--points` makes
 half the clouds Point Cloud objects rather than geometry nodes' (Blender's exporter writes
-an object's own points, and the extension's hook a modifier's).
+an object's own points, and the extension's hook a modifier's). `--curves` adds one to
+three black shapes that are not meshes (bevelled Bezier circles, extruded text, NURBS
+spheres; the same scenes otherwise, seed for seed).
 """
 
 from __future__ import annotations
@@ -246,6 +248,39 @@ def add_point_cloud(
     return count
 
 
+def add_curve_shapes(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """One to three black shapes over and in the fog box that are not meshes: bevelled
+    Bezier circles, extruded text, NURBS spheres, each at a random place, size and
+    rotation; returns how many."""
+    count = rng.randint(1, 3)
+    black = blender_scenes.black_material(0.0)
+    for _ in range(count):
+        location = centre + half * np.array(
+            [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.2, 1.3)]
+        )
+        kind = rng.choice(["ring", "text", "surface"])
+        if kind == "ring":
+            bpy.ops.curve.primitive_bezier_circle_add(radius=rng.uniform(0.5, 2.0))
+            bpy.context.active_object.data.bevel_depth = rng.uniform(0.05, 0.3)
+        elif kind == "text":
+            bpy.ops.object.text_add()
+            text = bpy.context.active_object.data
+            text.body, text.size, text.extrude = (
+                "SHAFTS",
+                rng.uniform(1, 2.5),
+                rng.uniform(0.05, 0.2),
+            )
+        else:
+            bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=rng.uniform(0.3, 1.2))
+        shape = bpy.context.active_object
+        shape.location = location
+        shape.rotation_euler = [rng.uniform(-math.pi, math.pi) for _ in range(3)]
+        shape.data.materials.append(black)
+    return count
+
+
 def build_case(
     rng: random.Random,
     width: int,
@@ -259,6 +294,7 @@ def build_case(
     disc: bool = False,
     grouping: random.Random | None = None,
     point_objects: bool = False,
+    shapes: random.Random | None = None,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary.
     With `grouping`, a generator of its own, its materials are rebuilt inside node groups
@@ -304,6 +340,8 @@ def build_case(
         labels.append(f"{add_strands(rng, scene, centre, half)} strands")
     if points:
         labels.append(f"{add_point_cloud(rng, scene, centre, half, point_objects)} points")
+    if shapes is not None:
+        labels.append(f"{add_curve_shapes(shapes, scene, centre, half)} curve shapes")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -531,6 +569,11 @@ def main() -> int:
     parser.add_argument(
         "--usd", action="store_true", help="also through Blender's USD export and the USD step"
     )
+    parser.add_argument(
+        "--curves",
+        action="store_true",
+        help="bevelled curves, text and NURBS spheres over the box (see above)",
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -554,6 +597,7 @@ def main() -> int:
             # Through USD, half the clouds are Point Cloud objects, which Blender's
             # exporter writes itself, and half geometry nodes', which the hook adds.
             point_objects=args.usd and random.Random(f"{args.seed} {case} cloud").random() < 0.5,
+            shapes=random.Random(f"{args.seed} {case} shapes") if args.curves else None,
         )
         if args.anamorphic:
             aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)
