@@ -1024,12 +1024,17 @@ def author_particle_hair(
     from pxr import UsdGeom, Vt
 
     scene = depsgraph.scene
+    # Those the render evaluates: not hidden, nor in an excluded collection.
+    rendered = {
+        instance.object.original.name
+        for instance in depsgraph.object_instances
+        if not instance.is_instance and instance.object.type in export.GEOMETRY_TYPES
+    }
     emitters = [
         obj
         for obj in scene.objects
-        if obj.type in export.GEOMETRY_TYPES
+        if obj.name in rendered
         and any(system.settings.type == "HAIR" for system in obj.particle_systems)
-        and not obj.hide_render
     ]
     samples: dict[str, _Samples] = {}
     with _stepping_frames(stage, depsgraph) as times:
@@ -1085,7 +1090,13 @@ def author_converted_meshes(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[
     from pxr import Sdf, Tf, UsdGeom, UsdLux, Vt
 
     scene = depsgraph.scene
-    objects = [obj for obj in scene.objects if obj.type in CONVERTED_TYPES and not obj.hide_render]
+    # Those the render evaluates: not hidden, nor in an excluded collection.
+    rendered = {
+        instance.object.original.name
+        for instance in depsgraph.object_instances
+        if instance.object.type in CONVERTED_TYPES and not instance.is_instance
+    }
+    objects = [obj for obj in scene.objects if obj.name in rendered]
     if not objects:
         return []
     prims = ExportedPrims(stage)
