@@ -807,15 +807,17 @@ def _mapped_primvar(
 
 
 def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
-    """Opacity for the cut-out materials whose cut Blender's exporter did not write (a Mix
-    Shader towards a Transparent BSDF, a Transparent BSDF, or an Alpha the exporter left
-    constant): a UsdPreviewSurface whose opacity is the add-on's mask, written as an EXR
-    beside the stage and read by a UsdUVTexture (its wrap; the Mapping nodes as a
-    UsdTransform2d, or, where they shear, as mapped coordinates on the meshes), cut at the
-    add-on's threshold; or a constant opacity. Materials the exporter already cuts are
-    left as they are. Returns the materials authored; those that UsdPreviewSurface cannot
+    """The opacity of every cut-out material, as the add-on cuts: a UsdPreviewSurface
+    whose opacity is the add-on's mask, written as an EXR beside the stage and read by a
+    UsdUVTexture (its wrap; the Mapping nodes as a UsdTransform2d, or, where they shear,
+    as mapped coordinates on the meshes), cut at the add-on's threshold; or a constant
+    opacity. Blender's exporter writes no cut for a Mix Shader towards a Transparent BSDF,
+    a Transparent BSDF or node groups, and for an Image Texture's Alpha drops what lies
+    between the two (Mapping nodes but one Point mapping, value chains): the mask replaces
+    whatever it wrote. Returns the materials authored; those that UsdPreviewSurface cannot
     carry (a cut seen by only the sun's or the camera's rays) are named in the log and
-    stay as exported."""
+    stay as exported.
+    """
     from pxr import Gf, Sdf, UsdShade
 
     folder = Path(stage.GetRootLayer().realPath).parent if stage.GetRootLayer().realPath else None
@@ -851,15 +853,14 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
             )
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             continue
-        opacity = shader.GetInput("opacity")
-        if opacity and opacity.HasConnectedSource():
-            continue
         where = f"USD export: material '{material.name}'"
         if source.rays != export.BOTH:
             render.log(f"{where}: its cut is seen by some rays only; left opaque on the stage")
             continue
         if source.constant is not None:
-            shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(float(source.constant))
+            constant = shader.CreateInput("opacity", Sdf.ValueTypeNames.Float)
+            constant.DisconnectSource()
+            constant.Set(float(source.constant))
             threshold = float(cutouts.THRESHOLD)
             shader.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(threshold)
             authored.append(material.name)
@@ -926,6 +927,7 @@ def author_cutouts(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
             texture.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(1, 1, 1, -1))
             texture.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(0, 0, 0, 1))
         opacity = shader.CreateInput("opacity", Sdf.ValueTypeNames.Float)
+        opacity.DisconnectSource()
         opacity.ConnectToSource(texture.CreateOutput("a", Sdf.ValueTypeNames.Float))
         threshold = shader.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float)
         threshold.Set(float(source.threshold))
