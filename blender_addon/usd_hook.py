@@ -227,6 +227,13 @@ class ExportedPrims:
                     if value:
                         self._by_object.setdefault(str(value), []).append(prim)
 
+    def add(self, obj: bpy.types.Object, prim: Any) -> None:
+        """Counts `prim`, authored after the pass over the stage, among `obj`'s."""
+        if self._by_object:
+            self._by_object.setdefault(obj.name, []).append(prim)
+        else:
+            self._by_name.setdefault(self._tf.MakeValidIdentifier(obj.name), []).append(prim)
+
     def of(self, obj: bpy.types.Object) -> list[Any]:
         """Prims of `obj`: its transform, or its data prim where the two were merged."""
         if self._by_object:
@@ -1080,7 +1087,9 @@ CONVERTED_SCOPE = "crepuscularMeshes"
 CONVERTED_TYPES = ("CURVE", "SURFACE")
 
 
-def author_converted_meshes(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[str]:
+def author_converted_meshes(
+    stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
+) -> list[str]:
     """Meshes of the surfaces Cycles renders for legacy curve and NURBS surface objects,
     which Blender's exporter does not write: it writes a curve as BasisCurves of its path
     with its radius as width (a bevelled curve's bevel is lost, and a curve with no bevel,
@@ -1101,7 +1110,6 @@ def author_converted_meshes(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[
     objects = [obj for obj in scene.objects if obj.name in rendered]
     if not objects:
         return []
-    prims = ExportedPrims(stage)
     sun = export.shaft_suns(scene)[0]
     lights = prims.data(sun, UsdLux.DistantLight)
     if not lights:
@@ -1148,6 +1156,7 @@ def author_converted_meshes(stage: Any, depsgraph: bpy.types.Depsgraph) -> list[
             f"userProperties:{OBJECT_NAME}", Sdf.ValueTypeNames.String, custom=True
         )
         attribute.Set(name)
+        prims.add(scene.objects[name], mesh.GetPrim())
         authored.append(str(mesh.GetPath()))
     return authored
 
@@ -1183,12 +1192,13 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
             return True
         check_blender_pxr()
         stage = export_context.get_stage()
+        # One pass over the exported prims serves every step; the prims the hook adds are
+        # counted in as they are authored.
+        prims = ExportedPrims(stage)
         # Before the shaft settings, whose shadow linking names these meshes too.
-        converted = author_converted_meshes(stage, depsgraph)
+        converted = author_converted_meshes(stage, depsgraph, prims)
         if converted:
             render.log(f"USD export: curve and surface meshes authored as {', '.join(converted)}")
-        # One pass over the exported prims serves the rest.
-        prims = ExportedPrims(stage)
         paths = author_shaft_settings(stage, depsgraph, prims)
         if paths:
             render.log(f"USD export: {API_NAME} authored on {', '.join(paths)}")
@@ -1204,8 +1214,6 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
             camera = author_orthographic_camera(stage, depsgraph, prims)
             if camera is not None:
                 render.log(f"USD export: the orthographic camera authored as {camera}")
-                # The render settings target the new prim.
-                prims = ExportedPrims(stage)
             cages = subdivision_cages(stage)
             if cages:
                 more = f" and {len(cages) - 1} more" if len(cages) > 1 else ""

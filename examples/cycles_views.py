@@ -522,17 +522,22 @@ def render_through_usd(scene: bpy.types.Scene, out: Path) -> Path:
     return layers
 
 
+def cropped_as_ours(scene: bpy.types.Scene, image: np.ndarray) -> np.ndarray:
+    """`image`, a USD step's render of the whole frame, cropped to the extension's render
+    region where the extension crops to it."""
+    region = sys.modules[blender_scenes.ADDON_MODULE].export.render_region(scene)
+    if region is None or not region.cropped:
+        return image
+    return image[region.y : region.y + region.height, region.x : region.x + region.width]
+
+
 def usd_difference(scene: bpy.types.Scene, ours: Path, usd: Path) -> float:
     """The largest mean relative difference per layer between the extension's layers and
     the USD step's, these cropped to the extension's region where it crops."""
-    export = sys.modules[blender_scenes.ADDON_MODULE].export
-    region = export.render_region(scene)
     mine, theirs = crepuscular.read_exr(ours), crepuscular.read_exr(usd)
     worst = 0.0
     for name in USD_LAYERS:
-        plane = theirs[name]
-        if region is not None and region.cropped:
-            plane = plane[region.y : region.y + region.height, region.x : region.x + region.width]
+        plane = cropped_as_ours(scene, theirs[name])
         scale = float(np.abs(mine[name]).mean())
         if plane.shape != mine[name].shape:
             return math.inf
@@ -643,13 +648,7 @@ def main() -> int:
             columns.append(f"{method} mean {ours.mean() / mean:.3f} error {error:5.2f}%")
         usd_off = 0.0
         if args.usd:
-            through_usd = rgb(paths["usd"], "volume.")
-            export = sys.modules[blender_scenes.ADDON_MODULE].export
-            region = export.render_region(scene)
-            if region is not None and region.cropped:
-                window = (slice(region.y, region.y + region.height),)
-                window += (slice(region.x, region.x + region.width),)
-                through_usd = through_usd[window]
+            through_usd = cropped_as_ours(scene, rgb(paths["usd"], "volume."))
             error = 100 * np.abs(block_means(through_usd) - block_means(cycles)).mean() / mean
             worst = max(worst, error)
             usd_off = usd_difference(scene, paths["reference"], paths["usd"])
