@@ -64,7 +64,15 @@ import crepuscular
 
 from . import cutouts, export, render
 from .style import style_from_light
-from .usd_attributes import API_NAME, ATTRIBUTES, HOLES_OBJECTS, MEDIUM_EXTENT, TF_JSON
+from .usd_attributes import (
+    API_NAME,
+    ATTRIBUTES,
+    HOLES_OBJECTS,
+    MEDIUM_EXTENT,
+    SUBDIVISION_LEVELS,
+    SUBDIVISION_LIMIT,
+    TF_JSON,
+)
 
 #: The exporter's attribute holding an object's name (under its custom-property namespace).
 OBJECT_NAME = "blender:object_name"
@@ -1161,18 +1169,33 @@ def author_converted_meshes(
     return authored
 
 
-def subdivision_cages(stage: Any) -> list[str]:
-    """The meshes the exporter wrote as Catmull-Clark cages (a Subdivision Surface
-    modifier last, under its default 'Best Match'), which the USD step casts as cages."""
-    from pxr import UsdGeom
+def author_subdivision_levels(
+    stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
+) -> list[str]:
+    """The render levels, and whether on the limit surface, of every Subdivision Surface
+    modifier that Blender's exporter writes as a Catmull-Clark cage (the modifier last,
+    under its default 'Best Match'), on the cage's mesh: USD has no level of its own, and
+    the USD step refines the cage as far as F12 does. Returns the meshes' paths."""
+    from pxr import Sdf, UsdGeom
 
-    return [
-        str(prim.GetPath())
-        for prim in stage.Traverse()
-        if prim.IsA(UsdGeom.Mesh)
-        and UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr().HasAuthoredValue()
-        and UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.catmullClark
-    ]
+    authored = []
+    for obj in depsgraph.scene.objects:
+        modifier = obj.modifiers[-1] if obj.type == "MESH" and obj.modifiers else None
+        if modifier is None or modifier.type != "SUBSURF" or not modifier.show_render:
+            continue
+        for prim in prims.data(obj, UsdGeom.Mesh):
+            scheme = UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr()
+            if not scheme.HasAuthoredValue() or scheme.Get() != UsdGeom.Tokens.catmullClark:
+                continue
+            for name, kind, value in (
+                (SUBDIVISION_LEVELS, Sdf.ValueTypeNames.Int, int(modifier.render_levels)),
+                (SUBDIVISION_LIMIT, Sdf.ValueTypeNames.Bool, bool(modifier.use_limit_surface)),
+            ):
+                attribute = prim.CreateAttribute(name, kind, custom=True)
+                if not attribute or not attribute.Set(value):
+                    raise USDExportError(f"could not author {prim.GetPath()}.{name}")
+            authored.append(str(prim.GetPath()))
+    return authored
 
 
 class CREPUSCULAR_USDHook(bpy.types.USDHook):
@@ -1214,14 +1237,9 @@ class CREPUSCULAR_USDHook(bpy.types.USDHook):
             camera = author_orthographic_camera(stage, depsgraph, prims)
             if camera is not None:
                 render.log(f"USD export: the orthographic camera authored as {camera}")
-            cages = subdivision_cages(stage)
+            cages = author_subdivision_levels(stage, depsgraph, prims)
             if cages:
-                more = f" and {len(cages) - 1} more" if len(cages) > 1 else ""
-                render.log(
-                    f"USD export: {cages[0]}{more} exported as subdivision cages (Subdivision "
-                    "'Best Match'): crepuscular-usd casts the cages where F12 casts the "
-                    "subdivided surface; export with Subdivision 'Tessellate' to match"
-                )
+                render.log(f"USD export: subdivision levels authored on {', '.join(cages)}")
             settings = author_render_settings(stage, depsgraph.scene, prims)
             if settings is not None:
                 render.log(f"USD export: the render's image authored as {settings}")

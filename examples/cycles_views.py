@@ -46,7 +46,10 @@ trip's test bounds by 1e-4 and which flags above 1e-3. With `--usd`, `--points` 
 half the clouds Point Cloud objects rather than geometry nodes' (Blender's exporter writes
 an object's own points, and the extension's hook a modifier's). `--curves` adds one to
 three black shapes that are not meshes (bevelled Bezier circles, extruded text, NURBS
-spheres; the same scenes otherwise, seed for seed).
+spheres; the same scenes otherwise, seed for seed). `--subdivided` adds one to three black
+meshes under a Subdivision Surface modifier (cubes, cylinders, icospheres, open grids; 1 to
+3 render levels, creased edges and vertices now and then; the same scenes otherwise), which
+Blender's exporter writes as cages and the hook tags with their levels.
 """
 
 from __future__ import annotations
@@ -281,6 +284,48 @@ def add_curve_shapes(
     return count
 
 
+def add_subdivided(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """One to three black meshes over and in the fog box under a Subdivision Surface
+    modifier (a cube, a cylinder of 5 to 9 sides, an icosphere or an open grid; render
+    levels 1 to 3, either boundary rule, the limit surface on or off), some with creased
+    edges and vertices; returns how many."""
+    count = rng.randint(1, 3)
+    black = blender_scenes.black_material(0.0)
+    for _ in range(count):
+        location = centre + half * np.array(
+            [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.2, 1.3)]
+        )
+        size = rng.uniform(0.5, 2.0)
+        kind = rng.choice(["cube", "cylinder", "icosphere", "grid"])
+        if kind == "cube":
+            bpy.ops.mesh.primitive_cube_add(size=size)
+        elif kind == "cylinder":
+            bpy.ops.mesh.primitive_cylinder_add(vertices=rng.randint(5, 9), radius=size / 2)
+        elif kind == "icosphere":
+            bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=size / 2)
+        else:
+            bpy.ops.mesh.primitive_grid_add(x_subdivisions=4, y_subdivisions=3, size=size)
+        shape = bpy.context.active_object
+        shape.location = location
+        shape.rotation_euler = [rng.uniform(-math.pi, math.pi) for _ in range(3)]
+        mesh = shape.data
+        if rng.random() < 0.5:
+            creases = mesh.attributes.new("crease_edge", "FLOAT", "EDGE")
+            for _ in range(rng.randint(1, 4)):
+                creases.data[rng.randrange(len(mesh.edges))].value = rng.choice([1.0, rng.random()])
+        if rng.random() < 0.3:
+            corners = mesh.attributes.new("crease_vert", "FLOAT", "POINT")
+            corners.data[rng.randrange(len(mesh.vertices))].value = rng.choice([1.0, rng.random()])
+        modifier = shape.modifiers.new("Subdivision", "SUBSURF")
+        modifier.render_levels = rng.randint(1, 3)
+        modifier.boundary_smooth = rng.choice(["ALL", "PRESERVE_CORNERS"])
+        modifier.use_limit_surface = rng.random() < 0.8
+        mesh.materials.append(black)
+    return count
+
+
 def build_case(
     rng: random.Random,
     width: int,
@@ -295,6 +340,7 @@ def build_case(
     grouping: random.Random | None = None,
     point_objects: bool = False,
     shapes: random.Random | None = None,
+    subdivided: random.Random | None = None,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary.
     With `grouping`, a generator of its own, its materials are rebuilt inside node groups
@@ -342,6 +388,8 @@ def build_case(
         labels.append(f"{add_point_cloud(rng, scene, centre, half, point_objects)} points")
     if shapes is not None:
         labels.append(f"{add_curve_shapes(shapes, scene, centre, half)} curve shapes")
+    if subdivided is not None:
+        labels.append(f"{add_subdivided(subdivided, scene, centre, half)} subdivided")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -579,6 +627,11 @@ def main() -> int:
         action="store_true",
         help="bevelled curves, text and NURBS spheres over the box (see above)",
     )
+    parser.add_argument(
+        "--subdivided",
+        action="store_true",
+        help="meshes under a Subdivision Surface modifier over the box (see above)",
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -603,6 +656,9 @@ def main() -> int:
             # exporter writes itself, and half geometry nodes', which the hook adds.
             point_objects=args.usd and random.Random(f"{args.seed} {case} cloud").random() < 0.5,
             shapes=random.Random(f"{args.seed} {case} shapes") if args.curves else None,
+            subdivided=(
+                random.Random(f"{args.seed} {case} subdivided") if args.subdivided else None
+            ),
         )
         if args.anamorphic:
             aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)

@@ -82,6 +82,33 @@ def test_render_writes_each_frames_layers(stage_path: Path, tmp_path: Path) -> N
     np.testing.assert_allclose(last, 3.0 * first, rtol=1e-5)
 
 
+def test_complexity_refines_catmull_clark_meshes_as_usdrecord_s(
+    stage_path: Path, tmp_path: Path
+) -> None:
+    """`--complexity` (`-c`) low casts a Catmull-Clark occluder's cage, with a warning
+    naming it and the option; high renders the layers of the mesh refined two levels, whose
+    rounded corners (boundary edgeOnly) cast another shadow."""
+    stage = Usd.Stage.Open(str(stage_path))
+    occluder = UsdGeom.Mesh(stage.GetPrimAtPath("/World/occluder"))
+    occluder.CreateSubdivisionSchemeAttr().Set(UsdGeom.Tokens.catmullClark)
+    occluder.CreateInterpolateBoundaryAttr().Set(UsdGeom.Tokens.edgeOnly)
+    stage.GetRootLayer().Save()
+    written = {}
+    for complexity in ("low", "high"):
+        out = tmp_path / complexity
+        status, err = run(*render_args(stage_path, out, "-f", "1", "-c", complexity))
+        assert status == 0, err
+        assert ("give --complexity medium, high or veryhigh" in err) == (complexity == "low")
+        written[complexity] = crepuscular.read_exr(out / "shafts.0001.exr")["visibility"]
+    reader = StageReader(stage, "/World/Camera", None, width=64, subdivision_levels=2)
+    expected = crepuscular.render_arrays(**reader.read(Usd.TimeCode(1)).render_kwargs())
+    np.testing.assert_array_equal(written["high"], expected.visibility)
+    assert np.abs(written["high"] - written["low"]).mean() > 1e-3 * written["low"].mean()
+    status, err = run(*render_args(stage_path, tmp_path / "bad", "-c", "ultra"))
+    assert status == 2
+    assert "invalid choice: 'ultra'" in err
+
+
 def test_rerendering_a_frame_is_bit_identical(stage_path: Path, tmp_path: Path) -> None:
     for name in ("a", "b"):
         status, err = run(*render_args(stage_path, tmp_path / name, "--frames", "3"))

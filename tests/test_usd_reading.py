@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol, Vt
 from scenes import build_scene, flatten, move_occluder_off_the_float32_grid
+from test_usd_subdivision import CUBE, CUBE_FACES, CUBE_POINTS
 from usd_helpers import (
     STRIP_REST,
     author_rig,
@@ -22,10 +23,16 @@ import crepuscular
 import crepuscular_usd
 from crepuscular_usd import FrameSpecError, FrameSpecIterator, MeshError, StageReader, triangulate
 from crepuscular_usd import geometry as geometry_module
-from crepuscular_usd.attributes import ATTRIBUTES, RELATIONSHIPS
+from crepuscular_usd.attributes import (
+    ATTRIBUTES,
+    RELATIONSHIPS,
+    SUBDIVISION_LEVELS,
+    SUBDIVISION_LIMIT,
+)
 from crepuscular_usd.frames import convert_frame_placeholder_to_float_spec
 from crepuscular_usd.implicit import RADIAL_SEGMENTS, tessellate_implicit
 from crepuscular_usd.schema import API_NAME, PROPERTY_NAMES, SchemaError, fallback
+from crepuscular_usd.subdivision import CatmullClark
 
 SMALL = {"steps": 32, "shadow_map_size": 128}
 
@@ -167,9 +174,69 @@ def test_meshes_authored_as_subdivision_surfaces_cast_their_cages_and_say_so(
     notes = [note for note in cage.notes if "subdivisionScheme" in note]
     assert len(notes) == 1
     assert "(/World/occluder) cast as their control cages" in notes[0]
-    assert "export with 'Tessellate'" in notes[0]
+    assert "give --complexity medium, high or veryhigh" in notes[0]
     np.testing.assert_array_equal(cage.triangles, plain.triangles)
     np.testing.assert_array_equal(cage.positions, plain.positions)
+
+
+def test_catmull_clark_meshes_refine_to_their_own_or_the_renders_levels(tmp_path: Path) -> None:
+    """A Catmull-Clark cube refines as many levels as it authors
+    (`crepuscular:subdivision:levels`, which Blender's export writes), else as the
+    reader's `subdivision_levels` (`--complexity`) say, onto its limit surface unless it
+    authors `crepuscular:subdivision:limitSurface` false; a mesh whose scheme is none
+    never refines, and a Loop mesh is named and cast as its cage."""
+    scene = build_scene(**SMALL)
+    stage = author_stage(str(tmp_path / "s.usda"), scene)
+    cube = UsdGeom.Mesh.Define(stage, "/World/blob")
+    points = CUBE_POINTS + np.array([0.0, 0.0, 30.0])
+    cube.CreatePointsAttr().Set(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
+    cube.CreateFaceVertexCountsAttr().Set([4] * 6)
+    cube.CreateFaceVertexIndicesAttr().Set([i for face in CUBE_FACES for i in face])
+    time = Usd.TimeCode.Default()
+
+    def blob(levels: int = 0) -> np.ndarray:
+        reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+        reader.subdivision_levels = levels
+        geometry = reader.read(time).geometry
+        ids = np.asarray(geometry.object_ids)
+        mine = ids == geometry.ids_by_path[Sdf.Path("/World/blob")]
+        corners = geometry.triangles[mine].reshape(-1)
+        return geometry.positions[corners] + geometry.origin, geometry.notes
+
+    cage, notes = blob()
+    assert len(cage) == 12 * 3
+    assert not any("subdivisionScheme" in note for note in notes)
+    refined, notes = blob(2)
+    assert len(refined) == 6 * 16 * 2 * 3
+    assert not notes
+    expected = CatmullClark(**CUBE, levels=2).refine(points)
+    apart = np.linalg.norm(refined[:, None] - expected[None], axis=2)
+    assert apart.min(axis=1).max() < 1e-5
+    assert apart.min(axis=0).max() < 1e-5
+    # Rounded well inside the cube, and no point on its corners.
+    assert np.abs(refined - [0.0, 0.0, 30.0]).max() < 0.9
+    own = cube.GetPrim().CreateAttribute(SUBDIVISION_LEVELS, Sdf.ValueTypeNames.Int, custom=True)
+    own.Set(1)
+    assert len(blob()[0]) == len(blob(3)[0]) == 6 * 4 * 2 * 3
+    limit = cube.GetPrim().CreateAttribute(SUBDIVISION_LIMIT, Sdf.ValueTypeNames.Bool, custom=True)
+    limit.Set(False)
+    # One level not on the limit: the cube's corners at 5/9 of themselves.
+    corners = np.abs(blob()[0] - [0.0, 0.0, 30.0])
+    assert np.isclose(corners.max(axis=1), 5 / 9).any()
+    assert corners.max() < 1.0 + 1e-6
+    cube.CreateSubdivisionSchemeAttr().Set(UsdGeom.Tokens.none)
+    assert len(blob(2)[0]) == 12 * 3
+    cube.GetSubdivisionSchemeAttr().Set("loop")
+    loop, notes = blob(2)
+    assert len(loop) == 12 * 3
+    assert any("subdivisionScheme is loop (/World/blob)" in note for note in notes)
+    cube.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.catmullClark)
+    # Too many levels: named, and the mesh left out as other invalid meshes are.
+    own.Set(9)
+    reader = StageReader(stage, "/World/Camera", "/World/Sun", width=64)
+    geometry = reader.read(time).geometry
+    assert Sdf.Path("/World/blob") not in geometry.ids_by_path
+    assert any("/World/blob.crepuscular:subdivision:levels is 9" in i for i in geometry.invalid)
 
 
 # --- units and up axis ------------------------------------------------------------------

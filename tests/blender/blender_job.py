@@ -793,6 +793,18 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     ring = bpy.context.active_object
     ring.name, ring.data.bevel_depth, ring.rotation_euler = "ring", 0.15, (0.4, 0.2, 0.0)
     bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.7, location=(-1.5, -3.5, 4.5))
+    # A Subdivision Surface modifier last, which Blender's exporter writes as the cage with
+    # a Catmull-Clark scheme and no level: the hook authors the render levels, and the USD
+    # step refines the cage onto its limit surface. Seven-sided caps, and a vertex creased
+    # to a corner. Cast as its cage, it reads 0.37% off in red through the region.
+    bpy.ops.mesh.primitive_cylinder_add(
+        vertices=7, radius=0.9, depth=1.6, location=(3.5, -3.0, 5.0), rotation=(0.5, 0.3, 0.0)
+    )
+    capsule = bpy.context.active_object
+    capsule.name = "capsule"
+    corner = capsule.data.attributes.new("crease_vert", "FLOAT", "POINT")
+    corner.data[0].value = 1.0
+    capsule.modifiers.new("Subdivision", "SUBSURF").render_levels = 2
     # Legacy particle hair over the fog, which Blender's exporter leaves out by default:
     # the hook adds its curves, with widths.
     blender_scenes.add_particle_hair(
@@ -835,6 +847,9 @@ def add_rigged_column(scene: Any) -> Any:
     column.parent = rig
     column.matrix_parent_inverse = rig.matrix_world.inverted()
     column.modifiers.new("Armature", "ARMATURE").object = rig
+    # Subdivided after skinning, which the export writes as a skinned cage: the USD step
+    # poses the cage, then refines it (cast as its cage, 0.41% off in red).
+    column.modifiers.new("Subdivision", "SUBSURF").render_levels = 1
     groups = [column.vertex_groups.new(name=name) for name in ("lower", "upper")]
     for vertex in column.data.vertices:
         on_upper = min(max(vertex.co.z + 0.5, 0.0), 1.0)  # 0 below the middle, 1 above

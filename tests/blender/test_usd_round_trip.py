@@ -262,6 +262,20 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
     lux = UsdLux.LightAPI(light)
     assert lux.GetEnableColorTemperatureAttr().Get() is False
     assert lux.GetIntensityAttr().Get() == pytest.approx(2.5 / 4)  # Blender's own, untouched
+    # Subdivision Surface modifiers written as cages carry their render levels; other
+    # meshes carry none.
+    levels = {
+        str(prim.GetPath()): (
+            prim.GetAttribute("crepuscular:subdivision:levels").Get(),
+            prim.GetAttribute("crepuscular:subdivision:limitSurface").Get(),
+        )
+        for prim in stage.Traverse()
+        if prim.HasAttribute("crepuscular:subdivision:levels")
+    }
+    assert levels == {
+        "/root/capsule/Cylinder_001": (2, True),
+        "/root/Rig/Cylinder/Cylinder": (1, True),
+    }
     # Animated: keyed values are time-sampled, constant ones are not; the fog box, left
     # out of the export, becomes a guide Cube.
     stage = Usd.Stage.Open(str(animated / "shot.usda"))

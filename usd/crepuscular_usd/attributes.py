@@ -18,6 +18,8 @@ __all__ = [
     "HOLES_OBJECTS",
     "MEDIUM_EXTENT",
     "RELATIONSHIPS",
+    "SUBDIVISION_LEVELS",
+    "SUBDIVISION_LIMIT",
     "TF_ASSET",
     "TF_JSON",
     "Attribute",
@@ -28,6 +30,11 @@ API_NAME = "CrepuscularLightAPI"
 MEDIUM_EXTENT = "crepuscular:mediumExtent"
 HOLES_OBJECTS = "crepuscular:holes:objects"
 TF_ASSET = "crepuscular:tf:asset"
+#: On a Catmull-Clark mesh: how many levels to refine its cage (an int), and whether onto
+#: its limit surface (a bool, true unless authored false). USD leaves the level to each
+#: renderer; the add-on's export hook writes those Blender renders a mesh at.
+SUBDIVISION_LEVELS = "crepuscular:subdivision:levels"
+SUBDIVISION_LIMIT = "crepuscular:subdivision:limitSurface"
 TF_JSON = "crepuscular:tf:json"
 #: The schema's relationships: the medium's box, and the meshes that take holes.
 RELATIONSHIPS = (MEDIUM_EXTENT, HOLES_OBJECTS)

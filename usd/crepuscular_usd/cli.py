@@ -56,6 +56,10 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
+#: usdrecord's complexities, as the levels Hydra refines subdivision meshes at each.
+COMPLEXITY_LEVELS = {"low": 0, "medium": 1, "high": 2, "veryhigh": 3}
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -121,6 +125,18 @@ def _parser() -> argparse.ArgumentParser:
         help=(
             "image height (default: the render settings', else the beauty's, else from "
             "the aperture)"
+        ),
+    )
+    render.add_argument(
+        "--complexity",
+        "-c",
+        choices=tuple(COMPLEXITY_LEVELS),
+        default="low",
+        help=(
+            "how finely to draw Catmull-Clark meshes, as usdrecord's: low casts their "
+            "control cages (Storm's default), medium, high and veryhigh refine them 1, 2 "
+            "and 3 levels onto their limit surface. Meshes that author "
+            "crepuscular:subdivision:levels (Blender's export) keep their own"
         ),
     )
     render.add_argument("--half", action="store_true", help="write volume and visibility as half")
@@ -334,7 +350,15 @@ def _render(args: argparse.Namespace, err: TextIO) -> int:
             height = max(1, round(width * full_height / full_width))
     elif args.beauty and width is None and height is None:
         width, height = _beauty_size(_frame_path(frame_args.formats["beauty"], time_codes[0]))
-    reader = StageReader(stage, args.camera, args.light, width=width, height=height, image=image)
+    reader = StageReader(
+        stage,
+        args.camera,
+        args.light,
+        width=width,
+        height=height,
+        image=image,
+        subdivision_levels=COMPLEXITY_LEVELS[args.complexity],
+    )
     if not reader.light_prim.HasAPI(API_NAME):
         _warn(
             err,

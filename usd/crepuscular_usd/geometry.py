@@ -27,6 +27,7 @@ import numpy.typing as npt
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdLux, UsdSkel, UsdVol
 
 import crepuscular
+from crepuscular_usd.attributes import SUBDIVISION_LEVELS, SUBDIVISION_LIMIT
 from crepuscular_usd.cutouts import MaskTable, corner_uvs, face_masks
 from crepuscular_usd.implicit import (
     ImplicitSurfaceError,
@@ -34,6 +35,7 @@ from crepuscular_usd.implicit import (
     tessellate_implicit,
 )
 from crepuscular_usd.skinning import SkinnedMeshes, SkinningError
+from crepuscular_usd.subdivision import CatmullClark, SubdivisionError
 
 __all__ = ["GeometryCollector", "MeshError", "SceneGeometry", "triangle_corners", "triangulate"]
 
@@ -52,8 +54,10 @@ def triangulate(
     left_handed: bool = False,
     point_count: int | None = None,
     where: str = "mesh",
+    points: npt.ArrayLike | None = None,
 ) -> npt.NDArray[np.uint32]:
-    """(M, 3) triangles of a USD polygon mesh, fan-triangulated per face.
+    """(M, 3) triangles of a USD polygon mesh, fan-triangulated per face (with `points`,
+    a quad folded along its first diagonal is split along the other, as Blender splits it).
 
     Faces in `hole_indices` and faces with fewer than 3 vertices produce no triangles.
     Raises `MeshError` naming `where` for inconsistent topology.
@@ -65,6 +69,7 @@ def triangulate(
         left_handed=left_handed,
         point_count=point_count,
         where=where,
+        points=points,
     )
     indices = np.asarray(face_vertex_indices, dtype=np.int64).reshape(-1)
     return indices[corners].astype(np.uint32)
@@ -78,6 +83,7 @@ def triangle_corners(
     left_handed: bool = False,
     point_count: int | None = None,
     where: str = "mesh",
+    points: npt.ArrayLike | None = None,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """`triangulate`'s triangles as (M, 3) positions in the face-vertex list (where
     face-varying primvars are), and each triangle's face."""
@@ -108,9 +114,46 @@ def triangle_corners(
     corner = np.arange(total) - np.repeat(np.cumsum(per_face) - per_face, per_face)
     base = starts[face]
     first, second, third = base, base + corner + 1, base + corner + 2
+    if points is not None and total:
+        _split_folded_quads(
+            np.asarray(points, dtype=np.float64),
+            indices,
+            counts[face],
+            corner,
+            first,
+            second,
+            third,
+        )
     if left_handed:
         second, third = third, second
     return np.stack([first, second, third], axis=1), face
+
+
+def _split_folded_quads(
+    points: F64,
+    indices: npt.NDArray[np.int64],
+    counts: npt.NDArray[np.int64],
+    corner: npt.NDArray[np.int64],
+    first: npt.NDArray[np.int64],
+    second: npt.NDArray[np.int64],
+    third: npt.NDArray[np.int64],
+) -> None:
+    """Quads whose two fan triangles face opposite ways (folded along the diagonal from
+    their first corner, or concave there) split along the other diagonal instead, in
+    place: Blender's rule (`is_quad_flip_v3_first_third_fast`), which the add-on's
+    triangles follow."""
+    starts = first[(counts == 4) & (corner == 0)]
+    if not len(starts) or len(indices) == 0 or indices.max() >= len(points):
+        return
+    a, b, c, d = (points[indices[starts + k]] for k in range(4))
+    folded = np.einsum("ij,ij->i", np.cross(b - a, c - a), np.cross(d - a, c - a)) > 0.0
+    if not folded.any():
+        return
+    rows = np.flatnonzero((counts == 4) & (corner == 0))[folded]
+    base = first[rows]
+    # (a, b, d) and (b, c, d).
+    second[rows], third[rows] = base + 1, base + 3
+    first[rows + 1], second[rows + 1], third[rows + 1] = base + 1, base + 2, base + 3
 
 
 def row_matrix(matrix: object) -> F64:
@@ -133,6 +176,9 @@ class _LocalMesh:
     per_view: _Strands | _PointSpheres | None = None
     #: Copies stacked in `points`, one per placement, each its own (the same triangles).
     copies: int = 1
+    #: A subdivided mesh: its cage's points (which skinning poses) and their refinement.
+    cage: F64 | None = None
+    refinement: CatmullClark | None = None
     #: Per triangle, `crepuscular.BLOCKS_SUN`, `SEEN_BY_CAMERA`, both or neither where the
     #: triangles are drawn per view: (T,) for every placement (strand ribbons), or (K, T),
     #: a row per placement (points' spheres, culled as each placement sees them). None: both.
@@ -353,22 +399,29 @@ class _Purposes:
         return purpose
 
 
-#: Subdivision schemes whose surface is smoother than the mesh's own faces.
-SMOOTH_SCHEMES = ("catmullClark", "loop")
+#: The most levels a mesh is refined: each multiplies its faces by four.
+MAX_SUBDIVISION_LEVELS = 6
 
 
-def _cage_note(paths: set[Sdf.Path]) -> str:
-    """What casting subdivision meshes as their cages means, naming the first of them."""
+def _cage_note(paths: set[Sdf.Path], cast: str) -> str:
+    """That the meshes at `paths` cast as their control cages, naming the first of them."""
     first = min(paths)
     more = f" and {len(paths) - 1} more" if len(paths) > 1 else ""
-    return (
-        f"meshes that author a smooth subdivisionScheme ({first}{more}) cast as their "
-        "control cages, as Storm draws them at its default complexity and Blender's USD "
-        "import reads them; renderers that subdivide (Karma, RenderMan) cast rounder shadows. "
-        "Blender's exporter writes a mesh with a Subdivision Surface modifier so (its "
-        "Subdivision option 'Best Match'); export with 'Tessellate' to carry the surface "
-        "Blender renders"
-    )
+    return cast.format(meshes=f"{first}{more}")
+
+
+#: What casting subdivision meshes as their cages means, at the lowest complexity, and
+#: for Loop meshes, which are not refined.
+CAGES_AT_LOW = (
+    "meshes that author a smooth subdivisionScheme ({meshes}) cast as their control cages, "
+    "as Storm draws them at its default complexity; give --complexity medium, high or "
+    "veryhigh to refine Catmull-Clark meshes 1, 2 or 3 levels onto their limit surface, as "
+    "renderers that subdivide (Karma, RenderMan) cast them"
+)
+LOOP_CAGES = (
+    "meshes whose subdivisionScheme is loop ({meshes}) cast as their control cages: only "
+    "Catmull-Clark meshes are refined"
+)
 
 
 class GeometryCollector:
@@ -385,8 +438,16 @@ class GeometryCollector:
         *,
         skip: Iterable[Sdf.Path] = (),
         purposes: Iterable[str] = ("default", "render"),
+        subdivision_levels: int = 0,
     ) -> None:
+        if not 0 <= subdivision_levels <= MAX_SUBDIVISION_LEVELS:
+            raise MeshError(
+                f"subdivision levels must lie in 0..{MAX_SUBDIVISION_LEVELS}, not "
+                f"{subdivision_levels}"
+            )
         self._stage = stage
+        #: How many levels Catmull-Clark meshes without their own are refined (0: cages).
+        self._subdivision_levels = subdivision_levels
         #: The purposes that render (a RenderSettings prim's `includedPurposes`).
         self._purposes = frozenset(purposes)
         #: Column-vector 4x4: stage world space -> renderer space (Z-up, metres).
@@ -395,8 +456,12 @@ class GeometryCollector:
         self._cache: dict[Sdf.Path, _LocalMesh] = {}
         self._skinned = SkinnedMeshes(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
         self._masks = MaskTable()
-        #: Meshes that author a smooth subdivision scheme, which cast as their cages.
+        #: Meshes that author a smooth subdivision scheme, which cast as their cages, and
+        #: Loop meshes that would be refined but are not.
         self._subdivided: set[Sdf.Path] = set()
+        self._loop: set[Sdf.Path] = set()
+        #: Refinements by mesh, with the topology they were built for.
+        self._refinements: dict[Sdf.Path, tuple[tuple[object, ...], CatmullClark]] = {}
         #: The sun and camera in the renderer's space, for the frame collecting.
         self._seen: _SunAndCamera | None = None
         #: Curves and points drawn for views, by their local mesh's identity and the sun and
@@ -433,9 +498,7 @@ class GeometryCollector:
                 self._cache[key] = local
             return local
         mesh = UsdGeom.Mesh(prim)
-        scheme = mesh.GetSubdivisionSchemeAttr()
-        if scheme.HasAuthoredValue() and scheme.Get() in SMOOTH_SCHEMES:
-            self._subdivided.add(prim.GetPath())
+        levels, limit = self._levels_of(prim, mesh, time)
         attrs = [
             mesh.GetPointsAttr(),
             mesh.GetFaceVertexCountsAttr(),
@@ -456,13 +519,106 @@ class GeometryCollector:
             "where": str(prim.GetPath()),
         }
         faces = face_masks(prim, len(counts), self._masks)
+        refinement = None
+        if levels:
+            refinement = self._refinement(
+                prim, mesh, time, levels, limit, counts, indices, topology
+            )
+            cage, points = points, refinement.refine(points)
+            counts, indices = refinement.face_vertex_counts, refinement.face_vertex_indices
+            topology = {**topology, "hole_indices": (), "point_count": len(points)}
+            if faces is not None:
+                faces = faces[refinement.faces]
         if faces is None:
-            local = _LocalMesh(points, triangulate(counts, indices, **topology))
+            local = _LocalMesh(points, triangulate(counts, indices, **topology, points=points))
         else:
-            local = self._cut_mesh(prim, time, points, counts, indices, faces, topology)
+            local = self._cut_mesh(prim, time, points, counts, indices, faces, topology, refinement)
+        if refinement is not None:
+            local = replace(local, cage=cage, refinement=refinement)
         if not any(attr.ValueMightBeTimeVarying() for attr in attrs):
             self._cache[key] = local
         return local
+
+    def _levels_of(
+        self, prim: Usd.Prim, mesh: UsdGeom.Mesh, time: Usd.TimeCode
+    ) -> tuple[int, bool]:
+        """How many levels to refine the mesh, and whether onto its limit surface: its own
+        levels (`SUBDIVISION_LEVELS`) where it authors them, else the render's; 0 for
+        meshes that are not Catmull-Clark."""
+        scheme_attr = mesh.GetSubdivisionSchemeAttr()
+        scheme = scheme_attr.Get()
+        own = prim.GetAttribute(SUBDIVISION_LEVELS)
+        own_levels = own.Get(time) if own and own.HasAuthoredValue() else None
+        if own_levels is not None and not 0 <= int(own_levels) <= MAX_SUBDIVISION_LEVELS:
+            raise MeshError(
+                f"{prim.GetPath()}.{SUBDIVISION_LEVELS} is {own_levels}; give 0 to "
+                f"{MAX_SUBDIVISION_LEVELS}"
+            )
+        levels = int(own_levels) if own_levels is not None else self._subdivision_levels
+        if scheme == "loop" and levels:
+            self._loop.add(prim.GetPath())
+            return 0, True
+        if scheme != "catmullClark":
+            return 0, True
+        if not levels:
+            if scheme_attr.HasAuthoredValue():
+                self._subdivided.add(prim.GetPath())
+            return 0, True
+        limit_attr = prim.GetAttribute(SUBDIVISION_LIMIT)
+        limit = limit_attr.Get(time) if limit_attr and limit_attr.HasAuthoredValue() else None
+        return levels, limit is not False
+
+    def _refinement(
+        self,
+        prim: Usd.Prim,
+        mesh: UsdGeom.Mesh,
+        time: Usd.TimeCode,
+        levels: int,
+        limit: bool,
+        counts: object,
+        indices: object,
+        topology: dict[str, Any],
+    ) -> CatmullClark:
+        """The mesh's refinement at `time`, built once for as long as its topology and
+        subdivision tags hold."""
+        tags = {
+            "hole_indices": topology["hole_indices"],
+            "crease_indices": mesh.GetCreaseIndicesAttr().Get(time) or (),
+            "crease_lengths": mesh.GetCreaseLengthsAttr().Get(time) or (),
+            "crease_sharpnesses": mesh.GetCreaseSharpnessesAttr().Get(time) or (),
+            "corner_indices": mesh.GetCornerIndicesAttr().Get(time) or (),
+            "corner_sharpnesses": mesh.GetCornerSharpnessesAttr().Get(time) or (),
+            "boundary": str(mesh.GetInterpolateBoundaryAttr().Get(time)),
+        }
+        key = (
+            levels,
+            limit,
+            topology["point_count"],
+            np.asarray(counts).tobytes(),
+            np.asarray(indices).tobytes(),
+            *(np.asarray(value).tobytes() for name, value in tags.items() if name != "boundary"),
+            tags["boundary"],
+        )
+        cached = self._refinements.get(prim.GetPath())
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        # Faces the point count cannot hold are named as unsubdivided meshes name them.
+        triangle_corners(counts, indices, **topology)
+        try:
+            refinement = CatmullClark(
+                counts,
+                indices,
+                topology["point_count"],
+                levels,
+                limit=limit,
+                where=topology["where"],
+                **tags,
+            )
+        except SubdivisionError as error:
+            raise MeshError(str(error)) from error
+        _check_memory(refinement.point_count, 2 * len(refinement.faces), topology["where"])
+        self._refinements[prim.GetPath()] = (key, refinement)
+        return refinement
 
     def _cut_mesh(
         self,
@@ -472,11 +628,26 @@ class GeometryCollector:
         counts: object,
         indices: object,
         faces: npt.NDArray[np.int64],
-        topology: dict[str, object],
+        topology: dict[str, Any],
+        refinement: CatmullClark | None = None,
     ) -> _LocalMesh:
         """A mesh some of whose faces are cut: a point per triangle corner, with the
-        texture coordinates of the primvar its face's mask reads."""
-        corners, triangle_faces = triangle_corners(counts, indices, **topology)
+        texture coordinates of the primvar its face's mask reads (on a refined mesh,
+        refined linearly in each of the cage's faces)."""
+        corners, triangle_faces = triangle_corners(counts, indices, **topology, points=points)
+
+        def uvs_at(primvar: str, rows: npt.NDArray[np.bool_]) -> F64 | None:
+            if refinement is None:
+                return corner_uvs(
+                    prim, primvar, time, corners[rows], corner_points[rows], triangle_faces[rows]
+                )
+            cage = refined_uvs.get(primvar)
+            if primvar not in refined_uvs:
+                cage = self._refined_uvs(prim, primvar, time, refinement)
+                refined_uvs[primvar] = cage
+            return None if cage is None else cage[corners[rows]]
+
+        refined_uvs: dict[str, F64 | None] = {}
         corner_points = np.asarray(indices, dtype=np.int64).reshape(-1)[corners]
         masks = faces[triangle_faces]
         uvs = np.zeros((len(corners), 3, 2))
@@ -486,9 +657,7 @@ class GeometryCollector:
             if source.constant is not None:
                 continue  # one opacity everywhere: no coordinates to read
             primvar = source.primvar
-            values = corner_uvs(
-                prim, primvar, time, corners[rows], corner_points[rows], triangle_faces[rows]
-            )
+            values = uvs_at(primvar, rows)
             if values is None:
                 if primvar:
                     fallback = source.st_fallback
@@ -530,16 +699,34 @@ class GeometryCollector:
             split, triangles, uvs.reshape(-1, 2), masks, corner_points.reshape(-1), points
         )
 
+    @staticmethod
+    def _refined_uvs(
+        prim: Usd.Prim, primvar: str, time: Usd.TimeCode, refinement: CatmullClark
+    ) -> F64 | None:
+        """A primvar's values at the face-vertices of a mesh's refinement."""
+        mesh = UsdGeom.Mesh(prim)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time), dtype=np.int64)
+        indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time), dtype=np.int64)
+        corners = np.repeat(np.arange(len(indices))[:, None], 3, axis=1)
+        faces = np.repeat(np.arange(len(counts)), counts)
+        cage = corner_uvs(prim, primvar, time, corners, indices[corners], faces)
+        return None if cage is None else refinement.refine_face_varying(cage[:, 0])
+
     def _posed(self, prim: Usd.Prim, local: _LocalMesh, time: Usd.TimeCode) -> tuple[F64, Usd.Prim]:
         """The points of `local` as they render at `time`, and the prim whose space they
-        are in: skinned in their skeleton's, else as they are in the mesh's own."""
+        are in: skinned in their skeleton's, else as they are in the mesh's own. A
+        subdivided mesh's cage is posed and refined."""
         if not self._skinned.is_skinned(prim):
             return local.points, prim
         rest = local.points if local.unsplit is None else local.unsplit
+        if local.cage is not None:
+            rest = local.cage
         try:
             posed, space = self._skinned.posed_points(prim, rest, time)
         except SkinningError as error:
             raise MeshError(str(error)) from error
+        if local.refinement is not None:
+            posed = local.refinement.refine(posed)
         if local.corner_points is not None:
             posed = posed[local.corner_points]
         return posed, space
@@ -682,7 +869,9 @@ class GeometryCollector:
             geometry.masks = self._masks.masks()
         geometry.notes = list(self._masks.notes)
         if self._subdivided:
-            geometry.notes.append(_cage_note(self._subdivided))
+            geometry.notes.append(_cage_note(self._subdivided, CAGES_AT_LOW))
+        if self._loop:
+            geometry.notes.append(_cage_note(self._loop, LOOP_CAGES))
         return geometry
 
     @staticmethod

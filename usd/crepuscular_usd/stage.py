@@ -197,8 +197,11 @@ class StageReader:
         width: int | None = None,
         height: int | None = None,
         image: ImageSettings | None = None,
+        subdivision_levels: int = 0,
     ) -> None:
         self.stage = stage
+        #: Levels to refine Catmull-Clark meshes that do not name their own (0: cages).
+        self.subdivision_levels = subdivision_levels
         self.core_from_stage, self.meters_per_unit = core_from_stage(stage)
         self.image = image or ImageSettings()
         self.camera_prim = self._find_camera(camera_path)
@@ -303,7 +306,11 @@ class StageReader:
         if collector is None:
             skip = [extent_path] if extent_path is not None else []
             collector = GeometryCollector(
-                self.stage, self.core_from_stage, skip=skip, purposes=self.image.purposes
+                self.stage,
+                self.core_from_stage,
+                skip=skip,
+                purposes=self.image.purposes,
+                subdivision_levels=self.subdivision_levels,
             )
             self._collectors[extent_path] = collector
         camera = self.camera(time)

@@ -1,0 +1,591 @@
+"""Catmull-Clark subdivision of USD meshes, for stages whose meshes author it.
+
+A mesh whose `subdivisionScheme` is `catmullClark` (USD's fallback) describes the smooth
+surface its faces are the control cage of. This refines such a cage uniformly a number
+of levels by the rules OpenSubdiv applies to UsdGeomMesh: semi-sharp and infinitely sharp
+creases (`creaseIndices`, `creaseLengths`, `creaseSharpnesses`) and corners
+(`cornerIndices`, `cornerSharpnesses`) by the uniform crease method, non-manifold edges
+as infinitely sharp, `interpolateBoundary`, and `holeIndices` (hole faces shape their
+neighbours but are not drawn). The refined points are then moved to their limit
+positions, where the smooth surface passes (as Blender's Subdivision Surface modifier
+places them under its default *Use Limit Surface*); a point whose rule remains sharp
+takes the crease or corner limit.
+
+The refinement is built once per topology (`CatmullClark`) and applied to any points
+on it, so that animated or skinned meshes pose their cage and refine it each frame.
+Face-varying values (texture coordinates) are refined linearly in each face.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+#: Sharpness at or above which USD (and OpenSubdiv) take an edge or corner as sharp at
+#: every level.
+INFINITELY_SHARP = 10.0
+
+#: `interpolateBoundary` values.
+BOUNDARIES = ("none", "edgeOnly", "edgeAndCorner")
+
+SMOOTH, CREASE, CORNER = 0, 1, 2
+
+
+class SubdivisionError(ValueError):
+    """Subdivision tags that do not fit the mesh; the message names the mesh."""
+
+
+def _sum_by(index: I64, values: F64, length: int) -> F64:
+    """Rows of `values` summed into `length` rows by `index` (one bincount a column)."""
+    summed = np.empty((length, values.shape[1]))
+    for k in range(values.shape[1]):
+        summed[:, k] = np.bincount(index, weights=values[:, k], minlength=length)
+    return summed
+
+
+def _decremented(sharpness: F64) -> F64:
+    """The sharpness of an edge's or vertex's children (the uniform crease method)."""
+    return np.where(sharpness >= INFINITELY_SHARP, sharpness, np.maximum(sharpness - 1.0, 0.0))
+
+
+def _edge_keys(first: I64, second: I64) -> I64:
+    low, high = np.minimum(first, second), np.maximum(first, second)
+    return (low << 32) | high
+
+
+@dataclass(frozen=True)
+class _Topology:
+    """One level's faces and what its refinement reads of them."""
+
+    point_count: int
+    sizes: I64
+    #: Per face-vertex: its face, its point, the next and previous face-vertex in its face,
+    #: and the edge from it to the next.
+    corner_face: I64
+    corner_point: I64
+    corner_next: I64
+    corner_previous: I64
+    corner_edge: I64
+    #: Per edge: its two points, and how many faces it bounds.
+    edge_ends: I64
+    edge_faces: I64
+    edge_sharpness: F64
+    vertex_sharpness: F64
+    #: Per point: how many edges and faces meet there, and whether an edge of one face.
+    valence: I64
+    face_count: I64
+    on_boundary: npt.NDArray[np.bool_]
+
+    @property
+    def face_total(self) -> int:
+        return len(self.sizes)
+
+    @property
+    def edge_total(self) -> int:
+        return len(self.edge_ends)
+
+    def rules(self, edge_sharpness: F64, vertex_sharpness: F64) -> I64:
+        """Each point's rule for the given sharpness: a corner where it is sharp or more
+        than two sharp edges meet, a crease where two do, else smooth (one, a dart, is
+        smooth too)."""
+        sharp = edge_sharpness > 0.0
+        ends = self.edge_ends[sharp].reshape(-1)
+        count = np.bincount(ends, minlength=self.point_count)
+        rule = np.full(self.point_count, SMOOTH, dtype=np.int64)
+        rule[count == 2] = CREASE
+        rule[(count > 2) | (vertex_sharpness > 0.0)] = CORNER
+        # A point no face uses stays where it is.
+        rule[self.face_count == 0] = CORNER
+        return rule
+
+    def crease_neighbours(self, edge_sharpness: F64, points: F64) -> F64:
+        """Per point, the sum of the far ends of its sharp edges."""
+        sharp = self.edge_ends[edge_sharpness > 0.0]
+        return _sum_by(sharp[:, 0], points[sharp[:, 1]], self.point_count) + _sum_by(
+            sharp[:, 1], points[sharp[:, 0]], self.point_count
+        )
+
+
+def _topology(
+    sizes: I64,
+    indices: I64,
+    point_count: int,
+    sharp_keys: I64,
+    sharp_values: F64,
+    vertex_sharpness: F64,
+    boundary: str,
+) -> _Topology:
+    starts = np.cumsum(sizes) - sizes
+    corner_face = np.repeat(np.arange(len(sizes)), sizes)
+    position = np.arange(len(indices)) - starts[corner_face]
+    corner_next = starts[corner_face] + (position + 1) % sizes[corner_face]
+    corner_previous = starts[corner_face] + (position - 1) % sizes[corner_face]
+    keys = _edge_keys(indices, indices[corner_next])
+    unique, corner_edge = np.unique(keys, return_inverse=True)
+    corner_edge = corner_edge.reshape(-1)
+    edge_ends = np.stack([unique >> 32, unique & 0xFFFFFFFF], axis=1)
+    edge_faces = np.bincount(corner_edge, minlength=len(unique))
+    edge_sharpness = np.zeros(len(unique))
+    if len(sharp_keys):
+        found = np.searchsorted(unique, sharp_keys)
+        found = np.minimum(found, max(len(unique) - 1, 0))
+        hit = (unique[found] == sharp_keys) if len(unique) else np.zeros(0, dtype=bool)
+        np.maximum.at(edge_sharpness, found[hit], sharp_values[hit])
+    # Boundary and non-manifold edges are infinitely sharp (with boundary "none" too:
+    # the faces there are dropped, and this keeps their neighbours' rules defined).
+    edge_sharpness[edge_faces != 2] = INFINITELY_SHARP
+    valence = np.bincount(edge_ends.reshape(-1), minlength=point_count)
+    face_count = np.bincount(indices, minlength=point_count)
+    vertex_sharpness = vertex_sharpness.copy()
+    on_boundary = np.zeros(point_count, dtype=bool)
+    on_boundary[edge_ends[edge_faces == 1].reshape(-1)] = True
+    if boundary == "edgeAndCorner":
+        vertex_sharpness[on_boundary & (face_count == 1)] = INFINITELY_SHARP
+    return _Topology(
+        point_count=point_count,
+        sizes=sizes,
+        corner_face=corner_face,
+        corner_point=indices,
+        corner_next=corner_next,
+        corner_previous=corner_previous,
+        corner_edge=corner_edge,
+        edge_ends=edge_ends,
+        edge_faces=edge_faces,
+        edge_sharpness=edge_sharpness,
+        vertex_sharpness=vertex_sharpness,
+        valence=valence,
+        face_count=face_count,
+        on_boundary=on_boundary,
+    )
+
+
+@dataclass(frozen=True)
+class _Step:
+    """One level of refinement, as weights precomputed from its topology."""
+
+    topology: _Topology
+    #: Per edge, how much of its point is the edge's midpoint rather than the smooth rule.
+    edge_sharp_weight: F64
+    #: Per point, the weights of its smooth, crease and corner rules (rows sum to 1), and
+    #: the sharpness that selects each crease rule's neighbours (parent's, child's).
+    rule_weights: F64
+    parent_sharpness: F64
+    child_sharpness: F64
+    #: Per point, whether its crease rule is the parent's (else the child's).
+    parent_creases: npt.NDArray[np.bool_]
+
+    def points(self, points: F64) -> F64:
+        top = self.topology
+        e0, e1 = top.edge_ends[:, 0], top.edge_ends[:, 1]
+        face_points = _sum_by(top.corner_face, points[top.corner_point], top.face_total)
+        face_points /= top.sizes[:, None]
+        midpoints = 0.5 * (points[e0] + points[e1])
+        around = _sum_by(top.corner_edge, face_points[top.corner_face], top.edge_total)
+        smooth_edges = (points[e0] + points[e1] + around) / (2 + top.edge_faces)[:, None]
+        w = self.edge_sharp_weight[:, None]
+        edge_points = w * midpoints + (1.0 - w) * smooth_edges
+        n = np.maximum(top.valence, 1)[:, None].astype(np.float64)
+        faces_mean = _sum_by(top.corner_point, face_points[top.corner_face], top.point_count)
+        faces_mean /= np.maximum(top.face_count, 1)[:, None]
+        edges_mean = _sum_by(e0, midpoints, top.point_count) + _sum_by(
+            e1, midpoints, top.point_count
+        )
+        edges_mean /= n
+        smooth = (faces_mean + 2.0 * edges_mean + (n - 3.0) * points) / n
+        weights = self.rule_weights
+        vertex_points = weights[:, SMOOTH, None] * smooth + weights[:, CORNER, None] * points
+        creasing = weights[:, CREASE] > 0.0
+        if creasing.any():
+            # The crease rule reads the edges sharp in whichever of parent and child takes it.
+            ends = np.where(
+                self.parent_creases[:, None],
+                top.crease_neighbours(self.parent_sharpness, points),
+                top.crease_neighbours(self.child_sharpness, points),
+            )
+            crease = (ends + 6.0 * points) / 8.0
+            vertex_points += weights[:, CREASE, None] * crease
+        return np.concatenate([vertex_points, edge_points, face_points])
+
+
+def _fraction(
+    top: _Topology,
+    parent_edges: F64,
+    child_edges: F64,
+    child_vertices: F64,
+    parent_rule: I64,
+    child_rule: I64,
+) -> F64:
+    """Per point, the weight of the parent's rule where it differs from the child's: as
+    OpenSubdiv blends them, the mean sharpness of the edges and corner that turn smooth
+    (at most 1)."""
+    parent_vertices = top.vertex_sharpness
+    transitions = (parent_edges > 0.0) & (child_edges <= 0.0)
+    ends = top.edge_ends[transitions].reshape(-1)
+    total = np.bincount(
+        ends, weights=np.repeat(parent_edges[transitions], 2), minlength=top.point_count
+    ).astype(np.float64)
+    count = np.bincount(ends, minlength=top.point_count).astype(np.float64)
+    turning = (parent_vertices > 0.0) & (child_vertices <= 0.0)
+    total += np.where(turning, parent_vertices, 0.0)
+    count += turning
+    fraction = np.minimum(np.divide(total, count, out=np.zeros_like(total), where=count > 0), 1.0)
+    return np.where(parent_rule == child_rule, 1.0, fraction)
+
+
+def _step(top: _Topology) -> _Step:
+    parent_edges = top.edge_sharpness
+    child_edges = _decremented(parent_edges)
+    parent_vertices = top.vertex_sharpness
+    child_vertices = _decremented(parent_vertices)
+    parent_rule = top.rules(parent_edges, parent_vertices)
+    child_rule = top.rules(child_edges, child_vertices)
+    fraction = _fraction(top, parent_edges, child_edges, child_vertices, parent_rule, child_rule)
+    weights = np.zeros((top.point_count, 3))
+    rows = np.arange(top.point_count)
+    weights[rows, parent_rule] += fraction
+    weights[rows, child_rule] += 1.0 - fraction
+    return _Step(
+        topology=top,
+        edge_sharp_weight=np.minimum(parent_edges, 1.0),
+        rule_weights=weights,
+        parent_sharpness=parent_edges,
+        child_sharpness=child_edges,
+        parent_creases=parent_rule == CREASE,
+    )
+
+
+def _child_order(top: _Topology) -> I64:
+    """Where each refined face's corners come from among (its parent face-vertex's point,
+    the edge after it, the face, the edge before it), as positions in that list of four
+    per face-vertex. A quad's children keep its orientation, so that each quad of the
+    cage refines to a grid whose diagonals all run alike, as Blender's do: the child at
+    corner k starts at its corner nearest the quad's first (a face of another size starts
+    each child at its own corner)."""
+    starts = np.cumsum(top.sizes) - top.sizes
+    position = np.arange(len(top.corner_point)) - starts[top.corner_face]
+    turn = np.where(top.sizes[top.corner_face] == 4, (4 - position) % 4, 0)
+    return (4 * np.arange(len(turn))[:, None] + (np.arange(4) + turn[:, None]) % 4).reshape(-1)
+
+
+def _children(top: _Topology) -> tuple[I64, I64, F64, F64]:
+    """One level's refined faces (a quad per face-vertex, in face-vertex order, its
+    corners as `_child_order` turns them; points numbered vertices, then edges, then
+    faces), the sharp edges among them as keys with their sharpness, and every refined
+    point's own sharpness."""
+    p, e = top.point_count, top.edge_total
+    indices = np.stack(
+        [
+            top.corner_point,
+            p + top.corner_edge,
+            p + e + top.corner_face,
+            p + top.corner_edge[top.corner_previous],
+        ],
+        axis=1,
+    ).reshape(-1)[_child_order(top)]
+    # Each edge's halves keep its sharpness, less a level.
+    child = _decremented(top.edge_sharpness)
+    sharp = np.flatnonzero(child > 0.0)
+    ends = top.edge_ends[sharp]
+    keys = np.concatenate([_edge_keys(ends[:, 0], p + sharp), _edge_keys(ends[:, 1], p + sharp)])
+    sharpness = np.concatenate([child[sharp], child[sharp]])
+    vertex_sharpness = np.concatenate(
+        [_decremented(top.vertex_sharpness), np.zeros(e + top.face_total)]
+    )
+    return indices, keys, sharpness, vertex_sharpness
+
+
+#: Levels past a mesh's own over which a dart (a point where a single sharp edge ends)
+#: is followed to its limit: the smooth rule's limit position is not its own, and what
+#: is left of the difference halves about every level (1.5·10⁻⁷ of a cube of side 2 after
+#: these).
+DART_LEVELS = 14
+
+
+def _inexact(top: _Topology) -> npt.NDArray[np.bool_]:
+    """The points whose limit the smooth, crease or corner positions do not give: darts,
+    and points whose own or edges' sharpness is semi-sharp (not 0 nor infinite), unless
+    they stay corners at every level."""
+    sharp = top.edge_sharpness > 0.0
+    infinite = top.edge_sharpness >= INFINITELY_SHARP
+    count = np.bincount(top.edge_ends[sharp].reshape(-1), minlength=top.point_count)
+    finite = np.bincount(top.edge_ends[sharp & ~infinite].reshape(-1), minlength=top.point_count)
+    vertex = top.vertex_sharpness
+    smooth = (count == 0) & (vertex <= 0.0)
+    corner = (vertex >= INFINITELY_SHARP) | ((count - finite) > 2)
+    crease = (count == 2) & (finite == 0) & (vertex <= 0.0)
+    return ~(smooth | corner | crease) & (top.face_count > 0)
+
+
+def _ring_limits(top: _Topology, points: F64, chosen: I64, boundary: str) -> F64:
+    """The limit positions of the `chosen` points, each refined on its own with the faces
+    around it: a point's ring of faces at one level refines to its ring at the next, so
+    each level keeps only the child faces at the point's own corners."""
+    corners = np.flatnonzero(np.isin(top.corner_point, chosen))
+    owner = np.searchsorted(chosen, top.corner_point[corners])
+    # The ring faces' points, a copy per chosen point: (owner, point) numbered anew.
+    face_corners = top.corner_face[corners]
+    starts = np.cumsum(top.sizes) - top.sizes
+    quads = top.corner_point[starts[face_corners][:, None] + np.arange(4)]
+    # Each ring face starts at its owner's corner, so that its child there comes first.
+    turn = (corners - starts[face_corners])[:, None]
+    quads = np.take_along_axis(quads, (np.arange(4) + turn) % 4, axis=1)
+    pairs = owner[:, None] * top.point_count + quads
+    unique, local = np.unique(pairs, return_inverse=True)
+    local = local.reshape(-1, 4)
+    ring_points = points[unique % top.point_count]
+    centre = np.searchsorted(unique, np.arange(len(chosen)) * top.point_count + chosen)
+    edge_keys = _edge_keys(top.edge_ends[:, 0], top.edge_ends[:, 1])
+    a, b = local, np.roll(local, -1, axis=1)
+    ring_a, ring_b = unique[a] % top.point_count, unique[b] % top.point_count
+    found = np.searchsorted(edge_keys, _edge_keys(ring_a, ring_b).reshape(-1))
+    keys = _edge_keys(a, b).reshape(-1)
+    sharpness = top.edge_sharpness[found]
+    vertex_sharpness = np.zeros(len(unique))
+    vertex_sharpness[centre] = top.vertex_sharpness[chosen]
+    finite = sharpness[(sharpness > 0.0) & (sharpness < INFINITELY_SHARP)]
+    levels = DART_LEVELS + int(np.ceil(finite.max(initial=0.0)))
+    indices = local.reshape(-1)
+    level = 0
+    while True:
+        ring = _topology(
+            np.full(len(indices) // 4, 4, dtype=np.int64),
+            indices,
+            len(ring_points),
+            keys,
+            sharpness,
+            vertex_sharpness,
+            boundary,
+        )
+        if level == levels:
+            return _limit(ring, ring_points)[centre]
+        level += 1
+        ring_points = _step(ring).points(ring_points)
+        children, keys, sharpness, vertex_sharpness = _children(ring)
+        # The child at each face's first corner, the owner's, and its points.
+        kept = children.reshape(-1, 4)[_first_corners(ring)]
+        used, indices = np.unique(kept, return_inverse=True)
+        indices = indices.reshape(-1)
+        renumber = np.full(len(ring_points), -1, dtype=np.int64)
+        renumber[used] = np.arange(len(used))
+        ring_points, vertex_sharpness = ring_points[used], vertex_sharpness[used]
+        ends = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
+        mapped = renumber[ends]
+        keep = (mapped >= 0).all(axis=1)
+        keys = _edge_keys(mapped[keep, 0], mapped[keep, 1])
+        sharpness = sharpness[keep]
+        centre = renumber[centre]
+
+
+def _first_corners(top: _Topology) -> npt.NDArray[np.bool_]:
+    """Each face's first face-vertex."""
+    first = np.zeros(len(top.corner_point), dtype=bool)
+    first[np.cumsum(top.sizes) - top.sizes] = True
+    return first
+
+
+def _limit(top: _Topology, points: F64) -> F64:
+    """The limit positions of the points of an all-quad mesh (one refined at least once),
+    by the rule each point's sharpness gives it: exact where it keeps that rule at every
+    level (`_inexact` says where not)."""
+    quads = top.corner_point.reshape(-1, 4)
+    diagonal = quads[:, [2, 3, 0, 1]].reshape(-1)
+    e0, e1 = top.edge_ends[:, 0], top.edge_ends[:, 1]
+    neighbours = _sum_by(e0, points[e1], top.point_count) + _sum_by(e1, points[e0], top.point_count)
+    across = _sum_by(top.corner_point, points[diagonal], top.point_count)
+    n = np.maximum(top.valence, 1)[:, None].astype(np.float64)
+    limits = (n * n * points + 4.0 * neighbours + across) / (n * (n + 5.0))
+    rule = top.rules(top.edge_sharpness, top.vertex_sharpness)
+    crease = rule == CREASE
+    if crease.any():
+        ends = top.crease_neighbours(top.edge_sharpness, points)
+        limits[crease] = (ends[crease] + 4.0 * points[crease]) / 6.0
+    corner = rule == CORNER
+    limits[corner] = points[corner]
+    return limits
+
+
+def _tags(
+    counts: I64,
+    indices: I64,
+    point_count: int,
+    crease_indices: Sequence[int] | npt.ArrayLike,
+    crease_lengths: Sequence[int] | npt.ArrayLike,
+    crease_sharpnesses: Sequence[float] | npt.ArrayLike,
+    corner_indices: Sequence[int] | npt.ArrayLike,
+    corner_sharpnesses: Sequence[float] | npt.ArrayLike,
+    where: str,
+) -> tuple[I64, F64, F64]:
+    """The creases as edge keys with their sharpness, and each point's corner sharpness."""
+    chain = np.asarray(crease_indices, dtype=np.int64).reshape(-1)
+    lengths = np.asarray(crease_lengths, dtype=np.int64).reshape(-1)
+    sharpness = np.asarray(crease_sharpnesses, dtype=np.float64).reshape(-1)
+    if np.any(lengths < 2) or int(lengths.sum()) != len(chain):
+        raise SubdivisionError(
+            f"{where}: creaseLengths ({lengths.tolist()[:8]}) must each be 2 or more and sum "
+            f"to the {len(chain)} creaseIndices"
+        )
+    edges_per_crease = lengths - 1
+    if len(sharpness) == len(lengths):
+        sharpness = np.repeat(sharpness, edges_per_crease)
+    elif len(sharpness) != int(edges_per_crease.sum()):
+        raise SubdivisionError(
+            f"{where}: creaseSharpnesses has {len(sharpness)} values; give one per crease "
+            f"({len(lengths)}) or one per crease edge ({int(edges_per_crease.sum())})"
+        )
+    if len(chain) and (chain.min() < 0 or chain.max() >= point_count):
+        raise SubdivisionError(f"{where}: creaseIndices reach past the {point_count} points")
+    last = np.cumsum(lengths) - 1
+    starts = np.ones(len(chain), dtype=bool)
+    starts[last] = False
+    first = np.flatnonzero(starts)
+    keys = _edge_keys(chain[first], chain[first + 1]) if len(chain) else np.zeros(0, np.int64)
+    vertex_sharpness = np.zeros(point_count)
+    corners = np.asarray(corner_indices, dtype=np.int64).reshape(-1)
+    corner_values = np.asarray(corner_sharpnesses, dtype=np.float64).reshape(-1)
+    if len(corners) != len(corner_values):
+        raise SubdivisionError(
+            f"{where}: {len(corners)} cornerIndices but {len(corner_values)} cornerSharpnesses"
+        )
+    if len(corners) and (corners.min() < 0 or corners.max() >= point_count):
+        raise SubdivisionError(f"{where}: cornerIndices reach past the {point_count} points")
+    np.maximum.at(vertex_sharpness, corners, np.nan_to_num(corner_values))
+    return keys, np.nan_to_num(sharpness), vertex_sharpness
+
+
+class CatmullClark:
+    """A cage's topology refined `levels` times: the refined faces (all quads, holes and
+    faces of fewer than three points left out), each one's face in the cage, and the
+    means to refine points and face-varying values on it."""
+
+    def __init__(
+        self,
+        face_vertex_counts: npt.ArrayLike,
+        face_vertex_indices: npt.ArrayLike,
+        point_count: int,
+        levels: int,
+        *,
+        hole_indices: npt.ArrayLike = (),
+        crease_indices: npt.ArrayLike = (),
+        crease_lengths: npt.ArrayLike = (),
+        crease_sharpnesses: npt.ArrayLike = (),
+        corner_indices: npt.ArrayLike = (),
+        corner_sharpnesses: npt.ArrayLike = (),
+        boundary: str = "edgeAndCorner",
+        limit: bool = True,
+        where: str = "mesh",
+    ) -> None:
+        if levels < 1:
+            raise SubdivisionError(f"{where}: refine at least one level, not {levels}")
+        if boundary not in BOUNDARIES:
+            raise SubdivisionError(
+                f"{where}: interpolateBoundary '{boundary}' is not one of {', '.join(BOUNDARIES)}"
+            )
+        counts = np.asarray(face_vertex_counts, dtype=np.int64).reshape(-1)
+        indices = np.asarray(face_vertex_indices, dtype=np.int64).reshape(-1)
+        if np.any(counts < 0) or int(counts.sum()) != len(indices):
+            raise SubdivisionError(
+                f"{where}: faceVertexCounts sum to {int(counts.sum())} but faceVertexIndices "
+                f"has {len(indices)} entries"
+            )
+        if len(indices) and (indices.min() < 0 or indices.max() >= point_count):
+            raise SubdivisionError(
+                f"{where}: faceVertexIndices reach past the {point_count} points"
+            )
+        # Faces of fewer than three points bound nothing; their corners are dropped, and
+        # the face-varying values with them.
+        kept_faces = np.flatnonzero(counts >= 3)
+        kept_corners = np.repeat(counts >= 3, counts)
+        sizes, indices = counts[kept_faces], indices[kept_corners]
+        holes = np.zeros(len(counts), dtype=bool)
+        hole_list = np.asarray(hole_indices, dtype=np.int64).reshape(-1)
+        holes[hole_list[(hole_list >= 0) & (hole_list < len(counts))]] = True
+        holes = holes[kept_faces]
+        keys, sharpness, vertex_sharpness = _tags(
+            counts,
+            indices,
+            point_count,
+            crease_indices,
+            crease_lengths,
+            crease_sharpnesses,
+            corner_indices,
+            corner_sharpnesses,
+            where,
+        )
+        self._kept_corners = kept_corners
+        self._steps: list[_Step] = []
+        faces = kept_faces
+        count = point_count
+        for level in range(levels):
+            top = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
+            if level == 0 and boundary == "none":
+                # No boundary interpolation: faces with a point on the boundary have no
+                # limit surface, and draw as holes.
+                holes = holes | np.bincount(
+                    top.corner_face, weights=top.on_boundary[indices], minlength=len(sizes)
+                ).astype(bool)
+            step = _step(top)
+            self._steps.append(step)
+            indices, keys, sharpness, vertex_sharpness = _children(top)
+            faces = faces[top.corner_face]
+            holes = holes[top.corner_face]
+            sizes = np.full(len(indices) // 4, 4, dtype=np.int64)
+            count = top.point_count + top.edge_total + top.face_total
+        self._final = (
+            _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
+            if limit
+            else None
+        )
+        self._boundary = boundary
+        #: The refined points whose limit is followed further around them.
+        self._inexact = (
+            np.flatnonzero(_inexact(self._final)) if self._final is not None else np.zeros(0, int)
+        )
+        drawn = ~holes
+        self.point_count = count
+        #: The refined faces (quads) that draw, and each one's face in the cage.
+        self.face_vertex_indices = indices.reshape(-1, 4)[drawn].reshape(-1)
+        self.face_vertex_counts = np.full(int(drawn.sum()), 4, dtype=np.int64)
+        self.faces = faces[drawn]
+        self._drawn_corners = np.repeat(drawn, 4)
+
+    def refine(self, points: npt.ArrayLike) -> F64:
+        """The refined points of a cage's `points` (on the limit surface unless built
+        without it)."""
+        refined = np.asarray(points, dtype=np.float64)
+        if refined.ndim != 2:
+            refined = refined.reshape(len(refined), -1)
+        for step in self._steps:
+            refined = step.points(refined)
+        if self._final is not None:
+            limits = _limit(self._final, refined)
+            if len(self._inexact):
+                limits[self._inexact] = _ring_limits(
+                    self._final, refined, self._inexact, self._boundary
+                )
+            refined = limits
+        return refined
+
+    def refine_face_varying(self, values: npt.ArrayLike) -> F64:
+        """Values per face-vertex of the cage refined linearly in each face: one row per
+        face-vertex of the drawn refined faces."""
+        refined = np.asarray(values, dtype=np.float64)
+        refined = refined.reshape(len(refined), -1)[self._kept_corners]
+        for step in self._steps:
+            top = step.topology
+            centres = _sum_by(top.corner_face, refined, top.face_total) / top.sizes[:, None]
+            refined = np.stack(
+                [
+                    refined,
+                    0.5 * (refined + refined[top.corner_next]),
+                    centres[top.corner_face],
+                    0.5 * (refined + refined[top.corner_previous]),
+                ],
+                axis=1,
+            ).reshape(-1, refined.shape[1])[_child_order(top)]
+        return refined[self._drawn_corners]
