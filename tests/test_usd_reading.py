@@ -101,6 +101,28 @@ def test_polygons_fan_triangulate_and_skip_holes_and_degenerate_faces() -> None:
     assert flipped.tolist() == [[a, c, b] for a, b, c in expected]
 
 
+def test_quads_folded_along_their_first_diagonal_split_along_the_other() -> None:
+    """As Blender splits them: a quad whose fan triangles face opposite ways (concave at
+    its second corner here) splits along its other diagonal, one that is not keeps the
+    fan; a skinned mesh's quads split again by where its posed points put them."""
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    dented = square.copy()
+    dented[1] = [0.8, 0.9, 0.0]  # past the diagonal from the first corner
+    counts, indices = [4, 3], [0, 1, 2, 3, 0, 1, 2]
+    fan = [[0, 1, 2], [0, 2, 3], [0, 1, 2]]
+    assert triangulate(counts, indices, points=square).tolist() == fan
+    assert triangulate(counts, indices).tolist() == fan
+    split = [[0, 1, 3], [1, 2, 3], [0, 1, 2]]
+    assert triangulate(counts, indices, points=dented).tolist() == split
+    mirrored = triangulate(counts, indices, left_handed=True, points=dented)
+    assert mirrored.tolist() == [[a, c, b] for a, b, c in split]
+    _, faces = crepuscular_usd.geometry.triangle_corners(counts, indices)
+    quads = crepuscular_usd.geometry._Quads.of(counts, np.array(indices), faces, False)
+    rest = triangulate(counts, indices, points=square)
+    assert quads.split(rest, dented).tolist() == split
+    assert quads.split(quads.split(rest, dented), square).tolist() == fan
+
+
 def test_inconsistent_topology_names_the_mesh() -> None:
     with pytest.raises(MeshError, match="/World/bad: faceVertexCounts sum to 4"):
         triangulate([4], [0, 1, 2], where="/World/bad")

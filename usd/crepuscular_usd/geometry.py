@@ -129,6 +129,12 @@ def triangle_corners(
     return np.stack([first, second, third], axis=1), face
 
 
+def _folded(quads: F64) -> npt.NDArray[np.bool_]:
+    """Which of the (Q, 4, 3) quads have fan triangles that face opposite ways."""
+    a, b, c, d = (quads[:, k] for k in range(4))
+    return np.einsum("ij,ij->i", np.cross(b - a, c - a), np.cross(d - a, c - a)) > 0.0
+
+
 def _split_folded_quads(
     points: F64,
     indices: npt.NDArray[np.int64],
@@ -145,8 +151,7 @@ def _split_folded_quads(
     starts = first[(counts == 4) & (corner == 0)]
     if not len(starts) or len(indices) == 0 or indices.max() >= len(points):
         return
-    a, b, c, d = (points[indices[starts + k]] for k in range(4))
-    folded = np.einsum("ij,ij->i", np.cross(b - a, c - a), np.cross(d - a, c - a)) > 0.0
+    folded = _folded(points[indices[starts[:, None] + np.arange(4)]])
     if not folded.any():
         return
     rows = np.flatnonzero((counts == 4) & (corner == 0))[folded]
@@ -179,10 +184,51 @@ class _LocalMesh:
     #: A subdivided mesh: its cage's points (which skinning poses) and their refinement.
     cage: F64 | None = None
     refinement: CatmullClark | None = None
+    #: A skinned mesh's quads, whose diagonals are chosen again once it is posed.
+    quads: _Quads | None = None
     #: Per triangle, `crepuscular.BLOCKS_SUN`, `SEEN_BY_CAMERA`, both or neither where the
     #: triangles are drawn per view: (T,) for every placement (strand ribbons), or (K, T),
     #: a row per placement (points' spheres, culled as each placement sees them). None: both.
     visibility: npt.NDArray[np.uint8] | None = None
+
+
+@dataclass(frozen=True)
+class _Quads:
+    """The quads of a triangulated mesh: each one's first triangle's row and its four
+    points, so that a posed mesh can split its quads by Blender's rule again
+    (`_split_folded_quads`), as Blender splits the deformed mesh."""
+
+    rows: npt.NDArray[np.int64]
+    points: npt.NDArray[np.int64]
+    left_handed: bool
+
+    @staticmethod
+    def of(
+        counts: object,
+        indices: npt.NDArray[np.int64],
+        triangle_faces: npt.NDArray[np.int64],
+        left_handed: bool,
+    ) -> _Quads | None:
+        sizes = np.asarray(counts, dtype=np.int64).reshape(-1)
+        first = np.ones(len(triangle_faces), dtype=bool)
+        first[1:] = triangle_faces[1:] != triangle_faces[:-1]
+        rows = np.flatnonzero(first & (sizes[triangle_faces] == 4))
+        if not len(rows):
+            return None
+        starts = (np.cumsum(sizes) - sizes)[triangle_faces[rows]]
+        return _Quads(rows, indices[starts[:, None] + np.arange(4)], left_handed)
+
+    def split(self, triangles: npt.NDArray[np.uint32], points: F64) -> npt.NDArray[np.uint32]:
+        """`triangles` with each quad split by Blender's rule on `points`."""
+        folded = _folded(points[self.points])
+        p = self.points
+        first = np.where(folded[:, None], p[:, [0, 1, 3]], p[:, [0, 1, 2]])
+        second = np.where(folded[:, None], p[:, [1, 2, 3]], p[:, [0, 2, 3]])
+        if self.left_handed:
+            first, second = first[:, [0, 2, 1]], second[:, [0, 2, 1]]
+        split = triangles.copy()
+        split[self.rows], split[self.rows + 1] = first, second
+        return split
 
 
 @dataclass
@@ -530,7 +576,11 @@ class GeometryCollector:
             if faces is not None:
                 faces = faces[refinement.faces]
         if faces is None:
-            local = _LocalMesh(points, triangulate(counts, indices, **topology, points=points))
+            corners, triangle_faces = triangle_corners(counts, indices, **topology, points=points)
+            flat = np.asarray(indices, dtype=np.int64).reshape(-1)
+            local = _LocalMesh(points, flat[corners].astype(np.uint32))
+            if self._skinned.is_skinned(prim):
+                local.quads = _Quads.of(counts, flat, triangle_faces, topology["left_handed"])
         else:
             local = self._cut_mesh(prim, time, points, counts, indices, faces, topology, refinement)
         if refinement is not None:
@@ -712,12 +762,14 @@ class GeometryCollector:
         cage = corner_uvs(prim, primvar, time, corners, indices[corners], faces)
         return None if cage is None else refinement.refine_face_varying(cage[:, 0])
 
-    def _posed(self, prim: Usd.Prim, local: _LocalMesh, time: Usd.TimeCode) -> tuple[F64, Usd.Prim]:
-        """The points of `local` as they render at `time`, and the prim whose space they
-        are in: skinned in their skeleton's, else as they are in the mesh's own. A
-        subdivided mesh's cage is posed and refined."""
+    def _posed(
+        self, prim: Usd.Prim, local: _LocalMesh, time: Usd.TimeCode
+    ) -> tuple[_LocalMesh, Usd.Prim]:
+        """`local` as it renders at `time`, and the prim whose space its points are in:
+        skinned in their skeleton's (a subdivided mesh's cage posed, then refined; quads
+        split again as they fold once posed), else as it is in the mesh's own."""
         if not self._skinned.is_skinned(prim):
-            return local.points, prim
+            return local, prim
         rest = local.points if local.unsplit is None else local.unsplit
         if local.cage is not None:
             rest = local.cage
@@ -729,7 +781,10 @@ class GeometryCollector:
             posed = local.refinement.refine(posed)
         if local.corner_points is not None:
             posed = posed[local.corner_points]
-        return posed, space
+        triangles = local.triangles
+        if local.quads is not None:
+            triangles = local.quads.split(triangles, posed)
+        return _LocalMesh(posed, triangles, local.uvs, local.masks), space
 
     def _view_groups(
         self, local: _LocalMesh, rows: F64
@@ -836,7 +891,7 @@ class GeometryCollector:
                     local = self._local_mesh(prim, time)
                     if local is None or len(local.triangles) == 0:
                         continue
-                    points, space = self._posed(prim, local, time)
+                    posed, space = self._posed(prim, local, time)
                 except MeshError as error:
                     invalid.append(str(error))
                     continue
@@ -846,9 +901,14 @@ class GeometryCollector:
                     invalid.append(f"{prim.GetPath()}: its transform: USD: {tf_message(error)}")
                     continue
                 [(local, _)] = self._view_groups(local, world_row[None])
-                placed_points = _transform(local.points if local.per_view else points, world_row)
+                if not local.per_view:
+                    local = posed
                 chunk = _Chunk(
-                    prim.GetPath(), placed_points, local.triangles, local.uvs, local.masks
+                    prim.GetPath(),
+                    _transform(local.points, world_row),
+                    local.triangles,
+                    local.uvs,
+                    local.masks,
                 )
                 if local.visibility is not None:
                     chunk.visibility = local.visibility.reshape(-1)
@@ -933,9 +993,7 @@ class GeometryCollector:
                 prims.PruneChildren()
                 local = self._local_mesh(prim, time)
                 if local is not None and len(local.triangles):
-                    points, space = self._posed(prim, local, time)
-                    if points is not local.points:
-                        local = _LocalMesh(points, local.triangles, local.uvs, local.masks)
+                    local, space = self._posed(prim, local, time)
                     relative, _ = xforms.ComputeRelativeTransform(space, parent)
                     found.append((prim.GetPath(), local, row_matrix(relative)[None]))
                 continue
