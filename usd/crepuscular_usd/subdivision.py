@@ -322,64 +322,69 @@ def _inexact(top: _Topology) -> npt.NDArray[np.bool_]:
     return ~(smooth | corner | crease) & (top.face_count > 0)
 
 
-def _ring_limits(top: _Topology, points: F64, chosen: I64, boundary: str) -> F64:
-    """The limit positions of the `chosen` points, each refined on its own with the faces
-    around it: a point's ring of faces at one level refines to its ring at the next, so
-    each level keeps only the child faces at the point's own corners."""
-    corners = np.flatnonzero(np.isin(top.corner_point, chosen))
-    owner = np.searchsorted(chosen, top.corner_point[corners])
-    # The ring faces' points, a copy per chosen point: (owner, point) numbered anew.
-    face_corners = top.corner_face[corners]
-    starts = np.cumsum(top.sizes) - top.sizes
-    quads = top.corner_point[starts[face_corners][:, None] + np.arange(4)]
-    # Each ring face starts at its owner's corner, so that its child there comes first.
-    turn = (corners - starts[face_corners])[:, None]
-    quads = np.take_along_axis(quads, (np.arange(4) + turn) % 4, axis=1)
-    pairs = owner[:, None] * top.point_count + quads
-    unique, local = np.unique(pairs, return_inverse=True)
-    local = local.reshape(-1, 4)
-    ring_points = points[unique % top.point_count]
-    centre = np.searchsorted(unique, np.arange(len(chosen)) * top.point_count + chosen)
-    edge_keys = _edge_keys(top.edge_ends[:, 0], top.edge_ends[:, 1])
-    a, b = local, np.roll(local, -1, axis=1)
-    ring_a, ring_b = unique[a] % top.point_count, unique[b] % top.point_count
-    found = np.searchsorted(edge_keys, _edge_keys(ring_a, ring_b).reshape(-1))
-    keys = _edge_keys(a, b).reshape(-1)
-    sharpness = top.edge_sharpness[found]
-    vertex_sharpness = np.zeros(len(unique))
-    vertex_sharpness[centre] = top.vertex_sharpness[chosen]
-    finite = sharpness[(sharpness > 0.0) & (sharpness < INFINITELY_SHARP)]
-    levels = DART_LEVELS + int(np.ceil(finite.max(initial=0.0)))
-    indices = local.reshape(-1)
-    level = 0
-    while True:
-        ring = _topology(
-            np.full(len(indices) // 4, 4, dtype=np.int64),
-            indices,
-            len(ring_points),
-            keys,
-            sharpness,
-            vertex_sharpness,
-            boundary,
-        )
-        if level == levels:
-            return _limit(ring, ring_points)[centre]
-        level += 1
-        ring_points = _step(ring).points(ring_points)
-        children, keys, sharpness, vertex_sharpness = _children(ring)
-        # The child at each face's first corner, the owner's, and its points.
-        kept = children.reshape(-1, 4)[_first_corners(ring)]
-        used, indices = np.unique(kept, return_inverse=True)
-        indices = indices.reshape(-1)
-        renumber = np.full(len(ring_points), -1, dtype=np.int64)
-        renumber[used] = np.arange(len(used))
-        ring_points, vertex_sharpness = ring_points[used], vertex_sharpness[used]
-        ends = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)
-        mapped = renumber[ends]
-        keep = (mapped >= 0).all(axis=1)
-        keys = _edge_keys(mapped[keep, 0], mapped[keep, 1])
-        sharpness = sharpness[keep]
-        centre = renumber[centre]
+@dataclass(frozen=True)
+class _Rings:
+    """How to follow chosen points to their limits, built once per topology: each point
+    refined on its own with the faces around it (a point's ring of faces at one level
+    refines to its ring at the next, so each level keeps only the child faces at the
+    point's own corners)."""
+
+    #: The mesh's point behind each ring point, and per level its step and the refined
+    #: ring points it keeps; the last level's topology and the chosen points' places.
+    sources: I64
+    steps: list[tuple[_Step, I64]]
+    final: _Topology
+    centres: I64
+
+    @staticmethod
+    def around(top: _Topology, chosen: I64, boundary: str) -> _Rings:
+        corners = np.flatnonzero(np.isin(top.corner_point, chosen))
+        owner = np.searchsorted(chosen, top.corner_point[corners])
+        # The ring faces' points, a copy per chosen point: (owner, point) numbered anew.
+        face_corners = top.corner_face[corners]
+        starts = np.cumsum(top.sizes) - top.sizes
+        quads = top.corner_point[starts[face_corners][:, None] + np.arange(4)]
+        # Each ring face starts at its owner's corner, so that its child there comes first.
+        turn = (corners - starts[face_corners])[:, None]
+        quads = np.take_along_axis(quads, (np.arange(4) + turn) % 4, axis=1)
+        unique, local = np.unique(owner[:, None] * top.point_count + quads, return_inverse=True)
+        local = local.reshape(-1, 4)
+        centre = np.searchsorted(unique, np.arange(len(chosen)) * top.point_count + chosen)
+        edge_keys = _edge_keys(top.edge_ends[:, 0], top.edge_ends[:, 1])
+        ends = unique[local] % top.point_count, unique[np.roll(local, -1, axis=1)] % top.point_count
+        sharpness = top.edge_sharpness[np.searchsorted(edge_keys, _edge_keys(*ends).reshape(-1))]
+        keys = _edge_keys(local, np.roll(local, -1, axis=1)).reshape(-1)
+        vertex_sharpness = np.zeros(len(unique))
+        vertex_sharpness[centre] = top.vertex_sharpness[chosen]
+        finite = sharpness[(sharpness > 0.0) & (sharpness < INFINITELY_SHARP)]
+        indices = local.reshape(-1)
+        count = len(unique)
+        steps = []
+        for _ in range(DART_LEVELS + int(np.ceil(finite.max(initial=0.0)))):
+            sizes = np.full(len(indices) // 4, 4, dtype=np.int64)
+            ring = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
+            children, keys, sharpness, vertex_sharpness = _children(ring)
+            # The child at each face's first corner, the owner's, and its points.
+            kept = children.reshape(-1, 4)[_first_corners(ring)]
+            used, indices = np.unique(kept, return_inverse=True)
+            indices = indices.reshape(-1)
+            steps.append((_step(ring), used))
+            renumber = np.full(ring.point_count + ring.edge_total + ring.face_total, -1)
+            renumber[used] = np.arange(len(used))
+            mapped = renumber[np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1)]
+            keep = (mapped >= 0).all(axis=1)
+            keys, sharpness = _edge_keys(mapped[keep, 0], mapped[keep, 1]), sharpness[keep]
+            vertex_sharpness, centre, count = vertex_sharpness[used], renumber[centre], len(used)
+        sizes = np.full(len(indices) // 4, 4, dtype=np.int64)
+        final = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
+        return _Rings(unique % top.point_count, steps, final, centre)
+
+    def limits(self, points: F64) -> F64:
+        """The chosen points' limit positions, from the points of the mesh around them."""
+        ring = points[self.sources]
+        for step, used in self.steps:
+            ring = step.points(ring)[used]
+        return _limit(self.final, ring)[self.centres]
 
 
 def _first_corners(top: _Topology) -> npt.NDArray[np.bool_]:
@@ -541,10 +546,14 @@ class CatmullClark:
             if limit
             else None
         )
-        self._boundary = boundary
         #: The refined points whose limit is followed further around them.
         self._inexact = (
             np.flatnonzero(_inexact(self._final)) if self._final is not None else np.zeros(0, int)
+        )
+        self._rings = (
+            _Rings.around(self._final, self._inexact, boundary)
+            if self._final is not None and len(self._inexact)
+            else None
         )
         drawn = ~holes
         self.point_count = count
@@ -564,10 +573,8 @@ class CatmullClark:
             refined = step.points(refined)
         if self._final is not None:
             limits = _limit(self._final, refined)
-            if len(self._inexact):
-                limits[self._inexact] = _ring_limits(
-                    self._final, refined, self._inexact, self._boundary
-                )
+            if self._rings is not None:
+                limits[self._inexact] = self._rings.limits(refined)
             refined = limits
         return refined
 
