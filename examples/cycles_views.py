@@ -49,7 +49,9 @@ three black shapes that are not meshes (bevelled Bezier circles, extruded text, 
 spheres; the same scenes otherwise, seed for seed). `--subdivided` adds one to three black
 meshes under a Subdivision Surface modifier (cubes, cylinders, icospheres, open grids; 1 to
 3 render levels, creased edges and vertices now and then; the same scenes otherwise), which
-Blender's exporter writes as cages and the hook tags with their levels.
+Blender's exporter writes as cages and the hook tags with their levels. `--fur` adds a
+legacy particle-hair emitter of 50 to 400 black hairs (which Blender's exporter leaves out
+and the hook writes as curves with widths).
 """
 
 from __future__ import annotations
@@ -284,6 +286,34 @@ def add_curve_shapes(
     return count
 
 
+def add_fur(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """A legacy particle-hair emitter over or in the fog box: a tilted quad of 1 to 4 m a
+    side growing 50 to 400 black hairs of 0.3 to 2 m, of root radius 1 to 5 cm, tapering
+    or not (the emitter itself does not render); returns how many hairs."""
+    count = rng.randint(50, 400)
+    side = rng.uniform(1.0, 4.0) / 2
+    middle = centre + half * np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0, 1)])
+    tilt = rng.uniform(-0.6, 0.6)
+    corners = [
+        middle + np.array([dx * side, dy * side, tilt * dx * side])
+        for dx, dy in ((-1, -1), (1, -1), (1, 1), (-1, 1))
+    ]
+    emitter = blender_scenes.add_particle_hair(
+        scene,
+        "fur",
+        [tuple(corner) for corner in corners],
+        count,
+        rng.uniform(0.3, 2.0),
+        radius_scale=rng.uniform(0.02, 0.1),
+        tip_radius=rng.choice([0.0, 1.0]),
+        material=blender_scenes.black_material(0.0),
+    )
+    emitter.name = "fur"
+    return count
+
+
 def add_subdivided(
     rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
 ) -> int:
@@ -341,6 +371,7 @@ def build_case(
     point_objects: bool = False,
     shapes: random.Random | None = None,
     subdivided: random.Random | None = None,
+    fur: random.Random | None = None,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary.
     With `grouping`, a generator of its own, its materials are rebuilt inside node groups
@@ -390,6 +421,8 @@ def build_case(
         labels.append(f"{add_curve_shapes(shapes, scene, centre, half)} curve shapes")
     if subdivided is not None:
         labels.append(f"{add_subdivided(subdivided, scene, centre, half)} subdivided")
+    if fur is not None:
+        labels.append(f"{add_fur(fur, scene, centre, half)} hairs")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -632,6 +665,9 @@ def main() -> int:
         action="store_true",
         help="meshes under a Subdivision Surface modifier over the box (see above)",
     )
+    parser.add_argument(
+        "--fur", action="store_true", help="a legacy particle-hair emitter over the box"
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -659,6 +695,7 @@ def main() -> int:
             subdivided=(
                 random.Random(f"{args.seed} {case} subdivided") if args.subdivided else None
             ),
+            fur=random.Random(f"{args.seed} {case} fur") if args.fur else None,
         )
         if args.anamorphic:
             aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)
