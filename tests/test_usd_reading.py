@@ -259,6 +259,11 @@ def test_catmull_clark_meshes_refine_to_their_own_or_the_renders_levels(tmp_path
     geometry = reader.read(time).geometry
     assert Sdf.Path("/World/blob") not in geometry.ids_by_path
     assert any("/World/blob.crepuscular:subdivision:levels is 9" in i for i in geometry.invalid)
+    for value, kind in ((1.5, Sdf.ValueTypeNames.Float), ("two", Sdf.ValueTypeNames.String)):
+        cube.GetPrim().RemoveProperty(SUBDIVISION_LEVELS)
+        cube.GetPrim().CreateAttribute(SUBDIVISION_LEVELS, kind, custom=True).Set(value)
+        geometry = reader.read(time).geometry
+        assert any(f"levels is {value!r}; give a whole number" in i for i in geometry.invalid)
 
 
 # --- units and up axis ------------------------------------------------------------------

@@ -599,10 +599,17 @@ class GeometryCollector:
         scheme = scheme_attr.Get()
         own = prim.GetAttribute(SUBDIVISION_LEVELS)
         own_levels = own.Get(time) if own and own.HasAuthoredValue() else None
-        if own_levels is not None and not 0 <= int(own_levels) <= MAX_SUBDIVISION_LEVELS:
+        whole = (
+            isinstance(own_levels, int | float)
+            and not isinstance(own_levels, bool)
+            and bool(np.isfinite(own_levels))
+        )
+        if own_levels is not None and not (
+            whole and own_levels == int(own_levels) and 0 <= own_levels <= MAX_SUBDIVISION_LEVELS
+        ):
             raise MeshError(
-                f"{prim.GetPath()}.{SUBDIVISION_LEVELS} is {own_levels}; give 0 to "
-                f"{MAX_SUBDIVISION_LEVELS}"
+                f"{prim.GetPath()}.{SUBDIVISION_LEVELS} is {own_levels!r}; give a whole number "
+                f"from 0 to {MAX_SUBDIVISION_LEVELS}"
             )
         levels = int(own_levels) if own_levels is not None else self._subdivision_levels
         if scheme == "loop" and levels:
