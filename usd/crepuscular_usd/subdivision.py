@@ -8,8 +8,9 @@ creases (`creaseIndices`, `creaseLengths`, `creaseSharpnesses`) and corners
 as infinitely sharp, `interpolateBoundary`, and `holeIndices` (hole faces shape their
 neighbours but are not drawn). The refined points are then moved to their limit
 positions, where the smooth surface passes (as Blender's Subdivision Surface modifier
-places them under its default *Use Limit Surface*); a point whose rule remains sharp
-takes the crease or corner limit.
+places them under its default *Use Limit Surface*): smooth points, creases and corners
+by their limit rules, and points whose rule would still change (darts, semi-sharp
+creases) by refining the faces around each of them further on their own (`_Rings`).
 
 The refinement is built once per topology (`CatmullClark`) and applied to any points
 on it, so that animated or skinned meshes pose their cage and refine it each frame.
