@@ -1169,13 +1169,24 @@ def author_converted_meshes(
     return authored
 
 
+#: The mesh attributes that crease a subdivision surface.
+CREASE_ATTRIBUTES = (
+    "creaseIndices",
+    "creaseLengths",
+    "creaseSharpnesses",
+    "cornerIndices",
+    "cornerSharpnesses",
+)
+
+
 def author_subdivision_levels(
     stage: Any, depsgraph: bpy.types.Depsgraph, prims: ExportedPrims
 ) -> list[str]:
     """The render levels, and whether on the limit surface, of every Subdivision Surface
     modifier that Blender's exporter writes as a Catmull-Clark cage (the modifier last,
     under its default 'Best Match'), on the cage's mesh: USD has no level of its own, and
-    the USD step refines the cage as far as F12 does. Returns the meshes' paths."""
+    the USD step refines the cage as far as F12 does. A modifier that ignores creases
+    gets the exporter's creases blocked. Returns the meshes' paths."""
     from pxr import Sdf, UsdGeom
 
     authored = []
@@ -1194,6 +1205,13 @@ def author_subdivision_levels(
                 attribute = prim.CreateAttribute(name, kind, custom=True)
                 if not attribute or not attribute.Set(value):
                     raise USDExportError(f"could not author {prim.GetPath()}.{name}")
+            if not modifier.use_creases:
+                # The exporter writes the mesh's creases whether the modifier uses them or
+                # not; blocked, the stage subdivides as smoothly as Blender renders.
+                for name in CREASE_ATTRIBUTES:
+                    attribute = prim.GetAttribute(name)
+                    if attribute and attribute.HasAuthoredValue():
+                        attribute.Block()
             authored.append(str(prim.GetPath()))
     return authored
 

@@ -275,7 +275,15 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
     assert levels == {
         "/root/capsule/Cylinder_001": (2, True),
         "/root/Rig/Cylinder/Cylinder": (1, True),
+        "/root/pillow/Cube_001": (2, True),
     }
+    # The capsule's corner stays; the pillow's creases, which its modifier ignores, are
+    # blocked.
+    capsule = UsdGeom.Mesh(stage.GetPrimAtPath("/root/capsule/Cylinder_001"))
+    assert list(capsule.GetCornerSharpnessesAttr().Get()) == [10.0]
+    pillow = UsdGeom.Mesh(stage.GetPrimAtPath("/root/pillow/Cube_001"))
+    assert pillow.GetCreaseIndicesAttr().Get() is None
+    assert pillow.GetCreaseSharpnessesAttr().Get() is None
     # Animated: keyed values are time-sampled, constant ones are not; the fog box, left
     # out of the export, becomes a guide Cube.
     stage = Usd.Stage.Open(str(animated / "shot.usda"))
