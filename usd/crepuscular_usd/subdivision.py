@@ -274,13 +274,12 @@ def _child_order(top: _Topology) -> I64:
     return (4 * np.arange(len(turn))[:, None] + (np.arange(4) + turn[:, None]) % 4).reshape(-1)
 
 
-def _children(top: _Topology) -> tuple[I64, I64, F64, F64]:
-    """One level's refined faces (a quad per face-vertex, in face-vertex order, its
-    corners as `_child_order` turns them; points numbered vertices, then edges, then
-    faces), the sharp edges among them as keys with their sharpness, and every refined
-    point's own sharpness."""
+def _child_points(top: _Topology, order: I64 | None = None) -> I64:
+    """The points of one level's refined faces: a quad per face-vertex, in face-vertex
+    order, its corners as `_child_order` turns them (points numbered vertices, then
+    edges, then faces)."""
     p, e = top.point_count, top.edge_total
-    indices = np.stack(
+    return np.stack(
         [
             top.corner_point,
             p + top.corner_edge,
@@ -288,7 +287,15 @@ def _children(top: _Topology) -> tuple[I64, I64, F64, F64]:
             p + top.corner_edge[top.corner_previous],
         ],
         axis=1,
-    ).reshape(-1)[_child_order(top)]
+    ).reshape(-1)[_child_order(top) if order is None else order]
+
+
+def _children(top: _Topology) -> tuple[I64, I64, F64, F64]:
+    """One level's refined faces (`_child_points`), the sharp edges among them as keys
+    with their sharpness, and every refined point's own sharpness: for a ring
+    (`_Rings`), whose faces are renumbered each level and so found by their keys."""
+    p, e = top.point_count, top.edge_total
+    indices = _child_points(top)
     # Each edge's halves keep its sharpness, less a level.
     child = _decremented(top.edge_sharpness)
     sharp = np.flatnonzero(child > 0.0)
@@ -299,6 +306,57 @@ def _children(top: _Topology) -> tuple[I64, I64, F64, F64]:
         [_decremented(top.vertex_sharpness), np.zeros(e + top.face_total)]
     )
     return indices, keys, sharpness, vertex_sharpness
+
+
+def _child_topology(top: _Topology, boundary: str) -> _Topology:
+    """The topology of `_children`'s faces, numbered from the parent's rather than found
+    by sorting: the halves of parent edge e are edges 2e (at its first point) and 2e + 1,
+    and the edge from face-vertex c's edge point to its face point is 2E + c."""
+    p, e, f = top.point_count, top.edge_total, top.face_total
+    count = len(top.corner_point)
+    order = _child_order(top)
+    indices = _child_points(top, order)
+    after, before = top.corner_edge, top.corner_edge[top.corner_previous]
+    half_after = 2 * after + (top.edge_ends[after, 0] != top.corner_point)
+    half_before = 2 * before + (top.edge_ends[before, 0] != top.corner_point)
+    corners = np.arange(count)
+    corner_edge = np.stack(
+        [half_after, 2 * e + corners, 2 * e + top.corner_previous, half_before], axis=1
+    ).reshape(-1)[order]
+    middles = p + np.arange(e)
+    halves = np.stack(
+        [np.stack([top.edge_ends[:, 0], middles], 1), np.stack([top.edge_ends[:, 1], middles], 1)],
+        axis=1,
+    ).reshape(-1, 2)
+    inner = np.stack([p + top.corner_edge, p + e + top.corner_face], axis=1)
+    edge_faces = np.concatenate([np.repeat(top.edge_faces, 2), np.full(count, 2)])
+    edge_sharpness = np.concatenate(
+        [np.repeat(_decremented(top.edge_sharpness), 2), np.zeros(count)]
+    )
+    edge_sharpness[edge_faces != 2] = INFINITELY_SHARP
+    face_count = np.concatenate([top.face_count, 2 * top.edge_faces, top.sizes])
+    on_boundary = np.concatenate([top.on_boundary, top.edge_faces == 1, np.zeros(f, bool)])
+    vertex_sharpness = np.concatenate([_decremented(top.vertex_sharpness), np.zeros(e + f)])
+    if boundary == "edgeAndCorner":
+        vertex_sharpness[on_boundary & (face_count == 1)] = INFINITELY_SHARP
+    position = np.arange(4 * count) % 4
+    base = 4 * (np.arange(4 * count) // 4)
+    return _Topology(
+        point_count=p + e + f,
+        sizes=np.full(count, 4, dtype=np.int64),
+        corner_face=np.arange(4 * count) // 4,
+        corner_point=indices,
+        corner_next=base + (position + 1) % 4,
+        corner_previous=base + (position + 3) % 4,
+        corner_edge=corner_edge,
+        edge_ends=np.concatenate([halves, inner]),
+        edge_faces=edge_faces,
+        edge_sharpness=edge_sharpness,
+        vertex_sharpness=vertex_sharpness,
+        valence=np.concatenate([top.valence, 2 + top.edge_faces, top.sizes]),
+        face_count=face_count,
+        on_boundary=on_boundary,
+    )
 
 
 #: Levels past a mesh's own over which a dart (a point where a single sharp edge ends)
@@ -352,8 +410,10 @@ class _Rings:
         local = local.reshape(-1, 4)
         centre = np.searchsorted(unique, np.arange(len(chosen)) * top.point_count + chosen)
         edge_keys = _edge_keys(top.edge_ends[:, 0], top.edge_ends[:, 1])
+        by_key = np.argsort(edge_keys)
         ends = unique[local] % top.point_count, unique[np.roll(local, -1, axis=1)] % top.point_count
-        sharpness = top.edge_sharpness[np.searchsorted(edge_keys, _edge_keys(*ends).reshape(-1))]
+        found = np.searchsorted(edge_keys[by_key], _edge_keys(*ends).reshape(-1))
+        sharpness = top.edge_sharpness[by_key[found]]
         keys = _edge_keys(local, np.roll(local, -1, axis=1)).reshape(-1)
         vertex_sharpness = np.zeros(len(unique))
         vertex_sharpness[centre] = top.vertex_sharpness[chosen]
@@ -527,26 +587,20 @@ class CatmullClark:
         self._steps: list[_Step] = []
         faces = kept_faces
         count = point_count
-        for level in range(levels):
-            top = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
-            if level == 0 and boundary == "none":
-                # No boundary interpolation: faces with a point on the boundary have no
-                # limit surface, and draw as holes.
-                holes = holes | np.bincount(
-                    top.corner_face, weights=top.on_boundary[indices], minlength=len(sizes)
-                ).astype(bool)
-            step = _step(top)
-            self._steps.append(step)
-            indices, keys, sharpness, vertex_sharpness = _children(top)
+        top = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
+        if boundary == "none":
+            # No boundary interpolation: faces with a point on the boundary have no limit
+            # surface, and draw as holes.
+            holes = holes | np.bincount(
+                top.corner_face, weights=top.on_boundary[indices], minlength=len(sizes)
+            ).astype(bool)
+        for _ in range(levels):
+            self._steps.append(_step(top))
             faces = faces[top.corner_face]
             holes = holes[top.corner_face]
-            sizes = np.full(len(indices) // 4, 4, dtype=np.int64)
-            count = top.point_count + top.edge_total + top.face_total
-        self._final = (
-            _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
-            if limit
-            else None
-        )
+            top = _child_topology(top, boundary)
+        indices, count = top.corner_point, top.point_count
+        self._final = top if limit else None
         #: The refined points whose limit is followed further around them.
         self._inexact = (
             np.flatnonzero(_inexact(self._final)) if self._final is not None else np.zeros(0, int)
