@@ -727,7 +727,8 @@ def main() -> int:
         first, second = rgb(paths["cycles 1"]), rgb(paths["cycles 2"])
         cycles = 0.5 * (first + second)
         mean = cycles.mean()
-        if mean <= 0:
+        # A view that sees no lit fog can still catch a stray path's 1e-10.
+        if mean <= 1e-8:
             black += 1
             print(f"{case:3} {summary} | black: the view sees no lit fog", flush=True)
             continue
