@@ -204,28 +204,22 @@ class _Step:
         creasing = weights[:, CREASE] > 0.0
         if creasing.any():
             # The crease rule reads the edges sharp in whichever of parent and child takes it.
-            ends = np.where(
-                self.parent_creases[:, None],
-                top.crease_neighbours(self.parent_sharpness, points),
-                top.crease_neighbours(self.child_sharpness, points),
-            )
+            ends = top.crease_neighbours(self.parent_sharpness, points)
+            from_child = creasing & ~self.parent_creases
+            if from_child.any():
+                ends[from_child] = top.crease_neighbours(self.child_sharpness, points)[from_child]
             crease = (ends + 6.0 * points) / 8.0
             vertex_points += weights[:, CREASE, None] * crease
         return np.concatenate([vertex_points, edge_points, face_points])
 
 
 def _fraction(
-    top: _Topology,
-    parent_edges: F64,
-    child_edges: F64,
-    child_vertices: F64,
-    parent_rule: I64,
-    child_rule: I64,
+    top: _Topology, child_edges: F64, child_vertices: F64, parent_rule: I64, child_rule: I64
 ) -> F64:
     """Per point, the weight of the parent's rule where it differs from the child's: as
     OpenSubdiv blends them, the mean sharpness of the edges and corner that turn smooth
     (at most 1)."""
-    parent_vertices = top.vertex_sharpness
+    parent_edges, parent_vertices = top.edge_sharpness, top.vertex_sharpness
     transitions = (parent_edges > 0.0) & (child_edges <= 0.0)
     ends = top.edge_ends[transitions].reshape(-1)
     total = np.bincount(
@@ -246,7 +240,7 @@ def _step(top: _Topology) -> _Step:
     child_vertices = _decremented(parent_vertices)
     parent_rule = top.rules(parent_edges, parent_vertices)
     child_rule = top.rules(child_edges, child_vertices)
-    fraction = _fraction(top, parent_edges, child_edges, child_vertices, parent_rule, child_rule)
+    fraction = _fraction(top, child_edges, child_vertices, parent_rule, child_rule)
     weights = np.zeros((top.point_count, 3))
     rows = np.arange(top.point_count)
     weights[rows, parent_rule] += fraction
@@ -477,8 +471,6 @@ def _limit(top: _Topology, points: F64) -> F64:
 
 
 def _tags(
-    counts: I64,
-    indices: I64,
     point_count: int,
     crease_indices: Sequence[int] | npt.ArrayLike,
     crease_lengths: Sequence[int] | npt.ArrayLike,
@@ -573,8 +565,6 @@ class CatmullClark:
         holes[hole_list[(hole_list >= 0) & (hole_list < len(counts))]] = True
         holes = holes[kept_faces]
         keys, sharpness, vertex_sharpness = _tags(
-            counts,
-            indices,
             point_count,
             crease_indices,
             crease_lengths,
