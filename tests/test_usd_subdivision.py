@@ -149,11 +149,11 @@ def test_holes_shape_their_neighbours_but_draw_nothing() -> None:
     )
 
 
-def test_face_varying_values_refine_linearly_in_each_face() -> None:
+def test_face_varying_values_refine_linearly_in_each_face_under_all() -> None:
     """Texture coordinates at a quad's corners refine to the quarters between them."""
     quad = {"face_vertex_counts": [4], "face_vertex_indices": [0, 1, 2, 3], "point_count": 4}
     refinement = CatmullClark(**quad, levels=2)
-    uvs = refinement.refine_face_varying(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float))
+    uvs = refinement.refine_face_varying(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float), "all")
     assert uvs.shape == (4 * 16, 2)
     assert sorted({tuple(uv) for uv in uvs.tolist()}) == [
         (u / 4, v / 4) for u in range(5) for v in range(5)
@@ -166,6 +166,104 @@ def test_face_varying_values_refine_linearly_in_each_face() -> None:
     # only the corners and the centre agree.
     at_corners = np.isin(flat.face_vertex_indices, [0, 1, 2, 3])
     np.testing.assert_allclose(refined[at_corners, :2], uvs[at_corners])
+
+
+def _jittered_grid() -> tuple[np.ndarray, dict]:
+    points, grid = _grid(4, 3)
+    points[:, :2] += np.random.default_rng(3).uniform(-0.2, 0.2, (len(points), 2))
+    return points, grid
+
+
+@pytest.mark.parametrize("interpolation", ["none", "cornersOnly", "cornersPlus1", "cornersPlus2"])
+def test_values_without_seams_refine_as_the_points_do(interpolation: str) -> None:
+    """Coordinates that are the points' own (one island, no seam) refine to the refined
+    points' under every rule that smooths the inside of an island: the values' mesh is the
+    points' mesh. Refined linearly, or kept linear along the boundary, they do not."""
+    points, grid = _jittered_grid()
+    refinement = CatmullClark(**grid, levels=2)
+    corners = np.asarray(grid["face_vertex_indices"])
+    expected = refinement.refine(points)[refinement.face_vertex_indices][:, :2]
+    uvs = refinement.refine_face_varying(points[corners, :2], interpolation)
+    np.testing.assert_allclose(uvs, expected, atol=1e-12)
+    for linear in ("boundaries", "all"):
+        apart = np.abs(refinement.refine_face_varying(points[corners, :2], linear) - expected)
+        assert apart.max() > 1e-2, linear
+
+
+def _two_islands() -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
+    """A jittered grid whose left two columns of faces and the rest are separate islands
+    (the right one's coordinates shifted), the values per face-vertex, and the left faces."""
+    points, grid = _jittered_grid()
+    faces = np.asarray(grid["face_vertex_indices"]).reshape(-1, 4)
+    left = np.flatnonzero(points[faces[:, 0], 0] < 1.5)
+    values = points[faces.reshape(-1), :2].copy()
+    values[np.repeat(~np.isin(np.arange(len(faces)), left), 4)] += [5.0, 0.0]
+    return points, grid, values, left
+
+
+@pytest.mark.parametrize(
+    ("interpolation", "alone"), [("none", "edgeOnly"), ("cornersOnly", "edgeAndCorner")]
+)
+def test_an_island_refines_as_a_mesh_of_its_own(interpolation: str, alone: str) -> None:
+    """Along a seam each island's values refine as a boundary of their own, whatever the
+    other side holds: the left island refines as its faces alone would, its corners smooth
+    (`none`) or kept (`cornersOnly`, which keeps the ends of the seam too)."""
+    points, grid, values, left = _two_islands()
+    refinement = CatmullClark(**grid, levels=2, boundary="edgeOnly")
+    uvs = refinement.refine_face_varying(values, interpolation)
+    faces = np.asarray(grid["face_vertex_indices"]).reshape(-1, 4)[left]
+    island = CatmullClark([4] * len(left), faces.reshape(-1), len(points), 2, boundary=alone)
+    expected = island.refine(points)[island.face_vertex_indices][:, :2]
+    on_left = np.repeat(np.isin(refinement.faces, left), 4)
+    np.testing.assert_allclose(uvs[on_left], expected, atol=1e-12)
+    # Moving the other island's values moves nothing on this one.
+    values[np.repeat(~np.isin(np.arange(len(faces) + 6), left), 4)] *= 3.0
+    moved = refinement.refine_face_varying(values, interpolation)
+    np.testing.assert_array_equal(moved[on_left], uvs[on_left])
+
+
+def test_junctions_of_three_islands_are_kept_from_cornersplus1() -> None:
+    """Where three islands of two faces each meet, `cornersPlus1` and `cornersPlus2` keep
+    each value where it is (the limit of a corner is its cage value); `cornersOnly` keeps
+    only values of one face, so it smooths these along their seams."""
+    angles = np.linspace(0.0, 2.0 * np.pi, 7)[:-1] + np.array([0.0, 0.3, -0.2, 0.1, 0.4, -0.3])
+    points = np.vstack([[0.0, 0.0, 0.0], np.c_[np.cos(angles), np.sin(angles), np.zeros(6)]])
+    fan = {
+        "face_vertex_counts": [3] * 6,
+        "face_vertex_indices": [i for k in range(6) for i in (0, 1 + k, 1 + (k + 1) % 6)],
+        "point_count": 7,
+    }
+    corners = np.asarray(fan["face_vertex_indices"])
+    values = points[corners, :2] + np.repeat([[0, 0], [3, 0], [0, 3]], 6, axis=0)
+    refinement = CatmullClark(**fan, levels=2, boundary="edgeOnly")
+    at_centre = refinement.face_vertex_indices == 0
+    kept = {tuple(uv) for uv in np.round(values[corners == 0], 12).tolist()}
+    for interpolation, stays in [
+        ("cornersOnly", False),
+        ("cornersPlus1", True),
+        ("cornersPlus2", True),
+    ]:
+        uvs = refinement.refine_face_varying(values, interpolation)
+        found = {tuple(uv) for uv in np.round(uvs[at_centre], 12).tolist()}
+        assert len(found) == 3
+        assert (found == kept) == stays, interpolation
+
+
+def test_non_finite_values_refine_linearly_and_bad_rules_are_named() -> None:
+    """A NaN stays in the faces that hold it rather than spreading through the smoothing;
+    a rule that is not USD's is named with the mesh."""
+    points, grid = _grid(2, 2)
+    refinement = CatmullClark(**grid, levels=1, where="/World/grid")
+    values = points[np.asarray(grid["face_vertex_indices"]), :2]
+    values[0] = np.nan
+    uvs = refinement.refine_face_varying(values)
+    spoilt = np.isnan(uvs).any(axis=1)
+    assert spoilt.any()
+    assert not spoilt[np.repeat(refinement.faces != 0, 4)].any()  # only the first face's
+    with pytest.raises(
+        SubdivisionError, match=r"^/World/grid: faceVaryingLinearInterpolation 'smooth'"
+    ):
+        refinement.refine_face_varying(values, "smooth")
 
 
 def test_degenerate_faces_and_their_values_are_dropped() -> None:

@@ -27,8 +27,11 @@ opaque surfaces and the hook as masks) read as opaque 1.6 % and 2.1 % in red thr
 orthographic view, the geometry-nodes dust (an empty mesh from the exporter, Points
 from the hook) left out 0.69 % in red through the region and 1.9 % through the
 orthographic view, the particle fur (left out by the exporter, curves from the hook)
-0.63 % through the orthographic view, and the bevelled curve and NURBS sphere (a curve's
-path and no surface from the exporter, meshes from the hook) 0.94 % through the region.
+0.63 % through the orthographic view, the bevelled curve and NURBS sphere (a curve's
+path and no surface from the exporter, meshes from the hook) 0.94 % through the region, and
+the subdivided lantern's cut-out read with its texture coordinates refined linearly rather
+than smoothed as its *UV Smooth* says 0.08 % in blue (4.8 units in depth where its cuts
+move).
 The fog is tinted, so its extinction travels per channel
 (`crepuscular:medium:channelExtinction`).
 """
@@ -276,6 +279,7 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
         "/root/capsule/Cylinder_001": (2, True),
         "/root/Rig/Cylinder/Cylinder": (1, True),
         "/root/pillow/Cube_001": (2, True),
+        "/root/lantern/Sphere": (2, True),
     }
     # The capsule's corner stays; the pillow's creases, which its modifier ignores, are
     # blocked.
@@ -284,6 +288,9 @@ def test_hook_authors_the_schema(still: Path, animated: Path) -> None:
     pillow = UsdGeom.Mesh(stage.GetPrimAtPath("/root/pillow/Cube_001"))
     assert pillow.GetCreaseIndicesAttr().Get() is None
     assert pillow.GetCreaseSharpnessesAttr().Get() is None
+    # The lantern's *UV Smooth*, which the USD step refines its coordinates by.
+    lantern = UsdGeom.Mesh(stage.GetPrimAtPath("/root/lantern/Sphere"))
+    assert lantern.GetFaceVaryingLinearInterpolationAttr().Get() == "none"
     # Animated: keyed values are time-sampled, constant ones are not; the fog box, left
     # out of the export, becomes a guide Cube.
     stage = Usd.Stage.Open(str(animated / "shot.usda"))

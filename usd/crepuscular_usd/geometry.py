@@ -690,7 +690,7 @@ class GeometryCollector:
     ) -> _LocalMesh:
         """A mesh some of whose faces are cut: a point per triangle corner, with the
         texture coordinates of the primvar its face's mask reads (on a refined mesh,
-        refined linearly in each of the cage's faces)."""
+        refined with it)."""
         corners, triangle_faces = triangle_corners(counts, indices, **topology, points=points)
 
         def uvs_at(primvar: str, rows: npt.NDArray[np.bool_]) -> F64 | None:
@@ -760,14 +760,21 @@ class GeometryCollector:
     def _refined_uvs(
         prim: Usd.Prim, primvar: str, time: Usd.TimeCode, refinement: CatmullClark
     ) -> F64 | None:
-        """A primvar's values at the face-vertices of a mesh's refinement."""
+        """A primvar's values at the face-vertices of a mesh's refinement, refined as the
+        mesh's `faceVaryingLinearInterpolation` says."""
         mesh = UsdGeom.Mesh(prim)
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time), dtype=np.int64)
         indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time), dtype=np.int64)
         corners = np.repeat(np.arange(len(indices))[:, None], 3, axis=1)
         faces = np.repeat(np.arange(len(counts)), counts)
         cage = corner_uvs(prim, primvar, time, corners, indices[corners], faces)
-        return None if cage is None else refinement.refine_face_varying(cage[:, 0])
+        if cage is None:
+            return None
+        interpolation = str(mesh.GetFaceVaryingLinearInterpolationAttr().Get(time))
+        try:
+            return refinement.refine_face_varying(cage[:, 0], interpolation)
+        except SubdivisionError as error:
+            raise MeshError(str(error)) from error
 
     def _posed(
         self, prim: Usd.Prim, local: _LocalMesh, time: Usd.TimeCode

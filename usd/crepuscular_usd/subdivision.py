@@ -14,13 +14,14 @@ creases) by refining the faces around each of them further on their own (`_Rings
 
 The refinement is built once per topology (`CatmullClark`) and applied to any points
 on it, so that animated or skinned meshes pose their cage and refine it each frame.
-Face-varying values (texture coordinates) are refined linearly in each face.
+Face-varying values (texture coordinates) refine as their own mesh, smooth or linear where
+`faceVaryingLinearInterpolation` says, as OpenSubdiv refines them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -34,6 +35,18 @@ INFINITELY_SHARP = 10.0
 
 #: `interpolateBoundary` values.
 BOUNDARIES = ("none", "edgeOnly", "edgeAndCorner")
+
+#: `faceVaryingLinearInterpolation` values, from smooth everywhere to linear everywhere
+#: (USD's fallback is `cornersPlus1`; Blender writes its modifier's *UV Smooth*, by
+#: default *Keep Boundaries*, `boundaries`).
+FACE_VARYING_INTERPOLATIONS = (
+    "none",
+    "cornersOnly",
+    "cornersPlus1",
+    "cornersPlus2",
+    "boundaries",
+    "all",
+)
 
 SMOOTH, CREASE, CORNER = 0, 1, 2
 
@@ -516,6 +529,114 @@ def _tags(
     return keys, np.nan_to_num(sharpness), vertex_sharpness
 
 
+def _weld(corner_point: I64, values: F64) -> tuple[I64, F64]:
+    """Each face-vertex's value numbered as one with the values equal to it at its point,
+    and the table of those as rows of (point, value...)."""
+    rows = np.column_stack([corner_point.astype(np.float64), values + 0.0])
+    table, ids = np.unique(rows, axis=0, return_inverse=True)
+    return ids.reshape(-1), table
+
+
+def _manifold(top: _Topology) -> npt.NDArray[np.bool_]:
+    """Per point, whether its faces form one fan: closed, or open between two boundary
+    edges."""
+    ends = top.edge_ends
+    open_edges = np.bincount(ends[top.edge_faces == 1].reshape(-1), minlength=top.point_count)
+    shared = np.bincount(ends[top.edge_faces > 2].reshape(-1), minlength=top.point_count)
+    closed = (open_edges == 0) & (top.valence == top.face_count)
+    fan = (open_edges == 2) & (top.valence == top.face_count + 1)
+    return (shared == 0) & (closed | fan)
+
+
+def _face_varying_topology(cage: _Topology, ids: I64, value_point: I64) -> _Topology:
+    """The values' own mesh: the cage's faces on the values, with the cage's creases and
+    corners (where values differ across an edge, the edge is two boundary edges)."""
+    corners = np.flatnonzero(cage.edge_sharpness[cage.corner_edge] > 0.0)
+    keys = _edge_keys(ids[corners], ids[cage.corner_next[corners]])
+    return _topology(
+        cage.sizes,
+        ids,
+        len(value_point),
+        keys,
+        cage.edge_sharpness[cage.corner_edge[corners]],
+        cage.vertex_sharpness[value_point],
+        "edgeOnly",
+    )
+
+
+def _sharpened(top: _Topology, cage: _Topology, value_point: I64, interpolation: str) -> _Topology:
+    """The values' mesh with the corners `interpolation` makes sharp, as OpenSubdiv
+    decides them at the points where values differ (or that it treats so): every value
+    there for `boundaries` (which takes in the cage's boundary too), at junctions of
+    three or more values (`cornersPlus1` and `cornersPlus2`), at the ends of seams inside
+    the mesh (`cornersPlus2`), at both values where one is a corner (`cornersPlus2`); and
+    else each value that is a corner (one face) or whose faces are not one fan."""
+    linear = interpolation == "boundaries"
+    corners_sharp = interpolation != "none"
+    dependent = interpolation in ("cornersPlus1", "cornersPlus2")
+    darts = interpolation in ("cornersPlus2", "boundaries")
+    count = cage.point_count
+    values_at = np.bincount(value_point, minlength=count)
+    pairs = np.unique(np.stack([cage.corner_edge, top.corner_edge], axis=1), axis=0)
+    seams = np.bincount(pairs[:, 0], minlength=cage.edge_total) > 1
+    seam_ends = np.zeros(count, dtype=bool)
+    seam_ends[cage.edge_ends[seams].reshape(-1)] = True
+    mismatched = (values_at > 1) | seam_ends
+    if linear:
+        mismatched |= cage.on_boundary & (cage.face_count > 0)
+    elif corners_sharp:
+        mismatched |= cage.on_boundary & (cage.face_count == 1)
+    every = (
+        linear
+        | (cage.vertex_sharpness >= INFINITELY_SHARP)
+        | ~_manifold(cage)
+        | (dependent & (values_at > 2))
+        | (darts & (values_at == 1) & ~cage.on_boundary)
+    )
+    disjoint = ~_manifold(top)
+    corner = top.face_count == 1
+    if dependent:
+        either = disjoint | corner if interpolation == "cornersPlus2" else disjoint
+        every |= (values_at == 2) & (np.bincount(value_point[either], minlength=count) > 0)
+    own = disjoint | (corner & corners_sharp)
+    sharp = mismatched[value_point] & (every[value_point] | own)
+    vertex_sharpness = top.vertex_sharpness.copy()
+    vertex_sharpness[sharp] = INFINITELY_SHARP
+    return replace(top, vertex_sharpness=vertex_sharpness)
+
+
+@dataclass(frozen=True)
+class _Levels:
+    """A topology refined some levels: each level's step and, for the limit, the last
+    level's topology and the points followed further to theirs."""
+
+    steps: list[_Step]
+    last: _Topology
+    limit: bool
+    inexact: I64
+    rings: _Rings | None
+
+    @staticmethod
+    def of(top: _Topology, levels: int, boundary: str, limit: bool) -> _Levels:
+        steps = []
+        for _ in range(levels):
+            steps.append(_step(top))
+            top = _child_topology(top, boundary)
+        inexact = np.flatnonzero(_inexact(top)) if limit else np.zeros(0, dtype=np.int64)
+        rings = _Rings.around(top, inexact, boundary) if len(inexact) else None
+        return _Levels(steps, top, limit, inexact, rings)
+
+    def refine(self, points: F64) -> F64:
+        for step in self.steps:
+            points = step.points(points)
+        if not self.limit:
+            return points
+        limits = _limit(self.last, points)
+        if self.rings is not None:
+            limits[self.inexact] = self.rings.limits(points)
+        return limits
+
+
 class CatmullClark:
     """A cage's topology refined `levels` times: the refined faces (all quads, holes and
     faces of fewer than three points left out), each one's face in the cage, and the
@@ -574,34 +695,23 @@ class CatmullClark:
             where,
         )
         self._kept_corners = kept_corners
-        self._steps: list[_Step] = []
         faces = kept_faces
-        count = point_count
-        top = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
+        top = _topology(sizes, indices, point_count, keys, sharpness, vertex_sharpness, boundary)
         if boundary == "none":
             # No boundary interpolation: faces with a point on the boundary have no limit
             # surface, and draw as holes.
             holes = holes | np.bincount(
                 top.corner_face, weights=top.on_boundary[indices], minlength=len(sizes)
             ).astype(bool)
-        for _ in range(levels):
-            self._steps.append(_step(top))
-            faces = faces[top.corner_face]
-            holes = holes[top.corner_face]
-            top = _child_topology(top, boundary)
-        indices, count = top.corner_point, top.point_count
-        self._final = top if limit else None
-        #: The refined points whose limit is followed further around them.
-        self._inexact = (
-            np.flatnonzero(_inexact(self._final)) if self._final is not None else np.zeros(0, int)
-        )
-        self._rings = (
-            _Rings.around(self._final, self._inexact, boundary)
-            if self._final is not None and len(self._inexact)
-            else None
-        )
+        self._cage, self._where = top, where
+        self._levels = _Levels.of(top, levels, boundary, limit)
+        for step in self._levels.steps:
+            faces = faces[step.topology.corner_face]
+            holes = holes[step.topology.corner_face]
+        self._face_varying: dict[tuple[str, bytes], _Levels] = {}
         drawn = ~holes
-        self.point_count = count
+        self.point_count = self._levels.last.point_count
+        indices = self._levels.last.corner_point
         #: The refined faces (quads) that draw, and each one's face in the cage.
         self.face_vertex_indices = indices.reshape(-1, 4)[drawn].reshape(-1)
         self.face_vertex_counts = np.full(int(drawn.sum()), 4, dtype=np.int64)
@@ -614,21 +724,39 @@ class CatmullClark:
         refined = np.asarray(points, dtype=np.float64)
         if refined.ndim != 2:
             refined = refined.reshape(len(refined), -1)
-        for step in self._steps:
-            refined = step.points(refined)
-        if self._final is not None:
-            limits = _limit(self._final, refined)
-            if self._rings is not None:
-                limits[self._inexact] = self._rings.limits(refined)
-            refined = limits
-        return refined
+        return self._levels.refine(refined)
 
-    def refine_face_varying(self, values: npt.ArrayLike) -> F64:
-        """Values per face-vertex of the cage refined linearly in each face: one row per
-        face-vertex of the drawn refined faces."""
+    def refine_face_varying(
+        self, values: npt.ArrayLike, interpolation: str = "cornersPlus1"
+    ) -> F64:
+        """Values per face-vertex of the cage (texture coordinates) refined as
+        `faceVaryingLinearInterpolation` says: one row per face-vertex of the drawn
+        refined faces. Values are one where they are equal at a point (a seam is where
+        they differ), and refine as their own mesh with the cage's creases, its seams as
+        boundaries and the corners each rule sharpens; `all` refines them linearly in each
+        face, as do values that are not all finite (so that one cannot spread)."""
+        if interpolation not in FACE_VARYING_INTERPOLATIONS:
+            raise SubdivisionError(
+                f"{self._where}: faceVaryingLinearInterpolation '{interpolation}' is not one of "
+                f"{', '.join(FACE_VARYING_INTERPOLATIONS)}"
+            )
         refined = np.asarray(values, dtype=np.float64)
         refined = refined.reshape(len(refined), -1)[self._kept_corners]
-        for step in self._steps:
+        if interpolation == "all" or not np.isfinite(refined).all():
+            return self._linear_face_varying(refined)
+        ids, table = _weld(self._cage.corner_point, refined)
+        key = (interpolation, ids.tobytes())
+        levels = self._face_varying.get(key)
+        if levels is None:
+            top = _face_varying_topology(self._cage, ids, table[:, 0].astype(np.int64))
+            top = _sharpened(top, self._cage, table[:, 0].astype(np.int64), interpolation)
+            levels = _Levels.of(top, len(self._levels.steps), "edgeOnly", self._levels.limit)
+            self._face_varying[key] = levels
+        refined = levels.refine(table[:, 1:])[levels.last.corner_point]
+        return refined[self._drawn_corners]
+
+    def _linear_face_varying(self, refined: F64) -> F64:
+        for step in self._levels.steps:
             top = step.topology
             centres = _sum_by(top.corner_face, refined, top.face_total) / top.sizes[:, None]
             refined = np.stack(
