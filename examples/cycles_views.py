@@ -49,7 +49,9 @@ three black shapes that are not meshes (bevelled Bezier circles, extruded text, 
 spheres; the same scenes otherwise, seed for seed). `--subdivided` adds one to three black
 meshes under a Subdivision Surface modifier (cubes, cylinders, icospheres, open grids; 1 to
 3 render levels, creased edges and vertices now and then; the same scenes otherwise), which
-Blender's exporter writes as cages and the hook tags with their levels. `--fur` adds a
+Blender's exporter writes as cages and the hook tags with their levels; with `--cutouts`
+too, most of them are cut by a random alpha through their UV maps, under a random *UV
+Smooth*. `--fur` adds a
 legacy particle-hair emitter of 50 to 400 black hairs (which Blender's exporter leaves out
 and the hook writes as curves with widths).
 """
@@ -163,6 +165,30 @@ def random_alpha(rng: random.Random, size: int = 128) -> np.ndarray:
     return alpha
 
 
+def random_cutout(rng: random.Random, name: str) -> bpy.types.Material:
+    """A black material cut by a random alpha: through a Principled BSDF's Alpha or a Mix
+    Shader with a Transparent BSDF either side, read with any extension and Linear or
+    Closest, now and then through a Mapping node."""
+    alpha = random_alpha(rng)
+    image = bpy.data.images.new(name, *alpha.shape[::-1], alpha=True, float_buffer=True)
+    rgba = np.zeros((*alpha.shape, 4), dtype=np.float32)
+    rgba[..., 3] = alpha
+    image.pixels.foreach_set(rgba.ravel())
+    image.pack()
+    kind = rng.choice(["principled", "mix", "inverted"])
+    material = blender_scenes.cutout_material(image, kind)
+    texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
+    texture.extension = rng.choice(["REPEAT", "REPEAT", "EXTEND", "CLIP", "MIRROR"])
+    texture.interpolation = rng.choice(["Linear", "Linear", "Linear", "Closest"])
+    if rng.random() < 0.3:
+        location = (rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0.0)
+        rotation = (0.0, 0.0, rng.uniform(-math.pi, math.pi))
+        scale = (rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0), 1.0)
+        kind = rng.choice(["POINT", "TEXTURE"])
+        blender_scenes.map_texture(material, texture, [(kind, location, rotation, scale)])
+    return material
+
+
 def add_cut_cards(
     rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
 ) -> int:
@@ -182,25 +208,7 @@ def add_cut_cards(
         )
         square = np.array([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]) * side
         corners = [tuple(at + turn @ corner) for corner in square]
-        alpha = random_alpha(rng)
-        image = bpy.data.images.new(
-            f"cut_{index}", *alpha.shape[::-1], alpha=True, float_buffer=True
-        )
-        rgba = np.zeros((*alpha.shape, 4), dtype=np.float32)
-        rgba[..., 3] = alpha
-        image.pixels.foreach_set(rgba.ravel())
-        image.pack()
-        kind = rng.choice(["principled", "mix", "inverted"])
-        material = blender_scenes.cutout_material(image, kind)
-        texture = next(n for n in material.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage")
-        texture.extension = rng.choice(["REPEAT", "REPEAT", "EXTEND", "CLIP", "MIRROR"])
-        texture.interpolation = rng.choice(["Linear", "Linear", "Linear", "Closest"])
-        if rng.random() < 0.3:
-            location = (rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0.0)
-            rotation = (0.0, 0.0, rng.uniform(-math.pi, math.pi))
-            scale = (rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0), 1.0)
-            kind = rng.choice(["POINT", "TEXTURE"])
-            blender_scenes.map_texture(material, texture, [(kind, location, rotation, scale)])
+        material = random_cutout(rng, f"cut_{index}")
         start = rng.choice([0.0, rng.uniform(-1.0, 0.0)])
         repeats = rng.uniform(1, 3)
         blender_scenes.add_card(scene, f"card_{index}", corners, material, repeats, start)
@@ -315,15 +323,21 @@ def add_fur(
 
 
 def add_subdivided(
-    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+    rng: random.Random,
+    scene: bpy.types.Scene,
+    centre: np.ndarray,
+    half: np.ndarray,
+    cut: random.Random | None = None,
 ) -> int:
     """One to three black meshes over and in the fog box under a Subdivision Surface
     modifier (a cube, a cylinder of 5 to 9 sides, an icosphere or an open grid; render
     levels 1 to 3, either boundary rule, the limit surface on or off), some with creased
-    edges and vertices; returns how many."""
+    edges and vertices; returns how many. With `cut`, most are cut by a random alpha
+    through their UV maps, under a random *UV Smooth* (drawn from `cut`, so that the
+    meshes are the same)."""
     count = rng.randint(1, 3)
     black = blender_scenes.black_material(0.0)
-    for _ in range(count):
+    for index in range(count):
         location = centre + half * np.array(
             [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.2, 1.3)]
         )
@@ -352,7 +366,15 @@ def add_subdivided(
         modifier.render_levels = rng.randint(1, 3)
         modifier.boundary_smooth = rng.choice(["ALL", "PRESERVE_CORNERS"])
         modifier.use_limit_surface = rng.random() < 0.8
-        mesh.materials.append(black)
+        if cut is not None and cut.random() < 0.7:
+            mesh.materials.append(random_cutout(cut, f"subdivided_cut_{index}"))
+            modifier.uv_smooth = cut.choice(
+                ["PRESERVE_BOUNDARIES", "PRESERVE_BOUNDARIES", "NONE", "PRESERVE_CORNERS",
+                 "PRESERVE_CORNERS_AND_JUNCTIONS", "PRESERVE_CORNERS_JUNCTIONS_AND_CONCAVE",
+                 "SMOOTH_ALL"]
+            )  # fmt: skip
+        else:
+            mesh.materials.append(black)
     return count
 
 
@@ -372,6 +394,7 @@ def build_case(
     shapes: random.Random | None = None,
     subdivided: random.Random | None = None,
     fur: random.Random | None = None,
+    subdivided_cut: random.Random | None = None,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary.
     With `grouping`, a generator of its own, its materials are rebuilt inside node groups
@@ -420,7 +443,8 @@ def build_case(
     if shapes is not None:
         labels.append(f"{add_curve_shapes(shapes, scene, centre, half)} curve shapes")
     if subdivided is not None:
-        labels.append(f"{add_subdivided(subdivided, scene, centre, half)} subdivided")
+        cut = subdivided_cut if cutouts else None
+        labels.append(f"{add_subdivided(subdivided, scene, centre, half, cut)} subdivided")
     if fur is not None:
         labels.append(f"{add_fur(fur, scene, centre, half)} hairs")
     if rng.random() < 0.4:
@@ -696,6 +720,7 @@ def main() -> int:
                 random.Random(f"{args.seed} {case} subdivided") if args.subdivided else None
             ),
             fur=random.Random(f"{args.seed} {case} fur") if args.fur else None,
+            subdivided_cut=random.Random(f"{args.seed} {case} subdivided cut"),
         )
         if args.anamorphic:
             aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)
