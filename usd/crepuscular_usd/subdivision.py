@@ -427,8 +427,10 @@ class _Rings:
         finite = sharpness[(sharpness > 0.0) & (sharpness < INFINITELY_SHARP)]
         indices = local.reshape(-1)
         count = len(unique)
-        steps = []
-        for _ in range(DART_LEVELS + int(np.ceil(finite.max(initial=0.0)))):
+        steps: list[tuple[_Step, I64]] = []
+        levels = DART_LEVELS + int(np.ceil(finite.max(initial=0.0)))
+        while len(steps) < levels:
+            before = (indices, keys, sharpness, vertex_sharpness, centre)
             sizes = np.full(len(indices) // 4, 4, dtype=np.int64)
             ring = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
             children, keys, sharpness, vertex_sharpness = _children(ring)
@@ -443,6 +445,11 @@ class _Rings:
             keep = (mapped >= 0).all(axis=1)
             keys, sharpness = _edge_keys(mapped[keep, 0], mapped[keep, 1]), sharpness[keep]
             vertex_sharpness, centre, count = vertex_sharpness[used], renumber[centre], len(used)
+            after = (indices, keys, sharpness, vertex_sharpness, centre)
+            if all(np.array_equal(a, b) for a, b in zip(before, after, strict=True)):
+                # Once no sharpness is left to wear off, a level refines the rings to
+                # themselves, numbered alike: every level left is this one.
+                steps.extend([steps[-1]] * (levels - len(steps)))
         sizes = np.full(len(indices) // 4, 4, dtype=np.int64)
         final = _topology(sizes, indices, count, keys, sharpness, vertex_sharpness, boundary)
         return _Rings(unique % top.point_count, steps, final, centre)
