@@ -15,6 +15,7 @@ from usd_helpers import author_stage, cut_material, write_alpha_png
 
 import crepuscular
 from crepuscular_usd import StageReader
+from crepuscular_usd.subdivision import CatmullClark
 
 #: Stripes along u, as in test_cutouts.py: solid where u lies in [1/8, 2/8], [3/8, 4/8],
 #: [5/8, 6/8] and [7/8, 1].
@@ -169,6 +170,76 @@ def test_rows_run_from_the_image_top_and_an_exr_reads_the_same(tmp_path: Path) -
         material = cut_material(stage, "/World/Looks/Leaf", file)
         UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(material)
         assert _mean_relative(_render(stage).volume, expected.volume) < 1e-4, file
+
+
+@pytest.mark.parametrize(
+    ("interpolation", "authored", "rule"),
+    [
+        (UsdGeom.Tokens.faceVarying, None, "cornersPlus1"),
+        (UsdGeom.Tokens.faceVarying, "none", "none"),
+        (UsdGeom.Tokens.faceVarying, "boundaries", "boundaries"),
+        (UsdGeom.Tokens.faceVarying, "all", "all"),
+        (UsdGeom.Tokens.vertex, "all", "none"),
+        (UsdGeom.Tokens.varying, "none", "all"),
+    ],
+)
+def test_a_subdivided_cards_coordinates_refine_as_their_interpolation_says(
+    tmp_path: Path, interpolation: str, authored: str | None, rule: str
+) -> None:
+    """A cut card of 3 by 3 quads, refined two levels: face-varying coordinates by the
+    mesh's `faceVaryingLinearInterpolation` (USD's fallback `cornersPlus1`), vertex ones
+    as its points whatever that says, varying ones linearly in each face. The coordinates
+    of all but the corners are moved off the grid, so that the rules differ."""
+    stage = _stage(tmp_path, "subdivided")
+    x, z = np.meshgrid(np.linspace(-2, 2, 4), np.linspace(-2, 2, 4))
+    jitter = np.random.default_rng(4).uniform(-0.3, 0.3, (16, 2)) * [[1, 1]]
+    on_edge = (np.abs(x.ravel()) == 2)[:, None] | (np.abs(z.ravel()) == 2)[:, None]
+    jitter = np.where(on_edge, 0.0, jitter)
+    points = np.c_[x.ravel() + jitter[:, 0], np.full(16, 3.0), z.ravel() + jitter[:, 1]]
+    first = (np.arange(3)[:, None] * 4 + np.arange(3)).ravel()
+    faces = np.stack([first, first + 1, first + 5, first + 4], axis=1).reshape(-1)
+    card = UsdGeom.Mesh.Define(stage, "/World/Card")
+    card.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
+    card.CreateFaceVertexCountsAttr([4] * 9)
+    card.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.astype(np.int32)))
+    card.GetPrim().CreateAttribute(
+        "crepuscular:subdivision:levels", Sdf.ValueTypeNames.Int, custom=True
+    ).Set(2)
+    if authored is not None:
+        card.CreateFaceVaryingLinearInterpolationAttr(authored)
+    corner = (np.abs(x.ravel()) == 2) & (np.abs(z.ravel()) == 2)
+    moved = np.random.default_rng(5).uniform(-0.04, 0.04, (16, 2)) * ~corner[:, None]
+    st = np.c_[(x.ravel() + 2) / 4, (z.ravel() + 2) / 4] + moved
+    per_corner = st[faces] if interpolation == UsdGeom.Tokens.faceVarying else st
+    primvar = UsdGeom.PrimvarsAPI(card).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, interpolation
+    )
+    primvar.Set(Vt.Vec2fArray.FromNumpy(per_corner.astype(np.float32)))
+    file = write_alpha_png(tmp_path / "stripes.png", STRIPES)
+    UsdShade.MaterialBindingAPI.Apply(card.GetPrim()).Bind(
+        cut_material(stage, "/World/Looks/Leaf", file)
+    )
+    frame = StageReader(stage, "/World/Camera", "/World/Sun", width=96).read(Usd.TimeCode.Default())
+    geometry = frame.geometry
+    assert geometry.notes == []
+    assert geometry.uvs is not None
+    mine = np.asarray(geometry.object_ids) == geometry.ids_by_path[Sdf.Path("/World/Card")]
+    corners = geometry.triangles[mine].reshape(-1)
+    read_points = geometry.positions[corners] + geometry.origin
+    read_uvs = geometry.uvs[corners]
+    refinement = CatmullClark([4] * 9, faces, 16, 2)
+    refined = refinement.refine(points.astype(np.float32))[refinement.face_vertex_indices]
+
+    def expected(rule: str) -> np.ndarray:
+        uvs = refinement.refine_face_varying(st[faces].astype(np.float32), rule)
+        apart = np.linalg.norm(read_points[:, None] - refined[None], axis=2)
+        return uvs[apart.argmin(axis=1)]
+
+    assert np.abs(read_uvs - expected(rule)).max() < 1e-6
+    # On one island with its corners kept, `cornersPlus1` smooths as `none` does.
+    others = {"none", "boundaries", "all"} - {"none" if rule == "cornersPlus1" else rule}
+    for other in others:
+        assert np.abs(read_uvs - expected(other)).max() > 1e-3, other
 
 
 def test_a_subsets_material_cuts_its_faces_alone(tmp_path: Path) -> None:

@@ -760,8 +760,9 @@ class GeometryCollector:
     def _refined_uvs(
         prim: Usd.Prim, primvar: str, time: Usd.TimeCode, refinement: CatmullClark
     ) -> F64 | None:
-        """A primvar's values at the face-vertices of a mesh's refinement, refined as the
-        mesh's `faceVaryingLinearInterpolation` says."""
+        """A primvar's values at the face-vertices of a mesh's refinement: face-varying
+        ones refined as the mesh's `faceVaryingLinearInterpolation` says, vertex ones as
+        its points, varying, uniform and constant ones linearly."""
         mesh = UsdGeom.Mesh(prim)
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time), dtype=np.int64)
         indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time), dtype=np.int64)
@@ -770,7 +771,13 @@ class GeometryCollector:
         cage = corner_uvs(prim, primvar, time, corners, indices[corners], faces)
         if cage is None:
             return None
-        interpolation = str(mesh.GetFaceVaryingLinearInterpolationAttr().Get(time))
+        # As OpenSubdiv refines each kind: face-varying values by the mesh's rule, vertex
+        # values as the points (one island, nothing sharpened), the rest linearly.
+        kind = UsdGeom.PrimvarsAPI(prim).GetPrimvar(primvar).GetInterpolation()
+        if kind == UsdGeom.Tokens.faceVarying:
+            interpolation = str(mesh.GetFaceVaryingLinearInterpolationAttr().Get(time))
+        else:
+            interpolation = "none" if kind == UsdGeom.Tokens.vertex else "all"
         try:
             return refinement.refine_face_varying(cage[:, 0], interpolation)
         except SubdivisionError as error:
