@@ -123,6 +123,59 @@ def test_quads_folded_along_their_first_diagonal_split_along_the_other() -> None
     assert quads.split(quads.split(rest, dented), square).tolist() == fan
 
 
+#: Polygons that are not convex, in the z = 0 plane, wound anticlockwise: an L, a U (a wall's
+#: face around a window's top), a square around a square hole joined by a slit there and
+#: back (as Boolean cuts leave them), and a five-pointed star.
+CONCAVE = {
+    "L": [(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)],
+    "U": [(0, 0), (3, 0), (3, 2), (2, 2), (2, 1), (1, 1), (1, 2), (0, 2)],
+    "keyhole": [
+        (0, 0), (4, 0), (4, 4), (0, 4), (0, 2), (1, 2),
+        (1, 3), (3, 3), (3, 1), (1, 1), (1, 2), (0, 2),
+    ],
+    "star": [
+        (np.cos(t) * (1.0 if k % 2 == 0 else 0.4), np.sin(t) * (1.0 if k % 2 == 0 else 0.4))
+        for k, t in enumerate(np.linspace(0.0, 2.0 * np.pi, 11)[:-1])
+    ],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(CONCAVE))
+def test_polygons_that_are_not_convex_are_ear_clipped(name: str) -> None:
+    """As Blender triangulates them (and any renderer that does so properly): triangles
+    that tile the polygon, facing as it does, where a fan would cover its notches. Tilted
+    out of its plane and given a neighbour, it still does; convex faces keep the fan."""
+    flat = np.array(CONCAVE[name], dtype=np.float64)
+    area = 0.5 * float(
+        (flat[:, 0] * np.roll(flat[:, 1], -1) - np.roll(flat[:, 0], -1) * flat[:, 1]).sum()
+    )
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, -0.8, 0.6]])
+    polygon = np.c_[flat, np.zeros(len(flat))] @ tilt.T
+    n = len(polygon)
+    hexagon = (
+        np.c_[
+            np.cos(np.arange(6) / 6 * 2 * np.pi), np.sin(np.arange(6) / 6 * 2 * np.pi), np.zeros(6)
+        ]
+        + 9
+    )
+    points = np.vstack([hexagon, polygon])
+    counts, indices = [6, n], [*range(6), *range(6, 6 + n)]
+    triangles = triangulate(counts, indices, points=points).astype(np.int64)
+    assert len(triangles) == 4 + n - 2
+    assert triangles[:4].tolist() == triangulate([6], list(range(6))).tolist()
+    mine = triangles[4:]
+    normal = tilt @ [0.0, 0.0, 1.0]
+    a, b, c = (points[mine[:, k]] for k in range(3))
+    signed = 0.5 * np.cross(b - a, c - a) @ normal
+    assert signed.min() > -1e-12
+    np.testing.assert_allclose(signed.sum(), area, rtol=1e-12)
+    fan = triangulate([n], list(range(n))).astype(np.int64) + 6
+    a, b, c = (points[fan[:, k]] for k in range(3))
+    assert np.abs(0.5 * np.cross(b - a, c - a) @ normal).sum() > area + 1e-9 or name == "L"
+    mirrored = triangulate(counts, indices, left_handed=True, points=points)
+    assert mirrored[4:].tolist() == [[x, z, y] for x, y, z in mine.tolist()]
+
+
 def test_inconsistent_topology_names_the_mesh() -> None:
     with pytest.raises(MeshError, match="/World/bad: faceVertexCounts sum to 4"):
         triangulate([4], [0, 1, 2], where="/World/bad")

@@ -834,6 +834,21 @@ def round_trip_scene(spec: dict[str, Any]) -> Any:
     lantern.data.materials.append(diagonal)
     lantern_smooth = lantern.modifiers.new("Subdivision", "SUBSURF")
     lantern_smooth.render_levels, lantern_smooth.uv_smooth = 2, "SMOOTH_ALL"
+    # A slab with a window a Boolean modifier cuts: the faces around the window are
+    # concave n-gons, which Blender's exporter writes as they are. The USD step ear-clips
+    # them, as Blender triangulates them; fanned, they cover the window and its shaft:
+    # the animation's first frame reads 0.17% off in blue, the orthographic view 0.17
+    # units off in depth. Tilted, so that no view sees a face of it almost edge on.
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.6, 3.5, 6.0))
+    slab = bpy.context.active_object
+    slab.name, slab.scale, slab.rotation_euler = "skylight", (3.0, 4.0, 0.2), (-0.35, 0.0, 0.0)
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.62, 3.9, 6.0))
+    cutter = bpy.context.active_object
+    cutter.name, cutter.scale, cutter.display_type = "skylight_cutter", (0.8, 1.3, 1.0), "BOUNDS"
+    cutter.hide_render = True
+    cutter.hide_set(True)
+    window = slab.modifiers.new("Window", "BOOLEAN")
+    window.object, window.operation = cutter, "DIFFERENCE"
     # Legacy particle hair over the fog, which Blender's exporter leaves out by default:
     # the hook adds its curves, with widths.
     blender_scenes.add_particle_hair(

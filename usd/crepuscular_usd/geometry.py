@@ -1,9 +1,11 @@
 """Meshes of a USD stage as world-space triangles: triangulation, transforms, instancing.
 
-Polygons are fan-triangulated as Hydra does for unrefined meshes, faces listed in
-`holeIndices` are left out, faces with fewer than three vertices are skipped, and
-`leftHanded` meshes get their winding flipped. Implicit surfaces (Cube, Sphere, Cylinder,
-Cone, Capsule, Plane) are tessellated (`crepuscular_usd.implicit`) and read as meshes.
+Polygons are fan-triangulated as Hydra does for unrefined meshes, but for quads folded
+along their first diagonal and faces that are not convex, which are triangulated as
+Blender triangulates them; faces listed in `holeIndices` are left out, faces with fewer
+than three vertices are skipped, and `leftHanded` meshes get their winding flipped.
+Implicit surfaces (Cube, Sphere, Cylinder, Cone, Capsule, Plane) are tessellated
+(`crepuscular_usd.implicit`) and read as meshes.
 Meshes bound to a UsdSkel skeleton are posed: blend shapes, then joints
 (`crepuscular_usd.skinning`). BasisCurves cast as ribbons of their widths across the sun
 and the camera (`crepuscular.strand_ribbons`), Points as spheres of theirs
@@ -57,7 +59,8 @@ def triangulate(
     points: npt.ArrayLike | None = None,
 ) -> npt.NDArray[np.uint32]:
     """(M, 3) triangles of a USD polygon mesh, fan-triangulated per face (with `points`,
-    a quad folded along its first diagonal is split along the other, as Blender splits it).
+    a quad folded along its first diagonal is split along the other, as Blender splits it,
+    and a larger face that is not convex is ear-clipped in its plane).
 
     Faces in `hole_indices` and faces with fewer than 3 vertices produce no triangles.
     Raises `MeshError` naming `where` for inconsistent topology.
@@ -115,15 +118,9 @@ def triangle_corners(
     base = starts[face]
     first, second, third = base, base + corner + 1, base + corner + 2
     if points is not None and total:
-        _split_folded_quads(
-            np.asarray(points, dtype=np.float64),
-            indices,
-            counts[face],
-            corner,
-            first,
-            second,
-            third,
-        )
+        located = np.asarray(points, dtype=np.float64)
+        _split_folded_quads(located, indices, counts[face], corner, first, second, third)
+        _clip_concave_polygons(located, indices, counts[face], corner, first, second, third)
     if left_handed:
         second, third = third, second
     return np.stack([first, second, third], axis=1), face
@@ -159,6 +156,105 @@ def _split_folded_quads(
     # (a, b, d) and (b, c, d).
     second[rows], third[rows] = base + 1, base + 3
     first[rows + 1], second[rows + 1], third[rows + 1] = base + 1, base + 2, base + 3
+
+
+def _clip_concave_polygons(
+    points: F64,
+    indices: npt.NDArray[np.int64],
+    counts: npt.NDArray[np.int64],
+    corner: npt.NDArray[np.int64],
+    first: npt.NDArray[np.int64],
+    second: npt.NDArray[np.int64],
+    third: npt.NDArray[np.int64],
+) -> None:
+    """Faces of five or more points that are not convex in their plane (a wall around a
+    window that a Boolean cut, an L-shaped floor), ear-clipped there instead of fanned, in
+    place: a fan would cover their notches, where Blender's own triangles (and any
+    renderer's that triangulates properly) leave them open. Convex faces keep the fan,
+    which covers the same polygon."""
+    rows = np.flatnonzero((counts >= 5) & (corner == 0))
+    if not len(rows) or len(indices) == 0 or indices.max() >= len(points):
+        return
+    sizes = counts[rows]
+    # Each face's corners, in order, from its first face-vertex (where its fan starts).
+    starts = first[rows]
+    owner = np.repeat(np.arange(len(rows)), sizes)
+    local = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    at = points[indices[starts[owner] + local]]
+    following = at[np.repeat(np.cumsum(sizes) - sizes, sizes) + (local + 1) % sizes[owner]]
+    # Newell's normal, and the turn at each corner against it (negative: reflex).
+    normal = np.zeros((len(rows), 3))
+    np.add.at(normal, owner, np.cross(at, following))
+    before = at[np.repeat(np.cumsum(sizes) - sizes, sizes) + (local - 1) % sizes[owner]]
+    turn = np.einsum("ij,ij->i", np.cross(at - before, following - at), normal[owner])
+    scale = np.einsum("ij,ij->i", normal, normal)[owner]
+    reflex = np.zeros(len(rows), dtype=bool)
+    np.logical_or.at(reflex, owner, turn < -1e-12 * scale)
+    for k in np.flatnonzero(reflex):
+        n, start, row = int(sizes[k]), int(starts[k]), int(rows[k])
+        polygon = points[indices[start : start + n]]
+        for t, (a, b, c) in enumerate(_ear_clipped(polygon, normal[k])):
+            first[row + t], second[row + t], third[row + t] = start + a, start + b, start + c
+
+
+def _ear_clipped(polygon: F64, normal: F64) -> list[tuple[int, int, int]]:
+    """The triangles (corner numbers, in the polygon's winding) of a simple polygon, by
+    ear clipping in the plane across `normal`: walking around it, each convex corner
+    whose triangle holds no reflex corner (only those can lie in it; corners at the same
+    place as the triangle's own, as a slit to a hole and back leaves them, excepted) is
+    cut off. What cannot be clipped (a polygon that crosses itself) is fanned."""
+    u = polygon[1] - polygon[0]
+    u = u - normal * (u @ normal) / (normal @ normal)
+    if not np.any(u):
+        u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    flat = np.stack([polygon @ u, polygon @ np.cross(normal, u)], axis=1)
+    flat -= flat.mean(axis=0)
+    eps = 1e-12 * float(np.abs(flat).max() ** 2 or 1.0)
+    xs, ys = flat[:, 0].tolist(), flat[:, 1].tolist()
+    n = len(xs)
+    before = [(k - 1) % n for k in range(n)]
+    after = [(k + 1) % n for k in range(n)]
+
+    def turn(o: int, a: int, b: int) -> float:
+        return (xs[a] - xs[o]) * (ys[b] - ys[o]) - (ys[a] - ys[o]) * (xs[b] - xs[o])
+
+    def convex(k: int) -> bool:
+        return turn(before[k], k, after[k]) > eps
+
+    reflex = {k for k in range(n) if not convex(k)}
+
+    def ear(k: int) -> bool:
+        if k in reflex:
+            return False
+        a, c = before[k], after[k]
+        places = {(xs[a], ys[a]), (xs[k], ys[k]), (xs[c], ys[c])}
+        return not any(
+            (xs[r], ys[r]) not in places
+            and turn(a, k, r) >= -eps
+            and turn(k, c, r) >= -eps
+            and turn(c, a, r) >= -eps
+            for r in reflex
+        )
+
+    triangles: list[tuple[int, int, int]] = []
+    left, k, missed = n, 0, 0
+    while left > 3 and missed < left:
+        if not ear(k):
+            k, missed = after[k], missed + 1
+            continue
+        a, c = before[k], after[k]
+        triangles.append((a, k, c))
+        after[a], before[c] = c, a
+        reflex.discard(k)
+        for neighbour in (a, c):
+            if neighbour in reflex and convex(neighbour):
+                reflex.discard(neighbour)
+        left, k, missed = left - 1, c, 0
+    rest = [k]
+    while len(rest) < left:
+        rest.append(after[rest[-1]])
+    triangles.extend((rest[0], rest[t], rest[t + 1]) for t in range(1, left - 1))
+    return triangles
 
 
 def row_matrix(matrix: object) -> F64:
