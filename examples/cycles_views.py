@@ -53,7 +53,9 @@ Blender's exporter writes as cages and the hook tags with their levels; with `--
 too, most of them are cut by a random alpha through their UV maps, under a random *UV
 Smooth*. `--fur` adds a
 legacy particle-hair emitter of 50 to 400 black hairs (which Blender's exporter leaves out
-and the hook writes as curves with widths).
+and the hook writes as curves with widths). `--booleans` adds one or two black walls or
+slabs with one to three windows each that a Boolean modifier cuts, whose faces around the
+windows are concave n-gons (the same scenes otherwise, seed for seed).
 """
 
 from __future__ import annotations
@@ -74,6 +76,7 @@ os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="crepuscular-cycl
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
+from mathutils import Euler  # noqa: E402
 
 import crepuscular  # noqa: E402
 
@@ -322,6 +325,40 @@ def add_fur(
     return count
 
 
+def add_walls(
+    rng: random.Random, scene: bpy.types.Scene, centre: np.ndarray, half: np.ndarray
+) -> int:
+    """One or two black walls or slabs over and in the fog box, each with one to three
+    windows a Boolean modifier cuts (its cutters hidden), so that the faces around the
+    windows are concave n-gons; returns how many windows."""
+    windows = 0
+    black = blender_scenes.black_material(0.0)
+    for index in range(rng.randint(1, 2)):
+        at = centre + half * np.array(
+            [rng.uniform(-0.8, 0.8), rng.uniform(-0.8, 0.8), rng.uniform(0.3, 1.3)]
+        )
+        size = np.array([rng.uniform(2.0, 6.0), rng.uniform(2.0, 6.0), rng.uniform(0.1, 0.4)])
+        turn = (rng.uniform(-0.5, 0.5), rng.choice([0.0, math.pi / 2, rng.uniform(0, 1.5)]), 0.0)
+        bpy.ops.mesh.primitive_cube_add(size=1.0, location=tuple(at), rotation=turn)
+        wall = bpy.context.active_object
+        wall.name, wall.scale = f"wall_{index}", tuple(size)
+        wall.data.materials.append(black)
+        for hole in range(rng.randint(1, 3)):
+            # Windows within the wall's face, through its thickness, in its own frame.
+            extent = np.array([rng.uniform(0.15, 0.35), rng.uniform(0.15, 0.35), 3.0]) * size
+            offset = np.array([rng.uniform(-0.25, 0.25), rng.uniform(-0.25, 0.25), 0.0]) * size
+            placed = at + np.array(Euler(turn).to_matrix()) @ offset
+            bpy.ops.mesh.primitive_cube_add(size=1.0, location=tuple(placed), rotation=turn)
+            cutter = bpy.context.active_object
+            cutter.name, cutter.scale = f"wall_{index}_window_{hole}", tuple(extent)
+            cutter.hide_render, cutter.display_type = True, "BOUNDS"
+            cutter.hide_set(True)
+            window = wall.modifiers.new(f"window_{hole}", "BOOLEAN")
+            window.object, window.operation = cutter, "DIFFERENCE"
+            windows += 1
+    return windows
+
+
 def add_subdivided(
     rng: random.Random,
     scene: bpy.types.Scene,
@@ -395,6 +432,7 @@ def build_case(
     subdivided: random.Random | None = None,
     fur: random.Random | None = None,
     subdivided_cut: random.Random | None = None,
+    walls: random.Random | None = None,
 ) -> tuple[bpy.types.Scene, bpy.types.Object, str]:
     """A random scene (see the module's doc); returns it, its sun and a one-line summary.
     With `grouping`, a generator of its own, its materials are rebuilt inside node groups
@@ -447,6 +485,8 @@ def build_case(
         labels.append(f"{add_subdivided(subdivided, scene, centre, half, cut)} subdivided")
     if fur is not None:
         labels.append(f"{add_fur(fur, scene, centre, half)} hairs")
+    if walls is not None:
+        labels.append(f"{add_walls(walls, scene, centre, half)} windows")
     if rng.random() < 0.4:
         sun.data.color = (rng.uniform(0.5, 1), rng.uniform(0.5, 1), rng.uniform(0.5, 1))
         labels.append("coloured")
@@ -692,6 +732,9 @@ def main() -> int:
     parser.add_argument(
         "--fur", action="store_true", help="a legacy particle-hair emitter over the box"
     )
+    parser.add_argument(
+        "--booleans", action="store_true", help="walls with windows a Boolean cuts (see above)"
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -721,6 +764,7 @@ def main() -> int:
             ),
             fur=random.Random(f"{args.seed} {case} fur") if args.fur else None,
             subdivided_cut=random.Random(f"{args.seed} {case} subdivided cut"),
+            walls=random.Random(f"{args.seed} {case} walls") if args.booleans else None,
         )
         if args.anamorphic:
             aspect = random.Random(f"{args.seed} {case} pixels").uniform(0.5, 2.0)
