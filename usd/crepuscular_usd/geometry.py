@@ -117,8 +117,9 @@ def triangle_corners(
     corner = np.arange(total) - np.repeat(np.cumsum(per_face) - per_face, per_face)
     base = starts[face]
     first, second, third = base, base + corner + 1, base + corner + 2
-    if points is not None and total:
-        located = np.asarray(points, dtype=np.float64)
+    located = None if points is None else np.asarray(points, dtype=np.float64)
+    # Faces that index past the points keep the fan (`point_count`, given, names them).
+    if located is not None and total and indices.max() < len(located):
         _split_folded_quads(located, indices, counts[face], corner, first, second, third)
         _clip_concave_polygons(located, indices, counts[face], corner, first, second, third)
     if left_handed:
@@ -146,7 +147,7 @@ def _split_folded_quads(
     place: Blender's rule (`is_quad_flip_v3_first_third_fast`), which the add-on's
     triangles follow."""
     starts = first[(counts == 4) & (corner == 0)]
-    if not len(starts) or len(indices) == 0 or indices.max() >= len(points):
+    if not len(starts):
         return
     folded = _folded(points[indices[starts[:, None] + np.arange(4)]])
     if not folded.any():
@@ -173,19 +174,20 @@ def _clip_concave_polygons(
     renderer's that triangulates properly) leave them open. Convex faces keep the fan,
     which covers the same polygon."""
     rows = np.flatnonzero((counts >= 5) & (corner == 0))
-    if not len(rows) or len(indices) == 0 or indices.max() >= len(points):
+    if not len(rows):
         return
     sizes = counts[rows]
     # Each face's corners, in order, from its first face-vertex (where its fan starts).
     starts = first[rows]
     owner = np.repeat(np.arange(len(rows)), sizes)
-    local = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    offset = np.repeat(np.cumsum(sizes) - sizes, sizes)
+    local = np.arange(int(sizes.sum())) - offset
     at = points[indices[starts[owner] + local]]
-    following = at[np.repeat(np.cumsum(sizes) - sizes, sizes) + (local + 1) % sizes[owner]]
+    following = at[offset + (local + 1) % sizes[owner]]
     # Newell's normal, and the turn at each corner against it (negative: reflex).
     normal = np.zeros((len(rows), 3))
     np.add.at(normal, owner, np.cross(at, following))
-    before = at[np.repeat(np.cumsum(sizes) - sizes, sizes) + (local - 1) % sizes[owner]]
+    before = at[offset + (local - 1) % sizes[owner]]
     turn = np.einsum("ij,ij->i", np.cross(at - before, following - at), normal[owner])
     scale = np.einsum("ij,ij->i", normal, normal)[owner]
     reflex = np.zeros(len(rows), dtype=bool)

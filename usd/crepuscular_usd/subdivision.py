@@ -715,7 +715,9 @@ class CatmullClark:
         for step in self._levels.steps:
             faces = faces[step.topology.corner_face]
             holes = holes[step.topology.corner_face]
-        self._face_varying: dict[tuple[str, bytes], _Levels] = {}
+        #: Per rule, the last values refined: their bytes, their weld, its levels and the
+        #: result (a mesh whose points move reads the same coordinates every frame).
+        self._face_varying: dict[str, tuple[tuple[int, bytes], bytes, _Levels | None, F64]] = {}
         drawn = ~holes
         self.point_count = self._levels.last.point_count
         indices = self._levels.last.corner_point
@@ -741,7 +743,8 @@ class CatmullClark:
         refined faces. Values are one where they are equal at a point (a seam is where
         they differ), and refine as their own mesh with the cage's creases, its seams as
         boundaries and the corners each rule sharpens; `all` refines them linearly in each
-        face, as do values that are not all finite (so that one cannot spread)."""
+        face, as do values that are not all finite (so that one cannot spread). The result
+        is kept, read-only, for the same values again."""
         if interpolation not in FACE_VARYING_INTERPOLATIONS:
             raise SubdivisionError(
                 f"{self._where}: faceVaryingLinearInterpolation '{interpolation}' is not one of "
@@ -749,18 +752,27 @@ class CatmullClark:
             )
         refined = np.asarray(values, dtype=np.float64)
         refined = refined.reshape(len(refined), -1)[self._kept_corners]
+        key = (refined.shape[1], refined.tobytes())
+        last = self._face_varying.get(interpolation)
+        if last is not None and last[0] == key:
+            return last[3]
         if interpolation == "all" or not np.isfinite(refined).all():
-            return self._linear_face_varying(refined)
+            result = self._linear_face_varying(refined)
+            result.flags.writeable = False
+            self._face_varying[interpolation] = (key, b"", None, result)
+            return result
         ids, table = _weld(self._cage.corner_point, refined)
-        key = (interpolation, ids.tobytes())
-        levels = self._face_varying.get(key)
+        weld = ids.tobytes()
+        levels = last[2] if last is not None and last[1] == weld else None
         if levels is None:
-            top = _face_varying_topology(self._cage, ids, table[:, 0].astype(np.int64))
-            top = _sharpened(top, self._cage, table[:, 0].astype(np.int64), interpolation)
+            value_point = table[:, 0].astype(np.int64)
+            top = _face_varying_topology(self._cage, ids, value_point)
+            top = _sharpened(top, self._cage, value_point, interpolation)
             levels = _Levels.of(top, len(self._levels.steps), "edgeOnly", self._levels.limit)
-            self._face_varying[key] = levels
-        refined = levels.refine(table[:, 1:])[levels.last.corner_point]
-        return refined[self._drawn_corners]
+        result = levels.refine(table[:, 1:])[levels.last.corner_point][self._drawn_corners]
+        result.flags.writeable = False
+        self._face_varying[interpolation] = (key, weld, levels, result)
+        return result
 
     def _linear_face_varying(self, refined: F64) -> F64:
         for step in self._levels.steps:
