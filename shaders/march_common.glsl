@@ -23,7 +23,7 @@ layout(std430, binding = 0) readonly buffer Params {
     float bias;
     float anisotropy;
     uint isotropic;
-    uint box_medium;
+    uint box_medium; // BOX_NONE, BOX_ATTENUATING or BOX_UNATTENUATING
     uint steps;
     uint width;
     uint height;
@@ -34,6 +34,12 @@ layout(std430, binding = 0) readonly buffer Params {
     uint map_size;
     uint dark_walks; // walks still dark at e^−10 go on (reference.rs: DARK_WALK_SHARE)
 } p;
+
+// core/src/gpu/march.rs: BoxKind. In a box whose sunlight is not attenuated (a light that
+// casts no shadows), the sunward depth is 0 everywhere.
+const uint BOX_NONE = 0u;
+const uint BOX_ATTENUATING = 1u;
+const uint BOX_UNATTENUATING = 2u;
 
 layout(std430, binding = 1) readonly buffer ShadowDepth { float shadow_depth[]; };
 // Ray distance to the first surface per depth sample; negative for background.
@@ -134,6 +140,9 @@ bool box_segment(float t_start, float t_end, out float a, out float b) {
 }
 
 float sunward_depth(vec3 cube_point) {
+    if (p.box_medium == BOX_UNATTENUATING) {
+        return 0.0;
+    }
     float depth = BIG;
     for (int axis = 0; axis < 3; ++axis) {
         float s = p.towards_sun[axis];
@@ -190,7 +199,7 @@ float phase(vec3 direction) {
 void begin_ray(vec3 origin, vec3 direction) {
     texel_origin = (p.texel_from_world * vec4(origin, 1.0)).xyz;
     texel_step = mat3(p.texel_from_world) * direction;
-    if (p.box_medium != 0u) {
+    if (p.box_medium != BOX_NONE) {
         cube_origin = (p.cube_from_world * vec4(origin, 1.0)).xyz;
         cube_step = mat3(p.cube_from_world) * direction;
     }
@@ -202,7 +211,7 @@ vec3 reference_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
         return vec3(0.0, 0.0, 1.0);
     }
     begin_ray(origin, direction);
-    return p.box_medium != 0u ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
+    return p.box_medium != BOX_NONE ? march_box(t_start, t_end) : march_unbounded(t_start, t_end);
 }
 
 // core/src/reference.rs: NEGLIGIBLE_STRETCH.
@@ -214,9 +223,11 @@ const float NEGLIGIBLE_STRETCH = 1e-3;
 void box_lines(float t0, float t1, out vec2 lines[3], out float cuts[5], out uint count) {
     bool finite_line[3];
     for (int axis = 0; axis < 3; ++axis) {
-        float s = p.towards_sun[axis];
+        float s = p.box_medium == BOX_UNATTENUATING ? 0.0 : p.towards_sun[axis];
         finite_line[axis] = s != 0.0;
-        if (s != 0.0) {
+        if (p.box_medium == BOX_UNATTENUATING && axis == 0) {
+            lines[axis] = vec2(0.0);
+        } else if (s != 0.0) {
             float wall = s > 0.0 ? 1.0 : -1.0;
             lines[axis] = vec2((wall - cube_origin[axis]) / s, -cube_step[axis] / s);
         } else {
@@ -453,7 +464,7 @@ vec3 fallback_sample(vec3 origin, vec3 direction, float t_start, float t_end) {
         return vec3(0.0, 0.0, 1.0);
     }
     begin_ray(origin, direction);
-    return p.box_medium != 0u ? walk_box(t_start, t_end) : walk_texels(t_start, t_end);
+    return p.box_medium != BOX_NONE ? walk_box(t_start, t_end) : walk_texels(t_start, t_end);
 }
 
 // Relative spread of a pixel's depth samples below which no edge runs through it

@@ -16,9 +16,10 @@ const uint PROJECTIVE = 2u;
 const uint KNOTS = 9u;
 const float TABLE_STEPS = 8192.0;
 const float WARP_MARGIN = 0.1;
-// core/src/prefiltered.rs: BOX_PIECE_DEPTH, MAX_BOX_PIECES, ALONG_THE_LIGHT_SIN; core/src/epipolar.rs:
+// core/src/prefiltered.rs: BOX_PIECE_DEPTH, BOX_PIECE_VIEW_DEPTH, MAX_BOX_PIECES, ALONG_THE_LIGHT_SIN; core/src/epipolar.rs:
 // SHORT_RAY_TEXELS, SHORT_STRETCH_TEXELS, LOOKUP_DEPTH.
 const float BOX_PIECE_DEPTH = 0.05;
+const float BOX_PIECE_VIEW_DEPTH = 0.5;
 const uint MAX_BOX_PIECES = 20u;
 const float SHORT_RAY_TEXELS = 64.0;
 const float SHORT_STRETCH_TEXELS = 16.0;
@@ -583,7 +584,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     float a = t_start;
     float b = t_end;
     bool inside = true;
-    if (p.box_medium != 0u) {
+    if (p.box_medium != BOX_NONE) {
         begin_ray(origin, direction);
         inside = box_segment(t_start, t_end, a, b);
     }
@@ -602,7 +603,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         return vec3(0.0, 0.0, visibility);
     }
     // In a box the stretch before the medium is always subtracted (see the CPU's march).
-    float from = (q.near_plane_correction != 0u || a > t_start || p.box_medium != 0u) ? a : 0.0;
+    float from = (q.near_plane_correction != 0u || a > t_start || p.box_medium != BOX_NONE) ? a : 0.0;
     float sigma = p.extinction;
     float alpha = -expm1_accurate(-sigma * (b - a));
     // Dense fog: the first LOOKUP_DEPTH of optical depth is what counts (is_short_in_medium).
@@ -610,7 +611,7 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
         ok = false;
         return vec3(0.0);
     }
-    if (p.box_medium == 0u) {
+    if (p.box_medium == BOX_NONE) {
         float unshadowed = sigma * (b - a) >= 1e-8 ? alpha / sigma : integral_exp(sigma, b - a);
         float t_cut, end_scattering;
         bool all_lit;
@@ -644,7 +645,14 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     // changes by a bounded optical depth, each its own average times its own integral
     // (box_pieces on the CPU).
     float change = sigma * box_sunward_change(a, b);
-    uint pieces = uint(clamp(ceil(change / BOX_PIECE_DEPTH), 1.0, float(MAX_BOX_PIECES)));
+    float sunward = ceil(change / BOX_PIECE_DEPTH);
+    float view = ceil(sigma * (b - a) / BOX_PIECE_VIEW_DEPTH);
+    uint sunward_pieces = uint(clamp(sunward, 1.0, float(MAX_BOX_PIECES)));
+    uint pieces = uint(clamp(max(sunward, view), 1.0, float(MAX_BOX_PIECES)));
+    // Pieces for the view ray's depth alone where they are long enough for lookups.
+    if (pieces > sunward_pieces && is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS)) {
+        pieces = sunward_pieces;
+    }
     // A piece crossing too few texels is too short for its own lookup: marched instead.
     if (is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS)) {
         ok = false;

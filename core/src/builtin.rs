@@ -291,6 +291,7 @@ fn sun_at(azimuth: f64, elevation: f64, color: Vec3, strength: f32) -> Sun {
         color,
         strength,
         angular_diameter: 0.526_f32.to_radians(),
+        attenuated_by_medium: true,
     }
 }
 

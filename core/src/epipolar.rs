@@ -1363,6 +1363,7 @@ mod tests {
             color: Vec3::ONE,
             strength: 1.0,
             angular_diameter: 0.0,
+            attenuated_by_medium: true,
         };
         let light = sun.direction.as_dvec3().normalize();
         let medium = Medium {

@@ -191,12 +191,11 @@ impl<'a> MinMaxMethod<'a> {
         sun: &Sun,
         medium: &'a Medium,
     ) -> Self {
-        let light_travel = sun.direction.as_dvec3().normalize();
         Self {
             map,
             mipmap,
             medium,
-            box_medium: BoxMedium::new(&medium.extent, light_travel),
+            box_medium: BoxMedium::new(&medium.extent, sun),
         }
     }
 
@@ -329,6 +328,7 @@ mod tests {
             color: Vec3::ONE,
             strength: 1.0,
             angular_diameter: 0.0,
+            attenuated_by_medium: true,
         };
         let medium = Medium {
             extinction: 0.1,

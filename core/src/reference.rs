@@ -79,19 +79,27 @@ pub fn integral_exp(k: f64, d: f64) -> f64 {
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct BoxMedium {
     cube_from_world: DMat4,
-    /// Direction towards the sun, in cube coordinates but per world unit.
-    towards_sun: DVec3,
+    /// Direction towards the sun, in cube coordinates but per world unit; `None` where the
+    /// sunlight is not attenuated in the box ([`Sun::attenuated_by_medium`]): its sunward
+    /// depth is 0 everywhere.
+    towards_sun: Option<DVec3>,
 }
 
 impl BoxMedium {
-    pub(crate) fn new(extent: &Extent, light_travel: DVec3) -> Option<Self> {
+    pub(crate) fn new(extent: &Extent, sun: &Sun) -> Option<Self> {
+        let light_travel = sun.direction.as_dvec3().normalize();
+        Self::lit_along(extent, light_travel, sun.attenuated_by_medium)
+    }
+
+    fn lit_along(extent: &Extent, light_travel: DVec3, attenuated: bool) -> Option<Self> {
         match extent {
             Extent::Unbounded => None,
             Extent::Box { world_from_cube } => {
                 let cube_from_world = world_from_cube.as_dmat4().inverse();
                 Some(BoxMedium {
                     cube_from_world,
-                    towards_sun: cube_from_world.transform_vector3(-light_travel),
+                    towards_sun: attenuated
+                        .then(|| cube_from_world.transform_vector3(-light_travel)),
                 })
             }
         }
@@ -99,11 +107,19 @@ impl BoxMedium {
 
     /// What integrating along `ray` needs, once per ray.
     pub(crate) fn along(&self, ray: &Ray) -> BoxRay {
+        let Some(towards_sun) = self.towards_sun else {
+            // ℓ = 0: one line, and the others never lower.
+            let flat = (0.0, 0.0);
+            let never = (f64::INFINITY, 0.0);
+            return BoxRay {
+                lines: [flat, never, never],
+            };
+        };
         let origin = self.cube_from_world.transform_point3(ray.origin);
         let direction = self.cube_from_world.transform_vector3(ray.direction);
         let mut lines = [(f64::INFINITY, 0.0); 3];
         for (axis, line) in lines.iter_mut().enumerate() {
-            let s = self.towards_sun[axis];
+            let s = towards_sun[axis];
             if s != 0.0 {
                 let wall = if s > 0.0 { 1.0 } else { -1.0 };
                 *line = ((wall - origin[axis]) / s, -direction[axis] / s);
@@ -136,9 +152,12 @@ impl BoxMedium {
     /// Distance from a cube-space point to the box boundary, towards the sun.
     #[inline]
     fn sunward_depth(&self, cube_point: DVec3) -> f64 {
+        let Some(towards_sun) = self.towards_sun else {
+            return 0.0;
+        };
         let mut depth = f64::INFINITY;
         for axis in 0..3 {
-            let s = self.towards_sun[axis];
+            let s = towards_sun[axis];
             if s != 0.0 {
                 let wall = if s > 0.0 { 1.0 } else { -1.0 };
                 depth = depth.min((wall - cube_point[axis]) / s);
@@ -307,12 +326,11 @@ pub struct Marcher<'a> {
 
 impl<'a> Marcher<'a> {
     pub fn new(shadow: &'a ShadowMap, sun: &Sun, medium: &Medium, steps: u32) -> Self {
-        let light_travel = sun.direction.as_dvec3().normalize();
         Self {
             shadow,
             extinction: medium.extinction as f64,
             steps,
-            box_medium: BoxMedium::new(&medium.extent, light_travel),
+            box_medium: BoxMedium::new(&medium.extent, sun),
             dark_walks: false,
         }
     }
@@ -703,7 +721,7 @@ mod tests {
         let sigma = 0.2;
         for x in [-2.1e-17, 0.0, 1e-9, 0.3, 1e-20, -1e-25, 1e-30, 1e-40] {
             let light_travel = DVec3::new(x, -0.342, -0.94).normalize();
-            let box_medium = BoxMedium::new(&extent, light_travel).expect("a box");
+            let box_medium = BoxMedium::lit_along(&extent, light_travel, true).expect("a box");
             for (origin, direction) in [
                 (DVec3::new(9.0, -1.0, 2.0), DVec3::new(-1.0, 0.1, 0.05)),
                 (DVec3::new(-8.0, 2.0, 3.0), DVec3::new(0.9, -0.3, 0.1)),

@@ -181,6 +181,13 @@ pub struct Sun {
     /// `render.sun_disc_samples` above 1 ([`crate::sun_disc`]).
     #[serde(default = "default_sun_angle")]
     pub angular_diameter: f32,
+    /// Whether the light fades through a `box` medium on its way in (the DESIGN's
+    /// `T_light`). False for a light that casts no shadows: Cycles traces no shadow rays for
+    /// it (its Cast Shadow off), through fog no more than through surfaces, and nor do
+    /// renderers of a UsdLux light whose `inputs:shadow:enable` is false. What blocks the
+    /// light is the geometry's own say (`blocks_sun`).
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub attenuated_by_medium: bool,
 }
 
 fn white() -> Vec3 {

@@ -3,7 +3,9 @@
 
 mod common;
 
-use common::{camera_inside_a_fog_box, dilated_roof_in_a_thin_box, small_fog_box_far_off};
+use common::{
+    camera_inside_a_fog_box, dilated_roof_in_a_thin_box, radiance_error, small_fog_box_far_off,
+};
 use crepuscular::camera::CameraModel;
 use crepuscular::scene::{Camera, ExactRayEnds, Extent, Mesh, Method, Projection, Scene};
 use crepuscular::silhouette::SilhouetteOp;
@@ -203,6 +205,31 @@ fn fast_methods_match_the_reference_in_a_box_medium() {
 /// and in pieces over which the sunlight's optical depth changes by 0.1 0.66%.
 #[test]
 fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
+    let scene = box_under_a_slotted_roof();
+    let reference = render_with(&scene, Method::Reference, 4096);
+    assert_fast_methods_within("box under a slotted roof", &scene, &reference, 0.0025);
+}
+
+/// The same box lit by a sun that casts no shadows but for the roof (as a Blender lamp
+/// whose Cast Shadow is off lights fog under a roof whose Casts Shafts is On): its light
+/// is not dimmed in the box, so each ray's weights are the view ray's transmittance alone.
+#[test]
+fn fast_methods_match_the_reference_under_a_sun_the_box_does_not_dim() {
+    let mut scene = box_under_a_slotted_roof();
+    scene.sun.attenuated_by_medium = false;
+    let reference = render_with(&scene, Method::Reference, 4096);
+    assert_fast_methods_within("box not dimming the sun", &scene, &reference, 0.0025);
+    let mut dimmed = scene.clone();
+    dimmed.sun.attenuated_by_medium = true;
+    let dimmed = render_with(&dimmed, Method::Reference, 4096);
+    let brighter = radiance_error(&dimmed, &reference);
+    assert!(
+        brighter > 0.1,
+        "the sunlight's attenuation changes the frame by {brighter}"
+    );
+}
+
+fn box_under_a_slotted_roof() -> Scene {
     let mut scene = builtin_scene("plane").expect("built-in scene");
     let quad = |name: &str, object_id, x0: f32, x1: f32| Mesh {
         name: name.to_string(),
@@ -236,8 +263,7 @@ fn fast_methods_match_the_reference_in_a_box_under_a_slotted_roof() {
     };
     scene.render.shadow_map_size = 2048;
     scene.render.max_distance = 60.0;
-    let reference = render_with(&scene, Method::Reference, 4096);
-    assert_fast_methods_within("box under a slotted roof", &scene, &reference, 0.0025);
+    scene
 }
 
 /// A box of fog 10 cm across, through a long lens from 15 m, a shadow edge of the torus

@@ -222,6 +222,75 @@ fn box_medium_matches_the_integral_with_attenuated_sunlight() {
     }
 }
 
+/// A sun that casts no shadows (`attenuated_by_medium` false, as Cycles lights fog with a
+/// lamp whose Cast Shadow is off): its light reaches every point of the box undimmed, so a
+/// ray's radiance is the open-fog closed form over its stretch inside the box, and brighter
+/// than with the sunlight attenuated wherever the ray crosses fog.
+#[test]
+fn a_sun_unattenuated_by_the_medium_lights_the_box_as_open_fog() {
+    let (lo, hi) = (DVec3::new(-4.0, -3.0, 1.0), DVec3::new(4.0, 3.0, 5.0));
+    let world_from_cube = Mat4::from_translation(Vec3::new(0.0, 0.0, 3.0))
+        * Mat4::from_scale(Vec3::new(4.0, 3.0, 2.0));
+    let ground = horizontal_quad(1, -300.0, 300.0, -300.0, 300.0, 0.0);
+    let outside = (Vec3::new(-12.0, 1.0, 3.5), Vec3::new(1.0, -0.05, -0.05));
+    let inside = (Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1));
+    let sigma = 0.35;
+    for (name, eye, focal_length) in [("outside", outside, 50.0), ("inside", inside, 24.0)] {
+        let mut medium = medium(sigma as f32, 0.4);
+        medium.extent = Extent::Box { world_from_cube };
+        let mut scene = scene(
+            pinhole(eye.0, eye.1, focal_length, 24, 16),
+            Vec3::new(0.4, -0.3, -1.0),
+            medium,
+            vec![ground.clone()],
+            settings(1024, 256, 60.0),
+        );
+        let attenuated = render(&scene);
+        scene.sun.attenuated_by_medium = false;
+        let layers = render(&scene);
+        let (mut inside_box, mut sums) = (0, [0.0; 2]);
+        for y in 0..16 {
+            for x in 0..24 {
+                let ray = pixel_ray(&scene, x, y);
+                let i = (y * 24 + x) as usize;
+                let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
+                let t_end = (layers.depth[i] as f64).min(60.0);
+                let got = layers.volume_rgba(x, y);
+                let Some((a, b)) = slab(ray.origin, ray.direction, lo, hi)
+                    .map(|(a, b)| (a.max(t_start), b.min(t_end)))
+                    .filter(|(a, b)| b > a)
+                else {
+                    assert_eq!(got, [0.0; 4], "{name} ({x}, {y}) misses the box");
+                    continue;
+                };
+                inside_box += 1;
+                let opacity = -(-sigma * (b - a)).exp_m1();
+                let expected = source_term(&scene, ray.direction) * (opacity / sigma);
+                for c in 0..3 {
+                    let error = relative_error(got[c] as f64, expected[c]);
+                    assert!(
+                        error < 1e-4,
+                        "{name} ({x}, {y}) channel {c}: {} vs {} ({error:e})",
+                        got[c],
+                        expected[c]
+                    );
+                }
+                assert!((got[3] as f64 - opacity).abs() < 1e-6);
+                assert_eq!(layers.visibility[i], 1.0, "{name} ({x}, {y})");
+                let dimmed = attenuated.volume_rgba(x, y)[1] as f64;
+                assert!(
+                    dimmed <= got[1] as f64 * 1.0001,
+                    "{name} ({x}, {y}): {dimmed}"
+                );
+                sums[0] += dimmed;
+                sums[1] += got[1] as f64;
+            }
+        }
+        assert!(inside_box > 24 * 16 / 2, "{name}: most rays cross the box");
+        assert!(sums[0] < 0.8 * sums[1], "{name}: attenuated {sums:?}");
+    }
+}
+
 #[test]
 fn henyey_greenstein_integrates_to_one_over_the_sphere() {
     for g in [-0.9, 0.0, 0.5, 0.95] {

@@ -272,6 +272,43 @@ fn reference_march_matches_in_a_box_supersampled_and_downsampled() {
     check_layers("march plane, pixels 2:1", &gpu, &cpu, 0.05, 0.05);
 }
 
+/// A box whose sunlight is not attenuated (a sun that casts no shadows), marched and
+/// prefiltered: the GPU's layers as the CPU's, and not those of the attenuated box.
+#[test]
+fn a_box_that_does_not_dim_the_sun_matches() {
+    let Some(device) = device("the undimmed box parity test") else {
+        return;
+    };
+    let mut scene = small("torus");
+    scene.medium.extinction = 0.3;
+    scene.medium.extent = Extent::Box {
+        world_from_cube: glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::new(6.0, 5.0, 3.0),
+            glam::Quat::from_rotation_z(0.3),
+            glam::Vec3::new(0.0, 0.0, 2.0),
+        ),
+    };
+    for method in [Method::Reference, Method::Prefiltered] {
+        scene.render.method = method;
+        scene.sun.attenuated_by_medium = true;
+        let (dimmed, _, _) = render_both(&device, &scene);
+        scene.sun.attenuated_by_medium = false;
+        let (gpu, cpu, _) = render_both(&device, &scene);
+        check_layers(
+            &format!("{method:?} in an undimming box"),
+            &gpu,
+            &cpu,
+            0.05,
+            0.05,
+        );
+        let brighter = radiance_error(&dimmed, &gpu);
+        assert!(
+            brighter > 0.1,
+            "{method:?}: the attenuation moves the GPU frame by {brighter}"
+        );
+    }
+}
+
 /// Hole filling: minimum and maximum are exact, so the GPU must equal the CPU bit for
 /// bit (max abs error 0) for every operation and kernel.
 #[test]

@@ -40,6 +40,26 @@ pub struct MarchInputs<'a> {
     pub dark_walks: bool,
 }
 
+/// The shaders' `box_medium` (march_common.glsl): which integral the march takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u32)]
+pub enum BoxKind {
+    None = 0,
+    Attenuating = 1,
+    /// A box whose sunlight is not attenuated ([`Sun::attenuated_by_medium`]).
+    Unattenuating = 2,
+}
+
+impl BoxKind {
+    pub fn of(medium: &Medium, sun: &Sun) -> Self {
+        match (&medium.extent, sun.attenuated_by_medium) {
+            (Extent::Unbounded, _) => Self::None,
+            (Extent::Box { .. }, true) => Self::Attenuating,
+            (Extent::Box { .. }, false) => Self::Unattenuating,
+        }
+    }
+}
+
 fn columns(m: &DMat4) -> [f32; 16] {
     m.to_cols_array().map(|v| v as f32)
 }
@@ -52,12 +72,12 @@ pub fn march_params(inputs: &MarchInputs) -> Vec<u8> {
     let light_travel = inputs.sun.direction.as_dvec3().normalize();
     let tint =
         medium.albedo.as_dvec3() * medium.extinction as f64 * inputs.sun.irradiance().as_dvec3();
-    let (cube_from_world, towards_sun, is_box) = match &medium.extent {
-        Extent::Unbounded => (DMat4::IDENTITY, DVec3::ZERO, 0),
+    let (cube_from_world, towards_sun) = match &medium.extent {
+        Extent::Unbounded => (DMat4::IDENTITY, DVec3::ZERO),
         Extent::Box { world_from_cube } => {
             let cube_from_world = world_from_cube.as_dmat4().inverse();
             let towards_sun = cube_from_world.transform_vector3(-light_travel);
-            (cube_from_world, towards_sun, 1)
+            (cube_from_world, towards_sun)
         }
     };
     let terms = camera.ray_terms();
@@ -78,7 +98,7 @@ pub fn march_params(inputs: &MarchInputs) -> Vec<u8> {
         .f32(inputs.shadow.bias as f32)
         .f32(medium.anisotropy)
         .u32((medium.phase == PhaseModel::Isotropic) as u32)
-        .u32(is_box)
+        .u32(BoxKind::of(medium, inputs.sun) as u32)
         .u32(settings.steps)
         .u32(reduced_size(camera.width, stride))
         .u32(reduced_size(camera.height, stride))
@@ -184,6 +204,43 @@ mod tests {
         assert_eq!(word(392), shadow.size);
         // The texel matrix sits in the second mat4, column-major.
         assert_eq!(float(64 + 12 * 4), shadow.texel_from_world.w_axis.x as f32);
+    }
+
+    /// The shaders' `box_medium` word, just before the steps' (at 360).
+    #[test]
+    fn params_name_the_box_and_whether_it_dims_the_sun() {
+        let mut scene = builtin_scene("torus").unwrap();
+        let camera = CameraModel::new(&scene.camera);
+        let geometry = FlatGeometry::from_scene(&scene);
+        let box_word = |scene: &crate::scene::Scene| {
+            let shadow = ShadowMap::build(
+                &camera,
+                &scene.sun,
+                &scene.medium,
+                &scene.render,
+                &geometry.view(),
+            )
+            .unwrap();
+            let bytes = march_params(&MarchInputs {
+                camera: &camera,
+                shadow: &shadow,
+                sun: &scene.sun,
+                medium: &scene.medium,
+                settings: &scene.render,
+                surfaces: &[],
+                supersampling: 1,
+                dark_walks: false,
+            });
+            u32::from_le_bytes(bytes[360..364].try_into().unwrap())
+        };
+        assert_eq!(box_word(&scene), BoxKind::None as u32);
+        scene.medium.extent = Extent::Box {
+            world_from_cube: glam::Mat4::from_scale(glam::Vec3::splat(5.0)),
+        };
+        assert_eq!(box_word(&scene), BoxKind::Attenuating as u32);
+        scene.sun.attenuated_by_medium = false;
+        assert_eq!(box_word(&scene), BoxKind::Unattenuating as u32);
+        assert_eq!(BoxKind::Unattenuating as u32, 2);
     }
 
     #[test]

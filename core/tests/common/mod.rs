@@ -40,6 +40,7 @@ pub fn scene(
             color: Vec3::new(1.0, 0.9, 0.8),
             strength: 3.0,
             angular_diameter: 0.0,
+            attenuated_by_medium: true,
         },
         medium,
         meshes,
