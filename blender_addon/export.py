@@ -962,8 +962,9 @@ def shaft_suns(scene: bpy.types.Scene) -> list[bpy.types.Object]:
 
 
 def sun_dict(sun: bpy.types.Object) -> dict[str, Any]:
-    """Direction (the lamp's -Z), colour, strength and angle of an evaluated sun, as Cycles
-    lights with it: strength x 2^exposure, colour x blackbody colour when Temperature is on."""
+    """Direction (the lamp's -Z), colour, strength and angle of an evaluated sun, and whether
+    the fog dims its light, as Cycles lights with it: strength x 2^exposure, colour x
+    blackbody colour when Temperature is on, undimmed when its Cast Shadow is off."""
     matrix = np.array(sun.matrix_world, dtype=np.float64)
     direction = -matrix[:3, 2]
     norm = np.linalg.norm(direction)
@@ -978,6 +979,9 @@ def sun_dict(sun: bpy.types.Object) -> dict[str, Any]:
         "color": color.tolist(),
         "strength": float(light.energy) * 2.0 ** float(light.exposure),
         "angular_diameter": float(light.angle),
+        # Cycles traces no shadow rays for a light whose Cast Shadow is off, through the
+        # fog no more than through surfaces.
+        "attenuated_by_medium": bool(light.use_shadow),
     }
 
 
@@ -1250,9 +1254,8 @@ def frame_inputs(
     if blockers is not None and blockers.takes_none:
         notes.append(
             f"'{sun.name}' casts no shadows (its Cast Shadow is off): nothing casts shafts "
-            "but objects whose Casts Shafts is On, and the fog is lit everywhere, as in "
-            "Cycles; but its light still fades through the fog towards the sun, which "
-            "Cycles, tracing no shadow rays, leaves out (the layers are darker in dense fog)"
+            "but objects whose Casts Shafts is On, and the fog is lit everywhere, its light "
+            "not fading through the fog towards the sun (Cycles traces no shadow rays for it)"
         )
     if not sun.original.visible_volume_scatter:
         notes.append(

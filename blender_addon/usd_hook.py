@@ -21,7 +21,8 @@ each sun with shafts and authors what the add-on would render with, so that
   which Blender 5.0's exporter authors as true on every light;
 - objects that do not block the sun (Casts Shafts Off, no Shadow ray visibility, outside
   the sun's shadow linking) are excluded from the light's `shadowLink` collection, which
-  Blender's exporter does not write;
+  Blender's exporter does not write; a sun whose Cast Shadow is off and that nothing
+  blocks gets `inputs:shadow:enable` false instead;
 - an animated export gets time samples wherever a value changes over the frame range;
 - a `RenderSettings` prim, `/Render/settings`, named by the stage's
   `renderSettingsPrimPath`, holds the scene camera, the render's resolution, pixel aspect
@@ -688,17 +689,28 @@ def author_shadow_link(
     shadowLink collection, which Blender's exporter does not write, so that the USD step
     casts what the add-on casts. Nothing is authored where every object blocks. Objects are
     judged on their own: an instance that blocks only through its instancer's linking is
-    judged by its instancer."""
+    judged by its instancer. A sun whose Cast Shadow is off and that no object blocks
+    (none forced by Casts Shafts On) gets `inputs:shadow:enable` false, which Blender's
+    exporter does not write either: renderers then trace no shadow rays for it, and its
+    light does not fade through the fog, as in Cycles and the add-on."""
     from pxr import UsdLux
 
     blockers = export.LightLinking.of_blockers(sun)
+    candidates = [
+        obj for obj in scene.objects if obj.type in export.GEOMETRY_TYPES | {"EMPTY"} and obj != fog
+    ]
+    blocking = {
+        obj.name
+        for obj in candidates
+        if export.blocks_sun([obj], blockers) and not _hidden_from_shadow_rays(obj)
+    }
+    if blockers is not None and blockers.takes_none and not blocking:
+        shadow = UsdLux.ShadowAPI.Apply(light)
+        if not shadow or not shadow.CreateShadowEnableAttr(False):
+            raise USDExportError(f"could not author inputs:shadow:enable on {light.GetPath()}")
+        return
     left_out = [
-        prim.GetPath()
-        for obj in scene.objects
-        if obj.type in export.GEOMETRY_TYPES | {"EMPTY"}
-        and obj != fog
-        and (not export.blocks_sun([obj], blockers) or _hidden_from_shadow_rays(obj))
-        for prim in prims.of(obj)
+        prim.GetPath() for obj in candidates if obj.name not in blocking for prim in prims.of(obj)
     ]
     if not left_out:
         return

@@ -1497,15 +1497,18 @@ def test_the_lights_shadow_linking_decides_what_blocks_it(tmp_path: Path) -> Non
         "/World/Posts": {crepuscular.SEEN_BY_CAMERA},
     }
     # A light that casts no shadows (UsdLuxShadowAPI), from a time on: nothing blocks it,
-    # and a note says so.
+    # nor does the fog dim it, and a note says so.
     enable = UsdLux.ShadowAPI.Apply(stage.GetPrimAtPath("/World/Sun")).CreateShadowEnableAttr()
     enable.Set(True, 1.0)
     enable.Set(False, 2.0)
     reader = StageReader(stage, None, None, width=64)
-    assert reader.read(Usd.TimeCode(1.0)).geometry.notes == []
-    shadowless = reader.read(Usd.TimeCode(2.0)).geometry
-    assert set(shadowless.visibility.tolist()) == {crepuscular.SEEN_BY_CAMERA}
-    assert "casts no shadows (inputs:shadow:enable is false)" in shadowless.notes[0]
+    shadowed = reader.read(Usd.TimeCode(1.0))
+    assert shadowed.geometry.notes == []
+    assert shadowed.sun["attenuated_by_medium"] is True
+    shadowless = reader.read(Usd.TimeCode(2.0))
+    assert set(shadowless.geometry.visibility.tolist()) == {crepuscular.SEEN_BY_CAMERA}
+    assert shadowless.sun["attenuated_by_medium"] is False
+    assert "casts no shadows (inputs:shadow:enable is false)" in shadowless.geometry.notes[0]
 
 
 def test_a_medium_left_out_of_the_lights_linking_is_named(tmp_path: Path) -> None:

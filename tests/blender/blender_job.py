@@ -501,10 +501,11 @@ def job_visibility_fidelity(spec: dict[str, Any], out: Path) -> None:
     collection that excludes a slat; "included", one that includes only the other slat,
     an instanced copy of it (through its instancer) and the fog (Cycles lights no fog that
     the light's shadow linking leaves out); "wall", a card between the camera and the box
-    hidden from shadow rays; "ghost", a card over the box hidden from the camera; and
+    hidden from shadow rays; "ghost", a card over the box hidden from the camera;
     "ghost_light_path" and "wall_light_path", the same two the other way round (the card
     hidden from shadow rays, the wall from the camera) by their materials
-    (`blender_scenes.light_path_material`) rather than their ray visibility."""
+    (`blender_scenes.light_path_material`) rather than their ray visibility; and
+    "shadowless", the sun's Cast Shadow off."""
     scene = fog_scene(spec)
     sun = scene.objects["Sun"]
     settings = sun.data.crepuscular
@@ -565,6 +566,11 @@ def job_visibility_fidelity(spec: dict[str, Any], out: Path) -> None:
     wall.visible_shadow = True
     wall.data.materials[0] = blender_scenes.light_path_material("Is Camera Ray")
     both("wall_light_path")
+    # A sun that casts no shadows: Cycles traces no shadow rays for it, so nothing blocks
+    # it and the fog does not dim it either.
+    wall.hide_render = True
+    sun.data.use_shadow = False
+    both("shadowless")
 
 
 def shaft_scene(spec: dict[str, Any]) -> Any:
@@ -914,8 +920,12 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
     through 3:2 anamorphic pixels, camera, lens, sun and closing radius keyed over frames
     1-3, and the fog box left out of the export. Orthographic: the still's camera turned
     orthographic (16 units across its vertical fit, its shift kept), through 4:5 pixels,
-    without a region."""
+    without a region. Shadowless: the still with the sun's Cast Shadow off, without a
+    region."""
     scene = round_trip_scene(spec)
+    variant = spec.get("orthographic") or spec.get("shadowless")
+    if spec.get("shadowless"):
+        scene.objects["Sun"].data.use_shadow = False
     if spec.get("orthographic"):
         scene.camera.data.type = "ORTHO"
         scene.camera.data.ortho_scale = 16.0
@@ -957,7 +967,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
         path = out / f"blender.{frame:04d}.exr"
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
     scene.frame_set(frames[0])
-    if not spec["animated"] and not spec.get("orthographic"):
+    if not spec["animated"] and not variant:
         render = scene.render
         render.use_border, render.use_crop_to_border = True, False
         # 24.96 to 74.88 of 96 columns: Blender renders columns 24 to 73 (it truncates),
@@ -968,7 +978,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
     animation = {"export_animation": True} if spec["animated"] else {}
     assert bpy.ops.wm.usd_export(filepath=str(out / "shot.usda"), **animation) == {"FINISHED"}
-    if not spec["animated"]:
+    if not spec["animated"] and not variant:
         assert bpy.ops.wm.usd_export(
             filepath=str(out / "shot_y_up_cm.usda"),
             convert_orientation=True,

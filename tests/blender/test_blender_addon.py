@@ -723,8 +723,9 @@ def test_value_nodes_on_the_alpha_move_the_cut(addon: ModuleType) -> None:
 
 def test_a_sun_that_casts_no_shadows_is_blocked_by_nothing(addon: ModuleType) -> None:
     """A sun whose Cast Shadow is off: no triangle blocks it but one whose Casts Shafts
-    is On, every one still hides the fog from the camera, and a note says so; a sun whose
-    Volume Scatter ray visibility is off is named."""
+    is On, every one still hides the fog from the camera, the fog does not dim its light
+    (Cycles traces no shadow rays for it), and a note says so; a sun whose Volume Scatter
+    ray visibility is off is named."""
     scene = bpy.context.scene
     blender_scenes.add_camera(scene, blender_scenes.look_at((0, -10, 2), (0, 0, 2)))
     sun = blender_scenes.add_sun(scene, (0.2, 0.3, -1.0))
@@ -737,6 +738,7 @@ def test_a_sun_that_casts_no_shadows_is_blocked_by_nothing(addon: ModuleType) ->
     ids = inputs.geometry.object_ids
     assert set(flags.tolist()) == {crepuscular.SEEN_BY_CAMERA}
     assert "casts no shadows (its Cast Shadow is off)" in " ".join(inputs.notes)
+    assert inputs.kwargs["sun"]["attenuated_by_medium"] is False
     forced.crepuscular.casts_shafts = "on"
     inputs = addon.export.frame_inputs(scene, bpy.context.evaluated_depsgraph_get(), sun=sun)
     forced_id = next(i for i, name in inputs.geometry.names.items() if name == forced.name)

@@ -221,6 +221,29 @@ def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
         _assert_close(_errors(orthographic / "blender.0001.exr", Path(out)), name)
 
 
+@pytest.fixture(scope="module")
+def shadowless(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("round_trip_shadowless")
+    blender_scenes.run_job(
+        out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=False, shadowless=True
+    )
+    return out
+
+
+def test_a_sun_that_casts_no_shadows_renders_the_same(shadowless: Path, still: Path) -> None:
+    """The sun's Cast Shadow off: the hook authors `inputs:shadow:enable` false (Blender's
+    exporter writes none), and the USD step, like the add-on, lets nothing block the sun
+    and the fog not dim it. The layers are not the still's (no shafts, brighter fog)."""
+    stage = Usd.Stage.Open(str(shadowless / "shot.usda"))
+    assert _light(stage).GetAttribute("inputs:shadow:enable").Get() is False
+    _render(shadowless / "shot.usda", str(shadowless / "usd.exr"))
+    blender = shadowless / "blender.0001.exr"
+    _assert_close(_errors(blender, shadowless / "usd.exr"), "shadowless:")
+    lit = crepuscular.read_exr(blender)["volume.G"]
+    shafts = crepuscular.read_exr(still / "blender.0001.exr")["volume.G"]
+    assert lit.mean() > 1.2 * shafts.mean()
+
+
 def test_animated_export_renders_every_frame(animated: Path) -> None:
     """Camera, lens, sun and closing radius keyed over three frames, through 3:2 pixels
     (the hook's RenderSettings carry the pixel aspect, which Blender's exporter bakes into

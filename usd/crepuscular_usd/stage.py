@@ -326,11 +326,14 @@ class StageReader:
             seen=sun_and_camera(sun, camera),
             shadow_link=self._shadow_link if casts else _NO_MEMBERS,
         )
+        # A renderer traces no shadow rays for such a light, through the fog no more than
+        # through surfaces.
+        sun["attenuated_by_medium"] = casts
         if not casts:
             geometry.notes.append(
                 f"{self.light_prim.GetPath()} casts no shadows (inputs:shadow:enable is "
-                "false): nothing casts shafts, and the fog is lit everywhere (its light "
-                "still fades through the fog towards the light)"
+                "false): nothing casts shafts, and the fog is lit everywhere, its light not "
+                "fading through the fog towards the light"
             )
         medium = dict(light.medium)
         medium["extent"] = self._extent(light, time)
