@@ -55,7 +55,9 @@ Smooth*. `--fur` adds a
 legacy particle-hair emitter of 50 to 400 black hairs (which Blender's exporter leaves out
 and the hook writes as curves with widths). `--booleans` adds one or two black walls or
 slabs with one to three windows each that a Boolean modifier cuts, whose faces around the
-windows are concave n-gons (the same scenes otherwise, seed for seed).
+windows are concave n-gons (the same scenes otherwise, seed for seed). `--shadowless` turns
+the sun's Cast Shadow off: Cycles traces no shadow rays for it, so nothing blocks it and the
+fog does not dim it (the same scenes otherwise).
 """
 
 from __future__ import annotations
@@ -735,6 +737,9 @@ def main() -> int:
     parser.add_argument(
         "--booleans", action="store_true", help="walls with windows a Boolean cuts (see above)"
     )
+    parser.add_argument(
+        "--shadowless", action="store_true", help="the sun's Cast Shadow off (see above)"
+    )
     parser.add_argument("--out", type=Path, help="folder to keep each case's renders in")
     args = parser.parse_args()
     blender_scenes.install_addon()
@@ -782,6 +787,9 @@ def main() -> int:
                 setattr(render, f"border_min_{axis}", low)
                 setattr(render, f"border_max_{axis}", draw.uniform(low + 0.2, 1.0))
             summary += " region" + (" cropped" if render.use_crop_to_border else "")
+        if args.shadowless:
+            sun.data.use_shadow = False
+            summary += " shadowless"
         out = out_root / f"case_{args.seed}_{case}"
         out.mkdir(parents=True, exist_ok=True)
         started = time.perf_counter()

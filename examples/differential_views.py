@@ -26,6 +26,8 @@ every case with that many epipolar slices rather than the automatic count.
 `--anamorphic` renders each case through non-square pixels (1:2 to 2:1, the width scaled
 to keep the view's shape), and `--window` renders a random window of each case's frame, a
 render region: both draw from generators of their own, so that seeds keep their cases.
+`--undimmed` renders every case with sunlight that a box medium does not attenuate (a sun
+that casts no shadows, its casters kept), the same cases otherwise.
 """
 
 from __future__ import annotations
@@ -338,6 +340,11 @@ def main() -> int:
         "--anamorphic", action="store_true", help="non-square pixels, 1:2 to 2:1 (see above)"
     )
     parser.add_argument("--window", action="store_true", help="a random window of the frame")
+    parser.add_argument(
+        "--undimmed",
+        action="store_true",
+        help="sunlight not attenuated by a box medium (see above)",
+    )
     args = parser.parse_args()
     rng = random.Random(args.seed)
     geometry = random.Random(f"{args.seed} geometry") if args.geometry == "random" else None
@@ -361,6 +368,9 @@ def main() -> int:
             camera["pixel_aspect"] = aspect
             camera["width"] = max(1, round(camera["width"] / aspect))
             name += f" pixels {aspect:.2f}:1"
+        if args.undimmed:
+            scene["sun"]["attenuated_by_medium"] = False
+            name += " undimmed"
         if args.window:
             draw = random.Random(f"{args.seed} {case} window")
             x0, y0 = draw.randrange(camera["width"] // 2), draw.randrange(camera["height"] // 2)
