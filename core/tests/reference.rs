@@ -157,68 +157,113 @@ fn slab(origin: DVec3, direction: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, f
     (near < far).then_some((near, far))
 }
 
-#[test]
-fn box_medium_matches_the_integral_with_attenuated_sunlight() {
-    let (lo, hi) = (DVec3::new(-4.0, -3.0, 1.0), DVec3::new(4.0, 3.0, 5.0));
+/// The fog box of the box tests, from corner to corner, and the views into it: from
+/// outside and from inside, fog of 0.35 over a ground.
+const BOX_CORNERS: (DVec3, DVec3) = (DVec3::new(-4.0, -3.0, 1.0), DVec3::new(4.0, 3.0, 5.0));
+const BOX_SIGMA: f64 = 0.35;
+
+fn box_views(steps: u32) -> [(&'static str, Scene); 2] {
     let world_from_cube = Mat4::from_translation(Vec3::new(0.0, 0.0, 3.0))
         * Mat4::from_scale(Vec3::new(4.0, 3.0, 2.0));
-    let sun = Vec3::new(0.4, -0.3, -1.0);
-    let towards_sun = -sun.as_dvec3().normalize();
     let ground = horizontal_quad(1, -300.0, 300.0, -300.0, 300.0, 0.0);
-    let outside = (Vec3::new(-12.0, 1.0, 3.5), Vec3::new(1.0, -0.05, -0.05));
-    let inside = (Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1));
-    for (name, eye, focal_length) in [("outside", outside, 50.0), ("inside", inside, 24.0)] {
-        let mut medium = medium(0.35, 0.4);
+    let view = |eye: Vec3, look: Vec3, focal_length: f32| {
+        let mut medium = medium(BOX_SIGMA as f32, 0.4);
         medium.extent = Extent::Box { world_from_cube };
-        let scene = scene(
-            pinhole(eye.0, eye.1, focal_length, 24, 16),
-            sun,
+        scene(
+            pinhole(eye, look, focal_length, 24, 16),
+            Vec3::new(0.4, -0.3, -1.0),
             medium,
             vec![ground.clone()],
-            settings(1024, 4096, 60.0),
-        );
-        let layers = render(&scene);
-        let sigma = 0.35;
-        let mut inside_box = 0;
-        for y in 0..16 {
-            for x in 0..24 {
-                let ray = pixel_ray(&scene, x, y);
-                let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
-                let t_end = (layers.depth[(y * 24 + x) as usize] as f64).min(60.0);
-                let got = layers.volume_rgba(x, y);
-                let Some((a, b)) = slab(ray.origin, ray.direction, lo, hi)
-                    .map(|(a, b)| (a.max(t_start), b.min(t_end)))
-                    .filter(|(a, b)| b > a)
-                else {
-                    assert_eq!(got, [0.0; 4], "{name} ({x}, {y}) misses the box");
-                    continue;
-                };
-                inside_box += 1;
-                let integrand = |t: f64| {
-                    let p = ray.origin + ray.direction * t;
-                    let (_, exit) = slab(p, towards_sun, lo, hi).expect("inside the box");
-                    (-sigma * exit.max(0.0)).exp() * (-sigma * (t - a)).exp()
-                };
-                let n = 20_000;
-                let h = (b - a) / n as f64;
-                let mut sum = integrand(a) + integrand(b);
-                for k in 1..n {
-                    sum += integrand(a + k as f64 * h) * if k % 2 == 1 { 4.0 } else { 2.0 };
+            settings(1024, steps, 60.0),
+        )
+    };
+    [
+        (
+            "outside",
+            view(
+                Vec3::new(-12.0, 1.0, 3.5),
+                Vec3::new(1.0, -0.05, -0.05),
+                50.0,
+            ),
+        ),
+        (
+            "inside",
+            view(Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1), 24.0),
+        ),
+    ]
+}
+
+/// Calls `visit(x, y, ray, a, b)` for each pixel whose ray has a stretch [a, b] inside the
+/// box and before its surface; the other pixels must be empty, and most rays must cross.
+fn for_each_box_pixel(
+    name: &str,
+    scene: &Scene,
+    layers: &Layers,
+    mut visit: impl FnMut(u32, u32, crepuscular::camera::Ray, f64, f64),
+) {
+    let (lo, hi) = BOX_CORNERS;
+    let mut inside_box = 0;
+    for y in 0..16 {
+        for x in 0..24 {
+            let ray = pixel_ray(scene, x, y);
+            let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
+            let t_end = (layers.depth[(y * 24 + x) as usize] as f64).min(60.0);
+            match slab(ray.origin, ray.direction, lo, hi)
+                .map(|(a, b)| (a.max(t_start), b.min(t_end)))
+                .filter(|(a, b)| b > a)
+            {
+                Some((a, b)) => {
+                    inside_box += 1;
+                    visit(x, y, ray, a, b);
                 }
-                let expected = source_term(&scene, ray.direction) * (sum * h / 3.0);
-                for c in 0..3 {
-                    let error = relative_error(got[c] as f64, expected[c]);
-                    assert!(
-                        error < 1e-3,
-                        "{name} ({x}, {y}) channel {c}: {} vs {} ({error:e})",
-                        got[c],
-                        expected[c]
-                    );
-                }
-                assert!((got[3] as f64 - (1.0 - (-sigma * (b - a)).exp())).abs() < 1e-6);
+                None => assert_eq!(
+                    layers.volume_rgba(x, y),
+                    [0.0; 4],
+                    "{name} ({x}, {y}) misses the box"
+                ),
             }
         }
-        assert!(inside_box > 24 * 16 / 2, "{name}: most rays cross the box");
+    }
+    assert!(inside_box > 24 * 16 / 2, "{name}: most rays cross the box");
+}
+
+/// Each RGB channel of `got` within `bound` of `expected`, relatively.
+fn assert_channels_within(label: &str, got: [f32; 4], expected: DVec3, bound: f64) {
+    for c in 0..3 {
+        let error = relative_error(got[c] as f64, expected[c]);
+        assert!(
+            error < bound,
+            "{label} channel {c}: {} vs {} ({error:e})",
+            got[c],
+            expected[c]
+        );
+    }
+}
+
+#[test]
+fn box_medium_matches_the_integral_with_attenuated_sunlight() {
+    let sigma = BOX_SIGMA;
+    let (lo, hi) = BOX_CORNERS;
+    for (name, scene) in box_views(4096) {
+        let towards_sun = -scene.sun.direction.as_dvec3().normalize();
+        let layers = render(&scene);
+        for_each_box_pixel(name, &scene, &layers, |x, y, ray, a, b| {
+            let integrand = |t: f64| {
+                let p = ray.origin + ray.direction * t;
+                let (_, exit) = slab(p, towards_sun, lo, hi).expect("inside the box");
+                (-sigma * exit.max(0.0)).exp() * (-sigma * (t - a)).exp()
+            };
+            let n = 20_000;
+            let h = (b - a) / n as f64;
+            let mut sum = integrand(a) + integrand(b);
+            for k in 1..n {
+                sum += integrand(a + k as f64 * h) * if k % 2 == 1 { 4.0 } else { 2.0 };
+            }
+            let expected = source_term(&scene, ray.direction) * (sum * h / 3.0);
+            let got = layers.volume_rgba(x, y);
+            assert_channels_within(&format!("{name} ({x}, {y})"), got, expected, 1e-3);
+            assert!((got[3] as f64 - (1.0 - (-sigma * (b - a)).exp())).abs() < 1e-6);
+        });
     }
 }
 
@@ -228,65 +273,25 @@ fn box_medium_matches_the_integral_with_attenuated_sunlight() {
 /// than with the sunlight attenuated wherever the ray crosses fog.
 #[test]
 fn a_sun_unattenuated_by_the_medium_lights_the_box_as_open_fog() {
-    let (lo, hi) = (DVec3::new(-4.0, -3.0, 1.0), DVec3::new(4.0, 3.0, 5.0));
-    let world_from_cube = Mat4::from_translation(Vec3::new(0.0, 0.0, 3.0))
-        * Mat4::from_scale(Vec3::new(4.0, 3.0, 2.0));
-    let ground = horizontal_quad(1, -300.0, 300.0, -300.0, 300.0, 0.0);
-    let outside = (Vec3::new(-12.0, 1.0, 3.5), Vec3::new(1.0, -0.05, -0.05));
-    let inside = (Vec3::new(0.5, -0.5, 2.5), Vec3::new(1.0, 0.3, -0.1));
-    let sigma = 0.35;
-    for (name, eye, focal_length) in [("outside", outside, 50.0), ("inside", inside, 24.0)] {
-        let mut medium = medium(sigma as f32, 0.4);
-        medium.extent = Extent::Box { world_from_cube };
-        let mut scene = scene(
-            pinhole(eye.0, eye.1, focal_length, 24, 16),
-            Vec3::new(0.4, -0.3, -1.0),
-            medium,
-            vec![ground.clone()],
-            settings(1024, 256, 60.0),
-        );
+    let sigma = BOX_SIGMA;
+    for (name, mut scene) in box_views(256) {
         let attenuated = render(&scene);
         scene.sun.attenuated_by_medium = false;
         let layers = render(&scene);
-        let (mut inside_box, mut sums) = (0, [0.0; 2]);
-        for y in 0..16 {
-            for x in 0..24 {
-                let ray = pixel_ray(&scene, x, y);
-                let i = (y * 24 + x) as usize;
-                let t_start = scene.camera.clip_start as f64 * ray.distance_per_depth;
-                let t_end = (layers.depth[i] as f64).min(60.0);
-                let got = layers.volume_rgba(x, y);
-                let Some((a, b)) = slab(ray.origin, ray.direction, lo, hi)
-                    .map(|(a, b)| (a.max(t_start), b.min(t_end)))
-                    .filter(|(a, b)| b > a)
-                else {
-                    assert_eq!(got, [0.0; 4], "{name} ({x}, {y}) misses the box");
-                    continue;
-                };
-                inside_box += 1;
-                let opacity = -(-sigma * (b - a)).exp_m1();
-                let expected = source_term(&scene, ray.direction) * (opacity / sigma);
-                for c in 0..3 {
-                    let error = relative_error(got[c] as f64, expected[c]);
-                    assert!(
-                        error < 1e-4,
-                        "{name} ({x}, {y}) channel {c}: {} vs {} ({error:e})",
-                        got[c],
-                        expected[c]
-                    );
-                }
-                assert!((got[3] as f64 - opacity).abs() < 1e-6);
-                assert_eq!(layers.visibility[i], 1.0, "{name} ({x}, {y})");
-                let dimmed = attenuated.volume_rgba(x, y)[1] as f64;
-                assert!(
-                    dimmed <= got[1] as f64 * 1.0001,
-                    "{name} ({x}, {y}): {dimmed}"
-                );
-                sums[0] += dimmed;
-                sums[1] += got[1] as f64;
-            }
-        }
-        assert!(inside_box > 24 * 16 / 2, "{name}: most rays cross the box");
+        let mut sums = [0.0; 2];
+        for_each_box_pixel(name, &scene, &layers, |x, y, ray, a, b| {
+            let opacity = -(-sigma * (b - a)).exp_m1();
+            let expected = source_term(&scene, ray.direction) * (opacity / sigma);
+            let got = layers.volume_rgba(x, y);
+            let label = format!("{name} ({x}, {y})");
+            assert_channels_within(&label, got, expected, 1e-4);
+            assert!((got[3] as f64 - opacity).abs() < 1e-6, "{label}");
+            assert_eq!(layers.visibility[(y * 24 + x) as usize], 1.0, "{label}");
+            let dimmed = attenuated.volume_rgba(x, y)[1] as f64;
+            assert!(dimmed <= got[1] as f64 * 1.0001, "{label}: {dimmed}");
+            sums[0] += dimmed;
+            sums[1] += got[1] as f64;
+        });
         assert!(sums[0] < 0.8 * sums[1], "{name}: attenuated {sums:?}");
     }
 }

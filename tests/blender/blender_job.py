@@ -921,9 +921,8 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
     1-3, and the fog box left out of the export. Orthographic: the still's camera turned
     orthographic (16 units across its vertical fit, its shift kept), through 4:5 pixels,
     without a region. Shadowless: the still with the sun's Cast Shadow off, without a
-    region."""
+    region or the second export."""
     scene = round_trip_scene(spec)
-    variant = spec.get("orthographic") or spec.get("shadowless")
     if spec.get("shadowless"):
         scene.objects["Sun"].data.use_shadow = False
     if spec.get("orthographic"):
@@ -967,7 +966,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
         path = out / f"blender.{frame:04d}.exr"
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
     scene.frame_set(frames[0])
-    if not spec["animated"] and not variant:
+    if not spec["animated"] and not spec.get("orthographic") and not spec.get("shadowless"):
         render = scene.render
         render.use_border, render.use_crop_to_border = True, False
         # 24.96 to 74.88 of 96 columns: Blender renders columns 24 to 73 (it truncates),
@@ -978,7 +977,7 @@ def job_usd_round_trip(spec: dict[str, Any], out: Path) -> None:
         assert bpy.ops.crepuscular.render_layers(filepath=str(path)) == {"FINISHED"}
     animation = {"export_animation": True} if spec["animated"] else {}
     assert bpy.ops.wm.usd_export(filepath=str(out / "shot.usda"), **animation) == {"FINISHED"}
-    if not spec["animated"] and not variant:
+    if not spec["animated"] and not spec.get("shadowless"):
         assert bpy.ops.wm.usd_export(
             filepath=str(out / "shot_y_up_cm.usda"),
             convert_orientation=True,

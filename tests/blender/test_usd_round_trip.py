@@ -93,27 +93,26 @@ def _assert_close(errors: dict[str, float], label: str) -> None:
     assert errors["depth max"] <= DEPTH_ABSOLUTE, (label, errors)
 
 
+def _round_trip(factory: pytest.TempPathFactory, variant: str, **spec: Any) -> Path:
+    """Runs the round trip job (`blender_job.job_usd_round_trip`) for `variant`."""
+    out = factory.mktemp(f"round_trip_{variant}")
+    blender_scenes.run_job(out, "usd_round_trip", width=WIDTH, height=HEIGHT, **spec)
+    return out
+
+
 @pytest.fixture(scope="module")
 def still(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("round_trip_still")
-    blender_scenes.run_job(out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=False)
-    return out
+    return _round_trip(tmp_path_factory, "still", animated=False)
 
 
 @pytest.fixture(scope="module")
 def animated(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("round_trip_animated")
-    blender_scenes.run_job(out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=True)
-    return out
+    return _round_trip(tmp_path_factory, "animated", animated=True)
 
 
 @pytest.fixture(scope="module")
 def orthographic(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("round_trip_orthographic")
-    blender_scenes.run_job(
-        out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=False, orthographic=True
-    )
-    return out
+    return _round_trip(tmp_path_factory, "orthographic", animated=False, orthographic=True)
 
 
 def test_layers_match_the_addons(still: Path) -> None:
@@ -223,11 +222,7 @@ def test_orthographic_camera_renders_the_same(orthographic: Path) -> None:
 
 @pytest.fixture(scope="module")
 def shadowless(installed: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("round_trip_shadowless")
-    blender_scenes.run_job(
-        out, "usd_round_trip", width=WIDTH, height=HEIGHT, animated=False, shadowless=True
-    )
-    return out
+    return _round_trip(tmp_path_factory, "shadowless", animated=False, shadowless=True)
 
 
 def test_a_sun_that_casts_no_shadows_renders_the_same(shadowless: Path, still: Path) -> None:
