@@ -700,7 +700,7 @@ def author_shadow_link(
         obj for obj in scene.objects if obj.type in export.GEOMETRY_TYPES | {"EMPTY"} and obj != fog
     ]
     blocking = {
-        obj.name
+        obj.name_full
         for obj in candidates
         if export.blocks_sun([obj], blockers) and not _hidden_from_shadow_rays(obj)
     }
@@ -710,7 +710,10 @@ def author_shadow_link(
             raise USDExportError(f"could not author inputs:shadow:enable on {light.GetPath()}")
         return
     left_out = [
-        prim.GetPath() for obj in candidates if obj.name not in blocking for prim in prims.of(obj)
+        prim.GetPath()
+        for obj in candidates
+        if obj.name_full not in blocking
+        for prim in prims.of(obj)
     ]
     if not left_out:
         return

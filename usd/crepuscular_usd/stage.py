@@ -326,8 +326,8 @@ class StageReader:
             seen=sun_and_camera(sun, camera),
             shadow_link=self._shadow_link if casts else _NO_MEMBERS,
         )
-        # A renderer traces no shadow rays for such a light, through the fog no more than
-        # through surfaces.
+        # Nor does the fog dim a light that casts no shadows: a renderer traces no shadow
+        # rays for it, through the fog no more than through surfaces.
         sun["attenuated_by_medium"] = casts
         if not casts:
             geometry.notes.append(
