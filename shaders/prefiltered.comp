@@ -649,12 +649,14 @@ vec3 prefiltered_sample(vec3 origin, vec3 direction, float t_start, float t_end,
     float view = ceil(sigma * (b - a) / BOX_PIECE_VIEW_DEPTH);
     uint sunward_pieces = uint(clamp(sunward, 1.0, float(MAX_BOX_PIECES)));
     uint pieces = uint(clamp(max(sunward, view), 1.0, float(MAX_BOX_PIECES)));
+    bool too_short = is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS);
     // Pieces for the view ray's depth alone where they are long enough for lookups.
-    if (pieces > sunward_pieces && is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS)) {
+    if (too_short && pieces > sunward_pieces) {
         pieces = sunward_pieces;
+        too_short = is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS);
     }
     // A piece crossing too few texels is too short for its own lookup: marched instead.
-    if (is_short(located, (b - a) / float(pieces), SHORT_STRETCH_TEXELS)) {
+    if (too_short) {
         ok = false;
         return vec3(0.0);
     }

@@ -1801,10 +1801,12 @@ impl<'a> Prefiltered<'a> {
             self.map
                 .is_short_stretch(located, a, a + (b - a) / pieces as f64)
         };
-        if pieces > sunward_pieces && short(pieces) {
+        let mut too_short = short(pieces);
+        if too_short && pieces > sunward_pieces {
             pieces = sunward_pieces;
+            too_short = short(pieces);
         }
-        if short(pieces) {
+        if too_short {
             return None;
         }
         let t_at = |k: u32| a + (b - a) * k as f64 / pieces as f64;

@@ -241,12 +241,8 @@ fn reference_march_matches_the_cpu_on_the_builtin_scenes() {
     }
 }
 
-/// The march through a `box` medium, with supersampling, and at half resolution.
-#[test]
-fn reference_march_matches_in_a_box_supersampled_and_downsampled() {
-    let Some(device) = device("the box/supersampling march parity test") else {
-        return;
-    };
+/// `torus` at the parity tests' size in a turned box of fog around its subject.
+fn torus_in_a_box() -> Scene {
     let mut boxed = small("torus");
     boxed.medium.extent = Extent::Box {
         world_from_cube: glam::Mat4::from_scale_rotation_translation(
@@ -255,6 +251,16 @@ fn reference_march_matches_in_a_box_supersampled_and_downsampled() {
             glam::Vec3::new(0.0, 0.0, 2.0),
         ),
     };
+    boxed
+}
+
+/// The march through a `box` medium, with supersampling, and at half resolution.
+#[test]
+fn reference_march_matches_in_a_box_supersampled_and_downsampled() {
+    let Some(device) = device("the box/supersampling march parity test") else {
+        return;
+    };
+    let boxed = torus_in_a_box();
     let (gpu, cpu, _) = render_both(&device, &boxed);
     check_layers("march torus in a box", &gpu, &cpu, 0.05, 0.05);
     let mut supersampled = small("colonnade");
@@ -279,15 +285,8 @@ fn a_box_that_does_not_dim_the_sun_matches() {
     let Some(device) = device("the undimmed box parity test") else {
         return;
     };
-    let mut scene = small("torus");
+    let mut scene = torus_in_a_box();
     scene.medium.extinction = 0.3;
-    scene.medium.extent = Extent::Box {
-        world_from_cube: glam::Mat4::from_scale_rotation_translation(
-            glam::Vec3::new(6.0, 5.0, 3.0),
-            glam::Quat::from_rotation_z(0.3),
-            glam::Vec3::new(0.0, 0.0, 2.0),
-        ),
-    };
     for method in [Method::Reference, Method::Prefiltered] {
         scene.render.method = method;
         scene.sun.attenuated_by_medium = true;

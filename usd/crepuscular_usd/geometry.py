@@ -120,8 +120,9 @@ def triangle_corners(
     located = None if points is None else np.asarray(points, dtype=np.float64)
     # Faces that index past the points keep the fan (`point_count`, given, names them).
     if located is not None and total and indices.max() < len(located):
-        _split_folded_quads(located, indices, counts[face], corner, first, second, third)
-        _clip_concave_polygons(located, indices, counts[face], corner, first, second, third)
+        fan = _FanRows(counts[face], corner, first, second, third)
+        _split_folded_quads(located, indices, fan)
+        _clip_concave_polygons(located, indices, fan)
     if left_handed:
         second, third = third, second
     return np.stack([first, second, third], axis=1), face
@@ -133,47 +134,45 @@ def _folded(quads: F64) -> npt.NDArray[np.bool_]:
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), np.cross(d - a, c - a)) > 0.0
 
 
-def _split_folded_quads(
-    points: F64,
-    indices: npt.NDArray[np.int64],
-    counts: npt.NDArray[np.int64],
-    corner: npt.NDArray[np.int64],
-    first: npt.NDArray[np.int64],
-    second: npt.NDArray[np.int64],
-    third: npt.NDArray[np.int64],
-) -> None:
+@dataclass(frozen=True)
+class _FanRows:
+    """A fan triangulation, a row per triangle: its face's vertex count, its corner in
+    the fan, and its three positions in the face-vertex list, which the fixes below
+    rewrite in place."""
+
+    counts: npt.NDArray[np.int64]
+    corner: npt.NDArray[np.int64]
+    first: npt.NDArray[np.int64]
+    second: npt.NDArray[np.int64]
+    third: npt.NDArray[np.int64]
+
+
+def _split_folded_quads(points: F64, indices: npt.NDArray[np.int64], fan: _FanRows) -> None:
     """Quads whose two fan triangles face opposite ways (folded along the diagonal from
     their first corner, or concave there) split along the other diagonal instead, in
     place: Blender's rule (`is_quad_flip_v3_first_third_fast`), which the add-on's
     triangles follow."""
-    starts = first[(counts == 4) & (corner == 0)]
-    if not len(starts):
+    quads = np.flatnonzero((fan.counts == 4) & (fan.corner == 0))
+    if not len(quads):
         return
-    folded = _folded(points[indices[starts[:, None] + np.arange(4)]])
+    folded = _folded(points[indices[fan.first[quads][:, None] + np.arange(4)]])
     if not folded.any():
         return
-    rows = np.flatnonzero((counts == 4) & (corner == 0))[folded]
-    base = first[rows]
+    rows = quads[folded]
+    base = fan.first[rows]
     # (a, b, d) and (b, c, d).
-    second[rows], third[rows] = base + 1, base + 3
-    first[rows + 1], second[rows + 1], third[rows + 1] = base + 1, base + 2, base + 3
+    fan.second[rows], fan.third[rows] = base + 1, base + 3
+    fan.first[rows + 1], fan.second[rows + 1], fan.third[rows + 1] = base + 1, base + 2, base + 3
 
 
-def _clip_concave_polygons(
-    points: F64,
-    indices: npt.NDArray[np.int64],
-    counts: npt.NDArray[np.int64],
-    corner: npt.NDArray[np.int64],
-    first: npt.NDArray[np.int64],
-    second: npt.NDArray[np.int64],
-    third: npt.NDArray[np.int64],
-) -> None:
+def _clip_concave_polygons(points: F64, indices: npt.NDArray[np.int64], fan: _FanRows) -> None:
     """Faces of five or more points that are not convex in their plane (a wall around a
     window that a Boolean cut, an L-shaped floor), ear-clipped there instead of fanned, in
     place: a fan would cover their notches, where Blender's own triangles (and any
     renderer's that triangulates properly) leave them open. Convex faces keep the fan,
     which covers the same polygon."""
-    rows = np.flatnonzero((counts >= 5) & (corner == 0))
+    counts, first, second, third = fan.counts, fan.first, fan.second, fan.third
+    rows = np.flatnonzero((counts >= 5) & (fan.corner == 0))
     if not len(rows):
         return
     sizes = counts[rows]
