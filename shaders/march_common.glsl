@@ -33,6 +33,7 @@ layout(std430, binding = 0) readonly buffer Params {
     uint supersampling;
     uint map_size;
     uint dark_walks; // walks still dark at e^−10 go on (reference.rs: DARK_WALK_SHARE)
+    float texel_size; // world size of a shadow-map texel along its larger side
 } p;
 
 // core/src/gpu/march.rs: BoxKind. In a box whose sunlight is not attenuated (a light that
@@ -474,6 +475,161 @@ const float EDGE_DEPTH_SPREAD = 0.02;
 // What one depth sample contributes; defined by the shader that includes this file.
 vec3 shade_sample(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end);
 
+// The unlit side of the surface a ray ends on (core/src/shadowed_end.rs).
+const float SAME_SURFACE_SPREAD = 0.25;
+const float MIN_FACING = 0.02;
+const float TEXEL_REACH = 0.70710678;
+
+// Depth sample g's ray distance; BIG for background and outside the image.
+float sample_distance(ivec2 g) {
+    int width = int(p.full_width * p.supersampling);
+    int height = int(p.full_height * p.supersampling);
+    if (g.x < 0 || g.y < 0 || g.x >= width || g.y >= height) {
+        return BIG;
+    }
+    float distance = surfaces[g.y * width + g.x];
+    return distance < 0.0 ? BIG : distance;
+}
+
+// The slope of the distance towards the nearer neighbour along `axis`, per pixel, and
+// which one it is (+1 after, −1 before); false beyond SAME_SURFACE_SPREAD
+// (DepthSamples::surface).
+bool nearer_slope(ivec2 g, ivec2 axis, float distance, out float slope, out float side) {
+    float after = sample_distance(g + axis) - distance;
+    float before = distance - sample_distance(g - axis);
+    bool after_nearer = abs(after) <= abs(before);
+    slope = after_nearer ? after : before;
+    side = after_nearer ? 1.0 : -1.0;
+    bool near = abs(slope) <= SAME_SURFACE_SPREAD * distance;
+    slope *= float(p.supersampling);
+    return near;
+}
+
+// The point at continuous pixel coordinates `pixel` and ray distance t, relative to the
+// camera's position.
+vec3 relative_point(vec2 pixel, float t) {
+    mat3 rotation = mat3(p.world_from_camera);
+    vec3 origin_cam = p.origin0.xyz + pixel.x * p.origin_dx.xyz + pixel.y * p.origin_dy.xyz;
+    vec3 dir_cam = p.dir0.xyz + pixel.x * p.dir_dx.xyz + pixel.y * p.dir_dy.xyz;
+    return rotation * origin_cam + normalize(rotation * dir_cam) * t;
+}
+
+// Whether the camera sees the side of the surface at `pixel` that faces away from the
+// light, in closed form (DepthSamples::unlit_side_seen, FacingTerms).
+bool unlit_side_seen(vec2 pixel, float t, vec2 slopes) {
+    mat3 rotation = mat3(p.world_from_camera);
+    vec3 l = p.light_travel.xyz;
+    float along_light;
+    float camera_side;
+    if (p.dir_dx.xyz == vec3(0.0) && p.dir_dy.xyz == vec3(0.0)) {
+        vec3 o1 = rotation * p.origin_dx.xyz;
+        vec3 o2 = rotation * p.origin_dy.xyz;
+        vec3 view = normalize(rotation * p.dir0.xyz);
+        camera_side = dot(cross(o1, o2), view);
+        along_light = dot(cross(o1, o2), l) + slopes.y * dot(cross(o1, view), l)
+            + slopes.x * dot(cross(view, o2), l);
+    } else {
+        vec3 d0 = rotation * p.dir0.xyz;
+        vec3 d1 = rotation * p.dir_dx.xyz;
+        vec3 d2 = rotation * p.dir_dy.xyz;
+        vec3 across_down = cross(d1, d2);
+        float both = dot(across_down, l);
+        float m1 = dot(cross(d1, d0), l) + pixel.y * both;
+        float m2 = dot(cross(d0, d2), l) + pixel.x * both;
+        vec3 d = d0 + pixel.x * d1 + pixel.y * d2;
+        float dd = dot(d, d);
+        camera_side = dot(across_down, d0);
+        along_light = t * (both * dd - dot(d, d2) * m1 - dot(d, d1) * m2)
+            + dd * (slopes.y * m1 + slopes.x * m2);
+    }
+    return along_light * camera_side < 0.0;
+}
+
+// Whether the map's light depth at world `point` is within the bias and `slope` of its.
+bool map_holds_within(vec3 point, float slope) {
+    vec3 texel = (p.texel_from_world * vec4(point, 1.0)).xyz;
+    float size = float(p.map_size);
+    if (!(texel.x >= 0.0 && texel.y >= 0.0 && texel.x < size && texel.y < size)) {
+        return false;
+    }
+    float stored = shadow_depth[uint(texel.y) * p.map_size + uint(texel.x)];
+    return abs(texel.z - stored) <= p.bias + slope;
+}
+
+// Where the light of a ray through `pixel` ends (shadowed_end.rs: lit_end): `t_end`
+// less the tail the shadow map's bias would light behind the unlit side of the surface
+// the ray ends on.
+float lit_end(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end) {
+    if (!(t_end > t_start && t_end < p.max_distance)) {
+        return t_end;
+    }
+    float ss = float(p.supersampling);
+    ivec2 last = ivec2(int(p.full_width * p.supersampling) - 1, int(p.full_height * p.supersampling) - 1);
+    ivec2 g = clamp(ivec2(floor(pixel * ss)), ivec2(0), last);
+    float t = sample_distance(g);
+    vec2 slopes;
+    vec2 sides;
+    if (!(t < BIG) || !nearer_slope(g, ivec2(1, 0), t, slopes.x, sides.x)
+        || !nearer_slope(g, ivec2(0, 1), t, slopes.y, sides.y)) {
+        return t_end;
+    }
+    vec2 centre_pixel = (vec2(g) + 0.5) / ss;
+    if (!unlit_side_seen(centre_pixel, t, slopes)) {
+        return t_end;
+    }
+    vec3 end = origin + direction * t_end;
+    if (!map_holds_within(end, TEXEL_REACH * p.texel_size / MIN_FACING)) {
+        return t_end;
+    }
+    vec2 steps = sides / ss;
+    vec3 centre = relative_point(centre_pixel, t);
+    vec3 across = (relative_point(centre_pixel + vec2(steps.x, 0.0), t + slopes.x * steps.x) - centre) * sides.x;
+    vec3 down = (relative_point(centre_pixel + vec2(0.0, steps.y), t + slopes.y * steps.y) - centre) * sides.y;
+    vec3 normal = cross(across, down);
+    float length_n = length(normal);
+    if (!(length_n > 0.0 && length_n < BIG)) {
+        return t_end;
+    }
+    normal /= length_n;
+    float cos_light = dot(normal, p.light_travel.xyz);
+    if (!(dot(normal, direction) * cos_light < 0.0)) {
+        return t_end;
+    }
+    cos_light = abs(cos_light);
+    float sin_light = sqrt(max(1.0 - cos_light * cos_light, 0.0));
+    if (!map_holds_within(end, TEXEL_REACH * p.texel_size * sin_light / max(cos_light, MIN_FACING))) {
+        return t_end;
+    }
+    float facing = max(abs(dot(normal, direction)), MIN_FACING);
+    float tail = (p.bias * cos_light + TEXEL_REACH * p.texel_size * sin_light) / facing;
+    return max(t_end - tail, t_start);
+}
+
+// The alpha and visibility of a ray from t_start to t_end whose light ends at `lit`,
+// from the visibility of its stretch to `lit` (reference.rs: Marcher::dark_tail).
+vec2 dark_tail(vec3 origin, vec3 direction, float t_start, float lit, float t_end,
+               float visibility) {
+    float sigma = p.extinction;
+    float alpha = 0.0;
+    float lit_weight = 0.0;
+    float weight = 0.0;
+    if (p.box_medium == BOX_NONE) {
+        alpha = -expm1_accurate(-sigma * (t_end - t_start));
+        lit_weight = integral_exp(sigma, lit - t_start);
+        weight = integral_exp(sigma, t_end - t_start);
+    } else {
+        begin_ray(origin, direction);
+        float a, b;
+        if (box_segment(t_start, t_end, a, b)) {
+            alpha = -expm1_accurate(-sigma * (b - a));
+            lit_weight = lit > a ? box_integrate(a, min(lit, b), a, sigma) : 0.0;
+            weight = box_integrate(a, b, a, sigma);
+        }
+    }
+    float share = weight > 0.0 ? lit_weight / weight : (lit - t_start) / (t_end - t_start);
+    return vec2(alpha, clamp(visibility * share, 0.0, 1.0));
+}
+
 // Adds one depth sample at `pixel` to a pixel's sums; `surface` < 0 is background.
 void add_sample(vec2 pixel, float surface, inout vec3 radiance, inout float alpha,
                 inout float visibility, inout float depth_sum) {
@@ -485,7 +641,11 @@ void add_sample(vec2 pixel, float surface, inout vec3 radiance, inout float alph
     vec3 direction = normalize(mat3(p.world_from_camera) * dir_cam);
     float t_start = p.clip_start * distance_per_depth;
     float t_end = background ? p.max_distance : min(surface, p.max_distance);
-    vec3 s = shade_sample(pixel, origin, direction, t_start, t_end);
+    float t_lit = lit_end(pixel, origin, direction, t_start, t_end);
+    vec3 s = shade_sample(pixel, origin, direction, t_start, t_lit);
+    if (t_lit < t_end) {
+        s.yz = dark_tail(origin, direction, t_start, t_lit, t_end, s.z);
+    }
     radiance += p.tint.rgb * (s.x * phase(direction));
     alpha += s.y;
     visibility += s.z;

@@ -32,6 +32,7 @@ pub mod render;
 mod running;
 pub mod scene;
 pub mod shadow_map;
+pub mod shadowed_end;
 pub mod silhouette;
 pub mod slice_reach;
 mod spans;

@@ -357,6 +357,55 @@ impl<'a> Marcher<'a> {
         )
     }
 
+    /// The shadow map the marcher reads.
+    pub fn shadow(&self) -> &'a ShadowMap {
+        self.shadow
+    }
+
+    /// The opacity and visibility of a ray from `t_start` to `t_end` whose light ends at
+    /// `lit_end` ([`crate::shadowed_end`]), from the `visibility` of its stretch to
+    /// `lit_end`: the opacity of the whole ray, and the visibility averaged over all of it
+    /// with the same weights, the stretch past `lit_end` dark.
+    pub(crate) fn dark_tail(
+        &self,
+        ray: &Ray,
+        t_start: f64,
+        lit_end: f64,
+        t_end: f64,
+        visibility: f64,
+    ) -> (f64, f64) {
+        let sigma = self.extinction;
+        let (alpha, lit_weight, weight) = match &self.box_medium {
+            None => (
+                -(-sigma * (t_end - t_start)).exp_m1(),
+                integral_exp(sigma, lit_end - t_start),
+                integral_exp(sigma, t_end - t_start),
+            ),
+            Some(box_medium) => match medium_segment(Some(box_medium), ray, t_start, t_end) {
+                None => (0.0, 0.0, 0.0),
+                Some((a, b)) => {
+                    let along = box_medium.along(ray);
+                    let lit_weight = if lit_end > a {
+                        along.integrate(a, lit_end.min(b), a, sigma)
+                    } else {
+                        0.0
+                    };
+                    (
+                        -(-sigma * (b - a)).exp_m1(),
+                        lit_weight,
+                        along.integrate(a, b, a, sigma),
+                    )
+                }
+            },
+        };
+        let share = if weight > 1e-300 {
+            lit_weight / weight
+        } else {
+            (lit_end - t_start) / (t_end - t_start)
+        };
+        (alpha, (visibility * share).clamp(0.0, 1.0))
+    }
+
     /// Integrates one ray over [t_start, t_end].
     pub fn march(&self, ray: &Ray, t_start: f64, t_end: f64) -> RaySample {
         self.march_in_steps(ray, t_start, t_end, self.steps)

@@ -26,6 +26,7 @@ use crate::scene::{
     check_triangles, Camera, Extent, Medium, Method, Rectification, RenderSettings, Scene, Sun,
 };
 use crate::shadow_map::ShadowMap;
+use crate::shadowed_end::{lit_end, DepthSamples};
 use crate::slice_reach::{slice_reaches, FarthestPerBlock};
 use crate::style::Style;
 use crate::upsample::{
@@ -678,7 +679,11 @@ pub(crate) struct RayQuery {
     pub pixel: [f64; 2],
     pub ray: Ray,
     pub t_start: f64,
+    /// Where shading integrates the light to: `ray_end`, or before it where the ray ends
+    /// on the unlit side of a surface ([`crate::shadowed_end`]).
     pub t_end: f64,
+    /// Where the ray ends: at its surface or the max distance.
+    pub ray_end: f64,
 }
 
 /// One sample's result, before averaging into its pixel.
@@ -914,6 +919,39 @@ pub(crate) fn shade_pixels(
         surfaces,
         max_distance,
     };
+    let tails = ShadowedTails {
+        samples: DepthSamples::new(
+            camera,
+            &surfaces.distances,
+            surfaces.supersampling,
+            light_travel,
+        ),
+        shadow: marcher.shadow(),
+        light_travel,
+        max_distance,
+    };
+    // Queries end their light where they end on a surface's unlit side, and their
+    // samples are completed over the whole ray, whichever method shades them.
+    let shade = |queries: &mut [RayQuery], samples: &mut [PixelSample]| {
+        for query in queries.iter() {
+            tails.prefetch(query);
+        }
+        for query in queries.iter_mut() {
+            query.t_end = tails.lit_end(query);
+        }
+        shade(queries, samples);
+        for (query, sample) in queries.iter().zip(samples) {
+            if query.t_end < query.ray_end {
+                (sample.alpha, sample.visibility) = marcher.dark_tail(
+                    &query.ray,
+                    query.t_start,
+                    query.t_end,
+                    query.ray_end,
+                    sample.visibility,
+                );
+            }
+        }
+    };
     // Output sample (x, y) is one exact full-size pixel, also with downsampling.
     let full_pixel = |x: usize, y: usize| {
         (
@@ -925,7 +963,7 @@ pub(crate) fn shade_pixels(
     // are the averaging's below, bit for bit: its sums start at zero (so each value is
     // added to zero here too, which turns −0 into +0 as there) and divide by one.
     let shade_one_ray_each = |pixels: &[(usize, usize)], out: &mut [Pixel]| {
-        let queries: Vec<RayQuery> = pixels
+        let mut queries: Vec<RayQuery> = pixels
             .iter()
             .map(|&(x, y)| {
                 let (full_x, full_y) = full_pixel(x, y);
@@ -934,7 +972,7 @@ pub(crate) fn shade_pixels(
             })
             .collect();
         let mut samples = vec![PixelSample::default(); queries.len()];
-        shade(&queries, &mut samples);
+        shade(&mut queries, &mut samples);
         for ((out, sample), &(x, y)) in out.iter_mut().zip(&samples).zip(pixels) {
             let (full_x, full_y) = full_pixel(x, y);
             let surface = rays.surface(full_x, full_y, 0, 0) as f64;
@@ -984,7 +1022,7 @@ pub(crate) fn shade_pixels(
             }
         }
         let mut samples = vec![PixelSample::default(); queries.len()];
-        shade(&queries, &mut samples);
+        shade(&mut queries, &mut samples);
         let mut sums = vec![(PixelSample::default(), 0.0, 0.0); pixels.len()];
         for (&(n, depth), sample) in owners.iter().zip(&samples) {
             let (sum, depth_sum, count) = &mut sums[n];
@@ -1122,11 +1160,13 @@ impl SampleRays<'_> {
     fn query(&self, pixel: [f64; 2], surface: f64) -> RayQuery {
         let ray = self.camera.ray(pixel[0], pixel[1]);
         let t_start = self.camera.clip_start * ray.distance_per_depth;
+        let ray_end = surface.min(self.max_distance);
         RayQuery {
             pixel,
             ray,
             t_start,
-            t_end: surface.min(self.max_distance),
+            t_end: ray_end,
+            ray_end,
         }
     }
 
@@ -1163,6 +1203,41 @@ impl SampleRays<'_> {
         marcher
             .box_opacity(&query.ray, query.t_start, query.t_end)
             .unwrap_or(0.0) as f32
+    }
+}
+
+/// Where shading's rays end their light ([`crate::shadowed_end::lit_end`]).
+struct ShadowedTails<'a> {
+    samples: DepthSamples<'a>,
+    shadow: &'a ShadowMap,
+    light_travel: DVec3,
+    max_distance: f64,
+}
+
+impl ShadowedTails<'_> {
+    /// Fetches what [`ShadowedTails::lit_end`] reads first, a batch ahead: the rows
+    /// beside sparse shaded pixels' depth samples are rarely in cache.
+    fn prefetch(&self, query: &RayQuery) {
+        if query.ray_end < self.max_distance {
+            self.samples.prefetch_around(query.pixel);
+        }
+    }
+
+    fn lit_end(&self, query: &RayQuery) -> f64 {
+        // A ray that ends in the fog (background, or at the max distance) ends on no
+        // surface.
+        if !(query.ray_end > query.t_start && query.ray_end < self.max_distance) {
+            return query.ray_end;
+        }
+        lit_end(
+            &self.samples,
+            self.shadow,
+            self.light_travel,
+            query.pixel,
+            &query.ray,
+            query.t_start,
+            query.ray_end,
+        )
     }
 }
 

@@ -12,7 +12,8 @@ mod common;
 use std::sync::Arc;
 
 use common::{
-    camera_inside_a_fog_box, dilated_roof_in_a_thin_box, radiance_error, small_fog_box_far_off,
+    camera_inside_a_fog_box, dilated_roof_in_a_thin_box, ground_lit_from_below, radiance_error,
+    small_fog_box_far_off, SUNS_BELOW,
 };
 use crepuscular::builtin::{builtin_scene, BUILTIN_SCENES};
 use crepuscular::camera::CameraModel;
@@ -305,6 +306,37 @@ fn a_box_that_does_not_dim_the_sun_matches() {
             brighter > 0.1,
             "{method:?}: the attenuation moves the GPU frame by {brighter}"
         );
+    }
+}
+
+/// Fog over a ground lit from below, marched and prefiltered: dark on the GPU as on the
+/// CPU (the shaders end each ray's light where the bias's sliver behind the ground's
+/// unlit side begins), with the opacity of the whole ray.
+#[test]
+fn fog_over_a_ground_lit_from_below_is_dark() {
+    let Some(device) = device("the ground lit from below") else {
+        return;
+    };
+    for (label, sun) in SUNS_BELOW {
+        for method in [Method::Reference, Method::Prefiltered] {
+            let mut scene = ground_lit_from_below(sun, method);
+            let (gpu, cpu, _) = render_both(&device, &scene);
+            scene.meshes[0].blocks_sun = false;
+            let open = crepuscular::render_scene(&scene, &RenderControl::new()).unwrap();
+            let red = |layers: &Layers| layers.volume.chunks(4).map(|v| v[0] as f64).sum::<f64>();
+            let (dark, lit) = (red(&gpu), red(&open));
+            eprintln!(
+                "{label} {method:?}: GPU {dark:e} of open fog {lit:e}, CPU {:e}",
+                red(&cpu)
+            );
+            assert!(dark <= 1e-5 * lit, "{label} {method:?}: {dark} of {lit}");
+            let alpha = gpu
+                .volume
+                .chunks(4)
+                .zip(cpu.volume.chunks(4))
+                .fold(0.0f32, |m, (g, c)| m.max((g[3] - c[3]).abs()));
+            assert!(alpha < 1e-4, "{label} {method:?}: alpha differs by {alpha}");
+        }
     }
 }
 

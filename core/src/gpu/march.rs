@@ -107,7 +107,8 @@ pub fn march_params(inputs: &MarchInputs) -> Vec<u8> {
         .u32(stride)
         .u32(inputs.supersampling)
         .u32(inputs.shadow.size)
-        .u32(inputs.dark_walks as u32);
+        .u32(inputs.dark_walks as u32)
+        .f32(inputs.shadow.texel_size as f32);
     p.finish()
 }
 

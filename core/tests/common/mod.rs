@@ -164,3 +164,36 @@ pub fn dilated_roof_in_a_thin_box(plane: &mut Scene) {
         ..Style::default()
     };
 }
+
+/// Fog of 0.1 /m over a wide ground, seen from 6 m up at a slant, under a sun whose light
+/// travels along `sun` (upward: from below the ground), rendered by `method` with every
+/// pixel shaded, to 60 m. All the fog above the ground lies in its shadow.
+pub fn ground_lit_from_below(sun: Vec3, method: Method) -> Scene {
+    let camera = pinhole(
+        Vec3::new(0.0, 0.0, 6.0),
+        Vec3::new(1.0, 0.3, -0.45),
+        24.0,
+        64,
+        36,
+    );
+    let ground = horizontal_quad(1, -500.0, 500.0, -500.0, 500.0, 0.0);
+    scene(
+        camera,
+        sun,
+        medium(0.1, 0.3),
+        vec![ground],
+        RenderSettings {
+            method,
+            // Adaptive shading blends shaded neighbours' opacity.
+            adaptive_tolerance: 0.0,
+            ..settings(1024, 1024, 60.0)
+        },
+    )
+}
+
+/// The three suns below the horizon [`ground_lit_from_below`] is seen under, named.
+pub const SUNS_BELOW: [(&str, Vec3); 3] = [
+    ("steep", Vec3::new(0.3, 0.1, 1.0)),
+    ("grazing", Vec3::new(-0.2, 0.9, 0.15)),
+    ("behind the camera", Vec3::new(1.0, 0.3, 0.45)),
+];
