@@ -7,7 +7,7 @@
 //! a wall seen from inside a lit room). The surface's plane, estimated from the camera
 //! depth around the ray's end, gives the sliver's length along the ray
 //! ([`shadowed_tail`]); shading integrates the light only up to where it begins, and the
-//! opacity and visibility over the whole ray ([`crate::render::shade_pixels`]). The GPU's
+//! opacity and visibility over the whole ray (`render::shade_pixels`). The GPU's
 //! shaders do the same (`shaders/march_common.glsl`: `lit_end`).
 
 use glam::DVec3;
@@ -87,7 +87,7 @@ impl FacingTerms {
     }
 }
 
-/// Where a depth sample's surface faces, as [`DepthSamples::tangents`] gives it.
+/// Where a depth sample's surface faces, as [`DepthSamples::surface`] gives it.
 #[derive(Clone, Copy, Debug)]
 pub struct SampleSurface {
     /// The sample's continuous pixel coordinates and distance.
