@@ -23,7 +23,7 @@ use crate::upsample::reduced_size;
 pub const STAGE: &str = "reference ray march";
 const LOCAL: [u32; 2] = [8, 8];
 /// Bytes of the shader's `Params` block.
-pub const PARAMS_BYTES: usize = 400;
+pub const PARAMS_BYTES: usize = 416;
 
 /// Everything the march reads.
 pub struct MarchInputs<'a> {
@@ -203,6 +203,11 @@ mod tests {
         assert_eq!(word(376), scene.camera.width);
         assert_eq!(word(384), 2, "stride");
         assert_eq!(word(392), shadow.size);
+        assert_eq!(
+            float(400),
+            shadow.texel_size as f32,
+            "texel size, after dark_walks"
+        );
         // The texel matrix sits in the second mat4, column-major.
         assert_eq!(float(64 + 12 * 4), shadow.texel_from_world.w_axis.x as f32);
     }
