@@ -399,14 +399,11 @@ fn assert_method_within(
 #[test]
 fn rays_too_short_for_rectified_lookups_are_integrated_exactly() {
     let mut under_roof = builtin_scene("plane").expect("built-in scene");
-    let eye = Vec3::new(-5.7, -7.5, 4.0);
-    under_roof.camera = Camera::pinhole_looking_at(
-        eye,
-        eye + Vec3::new(-0.13, -0.39, 0.91),
-        18.0,
-        WIDTH,
-        HEIGHT,
-    );
+    // Between two slits (this view once looked up at the roof past its last slit, where
+    // all its light was the shadow bias's sliver under the roof).
+    let eye = Vec3::new(-1.0, -7.5, 4.0);
+    under_roof.camera =
+        Camera::pinhole_looking_at(eye, eye + Vec3::new(0.13, -0.39, 0.91), 18.0, WIDTH, HEIGHT);
     under_roof.sun.direction = Vec3::new(-0.06, 0.1, -0.99);
     let mut in_crown = builtin_scene("tree").expect("built-in scene");
     let eye = Vec3::new(0.93, -0.61, 7.55);
@@ -488,11 +485,12 @@ fn rays_nearly_along_the_light_are_integrated_exactly() {
 /// the sun behind the camera, its rays 10 m longer than those the short-ray rule walks
 /// (`SHORT_RAY_TEXELS`) and too far off the light to be walked as along it, end on lit ground
 /// after closing in on it over many texels. Prefiltering read them 2.2% dark without, 0.1%
-/// with (1.1% without since rays lit all along are exact); the default view of `plane`,
-/// whose rays graze its ground, 1.9% against 0.6%. `plane` seen orthographically in a fog
-/// box read 4.9% against 1.7% before rays shadowed all along were exact; now 1.3% and 1.4%,
-/// so there both must merely stay within the bound. The default, `auto`, is the rule in
-/// the box and the lookups in the open.
+/// with (1.1% without since rays lit all along are exact). The default view of `plane`,
+/// whose rays graze its ground, read 1.9% against 0.6%; since rays end their light before
+/// the unlit side of the slotted roof (`crepuscular::shadowed_end`), 0.9% against 0.6%.
+/// `plane` seen orthographically in a fog box read 4.9% against 1.7% before rays shadowed
+/// all along were exact; now 1.3% and 1.4%. In those two both must merely stay within the
+/// bound. The default, `auto`, is the rule in the box and the lookups in the open.
 #[test]
 fn exact_ray_ends_integrate_rays_closing_in_on_the_ground_exactly() {
     let light = Vec3::new(0.008, 0.212, -0.977).normalize();
@@ -521,7 +519,7 @@ fn exact_ray_ends_integrate_rays_closing_in_on_the_ground_exactly() {
     };
     for (name, scene, bound, must_halve) in [
         ("12° off the light", off_the_light, 0.01, true),
-        ("plane", grazing, 0.01, true),
+        ("plane", grazing, 0.01, false),
         ("plane in a box", in_a_box, 0.02, false),
     ] {
         let with = |setting| {
@@ -868,10 +866,14 @@ fn rays_beside_extruded_occluders_are_integrated_exactly() {
 
 /// Inside `colonnade`, every surface within 5.3 m, in thin fog (0.01 /m) under a sun 50°
 /// up (fuzzed): light reaches a corner of the frame only, through gaps that let through
-/// under 3% of it, and the frame is nearly black (mean radiance 2e-6). The dark-lookup rule
-/// does not apply in thin open fog by itself, and prefiltering's residue (0.008–0.01 of
-/// visibility on rays the reference has fully shadowed) read 18.7% off. The frame's probe
-/// finds it dark, and its dark lookups are walked: 4.6% (min-max 1.9%).
+/// under 3% of it, and the frame is nearly black. The dark-lookup rule does not apply in
+/// thin open fog by itself, and prefiltering's residue (0.008–0.01 of visibility on rays
+/// the reference has fully shadowed) read 18.7% off. The frame's probe finds it dark, and
+/// its dark lookups are walked: 4.6% (min-max 1.9%) of a mean radiance of 2·10⁻⁶. Four
+/// fifths of that light was the bias's sliver in front of the columns' unlit sides, which
+/// rays now end before (`crepuscular::shadowed_end`): of the 4.5·10⁻⁷ left, in 300 of the
+/// 83,000 pixels, the methods' error is as large as before in radiance (about 9·10⁻⁸ a
+/// pixel), 19% and 10%.
 #[test]
 fn a_nearly_dark_frame_in_thin_fog_walks_its_dark_lookups() {
     let mut scene = builtin_scene("colonnade").expect("built-in scene");
@@ -906,16 +908,18 @@ fn a_nearly_dark_frame_in_thin_fog_walks_its_dark_lookups() {
         "a nearly dark frame in thin fog:",
         &scene,
         &reference,
-        [(Method::MinMax, 0.03), (Method::Prefiltered, 0.07)],
+        [(Method::MinMax, 0.12), (Method::Prefiltered, 0.22)],
     );
 }
 
 /// A sun below the horizon: its light travels upward, and the ground is the occluder of
 /// nearly every ray that ends on it, which a lookup reads about half lit there (fuzzed
 /// views read 14–947% off the reference). `auto` integrates those ends exactly, as `on`.
-/// On `plane`, whose frame is nearly black (mean radiance 0.00015), most lookups read
-/// darker than `DARK_LOOKUP_VISIBILITY` and are integrated exactly with or without exact
-/// ends (6.2% and 6.1% off, 13.4% and 13.9% before), so there the two need only agree.
+/// Since rays end their light before the ground's unlit side (`crepuscular::shadowed_end`),
+/// the lookups no longer meet the sliver the bias lit there, and the two need only agree
+/// within half a point (`tree` 0.69% and 0.53%; it was 0.6% against 1.9%). `plane`'s
+/// frame is black now but for a mean radiance of 10⁻⁵ (1.5·10⁻⁴ before, the rest the
+/// sliver), where both read half of it off: there they need only agree.
 #[test]
 fn light_from_below_integrates_ray_ends_exactly() {
     for name in ["tree", "plane"] {
@@ -943,12 +947,10 @@ fn light_from_below_integrates_ray_ends_exactly() {
             without * 100.0
         );
         assert!(mean > 0.0);
-        assert!(relative <= 0.1, "{name}: {:.2}%", relative * 100.0);
-        if name == "plane" {
-            assert!(relative <= without + 0.005, "{name}");
-        } else {
-            assert!(relative < without, "{name}");
+        if name != "plane" {
+            assert!(relative <= 0.1, "{name}: {:.2}%", relative * 100.0);
         }
+        assert!(relative <= without + 0.005, "{name}");
     }
 }
 
