@@ -34,6 +34,7 @@ layout(std430, binding = 0) readonly buffer Params {
     uint map_size;
     uint dark_walks; // walks still dark at e^−10 go on (reference.rs: DARK_WALK_SHARE)
     float texel_size; // world size of a shadow-map texel along its larger side
+    uint shadowed_ends; // rays end their light before an unlit side (render.rs: shadowed_ends)
 } p;
 
 // core/src/gpu/march.rs: BoxKind. In a box whose sunlight is not attenuated (a light that
@@ -560,7 +561,7 @@ bool map_holds_within(vec3 point, float slope) {
 // less the tail the shadow map's bias would light behind the unlit side of the surface
 // the ray ends on.
 float lit_end(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_end) {
-    if (!(t_end > t_start && t_end < p.max_distance)) {
+    if (p.shadowed_ends == 0u || !(t_end > t_start && t_end < p.max_distance)) {
         return t_end;
     }
     float ss = float(p.supersampling);

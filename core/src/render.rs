@@ -444,6 +444,7 @@ pub(crate) fn scatter_timed(
         * frame.medium.extinction as f64
         * frame.sun.irradiance().as_dvec3();
     let light_travel = frame.sun.direction.as_dvec3().normalize();
+    let shadowed_ends = shadowed_ends(frame);
     let to_pixel = |sample: RaySample, ray: &Ray| PixelSample {
         radiance: tint
             * (sample.scattering * phase::evaluate(frame.medium, light_travel, ray.direction)),
@@ -498,6 +499,7 @@ pub(crate) fn scatter_timed(
             &marcher,
             frame.settings,
             light_travel,
+            shadowed_ends,
             frame.settings.effective_adaptive_tolerance(),
             control,
             |queries, out| {
@@ -574,6 +576,7 @@ pub(crate) fn scatter_timed(
         &marcher,
         frame.settings,
         light_travel,
+        shadowed_ends,
         frame.settings.effective_adaptive_tolerance(),
         control,
         |queries, out| {
@@ -906,6 +909,7 @@ pub(crate) fn shade_pixels(
     marcher: &Marcher,
     settings: &RenderSettings,
     light_travel: DVec3,
+    shadowed_ends: bool,
     tolerance: f32,
     control: &RenderControl,
     shade: impl Fn(&[RayQuery], &mut [PixelSample]) + Sync,
@@ -933,11 +937,15 @@ pub(crate) fn shade_pixels(
     // Queries end their light where they end on a surface's unlit side, and their
     // samples are completed over the whole ray, whichever method shades them.
     let shade = |queries: &mut [RayQuery], samples: &mut [PixelSample]| {
-        for query in queries.iter() {
-            tails.prefetch(query);
+        if shadowed_ends {
+            for query in queries.iter() {
+                tails.prefetch(query);
+            }
         }
-        for query in queries.iter_mut() {
-            query.t_end = tails.lit_end(query);
+        if shadowed_ends {
+            for query in queries.iter_mut() {
+                query.t_end = tails.lit_end(query);
+            }
         }
         shade(queries, samples);
         for (query, sample) in queries.iter().zip(samples) {
@@ -1204,6 +1212,14 @@ impl SampleRays<'_> {
             .box_opacity(&query.ray, query.t_start, query.t_end)
             .unwrap_or(0.0) as f32
     }
+}
+
+/// Whether `frame`'s rays end their light before the unlit side of the surface they end
+/// on ([`crate::shadowed_end`]): not where its style reshapes the occluders (holes filled,
+/// silhouettes grown, holes made), since the map then no longer holds the surfaces the
+/// camera sees, and the light there is the style's.
+pub(crate) fn shadowed_ends(frame: &Frame) -> bool {
+    !frame.style.manipulates_occluders()
 }
 
 /// Where shading's rays end their light ([`crate::shadowed_end::lit_end`]).

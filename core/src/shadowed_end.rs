@@ -8,7 +8,8 @@
 //! depth around the ray's end, gives the sliver's length along the ray
 //! ([`shadowed_tail`]); shading integrates the light only up to where it begins, and the
 //! opacity and visibility over the whole ray (`render::shade_pixels`). The GPU's
-//! shaders do the same (`shaders/march_common.glsl`: `lit_end`).
+//! shaders do the same (`shaders/march_common.glsl`: `lit_end`). Frames whose style
+//! reshapes the occluders keep the map's light (`render::shadowed_ends`).
 
 use glam::DVec3;
 

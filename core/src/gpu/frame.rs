@@ -208,6 +208,7 @@ fn gpu_frame(
         surfaces: &surfaces.distances,
         supersampling: surfaces.supersampling,
         dark_walks: dark_frame,
+        shadowed_ends: crate::render::shadowed_ends(frame),
     };
     let map = match frame.settings.method {
         Method::Prefiltered => {

@@ -38,6 +38,9 @@ pub struct MarchInputs<'a> {
     pub supersampling: u32,
     /// Whether walks still dark at e^−10 go on ([`crate::reference::DARK_WALK_SHARE`]).
     pub dark_walks: bool,
+    /// Rays end their light before the unlit side of their surface
+    /// ([`crate::render::shadowed_ends`]).
+    pub shadowed_ends: bool,
 }
 
 /// The shaders' `box_medium` (march_common.glsl): which integral the march takes.
@@ -108,7 +111,8 @@ pub fn march_params(inputs: &MarchInputs) -> Vec<u8> {
         .u32(inputs.supersampling)
         .u32(inputs.shadow.size)
         .u32(inputs.dark_walks as u32)
-        .f32(inputs.shadow.texel_size as f32);
+        .f32(inputs.shadow.texel_size as f32)
+        .u32(inputs.shadowed_ends as u32);
     p.finish()
 }
 
@@ -189,6 +193,7 @@ mod tests {
             surfaces: &[],
             supersampling: 1,
             dark_walks: false,
+            shadowed_ends: true,
         };
         let bytes = march_params(&inputs);
         assert_eq!(bytes.len(), PARAMS_BYTES);
@@ -236,6 +241,7 @@ mod tests {
                 surfaces: &[],
                 supersampling: 1,
                 dark_walks: false,
+                shadowed_ends: true,
             });
             u32::from_le_bytes(bytes[360..364].try_into().unwrap())
         };
