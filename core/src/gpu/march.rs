@@ -39,7 +39,7 @@ pub struct MarchInputs<'a> {
     /// Whether walks still dark at e^−10 go on ([`crate::reference::DARK_WALK_SHARE`]).
     pub dark_walks: bool,
     /// Rays end their light before the unlit side of their surface
-    /// ([`crate::render::shadowed_ends`]).
+    /// (`render::shadowed_ends`).
     pub shadowed_ends: bool,
 }
 
