@@ -34,7 +34,7 @@ layout(std430, binding = 0) readonly buffer Params {
     uint map_size;
     uint dark_walks; // walks still dark at e^−10 go on (reference.rs: DARK_WALK_SHARE)
     float texel_size; // world size of a shadow-map texel along its larger side
-    uint shadowed_ends; // rays end their light before an unlit side (render.rs: shadowed_ends)
+    uint shadowed_ends; // rays end their light before an unlit side (shadowed_end.rs)
 } p;
 
 // core/src/gpu/march.rs: BoxKind. In a box whose sunlight is not attenuated (a light that

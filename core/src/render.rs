@@ -428,12 +428,16 @@ pub(crate) fn scatter_timed(
     )?);
     control.check()?;
     times.shadow_map = stopwatch.lap();
-    let shadow = if frame.style.manipulates_occluders() {
+    // Rays end their light before the unlit side of their surface
+    // ([`crate::shadowed_end`]) unless a style reshaped the map: it then no longer holds
+    // the surfaces the camera sees, and the light there is the style's.
+    let (shadow, shadowed_ends) = if frame.style.manipulates_occluders() {
         let manipulated = frame.style.scattering_map(&shadow, &camera)?;
         times.occluders = stopwatch.lap();
-        FrameShadowMap(manipulated)
+        let unchanged = manipulated.depth == shadow.depth;
+        (FrameShadowMap(manipulated), unchanged)
     } else {
-        shadow
+        (shadow, true)
     };
     let surfaces = SurfaceDistances::new(&camera, frame)?;
     times.camera_depth = stopwatch.lap();
@@ -444,7 +448,6 @@ pub(crate) fn scatter_timed(
         * frame.medium.extinction as f64
         * frame.sun.irradiance().as_dvec3();
     let light_travel = frame.sun.direction.as_dvec3().normalize();
-    let shadowed_ends = shadowed_ends(frame);
     let to_pixel = |sample: RaySample, ray: &Ray| PixelSample {
         radiance: tint
             * (sample.scattering * phase::evaluate(frame.medium, light_travel, ray.direction)),
@@ -1212,14 +1215,6 @@ impl SampleRays<'_> {
             .box_opacity(&query.ray, query.t_start, query.t_end)
             .unwrap_or(0.0) as f32
     }
-}
-
-/// Whether `frame`'s rays end their light before the unlit side of the surface they end
-/// on ([`crate::shadowed_end`]): not where its style reshapes the occluders (holes filled,
-/// silhouettes grown, holes made), since the map then no longer holds the surfaces the
-/// camera sees, and the light there is the style's.
-pub(crate) fn shadowed_ends(frame: &Frame) -> bool {
-    !frame.style.manipulates_occluders()
 }
 
 /// Where shading's rays end their light ([`crate::shadowed_end::lit_end`]).

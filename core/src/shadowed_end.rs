@@ -9,7 +9,7 @@
 //! ([`shadowed_tail`]); shading integrates the light only up to where it begins, and the
 //! opacity and visibility over the whole ray (`render::shade_pixels`). The GPU's
 //! shaders do the same (`shaders/march_common.glsl`: `lit_end`). Frames whose style
-//! reshapes the occluders keep the map's light (`render::shadowed_ends`).
+//! reshaped the map keep its light there: it no longer holds the surfaces the camera sees.
 
 use glam::DVec3;
 

@@ -180,8 +180,12 @@ fn gpu_frame(
     };
     control.check()?;
     times.shadow_map = stopwatch.lap();
+    // As the CPU frame's: a reshaped map keeps the light at rays' ends.
+    let mut shadowed_ends = true;
     if frame.style.manipulates_occluders() {
+        let rasterized = shadow.depth.clone();
         shadow = manipulate_occluders(device, frame.style, shadow, camera, gpu)?;
+        shadowed_ends = shadow.depth == rasterized;
         times.occluders = stopwatch.lap();
     }
     let depth_rasterizer = GpuRasterizer::camera_depth(device);
@@ -208,7 +212,7 @@ fn gpu_frame(
         surfaces: &surfaces.distances,
         supersampling: surfaces.supersampling,
         dark_walks: dark_frame,
-        shadowed_ends: crate::render::shadowed_ends(frame),
+        shadowed_ends,
     };
     let map = match frame.settings.method {
         Method::Prefiltered => {

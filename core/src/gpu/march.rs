@@ -38,8 +38,8 @@ pub struct MarchInputs<'a> {
     pub supersampling: u32,
     /// Whether walks still dark at e^−10 go on ([`crate::reference::DARK_WALK_SHARE`]).
     pub dark_walks: bool,
-    /// Rays end their light before the unlit side of their surface
-    /// (`render::shadowed_ends`).
+    /// Rays end their light before the unlit side of their surface: not where a style
+    /// reshaped the map ([`crate::shadowed_end`]).
     pub shadowed_ends: bool,
 }
 
