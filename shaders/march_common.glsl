@@ -565,7 +565,8 @@ float lit_end(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_en
         return t_end;
     }
     float ss = float(p.supersampling);
-    ivec2 last = ivec2(int(p.full_width * p.supersampling) - 1, int(p.full_height * p.supersampling) - 1);
+    ivec2 last = ivec2(int(p.full_width * p.supersampling) - 1,
+                       int(p.full_height * p.supersampling) - 1);
     ivec2 g = clamp(ivec2(floor(pixel * ss)), ivec2(0), last);
     float t = sample_distance(g);
     vec2 slopes;
@@ -584,8 +585,10 @@ float lit_end(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_en
     }
     vec2 steps = sides / ss;
     vec3 centre = relative_point(centre_pixel, t);
-    vec3 across = (relative_point(centre_pixel + vec2(steps.x, 0.0), t + slopes.x * steps.x) - centre) * sides.x;
-    vec3 down = (relative_point(centre_pixel + vec2(0.0, steps.y), t + slopes.y * steps.y) - centre) * sides.y;
+    vec3 after = relative_point(centre_pixel + vec2(steps.x, 0.0), t + slopes.x * steps.x);
+    vec3 below = relative_point(centre_pixel + vec2(0.0, steps.y), t + slopes.y * steps.y);
+    vec3 across = (after - centre) * sides.x;
+    vec3 down = (below - centre) * sides.y;
     vec3 normal = cross(across, down);
     float length_n = length(normal);
     if (!(length_n > 0.0 && length_n < BIG)) {
@@ -598,7 +601,8 @@ float lit_end(vec2 pixel, vec3 origin, vec3 direction, float t_start, float t_en
     }
     cos_light = abs(cos_light);
     float sin_light = sqrt(max(1.0 - cos_light * cos_light, 0.0));
-    if (!map_holds_within(end, TEXEL_REACH * p.texel_size * sin_light / max(cos_light, MIN_FACING))) {
+    float slope = TEXEL_REACH * p.texel_size * sin_light / max(cos_light, MIN_FACING);
+    if (!map_holds_within(end, slope)) {
         return t_end;
     }
     float facing = max(abs(dot(normal, direction)), MIN_FACING);

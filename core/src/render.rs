@@ -940,15 +940,14 @@ pub(crate) fn shade_pixels(
     // Queries end their light where they end on a surface's unlit side, and their
     // samples are completed over the whole ray, whichever method shades them.
     let shade = |queries: &mut [RayQuery], samples: &mut [PixelSample]| {
-        if shadowed_ends {
-            for query in queries.iter() {
-                tails.prefetch(query);
-            }
+        if !shadowed_ends {
+            return shade(queries, samples);
         }
-        if shadowed_ends {
-            for query in queries.iter_mut() {
-                query.t_end = tails.lit_end(query);
-            }
+        for query in queries.iter() {
+            tails.prefetch(query);
+        }
+        for query in queries.iter_mut() {
+            query.t_end = tails.lit_end(query);
         }
         shade(queries, samples);
         for (query, sample) in queries.iter().zip(samples) {

@@ -310,8 +310,9 @@ pub fn lit_end(
         return t_end;
     };
     // Most rays end on a lit side (or, in the map, behind the far side of a solid), and
-    // leave at one of the two tests that need no normal. Neither turns away a ray the
-    // exact tests below would cut.
+    // leave at one of the two tests that need no normal. The map's loose test turns away
+    // no ray the exact one below would keep; the closed-form side, first order in the
+    // slopes, differs from the exact plane's only where the light grazes the surface.
     if !samples.unlit_side_seen(&surface) {
         return t_end;
     }
