@@ -168,6 +168,13 @@ fn upsample_row(
     let lw = low.width as usize;
     let (above, below, fy) = (row.lower * lw, row.upper * lw, row.fraction);
     let (lower, upper) = (&columns.lower[..width], &columns.upper[..width]);
+    // The two sample rows, each sample's four values one array: a tap is one
+    // bounds-checked read of its row. Slicing the whole layers at computed indices took a
+    // ninth more of the row's instructions.
+    let depth_rows = [&low.depth[above..above + lw], &low.depth[below..below + lw]];
+    let volume_rows =
+        [above, below].map(|first| low.volume[4 * first..4 * (first + lw)].as_chunks::<4>().0);
+    let visibility_rows = [above, below].map(|first| &low.visibility[first..first + lw]);
     let fraction = &columns.fraction[..width];
     for buffer in taps.differences.iter_mut().chain(&mut taps.weights) {
         buffer.resize(width, 0.0);
@@ -179,12 +186,13 @@ fn upsample_row(
         &mut d2[..width],
         &mut d3[..width],
     );
+    let [depth_above, depth_below] = depth_rows;
     for x in 0..width {
         let target = depth[x];
-        d0[x] = (low.depth[above + lower[x]] - target).abs();
-        d1[x] = (low.depth[above + upper[x]] - target).abs();
-        d2[x] = (low.depth[below + lower[x]] - target).abs();
-        d3[x] = (low.depth[below + upper[x]] - target).abs();
+        d0[x] = (depth_above[lower[x]] - target).abs();
+        d1[x] = (depth_above[upper[x]] - target).abs();
+        d2[x] = (depth_below[lower[x]] - target).abs();
+        d3[x] = (depth_below[upper[x]] - target).abs();
     }
     let [w0, w1, w2, w3] = &mut taps.weights;
     let (w0, w1, w2, w3) = (
@@ -206,27 +214,35 @@ fn upsample_row(
         w2[x] = weight(d2[x], (1.0 - fx) * fy + 1e-3);
         w3[x] = weight(d3[x], fx * fy + 1e-3);
     }
+    let [volume_above, volume_below] = volume_rows;
+    let [visibility_above, visibility_below] = visibility_rows;
     for (x, (rgba_out, seen_out)) in volume
         .chunks_exact_mut(4)
         .zip(visibility.iter_mut())
         .enumerate()
     {
-        let indices = [
-            above + lower[x],
-            above + upper[x],
-            below + lower[x],
-            below + upper[x],
+        let (l, u) = (lower[x], upper[x]);
+        let samples = [
+            volume_above[l],
+            volume_above[u],
+            volume_below[l],
+            volume_below[u],
+        ];
+        let seen_samples = [
+            visibility_above[l],
+            visibility_above[u],
+            visibility_below[l],
+            visibility_below[u],
         ];
         let weights = [w0[x], w1[x], w2[x], w3[x]];
         let total = weights[0] + weights[1] + weights[2] + weights[3];
         let mut rgba = [0.0f32; 4];
         let mut seen = 0.0f32;
-        for (&index, &weight) in indices.iter().zip(&weights) {
-            let values = &low.volume[index * 4..index * 4 + 4];
+        for ((values, &sample_seen), &weight) in samples.iter().zip(&seen_samples).zip(&weights) {
             for (value, sample) in rgba.iter_mut().zip(values) {
                 *value += weight * sample;
             }
-            seen += weight * low.visibility[index];
+            seen += weight * sample_seen;
         }
         if total > 1e-6 {
             let scale = 1.0 / total;
@@ -236,9 +252,9 @@ fn upsample_row(
             *seen_out = seen * scale;
         } else {
             // No sample at a similar depth: the closest in depth, not a blend.
-            let index = indices[closest_depth(&[d0[x], d1[x], d2[x], d3[x]])];
-            rgba_out.copy_from_slice(&low.volume[index * 4..index * 4 + 4]);
-            *seen_out = low.visibility[index];
+            let closest = closest_depth(&[d0[x], d1[x], d2[x], d3[x]]);
+            rgba_out.copy_from_slice(&samples[closest]);
+            *seen_out = seen_samples[closest];
         }
     }
     // The few pixels the opacity guide gives, over the blend: a sweep of their own keeps
