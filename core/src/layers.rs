@@ -14,6 +14,9 @@ pub struct Pixel {
     pub depth: f32,
 }
 
+// SAFETY: a pixel is six f32s, and its default is all of them zero.
+unsafe impl crate::spare::ZeroDefault for Pixel {}
+
 /// Linear float layers at the camera's resolution, rows top to bottom.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Layers {
