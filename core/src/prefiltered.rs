@@ -531,14 +531,18 @@ impl Tables {
         let mut basis = vec![0.0f32; (TABLE_STEPS + 1) * row];
         let mut coefficients = vec![0.0f32; (TABLE_STEPS + 1) * row];
         let mut values = vec![0.0f64; 2 * frequencies];
+        // Per frequency, not per row: a sine and a power for each of 8,193 rows were most
+        // of a process's first prefiltered frame's 23 million instructions here.
+        let scales: Vec<f64> = (0..frequencies)
+            .map(|m| damping(m, frequencies) * 2.0 / frequency(m))
+            .collect();
         for (i, (basis, coefficients)) in basis
             .chunks_exact_mut(row)
             .zip(coefficients.chunks_exact_mut(row))
             .enumerate()
         {
             harmonics(i as f64 / TABLE_STEPS as f64, frequencies, &mut values);
-            for m in 0..frequencies {
-                let scale = damping(m, frequencies) * 2.0 / frequency(m);
+            for (m, &scale) in scales.iter().enumerate() {
                 let (cos, sin) = (values[m], values[frequencies + m]);
                 basis[m] = cos as f32;
                 basis[frequencies + m] = sin as f32;
