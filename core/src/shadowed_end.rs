@@ -127,7 +127,7 @@ impl<'a> DepthSamples<'a> {
     /// The depth sample nearest continuous pixel coordinates `pixel`.
     #[inline]
     pub fn sample_at(&self, pixel: [f64; 2]) -> (i64, i64) {
-        // Truncation, not `floor` (a library call without SSE4.1, a sixth of this module's
+        // Truncation, not `floor` (a library call without SSE4.1, an eighth of this module's
         // instructions): the two differ only below 0, which clamps to 0 either way.
         (
             ((pixel[0] * self.supersampling) as i64).clamp(0, self.width - 1),

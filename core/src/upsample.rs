@@ -171,10 +171,11 @@ fn upsample_row(
     // The two sample rows, each sample's four values one array: a tap is one
     // bounds-checked read of its row. Slicing the whole layers at computed indices took a
     // ninth more of the row's instructions.
-    let depth_rows = [&low.depth[above..above + lw], &low.depth[below..below + lw]];
-    let volume_rows =
+    let [depth_above, depth_below] = [above, below].map(|first| &low.depth[first..first + lw]);
+    let [volume_above, volume_below] =
         [above, below].map(|first| low.volume[4 * first..4 * (first + lw)].as_chunks::<4>().0);
-    let visibility_rows = [above, below].map(|first| &low.visibility[first..first + lw]);
+    let [visibility_above, visibility_below] =
+        [above, below].map(|first| &low.visibility[first..first + lw]);
     let fraction = &columns.fraction[..width];
     for buffer in taps.differences.iter_mut().chain(&mut taps.weights) {
         buffer.resize(width, 0.0);
@@ -186,7 +187,6 @@ fn upsample_row(
         &mut d2[..width],
         &mut d3[..width],
     );
-    let [depth_above, depth_below] = depth_rows;
     for x in 0..width {
         let target = depth[x];
         d0[x] = (depth_above[lower[x]] - target).abs();
@@ -214,25 +214,23 @@ fn upsample_row(
         w2[x] = weight(d2[x], (1.0 - fx) * fy + 1e-3);
         w3[x] = weight(d3[x], fx * fy + 1e-3);
     }
-    let [volume_above, volume_below] = volume_rows;
-    let [visibility_above, visibility_below] = visibility_rows;
     for (x, (rgba_out, seen_out)) in volume
         .chunks_exact_mut(4)
         .zip(visibility.iter_mut())
         .enumerate()
     {
-        let (l, u) = (lower[x], upper[x]);
+        let (left, right) = (lower[x], upper[x]);
         let samples = [
-            volume_above[l],
-            volume_above[u],
-            volume_below[l],
-            volume_below[u],
+            volume_above[left],
+            volume_above[right],
+            volume_below[left],
+            volume_below[right],
         ];
         let seen_samples = [
-            visibility_above[l],
-            visibility_above[u],
-            visibility_below[l],
-            visibility_below[u],
+            visibility_above[left],
+            visibility_above[right],
+            visibility_below[left],
+            visibility_below[right],
         ];
         let weights = [w0[x], w1[x], w2[x], w3[x]];
         let total = weights[0] + weights[1] + weights[2] + weights[3];
