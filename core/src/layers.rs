@@ -14,8 +14,8 @@ pub struct Pixel {
     pub depth: f32,
 }
 
-// SAFETY: a pixel is six f32s, and its default is all of them zero.
-unsafe impl crate::spare::ZeroDefault for Pixel {}
+// SAFETY: a pixel is six f32s, for which all-zero bytes are 0.0.
+unsafe impl bytemuck::Zeroable for Pixel {}
 
 /// Linear float layers at the camera's resolution, rows top to bottom.
 #[derive(Clone, Debug, PartialEq)]

@@ -5,6 +5,9 @@
 
 use std::sync::Mutex;
 
+use bytemuck::allocation::try_zeroed_vec;
+use bytemuck::Zeroable;
+
 use crate::error::{Error, Result, Sizing};
 
 /// A few buffers of `T` kept for reuse: the most recently handed back.
@@ -18,45 +21,7 @@ pub(crate) struct Spare<T> {
     sizing: Sizing,
 }
 
-/// Values whose all-zero bytes are their `Default`: a fresh buffer of them comes zeroed
-/// from the allocator, which for large buffers maps pages the kernel zeroes as they are
-/// first written, by the threads that fill them. Filling it with defaults instead wrote
-/// every page twice, once in the kernel and once in a single thread before any parallel
-/// work began (a frame's first buffers: about 150 MB at 1080p).
-///
-/// # Safety
-/// All-zero bytes must be a valid value of the type, equal to its `Default`.
-pub(crate) unsafe trait ZeroDefault: Copy + Default {}
-
-// SAFETY: zero bytes are 0 or +0.0, each type's default.
-unsafe impl ZeroDefault for f32 {}
-unsafe impl ZeroDefault for f64 {}
-unsafe impl ZeroDefault for i16 {}
-unsafe impl ZeroDefault for u16 {}
-unsafe impl ZeroDefault for u32 {}
-unsafe impl ZeroDefault for u64 {}
-// SAFETY: arrays and pairs of such values are their elements' bytes (and padding, which
-// any bytes may fill); their defaults are their elements'.
-unsafe impl<T: ZeroDefault, const N: usize> ZeroDefault for [T; N] where [T; N]: Default {}
-unsafe impl<A: ZeroDefault, B: ZeroDefault> ZeroDefault for (A, B) {}
-
-/// `len` zeroed values, `None` where the allocator refuses.
-fn zeroed<T: ZeroDefault>(len: usize) -> Option<Vec<T>> {
-    let layout = std::alloc::Layout::array::<T>(len).ok()?;
-    if layout.size() == 0 {
-        return Some(vec![T::default(); len]);
-    }
-    // SAFETY: the layout's size is not zero.
-    let values = unsafe { std::alloc::alloc_zeroed(layout) }.cast::<T>();
-    if values.is_null() {
-        return None;
-    }
-    // SAFETY: `values` was allocated by the global allocator for `len` values of T, which
-    // all-zero bytes make valid (`ZeroDefault`), and the capacity is that allocation's.
-    Some(unsafe { Vec::from_raw_parts(values, len, len) })
-}
-
-impl<T: ZeroDefault> Spare<T> {
+impl<T: Zeroable + Copy> Spare<T> {
     /// One buffer kept: for what a frame needs once.
     pub(crate) const fn new(sizing: Sizing) -> Self {
         Self::with_slots(1, sizing)
@@ -106,12 +71,17 @@ impl<T: ZeroDefault> Spare<T> {
     fn obtained(&self, len: usize) -> Option<Vec<T>> {
         if let Some(mut kept) = self.kept_fitting(len) {
             kept.truncate(len);
-            kept.resize(len, T::default());
+            kept.resize(len, T::zeroed());
             return Some(kept);
         }
-        let mut fresh = zeroed(len).or_else(|| {
+        // Zeroed by the allocator, not filled: it maps a large buffer afresh, and the
+        // kernel zeroes each page as the pass that fills it first writes there, in
+        // parallel. Filling it here wrote every page twice, the second time in this one
+        // thread before any parallel pass (a frame's first buffers: about 150 MB at
+        // 1080p).
+        let mut fresh = try_zeroed_vec(len).ok().or_else(|| {
             self.clear();
-            zeroed(len)
+            try_zeroed_vec(len).ok()
         })?;
         if self.huge_pages {
             advise_huge_pages(&mut fresh);
@@ -208,7 +178,7 @@ mod tests {
     }
 
     /// A buffer of `len` from `spare`, which tests always get.
-    fn take<T: ZeroDefault>(spare: &Spare<T>, len: usize) -> Vec<T> {
+    fn take<T: Zeroable + Copy>(spare: &Spare<T>, len: usize) -> Vec<T> {
         spare.try_take(len, String::new).unwrap()
     }
 
@@ -256,7 +226,7 @@ mod tests {
 
     /// Fresh buffers come zeroed from the allocator, whatever their size (a large one is
     /// mapped afresh, a small one may reuse freed memory), empty ones included; a kept one
-    /// grown within its capacity is filled with defaults past its old length.
+    /// grown within its capacity is zeroed past its old length.
     #[test]
     fn fresh_buffers_come_zeroed() {
         let pairs = Spare::<(u64, f64)>::new(Sizing::Image);
