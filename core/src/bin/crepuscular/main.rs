@@ -7,6 +7,7 @@ mod style_bench;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::mpsc::RecvTimeoutError;
 use std::time::Duration;
 
 use clap::{Args, Parser, Subcommand};
@@ -244,10 +245,18 @@ pub fn render_with_progress(scene: &Scene, label: &str) -> Result<Layers> {
             .progress_chars("=> "),
     );
     let layers = std::thread::scope(|scope| {
-        let worker = scope.spawn(|| render_scene(scene, &control));
-        while !worker.is_finished() {
+        let (finished, done) = std::sync::mpsc::channel();
+        let control = &control;
+        let worker = scope.spawn(move || {
+            let layers = render_scene(scene, control);
+            // Dropped unsent if the render panics, which also ends the wait below.
+            let _ = finished.send(());
+            layers
+        });
+        // Woken the moment the frame is done: a sleep between polls of the worker kept
+        // every CLI frame waiting up to another 50 ms.
+        while let Err(RecvTimeoutError::Timeout) = done.recv_timeout(Duration::from_millis(50)) {
             bar.set_position((control.fraction() * 1000.0) as u64);
-            std::thread::sleep(Duration::from_millis(50));
         }
         worker
             .join()
