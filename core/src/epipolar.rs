@@ -858,6 +858,31 @@ impl EpipolarMap {
         }
     }
 
+    /// [`EpipolarMap::order_key`] of each of `values`, the same keys bit for bit, in a
+    /// loop without branches that the compiler vectorizes: the prefiltered plan keys every
+    /// sample its bands read, and keying them one at a time took 10 million more of
+    /// `torus`'s 1080p frame's instructions.
+    pub fn order_keys(&self, values: &[f32]) -> Vec<f64> {
+        if self.layout.is_reciprocal() {
+            let scale = self.key_scale;
+            values
+                .iter()
+                .map(|&value| {
+                    let value = value as f64;
+                    let slope = value * scale;
+                    let bounded = -slope / (1.0 + slope.abs());
+                    if value.is_infinite() {
+                        -value.signum()
+                    } else {
+                        bounded
+                    }
+                })
+                .collect()
+        } else {
+            values.iter().map(|&value| -(value as f64)).collect()
+        }
+    }
+
     /// The value whose [`EpipolarMap::order_key`] is `key`, ±∞ beyond the keys' range:
     /// keys fall as values rise.
     #[inline]
@@ -1332,6 +1357,34 @@ mod tests {
             radial.value_of_key(radial.order_key(f64::INFINITY)),
             f64::INFINITY
         );
+    }
+
+    /// The batch keys every value as one at a time does, bit for bit: ±∞, signed zeros,
+    /// the map's own samples and values far past f32's usual range of depths.
+    #[test]
+    fn order_keys_are_order_key_of_each_value() {
+        let [radial, parallel] = torus_seen_both_ways(&RectifyDesc::prefiltered(64), None);
+        let mut values = vec![
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            0.0,
+            -0.0,
+            f32::MAX,
+            f32::MIN,
+            f32::MIN_POSITIVE,
+            -1e-30,
+            3.5,
+            -7.25,
+        ];
+        values.extend(radial.values.iter().step_by(97));
+        for map in [&radial, &parallel] {
+            let keys = map.order_keys(&values);
+            assert_eq!(keys.len(), values.len());
+            for (&value, key) in values.iter().zip(keys) {
+                let one = map.order_key(value as f64);
+                assert_eq!(key.to_bits(), one.to_bits(), "{value}: {key} against {one}");
+            }
+        }
     }
 
     /// Seen from the side by a shallow frustum, with the shadow bias given in scene units.

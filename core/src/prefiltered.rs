@@ -2241,10 +2241,7 @@ fn plan_slices(
                 .map(|band| (band.rows - 1) * SAMPLES_PER_ROW)
                 .max();
             let samples = map.row(slice as u32);
-            let keys: Vec<f64> = samples[..read.unwrap_or(0).min(samples.len())]
-                .iter()
-                .map(|&value| map.order_key(value as f64))
-                .collect();
+            let keys = map.order_keys(&samples[..read.unwrap_or(0).min(samples.len())]);
             let (mut sample, mut row, mut filled) = (0, 0, 0);
             for band in own {
                 let count = (band.rows - 1) * SAMPLES_PER_ROW;
