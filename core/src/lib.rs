@@ -58,9 +58,9 @@ pub use scene::Scene;
 pub use style::Style;
 
 /// Lets go of the buffers kept from earlier frames for the next (the filtered basis and its
-/// plan, the rectified map, min-max's pyramids, adaptive shading's grid, the camera depth
-/// and the layers): for a host that stops rendering for a while. The next frame allocates
-/// them afresh.
+/// plan, the rectified map, min-max's pyramids, adaptive shading's grid, the camera depth,
+/// the layers and the silhouette filter's copy of the shadow map): for a host that stops
+/// rendering for a while. The next frame allocates them afresh.
 pub fn release_kept_buffers() {
     layers::release_kept_buffers();
     adaptive::release_kept_buffers();
@@ -70,4 +70,5 @@ pub fn release_kept_buffers() {
     prefiltered::release_kept_buffers();
     raster::release_kept_buffers();
     upsample::release_kept_buffers();
+    silhouette::release_kept_buffers();
 }
