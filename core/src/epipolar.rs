@@ -283,6 +283,20 @@ pub struct EpipolarMap {
     bound_factors: Vec<[f32; 2]>,
 }
 
+/// The key of a reciprocal layout's `value` made a slope by `key_scale`: −s/(1 + |s|),
+/// bounded to [−1, 1], with ±∞ at ∓1 ([`EpipolarMap::order_key`]). The infinite case is
+/// a select rather than a branch, so that loops over samples vectorize.
+#[inline(always)]
+fn bounded_key(value: f64, key_scale: f64) -> f64 {
+    let slope = value * key_scale;
+    let bounded = -slope / (1.0 + slope.abs());
+    if value.is_infinite() {
+        -value.signum()
+    } else {
+        bounded
+    }
+}
+
 /// The factor [`EpipolarMap::order_key`] scales K by for `layout`, of a shadow map whose
 /// texels are `texel_size` scene units wide. A radial map's K is light depth over texels
 /// along the slice, in scene units per texel: over the texel's size it is the slope of the
@@ -847,36 +861,22 @@ impl EpipolarMap {
     #[inline]
     pub fn order_key(&self, value: f64) -> f64 {
         if self.layout.is_reciprocal() {
-            if value.is_infinite() {
-                -value.signum()
-            } else {
-                let slope = value * self.key_scale;
-                -slope / (1.0 + slope.abs())
-            }
+            bounded_key(value, self.key_scale)
         } else {
             -value
         }
     }
 
-    /// [`EpipolarMap::order_key`] of each of `values`, the same keys bit for bit, in a
-    /// loop without branches that the compiler vectorizes: the prefiltered plan keys every
-    /// sample its bands read, and keying them one at a time took 10 million more of
-    /// `torus`'s 1080p frame's instructions.
+    /// [`EpipolarMap::order_key`] of each of `values`, with the layout chosen once, in a
+    /// loop the compiler vectorizes: the prefiltered plan keys every sample its bands
+    /// read, and keying them one at a time took 10 million more of `torus`'s 1080p frame's
+    /// instructions.
     pub fn order_keys(&self, values: &[f32]) -> Vec<f64> {
         if self.layout.is_reciprocal() {
             let scale = self.key_scale;
             values
                 .iter()
-                .map(|&value| {
-                    let value = value as f64;
-                    let slope = value * scale;
-                    let bounded = -slope / (1.0 + slope.abs());
-                    if value.is_infinite() {
-                        -value.signum()
-                    } else {
-                        bounded
-                    }
-                })
+                .map(|&value| bounded_key(value as f64, scale))
                 .collect()
         } else {
             values.iter().map(|&value| -(value as f64)).collect()
