@@ -292,3 +292,30 @@ fn exact_ray_ends_read_names_and_the_old_flags_and_name_what_they_refuse() {
         "{refused}"
     );
 }
+
+/// A reader that stops early (`crepuscular scene export tree | head -1`) ends the command
+/// as it ends other Unix tools, by SIGPIPE, not with a panic on standard error.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_reader_that_stops_early_ends_the_command_quietly() {
+    use std::io::{BufRead, BufReader};
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::{Command, Stdio};
+
+    // Megabytes of JSON: the command is still writing when the reader goes.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_crepuscular"))
+        .args(["scene", "export", "tree"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first_line = String::new();
+    let mut reader = BufReader::new(child.stdout.take().unwrap());
+    reader.read_line(&mut first_line).unwrap();
+    assert_eq!(first_line.trim(), "{");
+    drop(reader);
+    let output = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(output.status.signal(), Some(libc::SIGPIPE), "{stderr}");
+}

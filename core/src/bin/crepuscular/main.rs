@@ -185,6 +185,7 @@ struct DemoArgs {
 }
 
 fn main() -> ExitCode {
+    end_quietly_on_a_closed_pipe();
     let cli = Cli::parse();
     if let Some(threads) = cli.threads {
         if let Err(err) = rayon::ThreadPoolBuilder::new()
@@ -211,6 +212,17 @@ fn main() -> ExitCode {
             eprintln!("error: {err}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Piped into a reader that stops early (`crepuscular scene export tree | head`), the
+/// command ends as other Unix tools do, on SIGPIPE, rather than panicking in `println!`:
+/// Rust ignores the signal, and every write after the reader closed then fails.
+fn end_quietly_on_a_closed_pipe() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: restoring the default action of a signal, before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 
